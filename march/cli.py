@@ -1,0 +1,116 @@
+"""One command-line convention for every ``python -m march.<tool>``.
+
+Every tool composes the same config tree as ``march.train`` (``conf/``) with Hydra overrides; a
+tool with several jobs takes the job as its first word (``python -m march.viz terrain
+out=x.png``). Tools other than ``march.train`` compose with Hydra's compose API (no output
+directory, no multirun) so they stay quick.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import hydra
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.errors import HydraException
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+import march.config  # noqa: F401  (registers the schema)
+from march.config import ConfigError, MarchConfig, to_march_config
+
+CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+SWEEPS_DIR = Path(__file__).resolve().parent.parent / "sweeps"
+
+
+def cuda_available() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
+
+
+def resolve_compute(cfg: DictConfig, overrides: Sequence[str]) -> DictConfig:
+    """compute=auto -> the gpu preset when CUDA is available, else cpu.
+
+    The chosen preset (``conf/compute/<name>.yaml``) is merged over the composed config and then
+    the user's own ``key=value`` overrides are applied again, so ``compute=auto
+    compute.num_envs=64`` keeps the 64.
+    """
+    if cfg.compute.name != "auto":
+        return cfg
+    chosen = "gpu" if cuda_available() else "cpu"
+    preset = OmegaConf.load(CONF_DIR / "compute" / f"{chosen}.yaml")
+    merged = OmegaConf.merge(cfg, preset)
+    parsed = OverridesParser.create().parse_overrides(list(overrides))
+    groups = ("reward", "student", "curriculum", "compute", "logger", "dr", "sweep", "arm")
+    for ov in parsed:
+        key = ov.key_or_group
+        if ov.is_delete() or key.split("/")[0] in groups or key.startswith("hydra"):
+            continue  # group choices are already composed
+        OmegaConf.update(merged, key, ov.value(), merge=True)
+    merged.compute.name = chosen
+    return merged
+
+
+def compose(overrides: Sequence[str] = ()) -> DictConfig:
+    """Compose conf/ with overrides (compute=auto resolved), as march.train would."""
+    with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = hydra.compose(config_name="config", overrides=list(overrides))
+    return resolve_compute(cfg, overrides)
+
+
+def load(overrides: Sequence[str] = ()) -> MarchConfig:
+    return to_march_config(compose(overrides))
+
+
+def fail(message: str, code: int = 2) -> None:
+    """One clear line on stderr, then exit (no traceback: the message says how to fix it)."""
+    print(f"error: {message}", file=sys.stderr)
+    raise SystemExit(code)
+
+
+def run_tool(
+    jobs: dict[str, Callable[[MarchConfig], object]] | Callable[[MarchConfig], object],
+    argv: Sequence[str] | None = None,
+    usage: str = "",
+) -> object:
+    """Parse ``[job] key=value ...``, compose the config and run the job with clear errors."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    if callable(jobs):
+        job, fn = None, jobs
+    else:
+        if not args or "=" in args[0]:
+            fail(f"say which job: {' | '.join(jobs)} (then key=value overrides). {usage}")
+        job = args.pop(0)
+        if job not in jobs:
+            fail(f"unknown job {job!r}; choose one of {', '.join(jobs)}")
+        fn = jobs[job]
+    bad = [a for a in args if "=" not in a]
+    if bad:
+        fail(f"expected key=value overrides, got {bad}. {usage}")
+    try:
+        cfg = load(args)
+    except (HydraException, OmegaConfBaseException, ConfigError) as err:
+        fail(_one_line(err))
+    if cfg.compute.torch_threads:
+        import torch
+
+        torch.set_num_threads(cfg.compute.torch_threads)
+    os.environ.setdefault("WANDB_MODE", "offline")
+    return fn(cfg)
+
+
+def _one_line(err: BaseException) -> str:
+    text = str(err).strip()
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    if not lines:
+        return type(err).__name__
+    # Hydra's "Could not find 'reward/bogus'" is followed by the available options: keep them.
+    if "Available options" in text:
+        head = lines[0]
+        opts = [ln for ln in lines[1:] if not ln.startswith("Available")]
+        return f"{head}; available options: {', '.join(opts)}"
+    return lines[0] if len(lines) == 1 else f"{lines[0]} ({lines[-1]})"

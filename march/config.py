@@ -1,0 +1,417 @@
+"""Typed configuration schema: the single source of truth for every option march takes.
+
+Hydra composes ``conf/`` on top of these dataclasses (registered in the ConfigStore as
+``march_schema``), so a misspelt key or a wrong type fails at composition, before any simulation.
+Values are checked once more when the composed config is turned into objects
+(:func:`to_march_config`): ``__post_init__`` of each section raises :class:`ConfigError` with one
+line saying what is wrong and how to fix it.
+
+Pure data: no simulator import.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import DictConfig, OmegaConf
+
+STAGES = ("all", "teacher", "student", "eval")
+REWARDS = ("clf", "modelfree")
+STUDENTS = ("full", "no_transformer", "no_mdn")
+CURRICULA = ("stones", "flat_first")
+COMPUTES = ("auto", "cpu", "gpu", "smoke")
+LOGGERS = ("csv", "tensorboard", "wandb")
+DRS = ("paper", "none")
+COURSES = ("stones", "hardware")
+
+
+class ConfigError(ValueError):
+    """A configuration value that cannot work; the message says how to fix it."""
+
+
+def _one_of(section: str, key: str, value: Any, valid: tuple[str, ...]) -> None:
+    if value not in valid:
+        raise ConfigError(f"{section}.{key}={value!r} is not valid; choose one of {', '.join(valid)}")
+
+
+def _positive(section: str, key: str, value: float) -> None:
+    if not value > 0:
+        raise ConfigError(f"{section}.{key}={value} must be > 0")
+
+
+@dataclass
+class ComputeCfg:
+    """Where and how big: presets in ``conf/compute/`` also size teacher, distill and eval."""
+
+    name: str = "cpu"
+    """Preset name: auto (gpu if CUDA is available, else cpu), cpu, gpu or smoke."""
+    device: str = "cpu"
+    """Torch/warp device for simulation and learning: "cpu", "cuda" or "cuda:N"."""
+    num_envs: int = 32
+    """Parallel environments for teacher training and distillation."""
+    eval_num_envs: int = 32
+    """Parallel environments for evaluation rollouts (at most eval.num_rollouts are used)."""
+    torch_threads: int = 0
+    """torch.set_num_threads on CPU; 0 keeps torch's default."""
+
+    def __post_init__(self) -> None:
+        _one_of("compute", "name", self.name, COMPUTES)
+        if not (self.device == "cpu" or self.device.startswith("cuda")):
+            raise ConfigError(f"compute.device={self.device!r}: use cpu, cuda or cuda:N")
+        _positive("compute", "num_envs", self.num_envs)
+        _positive("compute", "eval_num_envs", self.eval_num_envs)
+
+
+@dataclass
+class EnvCfg:
+    """The mjlab environment around the Unitree G1 (SPEC §2)."""
+
+    episode_length_s: float = 20.0
+    """Episode length [s]."""
+    sim_dt: float = 0.005
+    """Physics time step [s]."""
+    decimation: int = 4
+    """Physics steps per control step (50 Hz control at 0.005 s)."""
+    history_length: int = 5
+    """Proprioception history length [control steps] for teacher and student."""
+    command_vx: tuple[float, float] = (0.3, 0.8)
+    """Forward velocity command range [m/s], sampled per episode (forward-biased)."""
+    command_vy: tuple[float, float] = (-0.1, 0.1)
+    """Lateral velocity command range [m/s]."""
+    command_yaw_rate: tuple[float, float] = (-0.2, 0.2)
+    """Yaw-rate command range [rad/s]."""
+    depth_width: int = 32
+    """Depth image width [px] (student)."""
+    depth_height: int = 24
+    """Depth image height [px] (student)."""
+    depth_fovy_deg: float = 55.2
+    """Depth camera vertical field of view [deg] (D435i-like)."""
+    depth_max_m: float = 3.0
+    """Depth clip range [m]; misses (0) read as this."""
+    depth_pos: tuple[float, float, float] = (0.1, 0.0, 0.35)
+    """Depth camera position in the torso frame [m]."""
+    depth_pitch_deg: float = 50.0
+    """Depth camera pitch below the horizon [deg] (looks forward and down)."""
+    depth_noise_scale: float = 0.1
+    """Depth noise sigma as a fraction of depth (sigma = scale * depth)."""
+    depth_dropout: float = 0.05
+    """Fraction of depth pixels dropped (set to max range) in training."""
+    depth_delay_steps: tuple[int, int] = (0, 1)
+    """Depth delay range [control steps]."""
+
+    def __post_init__(self) -> None:
+        _positive("env", "episode_length_s", self.episode_length_s)
+        _positive("env", "sim_dt", self.sim_dt)
+        _positive("env", "decimation", self.decimation)
+        _positive("env", "history_length", self.history_length)
+        _positive("env", "depth_max_m", self.depth_max_m)
+        if not 0.0 <= self.depth_dropout < 1.0:
+            raise ConfigError(f"env.depth_dropout={self.depth_dropout} must be in [0, 1)")
+        for key in ("command_vx", "command_vy", "command_yaw_rate", "depth_delay_steps"):
+            lo, hi = getattr(self, key)
+            if lo > hi:
+                raise ConfigError(f"env.{key}=[{lo}, {hi}]: the lower bound exceeds the upper")
+
+
+@dataclass
+class RewardCfg:
+    """The teacher's reward: named terms and weights (conf/reward/*.yaml)."""
+
+    name: str = "clf"
+    """clf (CLF-RL terms around the model-based reference) or modelfree (RPL-style baseline)."""
+    terms: dict[str, float] = field(default_factory=dict)
+    """Reward term name -> weight. A penalty term returns a value <= 0 and carries a positive
+    weight, so every weight here is the sign the term's contribution has (SPEC §2)."""
+    tilt_limit_deg: float = 50.0
+    """Terminate when the torso tilts beyond this [deg]."""
+    min_base_height_m: float = 0.4
+    """Terminate when the pelvis is lower than this above the start platform [m]."""
+
+    def __post_init__(self) -> None:
+        _one_of("reward", "name", self.name, REWARDS)
+
+
+@dataclass
+class CurriculumCfg:
+    """Terrain curriculum (conf/curriculum/*.yaml)."""
+
+    name: str = "stones"
+    """stones (stepping stones from the start, easiest level first) or flat_first."""
+    num_levels: int = 10
+    """Difficulty levels (terrain rows)."""
+    num_cols: int = 8
+    """Courses per level (terrain columns)."""
+    max_init_level: int = 0
+    """Highest level an env may start on."""
+    flat_fraction: float = 0.0
+    """Fraction of courses that are flat ground (flat_first starts on them)."""
+
+    def __post_init__(self) -> None:
+        _one_of("curriculum", "name", self.name, CURRICULA)
+        _positive("curriculum", "num_levels", self.num_levels)
+        _positive("curriculum", "num_cols", self.num_cols)
+
+
+@dataclass
+class StudentCfg:
+    """Student network (conf/student/*.yaml); SPEC §2 has the author's sizes."""
+
+    variant: str = "full"
+    """full (CNN + transformer + MDN), no_transformer (MLP fusion) or no_mdn (deterministic head)."""
+    cnn_channels: tuple[int, ...] = (24, 32, 48, 64)
+    """CNN output channels per layer."""
+    cnn_kernels: tuple[int, ...] = (5, 3, 3, 3)
+    """CNN kernel sizes per layer."""
+    d_model: int = 256
+    """Transformer token width."""
+    n_heads: int = 8
+    """Attention heads."""
+    n_layers: int = 2
+    """Transformer encoder layers."""
+    fusion_mlp: tuple[int, ...] = (512, 256)
+    """Hidden sizes of the MLP that replaces the transformer (no_transformer)."""
+    head_hidden: tuple[int, ...] = (256, 128)
+    """Hidden sizes of the output head."""
+    num_modes: int = 2
+    """MDN mixture components."""
+    min_std: float = 1e-3
+    """MDN minimum standard deviation."""
+    log_std_min: float = -3.0
+    """MDN log-std lower clamp."""
+    log_std_max: float = 2.0
+    """MDN log-std upper clamp."""
+    activation: str = "elu"
+    """Activation function."""
+    huber_delta: float = 1.0
+    """Huber loss delta for no_mdn."""
+
+    def __post_init__(self) -> None:
+        _one_of("student", "variant", self.variant, STUDENTS)
+        if len(self.cnn_channels) != len(self.cnn_kernels):
+            raise ConfigError("student.cnn_channels and student.cnn_kernels must have equal length")
+        if self.d_model % self.n_heads:
+            raise ConfigError(f"student.d_model={self.d_model} must be divisible by n_heads")
+        if self.log_std_min >= self.log_std_max:
+            raise ConfigError("student.log_std_min must be < student.log_std_max")
+
+
+@dataclass
+class TeacherCfg:
+    """PPO teacher (paper Table: HLIP CLF Teacher PPO)."""
+
+    max_iterations: int = 10000
+    """PPO iterations (set by the compute preset)."""
+    budget_scale: float = 1.0
+    """Multiplies max_iterations (the baseline sweep gives modelfree 2x, as in the paper)."""
+    num_steps_per_env: int = 24
+    """Rollout length per iteration [control steps]."""
+    hidden_dims: tuple[int, ...] = (512, 256, 128)
+    """Actor and critic MLP hidden sizes."""
+    activation: str = "elu"
+    """Activation function."""
+    init_std: float = 1.0
+    """Initial action std."""
+    learning_rate: float = 5e-5
+    """Adam learning rate (adaptive schedule)."""
+    schedule: str = "adaptive"
+    """Learning-rate schedule: adaptive (KL-based) or fixed."""
+    num_learning_epochs: int = 5
+    """PPO epochs per iteration."""
+    num_mini_batches: int = 4
+    """Mini-batches per epoch."""
+    clip_param: float = 0.2
+    """PPO clip."""
+    value_loss_coef: float = 1.0
+    """Value loss coefficient."""
+    entropy_coef: float = 0.008
+    """Entropy coefficient."""
+    gamma: float = 0.99
+    """Discount."""
+    lam: float = 0.95
+    """GAE lambda."""
+    desired_kl: float = 0.01
+    """Target KL for the adaptive schedule."""
+    max_grad_norm: float = 1.0
+    """Gradient clip."""
+    save_interval: int = 50
+    """Checkpoint every this many iterations."""
+
+    @property
+    def iterations(self) -> int:
+        return max(1, round(self.max_iterations * self.budget_scale))
+
+    def __post_init__(self) -> None:
+        _positive("teacher", "max_iterations", self.max_iterations)
+        _positive("teacher", "budget_scale", self.budget_scale)
+        _positive("teacher", "num_steps_per_env", self.num_steps_per_env)
+        _positive("teacher", "learning_rate", self.learning_rate)
+        _positive("teacher", "save_interval", self.save_interval)
+        _one_of("teacher", "schedule", self.schedule, ("adaptive", "fixed"))
+
+
+@dataclass
+class DistillCfg:
+    """Student distillation (paper Table: MDN Distillation)."""
+
+    max_iterations: int = 1500
+    """Distillation iterations (set by the compute preset)."""
+    num_steps_per_env: int = 120
+    """Rollout length per iteration [control steps]."""
+    learning_rate: float = 5e-4
+    """Adam learning rate."""
+    num_learning_epochs: int = 10
+    """Passes over each rollout."""
+    gradient_length: int = 2
+    """Steps whose losses are summed per optimiser step."""
+    max_grad_norm: float = 2.0
+    """Gradient clip."""
+    teacher_samples: int = 8
+    """Teacher actions sampled per observation for the NLL loss."""
+    teacher_std_scale: float = 0.1
+    """Teacher std multiplier when sampling those actions."""
+    eval_interval: int = 100
+    """Evaluate the student every this many iterations (a row in eval.csv); 0 = only at the end."""
+    save_interval: int = 50
+    """Checkpoint every this many iterations."""
+
+    def __post_init__(self) -> None:
+        _positive("distill", "max_iterations", self.max_iterations)
+        _positive("distill", "num_steps_per_env", self.num_steps_per_env)
+        _positive("distill", "num_learning_epochs", self.num_learning_epochs)
+        _positive("distill", "gradient_length", self.gradient_length)
+        _positive("distill", "teacher_samples", self.teacher_samples)
+        _positive("distill", "save_interval", self.save_interval)
+        if self.eval_interval < 0:
+            raise ConfigError("distill.eval_interval must be >= 0")
+
+
+@dataclass
+class EvalCfg:
+    """Evaluation protocol (SPEC §2)."""
+
+    num_rollouts: int = 2048
+    """Episodes rolled out per evaluation."""
+    episode_length_s: float = 20.0
+    """Fixed episode length [s]."""
+    course: str = "stones"
+    """stones (all difficulty levels, uniformly) or hardware (4 alternating stones)."""
+    command_vx: float = 0.5
+    """Forward velocity command during evaluation [m/s]."""
+    corruption: bool = True
+    """Depth corruption (noise, dropout, delay) as in training."""
+    randomization: bool = True
+    """Domain randomization as in training."""
+    policy: str = "student"
+    """Which policy to evaluate in stage=eval: student or teacher."""
+
+    def __post_init__(self) -> None:
+        _positive("eval", "num_rollouts", self.num_rollouts)
+        _positive("eval", "episode_length_s", self.episode_length_s)
+        _one_of("eval", "course", self.course, COURSES)
+        _one_of("eval", "policy", self.policy, ("student", "teacher"))
+
+
+@dataclass
+class LoggerCfg:
+    """Where per-iteration metrics go besides metrics.csv (always written)."""
+
+    name: str = "csv"
+    """csv, tensorboard or wandb (offline unless WANDB_MODE says otherwise)."""
+    project: str = "march"
+    """wandb project."""
+
+    def __post_init__(self) -> None:
+        _one_of("logger", "name", self.name, LOGGERS)
+
+
+@dataclass
+class DrCfg:
+    """Domain randomization (conf/dr/*.yaml): the paper's table or none."""
+
+    name: str = "paper"
+    """paper (every row of the paper's table) or none."""
+    friction: tuple[float, float] = (0.5, 1.25)
+    """Foot friction coefficient range."""
+    link_mass_scale: tuple[float, float] = (0.9, 1.2)
+    """Link mass multiplier range."""
+    base_added_mass_kg: tuple[float, float] = (-1.0, 3.0)
+    """Added torso mass range [kg]."""
+    encoder_bias_rad: tuple[float, float] = (-0.015, 0.015)
+    """Joint encoder bias range [rad]."""
+    base_com_offset_m: tuple[float, float, float] = (0.025, 0.05, 0.05)
+    """Torso CoM offset half-ranges in x, y, z [m]."""
+    effort_limit_scale: tuple[float, float] = (0.85, 1.1)
+    """Motor effort limit multiplier range."""
+    joint_damping_scale: tuple[float, float] = (0.75, 1.25)
+    """Joint damping multiplier range."""
+    joint_friction: tuple[float, float] = (0.0, 0.04)
+    """Joint friction loss range [N m]."""
+    push_interval_s: tuple[float, float] = (10.0, 15.0)
+    """Velocity push interval [s]."""
+    push_lin_vel: float = 1.0
+    """Push linear velocity half-range in x and y [m/s]."""
+    push_ang_vel: float = 0.4
+    """Push angular velocity half-range in roll, pitch, yaw [rad/s]."""
+    control_delay_ms: tuple[float, float] = (0.0, 20.0)
+    """Action delay range [ms]."""
+    camera_pos_m: float = 0.025
+    """Camera translation half-range per axis [m]."""
+    camera_rot_deg: tuple[float, float, float] = (2.5, 3.0, 2.5)
+    """Camera rotation half-ranges roll, pitch, yaw [deg]."""
+    camera_fov_deg: float = 2.0
+    """Camera FOV half-range [deg]."""
+
+    def __post_init__(self) -> None:
+        _one_of("dr", "name", self.name, DRS)
+
+
+@dataclass
+class MarchConfig:
+    """The whole composed config of a march run (conf/config.yaml)."""
+
+    seed: int = 0
+    """Seeds torch, numpy, python and the simulator; same seed on CPU -> same numbers."""
+    stage: str = "all"
+    """all (teacher -> student -> eval), teacher, student or eval."""
+    teacher_ckpt: str | None = None
+    """Teacher checkpoint file (stage=student, stage=eval with eval.policy=teacher)."""
+    student_ckpt: str | None = None
+    """Student checkpoint file (stage=eval)."""
+    resume: str | None = None
+    """A run directory to continue from its last checkpoints."""
+    out: str | None = None
+    """A file a tool writes (viz, export, play)."""
+    compute: ComputeCfg = field(default_factory=ComputeCfg)
+    env: EnvCfg = field(default_factory=EnvCfg)
+    reward: RewardCfg = field(default_factory=RewardCfg)
+    curriculum: CurriculumCfg = field(default_factory=CurriculumCfg)
+    student: StudentCfg = field(default_factory=StudentCfg)
+    teacher: TeacherCfg = field(default_factory=TeacherCfg)
+    distill: DistillCfg = field(default_factory=DistillCfg)
+    eval: EvalCfg = field(default_factory=EvalCfg)
+    logger: LoggerCfg = field(default_factory=LoggerCfg)
+    dr: DrCfg = field(default_factory=DrCfg)
+
+    def __post_init__(self) -> None:
+        if self.stage not in STAGES:
+            raise ConfigError(f"stage={self.stage!r} is not valid; choose one of {', '.join(STAGES)}")
+
+
+def register_schema() -> None:
+    """Register the schema so conf/config.yaml can extend it (idempotent)."""
+    ConfigStore.instance().store(name="march_schema", node=MarchConfig)
+
+
+register_schema()
+
+
+def to_march_config(cfg: DictConfig) -> MarchConfig:
+    """Turn a composed (and compute-resolved) DictConfig into validated dataclasses."""
+    obj = OmegaConf.to_object(cfg)
+    if not isinstance(obj, MarchConfig):  # composed without the schema (e.g. a raw YAML)
+        merged = OmegaConf.merge(OmegaConf.structured(MarchConfig), cfg)
+        obj = OmegaConf.to_object(merged)
+    assert isinstance(obj, MarchConfig)
+    return obj

@@ -1,0 +1,173 @@
+"""Export a student's ``act_inference`` to ONNX, check it against torch, time it on one CPU thread.
+
+The exported graph takes ``proprio_hist`` (B, history_len, proprio_dim), ``command``
+(B, command_dim) and ``depth`` (B, 1, H, W) (float32, batch axis dynamic) and returns ``actions``
+(B, A). The observation normalisers are part of the graph (their running statistics are baked in as
+constants), so deployment feeds raw observations. ``metadata_props`` carry the caller's metadata
+(observation and action layout) plus the input shapes and the student variant.
+
+Exporter: torch 2.13 defaults to the dynamo exporter; we use the TorchScript-based exporter
+(``dynamo=False``), which handles ``nn.TransformerEncoder`` and writes one self-contained file.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import torch
+from torch import nn
+
+from march.policies.student import StudentPolicy
+
+INPUT_NAMES = ("proprio_hist", "command", "depth")
+OUTPUT_NAME = "actions"
+DEFAULT_OPSET = 17
+
+
+class ActInferenceWrapper(nn.Module):
+    """Module whose forward is the policy's deterministic ``act_inference``."""
+
+    def __init__(self, policy: StudentPolicy) -> None:
+        super().__init__()
+        self.policy = policy
+
+    def forward(
+        self, proprio_hist: torch.Tensor, command: torch.Tensor, depth: torch.Tensor
+    ) -> torch.Tensor:
+        return self.policy.act_inference(proprio_hist, command, depth)
+
+
+def example_inputs(
+    policy: StudentPolicy, batch_size: int = 1, generator: torch.Generator | None = None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Random float32 CPU inputs of the policy's shapes (depth uniform in [0, 3] m)."""
+    h, w = policy.image_hw
+    proprio = torch.randn(batch_size, policy.history_len, policy.proprio_dim, generator=generator)
+    command = torch.randn(batch_size, policy.command_dim, generator=generator)
+    depth = 3.0 * torch.rand(batch_size, 1, h, w, generator=generator)
+    return proprio, command, depth
+
+
+def _session(path: Path, threads: int = 1) -> ort.InferenceSession:
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = threads
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+
+
+def _feeds(inputs: tuple[torch.Tensor, ...]) -> dict[str, np.ndarray]:
+    return {n: t.numpy().astype(np.float32) for n, t in zip(INPUT_NAMES, inputs, strict=True)}
+
+
+def _export(model: nn.Module, dummy: tuple[torch.Tensor, ...], path: Path, opset: int) -> None:
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # TorchScript-exporter deprecation / tracer warnings
+        torch.onnx.export(
+            model,
+            dummy,
+            str(path),
+            dynamo=False,
+            input_names=list(INPUT_NAMES),
+            output_names=[OUTPUT_NAME],
+            dynamic_axes={n: {0: "batch"} for n in (*INPUT_NAMES, OUTPUT_NAME)},
+            opset_version=opset,
+            do_constant_folding=True,
+        )
+
+
+def export_student_onnx(
+    policy: StudentPolicy,
+    path: str | Path,
+    metadata: dict[str, str],
+    *,
+    opset: int = DEFAULT_OPSET,
+    check_batch_sizes: tuple[int, ...] = (1, 16),
+    latency_calls: int = 200,
+    warmup_calls: int = 20,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Export ``policy.act_inference`` to ``path`` and verify it with onnxruntime.
+
+    The policy is deep-copied to CPU in eval mode, so the caller's module (device, train mode)
+    is untouched. Returns ``{"max_abs_diff", "latency_ms_median", "latency_ms_p95", "path", ...}``:
+    the max |onnxruntime - torch| over random inputs at ``check_batch_sizes`` and the per-call
+    latency (batch 1, one intra-op thread) over ``latency_calls`` calls after ``warmup_calls``.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    bad = {k: v for k, v in metadata.items() if not isinstance(k, str) or not isinstance(v, str)}
+    if bad:
+        raise TypeError(f"metadata must map str -> str; offending entries: {bad}")
+
+    model = ActInferenceWrapper(copy.deepcopy(policy).to("cpu").float()).eval()
+    gen = torch.Generator().manual_seed(seed)
+    dummy = example_inputs(model.policy, 1, gen)
+    fastpath = torch.backends.mha.get_fastpath_enabled()
+    # the fused encoder kernel (aten::_transformer_encoder_layer_fwd) has no ONNX symbolic:
+    # trace the composite path instead (same maths), then restore the global flag
+    torch.backends.mha.set_fastpath_enabled(False)
+    try:
+        _export(model, dummy, path, opset)
+    finally:
+        torch.backends.mha.set_fastpath_enabled(fastpath)
+
+    p = model.policy
+    props = {
+        "student_variant": p.variant,
+        "input_proprio_hist": f"float32[batch,{p.history_len},{p.proprio_dim}]",
+        "input_command": f"float32[batch,{p.command_dim}]",
+        "input_depth": f"float32[batch,1,{p.image_hw[0]},{p.image_hw[1]}] (metres)",
+        "output_actions": f"float32[batch,{p.num_actions}]",
+        "inference_mode": "top_mode_mean" if p.is_mdn else "deterministic",
+        "observation_normalization": "embedded",
+        **metadata,
+    }
+    proto = onnx.load(str(path))
+    existing = {e.key: e.value for e in proto.metadata_props}
+    onnx.helper.set_model_props(proto, {**existing, **props})
+    onnx.checker.check_model(proto)
+    onnx.save(proto, str(path))
+
+    sess = _session(path, threads=1)
+    max_diff = 0.0
+    with torch.no_grad():
+        for bs in check_batch_sizes:
+            inputs = example_inputs(p, bs, gen)
+            ref = model(*inputs).numpy()
+            got = sess.run([OUTPUT_NAME], _feeds(inputs))[0]
+            if got.shape != ref.shape:
+                raise RuntimeError(f"ONNX output shape {got.shape} != torch {ref.shape}")
+            max_diff = max(max_diff, float(np.max(np.abs(got - ref))))
+
+    feeds = _feeds(example_inputs(p, 1, gen))
+    for _ in range(warmup_calls):
+        sess.run([OUTPUT_NAME], feeds)
+    times = np.empty(latency_calls)
+    for i in range(latency_calls):
+        t0 = time.perf_counter()
+        sess.run([OUTPUT_NAME], feeds)
+        times[i] = (time.perf_counter() - t0) * 1e3
+
+    return {
+        "max_abs_diff": max_diff,
+        "latency_ms_median": float(np.median(times)),
+        "latency_ms_p95": float(np.percentile(times, 95)),
+        "path": str(path),
+        "opset": opset,
+        "num_params": p.num_params(),
+        "metadata_keys": sorted(props),
+    }
+
+
+def read_onnx_metadata(path: str | Path) -> dict[str, str]:
+    """The ``metadata_props`` of an ONNX file as a dict."""
+    return {e.key: e.value for e in onnx.load(str(path)).metadata_props}

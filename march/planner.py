@@ -1,0 +1,383 @@
+"""Batched footstep planner over stepping stones (paper eq. "planner"), plain torch.
+
+Problem (per env): from the current stance foot p_0, choose N steps l_i and durations dt_i,
+
+    min  sum_i ||v_i - v_D||^2 + c_edge(p_i)  (+ optional w_time (dt_i - T_nom)^2)
+    s.t. p_{i+1} = p_i + l_i,  v_i = (l_i - n_i) / dt_i,  p_i on a stone with a margin,
+         l_i within the step bounds, feet alternate left/right, lateral limits per foot.
+
+n_i is the nominal lateral offset of the landing foot (+/- step width across the course): the
+paper writes v_i = l_i / dt_i; measured raw, the alternating +/- w lateral part of every step would
+enter the cost as +/- w/dt and bias every plan toward the slowest timing, so the velocity is
+measured between the feet's nominal lines (equivalently, the velocity of the mid-stance point).
+
+Solver: random shooting with R = 16 greedy rollouts. At each step every rollout scores all
+discretised durations (7 in [0.45, 0.7] s) times candidate footholds on the M stones nearest to the
+nominal foothold; candidates per stone are the nominal foothold clamped into the stone (with the
+hard margin, and with margin + edge clearance) plus K random points on it. Rollout 0 is the pure
+greedy choice; rollouts 1.. perturb the step scores with Gumbel noise (= sampling from a softmin
+with temperature ``explore_temperature``), which lets them trade a worse step now for a reachable
+next stone. The rollout with the lowest noise-free cost wins; a plan is feasible when every step
+met every constraint.
+
+Frames: positions and the velocity command are in the world frame. Longitudinal/lateral limits and
+the nominal width use the course frame given by ``Footholds.direction`` (+x for generated courses).
+The yaw-rate command is ignored for foothold placement (the course is straight and the planner
+works in the course frame); the pelvis-yaw reference tracks it (march.reference).
+
+Randomness: every random draw has a shape independent of the number of envs and is shared by all
+envs, so a batched plan equals a per-env loop and a seeded ``torch.Generator`` fixes the plan.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from march.footholds import Footholds
+
+_EPS = 1e-5
+"""Numerical slack [m] so that clamped footholds pass ``Footholds.contains`` in float32."""
+
+
+@dataclass
+class PlannerCfg:
+    """Footstep planner parameters (author values where SPEC.md gives them)."""
+
+    num_steps: int = 4
+    """Horizon N: planned steps per replan (paper: 4)."""
+    num_rollouts: int = 16
+    """Greedy random-shooting rollouts R (paper: 16); rollout 0 is noise-free greedy."""
+    duration_range: tuple[float, float] = (0.45, 0.7)
+    """Shortest and longest step duration dt [s] (author)."""
+    num_durations: int = 7
+    """Number of evenly spaced duration candidates in ``duration_range`` (author: 7)."""
+    step_width: float = 0.25
+    """Nominal lateral distance between the feet [m] (author y_nom); keep equal to HlipCfg."""
+    max_step: float = 0.85
+    """Upper bound on the horizontal step length ||l|| [m] (author)."""
+    min_step_forward: float = -0.25
+    """Lower bound on the step component along the course [m] (a short backward step is allowed)."""
+    min_lateral: float = 0.08
+    """Least lateral distance of the landing foot to its own side of the stance foot [m]."""
+    max_lateral: float = 0.45
+    """Largest lateral distance of the landing foot from the stance foot [m]."""
+    max_step_height: float = 0.3
+    """Largest |height change| between stance and landing stone tops [m]."""
+    stone_margin: float = 0.04
+    """Hard margin: a foothold keeps at least this distance to every stone edge [m]."""
+    edge_clearance: float = 0.1
+    """Soft margin: footholds closer than this to an edge pay the edge cost [m] (author)."""
+    edge_cost: float = 100.0
+    """Edge cost weight; c_edge = edge_cost * (max(0, clearance - d_edge) / clearance)^2 (author)."""
+    w_velocity: float = 1.0
+    """Weight of ||v_i - v_D||^2 [1/(m/s)^2] (paper: 1)."""
+    w_time: float = 0.45
+    """Step-time regulariser weight on (dt - T_nom)^2 [1/s^2] (author's extra, not in the paper's
+    cost; it mostly breaks ties toward the middle duration on open ground). 0 = paper cost."""
+    num_candidate_stones: int = 8
+    """M: stones per step nearest to the nominal foothold that are searched."""
+    samples_per_stone: int = 4
+    """K: random footholds drawn uniformly on each searched stone (with the hard margin)."""
+    explore_temperature: float = 0.2
+    """Softmin temperature of the randomised rollouts [cost units]; 0 makes all rollouts greedy."""
+    infeasible_cost: float = 1.0e4
+    """Cost added per violated step; keeps costs finite and ranks least-violating fallbacks."""
+
+    @property
+    def nominal_duration(self) -> float:
+        """T_nom: the middle of ``duration_range`` [s] (a candidate when num_durations is odd)."""
+        return 0.5 * (self.duration_range[0] + self.duration_range[1])
+
+    def duration_grid(self, device: torch.device | str = "cpu", dtype=torch.float32) -> torch.Tensor:
+        """(num_durations,) candidate step durations [s]."""
+        return torch.linspace(*self.duration_range, self.num_durations, device=device, dtype=dtype)
+
+
+@dataclass
+class Plan:
+    """A batch of footstep plans (E envs, N steps)."""
+
+    footholds: torch.Tensor
+    """(E, N, 3) planned footholds: xy on a stone and the stone's top height z [m], world frame."""
+    durations: torch.Tensor
+    """(E, N) duration of each step, touchdown to touchdown [s]."""
+    lands_left: torch.Tensor
+    """(E, N) bool: True where the left foot lands at that step (steps alternate)."""
+    cost: torch.Tensor
+    """(E,) plan cost (velocity + edge + time terms, plus ``infeasible_cost`` per violation)."""
+    feasible: torch.Tensor
+    """(E,) bool: every step met every constraint."""
+    start: torch.Tensor
+    """(E, 3) stance foot the plan starts from (xy as given, z = top of the stone under it) [m]."""
+
+    @property
+    def num_steps(self) -> int:
+        return self.footholds.shape[1]
+
+    def steps(self) -> torch.Tensor:
+        """(E, N, 3) step vectors l_i = p_{i+1} - p_i (including the height change)."""
+        prev = torch.cat([self.start[:, None], self.footholds[:, :-1]], dim=1)
+        return self.footholds - prev
+
+
+def course_frame(footholds: Footholds) -> tuple[torch.Tensor, torch.Tensor]:
+    """(E, 2) unit vectors along and across (to the left of) the course."""
+    axis = footholds.direction / footholds.direction.norm(dim=-1, keepdim=True).clamp(min=1e-9)
+    return axis, torch.stack([-axis[:, 1], axis[:, 0]], dim=-1)
+
+
+def locate_on_stones(footholds: Footholds, xy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Signed edge clearance (E, ...) and stone top height (E, ...) of points xy (E, ..., 2).
+
+    The clearance is the largest over the env's stones of min(half_size - |xy - center|): on a stone
+    it is the distance to that stone's nearest edge, off every stone it is negative. z is the top
+    height of the stone attaining it.
+    """
+    e = xy.shape[0]
+    pts = xy.reshape(e, -1, 1, 2)
+    d = (pts - footholds.center[:, None, :, :2]).abs()
+    clearance = (footholds.half_size[:, None] - d).min(-1).values  # (E, P, S)
+    clearance = clearance.masked_fill(~footholds.valid[:, None], -1e9)
+    best, idx = clearance.max(-1)
+    z = torch.gather(footholds.center[..., 2], 1, idx)
+    return best.reshape(xy.shape[:-1]), z.reshape(xy.shape[:-1])
+
+
+Vec = tuple[torch.Tensor, torch.Tensor]
+"""A 2-D vector field as separate (x, y) tensors: elementwise ops on split components are several
+times faster on CPU than on (..., 2) tensors with broadcasting."""
+
+
+def _step_cost(
+    prev: Vec,
+    prev_z: torch.Tensor,
+    pos: Vec,
+    z: torch.Tensor,
+    clearance: torch.Tensor,
+    duration: torch.Tensor,
+    lands_left: torch.Tensor,
+    v_cmd: Vec,
+    axis: Vec,
+    lat: Vec,
+    cfg: PlannerCfg,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cost and feasibility of one step; all inputs broadcast against each other.
+
+    ``clearance`` is the landing point's distance to the nearest edge of its stone (negative off
+    the stones). The velocity is measured between the feet's nominal lines (module docstring).
+    """
+    sx, sy = pos[0] - prev[0], pos[1] - prev[1]
+    along = sx * axis[0] + sy * axis[1]
+    across = sx * lat[0] + sy * lat[1]
+    side = lands_left.to(sx.dtype) * 2.0 - 1.0
+    # Remove the nominal lateral offset (side * width along ``lat``) before dividing by dt.
+    across_v = (across - side * cfg.step_width) / duration
+    along_v = along / duration
+    cmd_along = v_cmd[0] * axis[0] + v_cmd[1] * axis[1]
+    cmd_across = v_cmd[0] * lat[0] + v_cmd[1] * lat[1]
+    c_vel = cfg.w_velocity * ((along_v - cmd_along) ** 2 + (across_v - cmd_across) ** 2)
+    pen = ((cfg.edge_clearance - clearance) / cfg.edge_clearance).clamp(0.0, 1.0)
+    c_edge = cfg.edge_cost * pen**2
+    c_time = cfg.w_time * (duration - cfg.nominal_duration) ** 2
+    signed_lat = side * across
+    feasible = (
+        (clearance >= cfg.stone_margin - 2 * _EPS)
+        & (sx * sx + sy * sy <= cfg.max_step**2)
+        & (along >= cfg.min_step_forward)
+        & (signed_lat >= cfg.min_lateral)
+        & (signed_lat <= cfg.max_lateral)
+        & ((z - prev_z).abs() <= cfg.max_step_height)
+    )
+    cost = c_vel + c_edge + c_time + cfg.infeasible_cost * (~feasible).to(sx.dtype)
+    return cost, feasible
+
+
+def evaluate_plan(
+    start_xy: torch.Tensor,
+    footholds_xy: torch.Tensor,
+    durations: torch.Tensor,
+    lands_left: torch.Tensor,
+    command: torch.Tensor,
+    footholds: Footholds,
+    cfg: PlannerCfg,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cost (E,) and feasibility (E,) of a given plan under the planner's cost and constraints.
+
+    start_xy (E, 2), footholds_xy (E, N, 2), durations (E, N), lands_left (E, N), command (E, 3).
+    """
+    axis, lat = course_frame(footholds)
+    clear_start, z_start = locate_on_stones(footholds, start_xy)
+    clear, z = locate_on_stones(footholds, footholds_xy)
+    prev_xy = torch.cat([start_xy[:, None], footholds_xy[:, :-1]], dim=1)
+    prev_z = torch.cat([z_start[:, None], z[:, :-1]], dim=1)
+    cost, ok = _step_cost(
+        prev_xy.unbind(-1),
+        prev_z,
+        footholds_xy.unbind(-1),
+        z,
+        clear,
+        durations,
+        lands_left,
+        command[:, None, :2].unbind(-1),
+        axis[:, None].unbind(-1),
+        lat[:, None].unbind(-1),
+        cfg,
+    )
+    return cost.sum(-1), ok.all(-1)
+
+
+def _nearest_stones(footholds: Footholds, x: torch.Tensor, y: torch.Tensor, m: int):
+    """Centre x, y, z, half sizes x, y (each (E, R, M)) and validity of the M stones whose
+    rectangles are nearest to the points (x, y), each (E, R)."""
+    cx, cy, cz = footholds.center.unbind(-1)  # (E, S)
+    hx, hy = footholds.half_size.unbind(-1)
+    dx = ((x[..., None] - cx[:, None]).abs() - hx[:, None]).clamp(min=0.0)
+    dy = ((y[..., None] - cy[:, None]).abs() - hy[:, None]).clamp(min=0.0)
+    dist = (dx * dx + dy * dy).masked_fill(~footholds.valid[:, None], float("inf"))
+    dist, idx = dist.topk(m, dim=-1, largest=False)  # (E, R, M)
+    flat = idx.flatten(1)
+
+    def take(t: torch.Tensor) -> torch.Tensor:
+        return torch.gather(t, 1, flat).view_as(idx)
+
+    return take(cx), take(cy), take(cz), take(hx), take(hy), torch.isfinite(dist)
+
+
+def _clamp_into(target: torch.Tensor, center: torch.Tensor, half: torch.Tensor) -> torch.Tensor:
+    """Clamp target (E, R, T, 1) into [center - half, center + half] (E, R, 1, M)."""
+    return torch.minimum(torch.maximum(target, center - half), center + half)
+
+
+def plan_footsteps(
+    stance_xy: torch.Tensor,
+    stance_is_left: torch.Tensor,
+    command: torch.Tensor,
+    footholds: Footholds,
+    cfg: PlannerCfg | None = None,
+    generator: torch.Generator | None = None,
+) -> Plan:
+    """Plan N footsteps for every env by random shooting with greedy rollouts.
+
+    stance_xy: (E, 2) current stance foot [m], world frame; stance_is_left: (E,) bool;
+    command: (E, 3) [vx, vy, yaw_rate] in the world frame [m/s, m/s, rad/s] (yaw rate unused
+    here); footholds: the envs' stones. Deterministic for a seeded ``generator``.
+    """
+    cfg = cfg or PlannerCfg()
+    device, dtype = stance_xy.device, stance_xy.dtype
+    e, r, n = stance_xy.shape[0], cfg.num_rollouts, cfg.num_steps
+    m = min(cfg.num_candidate_stones, footholds.center.shape[1])
+    k = cfg.samples_per_stone
+    durations = cfg.duration_grid(device, dtype)
+    nt = durations.numel()
+    axis, lat = course_frame(footholds)
+    # Broadcast shapes: per env (E, 1, 1, 1, 1) against (E, R, T, M, C) candidates.
+    ax, ay = (a.view(e, 1, 1, 1, 1) for a in axis.unbind(-1))
+    lx, ly = (a.view(e, 1, 1, 1, 1) for a in lat.unbind(-1))
+    vx, vy = (a.view(e, 1, 1, 1, 1) for a in command[:, :2].unbind(-1))
+    dur = durations.view(1, 1, nt, 1, 1)
+
+    # Shared random draws (shape independent of E; see module docstring).
+    gen_device = generator.device if generator is not None else device
+    unit = torch.rand((n, 2, r, m, k), generator=generator, device=gen_device).to(device, dtype)
+    unit = 2.0 * unit - 1.0
+    u = torch.rand((n, r, nt * m * (k + 2)), generator=generator, device=gen_device)
+    gumbel = -torch.log(-torch.log(u.clamp(1e-12, 1.0 - 1e-7))).to(device, dtype)
+    gumbel[:, 0] = 0.0  # rollout 0 is plain greedy
+
+    _, z0 = locate_on_stones(footholds, stance_xy)
+    px = stance_xy[:, 0:1].expand(e, r).contiguous()
+    py = stance_xy[:, 1:2].expand(e, r).contiguous()
+    pz = z0[:, None].expand(e, r).contiguous()
+    out_xyz = torch.zeros(e, r, n, 3, dtype=dtype, device=device)
+    out_t = torch.zeros(e, r, n, dtype=dtype, device=device)
+    total = torch.zeros(e, r, dtype=dtype, device=device)
+    feasible = torch.ones(e, r, dtype=torch.bool, device=device)
+    lands_left = torch.stack(
+        [~stance_is_left if i % 2 == 0 else stance_is_left for i in range(n)], dim=1
+    )
+
+    for i in range(n):
+        left = lands_left[:, i].view(e, 1, 1, 1, 1)
+        side = left.to(dtype) * 2.0 - 1.0
+        # Nominal foothold for each duration, (E, R, T, 1): stance + width offset + v_D dt.
+        nom_x = px.view(e, r, 1, 1) + (side * cfg.step_width * lx + vx * dur)[..., 0]
+        nom_y = py.view(e, r, 1, 1) + (side * cfg.step_width * ly + vy * dur)[..., 0]
+        mid_x = nom_x[:, :, nt // 2, 0]
+        mid_y = nom_y[:, :, nt // 2, 0]
+        cx, cy, cz, hx, hy, valid = _nearest_stones(footholds, mid_x, mid_y, m)
+        hard_x, hard_y = hx - cfg.stone_margin - _EPS, hy - cfg.stone_margin - _EPS
+        valid = valid & (hard_x >= 0.0) & (hard_y >= 0.0)
+        hard_x, hard_y = hard_x.clamp(min=0.0), hard_y.clamp(min=0.0)
+        soft_x = (hx - cfg.stone_margin - cfg.edge_clearance).clamp(min=0.0)
+        soft_y = (hy - cfg.stone_margin - cfg.edge_clearance).clamp(min=0.0)
+        c4x, c4y = cx[:, :, None], cy[:, :, None]  # (E, R, 1, M)
+        # Candidates (E, R, T, M, C): clamped nominal (hard, soft margins) + random points.
+        cand_x = torch.cat(
+            [
+                _clamp_into(nom_x, c4x, hard_x[:, :, None])[..., None],
+                _clamp_into(nom_x, c4x, soft_x[:, :, None])[..., None],
+                (cx[..., None] + unit[i, 0] * hard_x[..., None])[:, :, None].expand(
+                    -1, -1, nt, -1, -1
+                ),
+            ],
+            dim=-1,
+        )
+        cand_y = torch.cat(
+            [
+                _clamp_into(nom_y, c4y, hard_y[:, :, None])[..., None],
+                _clamp_into(nom_y, c4y, soft_y[:, :, None])[..., None],
+                (cy[..., None] + unit[i, 1] * hard_y[..., None])[:, :, None].expand(
+                    -1, -1, nt, -1, -1
+                ),
+            ],
+            dim=-1,
+        )
+        c5x, c5y = c4x[..., None], c4y[..., None]
+        clear = torch.minimum(
+            hx[:, :, None, :, None] - (cand_x - c5x).abs(),
+            hy[:, :, None, :, None] - (cand_y - c5y).abs(),
+        )
+        clear = clear.masked_fill(~valid[:, :, None, :, None], -1.0)
+        cost, ok = _step_cost(
+            (px.view(e, r, 1, 1, 1), py.view(e, r, 1, 1, 1)),
+            pz.view(e, r, 1, 1, 1),
+            (cand_x, cand_y),
+            cz[:, :, None, :, None],
+            clear,
+            dur,
+            left,
+            (vx, vy),
+            (ax, ay),
+            (lx, ly),
+            cfg,
+        )
+        flat_cost = cost.reshape(e, r, -1)
+        noisy = flat_cost + cfg.explore_temperature * gumbel[i]
+        pick = noisy.argmin(-1, keepdim=True)  # (E, R, 1)
+        step_cost = flat_cost.gather(-1, pick)[..., 0]
+        step_ok = ok.reshape(e, r, -1).gather(-1, pick)[..., 0]
+        px = cand_x.reshape(e, r, -1).gather(-1, pick)[..., 0]
+        py = cand_y.reshape(e, r, -1).gather(-1, pick)[..., 0]
+        # Index decomposition of the flat (T, M, C) choice.
+        t_idx = pick[..., 0] // (m * (k + 2))
+        m_idx = (pick[..., 0] // (k + 2)) % m
+        pz = cz.gather(-1, m_idx[..., None])[..., 0]
+        out_xyz[:, :, i] = torch.stack([px, py, pz], dim=-1)
+        out_t[:, :, i] = durations[t_idx]
+        total = total + step_cost
+        feasible = feasible & step_ok
+
+    # Best rollout: feasible ones first, then the lowest noise-free cost.
+    rank = total + torch.where(feasible, 0.0, float("inf"))
+    best = torch.where(feasible.any(-1), rank.argmin(-1), total.argmin(-1))
+    env = torch.arange(e, device=device)
+    return Plan(
+        footholds=out_xyz[env, best],
+        durations=out_t[env, best],
+        lands_left=lands_left,
+        cost=total[env, best],
+        feasible=feasible[env, best],
+        start=torch.cat([stance_xy, z0[:, None]], dim=-1),
+    )

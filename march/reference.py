@@ -1,0 +1,289 @@
+"""Reference outputs y_ref(t) for the current step, batched in plain torch (no simulator import).
+
+Outputs, in this order (``output_names``), each with a position and a velocity:
+
+    com_x, com_y, com_z                  CoM [m]: HLIP orbit in x/y anchored at the stance foot,
+                                         constant height z0 above the stance foot
+    pelvis_roll, pelvis_pitch, pelvis_yaw  pelvis Euler angles [rad]: yaw tracks the commanded yaw
+                                         rate; small roll/pitch oscillations at step frequency
+    swing_x, swing_y, swing_z            swing foot [m]: Bezier from lift-off to the planned foothold
+    swing_roll, swing_pitch, swing_yaw   swing foot orientation [rad]: flat, yaw = pelvis yaw
+    upper_0 ... upper_{U-1}              upper-body joints relative to default [rad]: zero
+
+Velocities of the angle outputs are Euler-angle rates [rad/s]. Angle outputs are wrapped to
+[-pi, pi); errors on them must be taken with :func:`tracking_error` (wrapped differences), never as
+raw Euler differences.
+
+Swing foot: horizontal part is a 5th-degree Bezier with control points (p0, p0, p0, p1, p1, p1),
+i.e. zero velocity and acceleration at lift-off and touchdown; vertical part a 6th-degree Bezier
+(z0, z0, c, c, c, z1, z1) with c chosen so that the height at mid-swing is the apex
+max(z0, z1) + z_sw (when z0 != z1 the maximum lies slightly past mid-swing and is slightly higher).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import torch
+
+from march.hlip import HlipCfg, hlip_com_state
+from march.planner import Plan
+
+ANGLE_OUTPUTS = (
+    "pelvis_roll",
+    "pelvis_pitch",
+    "pelvis_yaw",
+    "swing_roll",
+    "swing_pitch",
+    "swing_yaw",
+)
+"""Names of the outputs that are angles (wrapped differences)."""
+
+
+@dataclass
+class ReferenceCfg:
+    """Parameters of the reference trajectory."""
+
+    swing_height: float = 0.10
+    """z_sw: apex clearance of the swing foot above the higher of lift-off and landing [m]."""
+    foot_height_offset: float = 0.0
+    """Height of the tracked swing-foot point above the sole [m]; added to the planned footholds'
+    z (the stone top). Lift-off positions are measured, so they already include it."""
+    roll_amplitude: float = 0.03
+    """Pelvis roll oscillation amplitude [rad]; the pelvis leans toward the stance foot."""
+    pitch_amplitude: float = 0.02
+    """Pelvis pitch oscillation amplitude [rad] (one period per step)."""
+    pitch_offset: float = 0.0
+    """Constant forward pelvis pitch [rad]."""
+
+
+def wrap_to_pi(angle: torch.Tensor) -> torch.Tensor:
+    """Wrap angles to [-pi, pi)."""
+    return torch.remainder(angle + math.pi, 2.0 * math.pi) - math.pi
+
+
+def output_names(num_upper: int) -> list[str]:
+    """Ordered names of the reference outputs (12 + num_upper)."""
+    base = ["com_x", "com_y", "com_z", "pelvis_roll", "pelvis_pitch", "pelvis_yaw"]
+    base += ["swing_x", "swing_y", "swing_z", "swing_roll", "swing_pitch", "swing_yaw"]
+    return base + [f"upper_{j}" for j in range(num_upper)]
+
+
+def angle_mask(num_upper: int, device: torch.device | str = "cpu") -> torch.Tensor:
+    """(12 + num_upper,) bool: which outputs are angles whose errors must be wrapped."""
+    names = output_names(num_upper)
+    return torch.tensor([n in ANGLE_OUTPUTS for n in names], device=device)
+
+
+def tracking_error(y: torch.Tensor, y_ref: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """eta = y - y_ref with angle outputs (``mask``) wrapped to [-pi, pi)."""
+    diff = y - y_ref
+    return torch.where(mask, wrap_to_pi(diff), diff)
+
+
+def bezier(ctrl: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bezier curve and its derivative with respect to s.
+
+    ctrl: (..., K+1, D) control points; s: (...) in [0, 1]. Returns (..., D) point and d/ds.
+    """
+    deg = ctrl.shape[-2] - 1
+    s = s[..., None]
+    k = torch.arange(deg + 1, device=ctrl.device, dtype=ctrl.dtype)
+    binom = torch.tensor([math.comb(deg, j) for j in range(deg + 1)], dtype=ctrl.dtype)
+    basis = binom.to(ctrl.device) * s**k * (1.0 - s) ** (deg - k)  # (..., K+1)
+    pos = (basis[..., None] * ctrl).sum(-2)
+    diff = deg * (ctrl[..., 1:, :] - ctrl[..., :-1, :])
+    km = k[:-1]
+    binom_d = torch.tensor([math.comb(deg - 1, j) for j in range(deg)], dtype=ctrl.dtype)
+    basis_d = binom_d.to(ctrl.device) * s**km * (1.0 - s) ** (deg - 1 - km)
+    return pos, (basis_d[..., None] * diff).sum(-2)
+
+
+def swing_trajectory(
+    start: torch.Tensor,
+    end: torch.Tensor,
+    phase: torch.Tensor,
+    duration: torch.Tensor,
+    swing_height: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Swing-foot position and velocity (E, 3) at ``phase`` = tau / T in [0, 1].
+
+    start/end: (E, 3) lift-off point and landing point; duration: (E,) swing time T [s].
+    """
+    s = phase.clamp(0.0, 1.0)
+    p0, p1 = start[:, None, :2], end[:, None, :2]
+    ctrl_xy = torch.cat([p0, p0, p0, p1, p1, p1], dim=1)
+    z0, z1 = start[:, 2], end[:, 2]
+    apex = torch.maximum(z0, z1) + swing_height
+    # Height at s = 1/2 is (7 z0 + 50 c + 7 z1) / 64; choose c to make it the apex.
+    c = (64.0 * apex - 7.0 * (z0 + z1)) / 50.0
+    ctrl_z = torch.stack([z0, z0, c, c, c, z1, z1], dim=1)[..., None]
+    xy, dxy = bezier(ctrl_xy, s)
+    zz, dz = bezier(ctrl_z, s)
+    pos = torch.cat([xy, zz], dim=-1)
+    # d/dt = d/ds / T inside the swing; the foot rests once the swing time is over.
+    active = (phase < 1.0).to(pos.dtype)[:, None]
+    vel = torch.cat([dxy, dz], dim=-1) / duration[:, None] * active
+    return pos, vel
+
+
+@dataclass
+class StepState:
+    """What the reference needs to know about the current step (held by the command term)."""
+
+    stance_pos: torch.Tensor
+    """(E, 3) actual stance foot at touchdown: xy and ground (stone top) height [m]."""
+    stance_is_left: torch.Tensor
+    """(E,) bool: the stance foot is the left one."""
+    swing_start: torch.Tensor
+    """(E, 3) swing foot (tracked point) at lift-off [m]."""
+    target: torch.Tensor
+    """(E, 3) planned landing foothold of this step (stone top) [m]."""
+    next_target: torch.Tensor
+    """(E, 3) planned foothold of the step after (for the lateral period-2 orbit) [m]."""
+    duration: torch.Tensor
+    """(E,) planned duration of this step [s]."""
+    next_duration: torch.Tensor
+    """(E,) planned duration of the step after [s]."""
+    yaw0: torch.Tensor
+    """(E,) pelvis-yaw reference at touchdown [rad] (the command term integrates it)."""
+    yaw_rate: torch.Tensor
+    """(E,) commanded yaw rate [rad/s]."""
+    axis: torch.Tensor
+    """(E, 2) unit sagittal direction for the HLIP planes (the course direction)."""
+
+
+def step_state_from_plan(
+    plan: Plan,
+    stance_pos: torch.Tensor,
+    swing_start: torch.Tensor,
+    yaw0: torch.Tensor,
+    yaw_rate: torch.Tensor,
+    axis: torch.Tensor | None = None,
+) -> StepState:
+    """The step state right after a touchdown and replan: step 0 of ``plan`` is being taken."""
+    if axis is None:
+        axis = torch.zeros_like(stance_pos[:, :2])
+        axis[:, 0] = 1.0
+    return StepState(
+        stance_pos=stance_pos,
+        stance_is_left=~plan.lands_left[:, 0],
+        swing_start=swing_start,
+        target=plan.footholds[:, 0],
+        next_target=plan.footholds[:, 1],
+        duration=plan.durations[:, 0],
+        next_duration=plan.durations[:, 1],
+        yaw0=yaw0,
+        yaw_rate=yaw_rate,
+        axis=axis,
+    )
+
+
+@dataclass
+class Reference:
+    """Reference outputs at one instant; positions and velocities (E, .) per output group."""
+
+    com_pos: torch.Tensor
+    """(E, 3) CoM position [m]."""
+    com_vel: torch.Tensor
+    """(E, 3) CoM velocity [m/s]."""
+    pelvis_ori: torch.Tensor
+    """(E, 3) pelvis roll, pitch, yaw [rad] (yaw wrapped)."""
+    pelvis_rate: torch.Tensor
+    """(E, 3) pelvis Euler-angle rates [rad/s]."""
+    swing_pos: torch.Tensor
+    """(E, 3) swing foot position [m]."""
+    swing_vel: torch.Tensor
+    """(E, 3) swing foot velocity [m/s]."""
+    swing_ori: torch.Tensor
+    """(E, 3) swing foot roll, pitch, yaw [rad]."""
+    swing_rate: torch.Tensor
+    """(E, 3) swing foot Euler-angle rates [rad/s]."""
+    upper_pos: torch.Tensor
+    """(E, U) upper-body joint positions relative to default [rad]."""
+    upper_vel: torch.Tensor
+    """(E, U) upper-body joint velocities [rad/s]."""
+
+    @property
+    def names(self) -> list[str]:
+        return output_names(self.upper_pos.shape[1])
+
+    def flatten(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(E, n_outputs) positions and velocities in ``names`` order."""
+        pos = [self.com_pos, self.pelvis_ori, self.swing_pos, self.swing_ori, self.upper_pos]
+        vel = [self.com_vel, self.pelvis_rate, self.swing_vel, self.swing_rate, self.upper_vel]
+        return torch.cat(pos, dim=-1), torch.cat(vel, dim=-1)
+
+    def index(self, env_ids: torch.Tensor) -> Reference:
+        return Reference(**{f.name: getattr(self, f.name)[env_ids] for f in fields(self)})
+
+
+def pelvis_reference(
+    step: StepState, tau: torch.Tensor, cfg: ReferenceCfg
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pelvis (roll, pitch, yaw) and their rates (E, 3) at time ``tau`` into the step."""
+    active = (tau < step.duration).to(tau.dtype)
+    phase = (tau / step.duration).clamp(0.0, 1.0)
+    w = math.pi / step.duration
+    # Lean toward the stance foot: a positive roll lifts the left side, so left stance -> negative.
+    lean = torch.where(step.stance_is_left, -1.0, 1.0).to(tau.dtype) * cfg.roll_amplitude
+    roll = lean * torch.sin(math.pi * phase)
+    roll_rate = lean * w * torch.cos(math.pi * phase) * active
+    pitch = cfg.pitch_offset + cfg.pitch_amplitude * torch.sin(2.0 * math.pi * phase)
+    pitch_rate = cfg.pitch_amplitude * 2.0 * w * torch.cos(2.0 * math.pi * phase) * active
+    yaw = wrap_to_pi(step.yaw0 + step.yaw_rate * tau)
+    ori = torch.stack([roll, pitch, yaw], dim=-1)
+    return ori, torch.stack([roll_rate, pitch_rate, step.yaw_rate], dim=-1)
+
+
+def reference_at(
+    step: StepState,
+    tau: torch.Tensor,
+    cfg: ReferenceCfg | None = None,
+    hlip: HlipCfg | None = None,
+    num_upper: int = 17,
+) -> Reference:
+    """The full reference at time ``tau`` (E,) [s] since the touchdown that began ``step``.
+
+    Past the planned duration (a late touchdown) the swing foot rests at the target and the CoM
+    keeps the orbit's pre-impact state.
+    """
+    cfg = cfg or ReferenceCfg()
+    hlip = hlip or HlipCfg()
+    e = tau.shape[0]
+    target = step.target.clone()
+    target[:, 2] = target[:, 2] + cfg.foot_height_offset
+    phase = tau / step.duration
+    swing_pos, swing_vel = swing_trajectory(
+        step.swing_start, target, phase, step.duration, cfg.swing_height
+    )
+    stance_xy = step.stance_pos[:, :2]
+    com_xy, com_vxy = hlip_com_state(
+        stance_xy,
+        step.target[:, :2] - stance_xy,
+        step.next_target[:, :2] - step.target[:, :2],
+        step.duration,
+        step.next_duration,
+        tau,
+        hlip.lam,
+        step.axis,
+    )
+    com_z = step.stance_pos[:, 2:3] + hlip.z0
+    pelvis_ori, pelvis_rate = pelvis_reference(step, tau, cfg)
+    zeros = torch.zeros_like(pelvis_ori)
+    swing_ori = torch.cat([zeros[:, :2], pelvis_ori[:, 2:3]], dim=-1)
+    swing_rate = torch.cat([zeros[:, :2], pelvis_rate[:, 2:3]], dim=-1)
+    upper = torch.zeros(e, num_upper, dtype=tau.dtype, device=tau.device)
+    return Reference(
+        com_pos=torch.cat([com_xy, com_z], dim=-1),
+        com_vel=torch.cat([com_vxy, torch.zeros_like(com_z)], dim=-1),
+        pelvis_ori=pelvis_ori,
+        pelvis_rate=pelvis_rate,
+        swing_pos=swing_pos,
+        swing_vel=swing_vel,
+        swing_ori=swing_ori,
+        swing_rate=swing_rate,
+        upper_pos=upper,
+        upper_vel=upper.clone(),
+    )

@@ -1,0 +1,483 @@
+"""Stepping-stone courses as pure data: layouts (numpy) and foothold tensors (torch).
+
+No simulator import: ``march.env.terrain`` turns a :class:`CourseLayout` into MuJoCo box geoms
+and :class:`FootholdTable` is the per-(level, column) ground truth the command term indexes.
+
+Frames and conventions
+- A layout lives in its sub-terrain's local frame: x in [0, size[0]] along the course, y in
+  [0, size[1]] across it, z = 0 at the top of the start platform. mjlab's TerrainGenerator
+  shifts the whole sub-terrain by the corner of its grid cell (no rotation), so world = local +
+  corner, and the spawn point ``origin`` lands in ``TerrainEntity.terrain_origins[row, col]``.
+- Every box is axis-aligned; ``center`` is the centre of its *top face*; every box extends from
+  its top down to ``bottom`` (the top of the pit floor), so a foot that misses a stone falls
+  ``cfg.pit_depth`` below the platform top.
+- Entries are in course order: index 0 the start platform, then the stones (a side-by-side pair is
+  two consecutive entries with the same ``step``), last the goal platform. The flat layout
+  (curriculum=flat_first) is a single platform covering the whole sub-terrain: its index 0 is
+  both start and goal, and its ``goal_distance`` / ``course_length`` are those of a stone course
+  (where the goal platform would begin / end), so progress and success read the same on both.
+
+Difficulty d in [0, 1] interpolates linearly between the ``*_easy`` and ``*_hard`` fields; a
+range field is interpolated end by end, and each stone draws uniformly inside the interpolated
+range (see :func:`difficulty_ranges`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from march.footholds import Footholds
+
+ROLE_START = 0
+"""``CourseLayout.role``: the start platform (also the single platform of the flat layout)."""
+ROLE_STONE = 1
+"""``CourseLayout.role``: a single stepping stone."""
+ROLE_PAIR = 2
+"""``CourseLayout.role``: one stone of a side-by-side pair (left/right choice)."""
+ROLE_GOAL = 3
+"""``CourseLayout.role``: the goal platform."""
+
+Range = tuple[float, float]
+
+
+@dataclass
+class CourseCfg:
+    """Geometry of one stepping-stone course (one mjlab sub-terrain). Lengths in metres."""
+
+    size: tuple[float, float] = (12.0, 4.0)
+    """Sub-terrain extent (x along the course, y across) [m]; mjlab's TerrainGeneratorCfg.size."""
+    end_margin: float = 0.25
+    """Pit between the sub-terrain's x-edges and the platforms, so consecutive levels (rows,
+    placed end to end along x) are separated by a 2*end_margin gap [m]."""
+    start_length: float = 1.5
+    """Start platform length along x [m]; the spawn point is its centre."""
+    goal_length: float = 1.5
+    """Minimum goal platform length along x [m]; the goal platform runs from one gap after the
+    last stone to ``size[0] - end_margin`` (so it is goal_length to goal_length + one pitch)."""
+    platform_width: float = 2.0
+    """Start and goal platform width along y [m]."""
+    stone_size_easy: Range = (0.45, 0.50)
+    """Stone side length range (x and y drawn independently) at difficulty 0 [m]."""
+    stone_size_hard: Range = (0.25, 0.30)
+    """Stone side length range at difficulty 1 [m]."""
+    gap_easy: Range = (0.10, 0.15)
+    """Gap along x between consecutive footholds (platform edges included) at difficulty 0 [m]."""
+    gap_hard: Range = (0.35, 0.45)
+    """Gap along x at difficulty 1 [m]."""
+    height_easy: float = 0.0
+    """Stone top height variation at difficulty 0: top z ~ U(-h, h) around the platform top [m]."""
+    height_hard: float = 0.10
+    """Stone top height variation at difficulty 1 [m]."""
+    lateral_easy: Range = (0.0, 0.0)
+    """Zig-zag amplitude at difficulty 0: stone k's centre is at y_mid + s_k * U(range), with
+    s_k = +1/-1 alternating from a random first side [m]."""
+    lateral_hard: Range = (0.10, 0.21)
+    """Zig-zag amplitude at difficulty 1 [m]."""
+    pair_prob: float = 0.2
+    """Probability that a course step is a side-by-side pair (two stones at the same x, centred
+    on the course axis) instead of a single stone: the robot must choose left or right."""
+    pair_gap: Range = (0.10, 0.20)
+    """Lateral gap between the two stones of a pair [m]."""
+    max_stones: int = 24
+    """Cap on the number of course steps (a pair counts once); by default the stones fill the
+    corridor between the platforms, which takes 11-14 steps in a 12 m sub-terrain."""
+    pit_depth: float = 1.0
+    """Depth of the pit floor below the platform top [m]: every box extends down to -pit_depth."""
+    hardware_stone_size: tuple[float, float] = (0.30, 0.30)
+    """Hardware course: stone extent (x, y) [m] (paper: 4 stones, same height as the platforms)."""
+    hardware_gaps: tuple[float, ...] = (0.25, 0.30, 0.25, 0.30, 0.25)
+    """Hardware course: the 5 gaps along x (start->s1, s1->s2, s2->s3, s3->s4, s4->goal) [m]."""
+    hardware_lateral: tuple[float, ...] = (0.12, -0.12, 0.12, -0.12)
+    """Hardware course: lateral offset of the 4 stones from the course axis, alternating
+    left (+y) / right (-y) [m]."""
+
+
+@dataclass
+class CourseLayout:
+    """One course: boxes in course order, in the sub-terrain's local frame (see module doc)."""
+
+    center: np.ndarray
+    """(N, 3) centre of each box's top face (x, y, z_top) [m]."""
+    half_size: np.ndarray
+    """(N, 2) half extents of each top face along x and y [m]."""
+    role: np.ndarray
+    """(N,) int: ROLE_START, ROLE_STONE, ROLE_PAIR or ROLE_GOAL."""
+    step: np.ndarray
+    """(N,) int: course step of each box; 0 start, 1..K stones (both stones of a pair share
+    one step), K+1 goal."""
+    origin: np.ndarray
+    """(3,) spawn point: centre of the start platform's top face [m]."""
+    size: tuple[float, float]
+    """Sub-terrain extent (x, y) [m]."""
+    bottom: float
+    """z of the pit floor top; every box extends from its top down to here [m]."""
+    goal_distance: float
+    """Progress along +x from ``origin`` at which the goal platform begins [m]."""
+    course_length: float
+    """Progress along +x from ``origin`` to the far end of the goal platform [m]."""
+    difficulty: float = 0.0
+    """Difficulty the layout was drawn at (the stone difficulty for flat-first levels)."""
+    kind: str = "stones"
+    """"stones", "flat" or "hardware"."""
+    name: str = ""
+    """Geom name prefix in the compiled model (set by march.env.terrain): box k is named
+    f"{name}_{k:02d}" and the pit floor f"{name}_pit"."""
+
+    @property
+    def num_boxes(self) -> int:
+        return int(self.center.shape[0])
+
+    @property
+    def top(self) -> np.ndarray:
+        """(N,) top-face height of each box [m]."""
+        return self.center[:, 2]
+
+    @property
+    def num_pairs(self) -> int:
+        return int((self.role == ROLE_PAIR).sum()) // 2
+
+    @property
+    def num_steps(self) -> int:
+        """Stepping-stone steps between the platforms (a pair counts once)."""
+        return int(np.unique(self.step[(self.role == ROLE_STONE) | (self.role == ROLE_PAIR)]).size)
+
+    def gaps(self) -> np.ndarray:
+        """(K+1,) gaps along x between consecutive course steps [m]."""
+        steps = np.unique(self.step)
+        x0 = np.array(
+            [
+                (self.center[self.step == s, 0] - self.half_size[self.step == s, 0]).min()
+                for s in steps
+            ]
+        )
+        x1 = np.array(
+            [
+                (self.center[self.step == s, 0] + self.half_size[self.step == s, 0]).max()
+                for s in steps
+            ]
+        )
+        return x0[1:] - x1[:-1]
+
+
+def _lerp(a: float, b: float, t: float) -> float:
+    return float(a + (b - a) * t)
+
+
+def _lerp_range(a: Range, b: Range, t: float) -> Range:
+    return (_lerp(a[0], b[0], t), _lerp(a[1], b[1], t))
+
+
+@dataclass
+class DifficultyRanges:
+    """The sampling ranges of one difficulty level [m]."""
+
+    stone_size: Range
+    gap: Range
+    height: float
+    lateral: Range
+
+
+def difficulty_ranges(difficulty: float, cfg: CourseCfg) -> DifficultyRanges:
+    """Interpolated sampling ranges at ``difficulty`` (clipped to [0, 1])."""
+    t = float(np.clip(difficulty, 0.0, 1.0))
+    return DifficultyRanges(
+        stone_size=_lerp_range(cfg.stone_size_easy, cfg.stone_size_hard, t),
+        gap=_lerp_range(cfg.gap_easy, cfg.gap_hard, t),
+        height=_lerp(cfg.height_easy, cfg.height_hard, t),
+        lateral=_lerp_range(cfg.lateral_easy, cfg.lateral_hard, t),
+    )
+
+
+class _Builder:
+    """Accumulates boxes given by their x/y extents and top height."""
+
+    def __init__(self) -> None:
+        self.rows: list[tuple[float, float, float, float, float, int, int]] = []
+
+    def add(self, x0: float, x1: float, yc: float, hy: float, z: float, role: int, step: int):
+        self.rows.append((0.5 * (x0 + x1), yc, z, 0.5 * (x1 - x0), hy, role, step))
+
+    def layout(
+        self,
+        cfg: CourseCfg,
+        origin: np.ndarray,
+        goal_x0: float,
+        goal_x1: float,
+        difficulty: float,
+        kind: str,
+    ) -> CourseLayout:
+        a = np.array(self.rows, dtype=np.float64).reshape(-1, 7)
+        return CourseLayout(
+            center=a[:, 0:3].copy(),
+            half_size=a[:, 3:5].copy(),
+            role=a[:, 5].astype(np.int64),
+            step=a[:, 6].astype(np.int64),
+            origin=origin,
+            size=tuple(cfg.size),
+            bottom=-float(cfg.pit_depth),
+            goal_distance=float(goal_x0 - origin[0]),
+            course_length=float(goal_x1 - origin[0]),
+            difficulty=float(difficulty),
+            kind=kind,
+        )
+
+
+def _frame(cfg: CourseCfg) -> tuple[float, float, float, np.ndarray]:
+    """(start platform end x, goal platform end x, y_mid, spawn origin) of a course."""
+    x0 = cfg.end_margin
+    x1 = x0 + cfg.start_length
+    y_mid = 0.5 * cfg.size[1]
+    origin = np.array([0.5 * (x0 + x1), y_mid, 0.0])
+    return x1, cfg.size[0] - cfg.end_margin, y_mid, origin
+
+
+def generate_course(difficulty: float, cfg: CourseCfg, rng: np.random.Generator) -> CourseLayout:
+    """Draw one stepping-stone course at ``difficulty`` in [0, 1] (see :class:`CourseCfg`).
+
+    Stones are laid from the start platform towards the goal: each step draws a gap and a
+    stone length; steps are added while one more maximal gap and the minimum goal platform
+    still fit, then the goal platform starts one drawn gap after the last stone and runs to
+    ``size[0] - end_margin``. With probability ``pair_prob`` a step is a side-by-side pair.
+    """
+    r = difficulty_ranges(difficulty, cfg)
+    start_x1, goal_x1, y_mid, origin = _frame(cfg)
+    b = _Builder()
+    hw = 0.5 * cfg.platform_width
+    b.add(cfg.end_margin, start_x1, y_mid, hw, 0.0, ROLE_START, 0)
+
+    x = start_x1
+    side = 1.0 if rng.random() < 0.5 else -1.0
+    step = 0
+    while step < cfg.max_stones:
+        gap = rng.uniform(*r.gap)
+        sx = rng.uniform(*r.stone_size)
+        if x + gap + sx + r.gap[1] + cfg.goal_length > goal_x1:
+            break
+        step += 1
+        x0, x1 = x + gap, x + gap + sx
+        if rng.random() < cfg.pair_prob:
+            pg = rng.uniform(*cfg.pair_gap)
+            for sgn in (1.0, -1.0):
+                sy = rng.uniform(*r.stone_size)
+                z = rng.uniform(-r.height, r.height)
+                b.add(x0, x1, y_mid + sgn * 0.5 * (pg + sy), 0.5 * sy, z, ROLE_PAIR, step)
+        else:
+            sy = rng.uniform(*r.stone_size)
+            z = rng.uniform(-r.height, r.height)
+            b.add(x0, x1, y_mid + side * rng.uniform(*r.lateral), 0.5 * sy, z, ROLE_STONE, step)
+        side = -side
+        x = x1
+    goal_x0 = x + rng.uniform(*r.gap)
+    b.add(goal_x0, goal_x1, y_mid, hw, 0.0, ROLE_GOAL, step + 1)
+    return b.layout(cfg, origin, goal_x0, goal_x1, difficulty, "stones")
+
+
+def flat_course(cfg: CourseCfg) -> CourseLayout:
+    """Flat ground (curriculum=flat_first): one platform covering the whole sub-terrain.
+
+    The spawn point and ``goal_distance`` / ``course_length`` match a stone course's, so the
+    distance and success metrics are comparable; index 0 is both the start and the goal.
+    """
+    _, goal_x1, y_mid, origin = _frame(cfg)
+    b = _Builder()
+    b.add(0.0, cfg.size[0], y_mid, 0.5 * cfg.size[1], 0.0, ROLE_START, 0)
+    return b.layout(cfg, origin, goal_x1 - cfg.goal_length, goal_x1, 0.0, "flat")
+
+
+def hardware_course(cfg: CourseCfg) -> CourseLayout:
+    """The paper's hardware test: start platform, 4 stones alternating left/right, goal platform.
+
+    All stones share the platforms' height (paper: "all the same height"); sizes, gaps and
+    lateral offsets come from the ``hardware_*`` fields.
+    """
+    if len(cfg.hardware_gaps) != len(cfg.hardware_lateral) + 1:
+        raise ValueError("hardware_gaps needs one more entry than hardware_lateral")
+    start_x1, _, y_mid, origin = _frame(cfg)
+    b = _Builder()
+    hw = 0.5 * cfg.platform_width
+    b.add(cfg.end_margin, start_x1, y_mid, hw, 0.0, ROLE_START, 0)
+    x = start_x1
+    sx, sy = cfg.hardware_stone_size
+    for k, (gap, lat) in enumerate(
+        zip(cfg.hardware_gaps[:-1], cfg.hardware_lateral, strict=True), start=1
+    ):
+        b.add(x + gap, x + gap + sx, y_mid + lat, 0.5 * sy, 0.0, ROLE_STONE, k)
+        x += gap + sx
+    goal_x0 = x + cfg.hardware_gaps[-1]
+    goal_x1 = goal_x0 + cfg.goal_length
+    if goal_x1 > cfg.size[0]:
+        raise ValueError("hardware course longer than the sub-terrain")
+    b.add(goal_x0, goal_x1, y_mid, hw, 0.0, ROLE_GOAL, len(cfg.hardware_lateral) + 1)
+    return b.layout(cfg, origin, goal_x0, goal_x1, 0.0, "hardware")
+
+
+def _as_tensor(x: np.ndarray | torch.Tensor, device: torch.device | str) -> torch.Tensor:
+    return torch.as_tensor(
+        np.asarray(x) if not isinstance(x, torch.Tensor) else x, dtype=torch.float32
+    ).to(device)
+
+
+def _pack(layouts: Sequence[CourseLayout]) -> dict[str, np.ndarray]:
+    """Stack layouts into arrays relative to each layout's spawn origin, padded to max N."""
+    n = len(layouts)
+    s = max(lay.num_boxes for lay in layouts)
+    center = np.zeros((n, s, 3))
+    half = np.zeros((n, s, 2))
+    valid = np.zeros((n, s), dtype=bool)
+    for i, lay in enumerate(layouts):
+        k = lay.num_boxes
+        center[i, :k] = lay.center - lay.origin
+        half[i, :k] = lay.half_size
+        valid[i, :k] = True
+    return {
+        "center": center,
+        "half_size": half,
+        "valid": valid,
+        "goal_distance": np.array([lay.goal_distance for lay in layouts]),
+        "course_length": np.array([lay.course_length for lay in layouts]),
+        "difficulty": np.array([lay.difficulty for lay in layouts]),
+    }
+
+
+def _footholds(
+    center_rel: torch.Tensor,
+    half: torch.Tensor,
+    valid: torch.Tensor,
+    goal: torch.Tensor,
+    length: torch.Tensor,
+    origins: torch.Tensor,
+) -> Footholds:
+    e = origins.shape[0]
+    direction = torch.zeros(e, 2, device=origins.device)
+    direction[:, 0] = 1.0
+    return Footholds(
+        center=center_rel + origins[:, None, :],
+        half_size=half,
+        valid=valid,
+        start_xy=origins[:, :2].clone(),
+        direction=direction,
+        goal_distance=goal,
+        course_length=length,
+    )
+
+
+def footholds_from_layouts(
+    layouts: Sequence[CourseLayout],
+    origins: np.ndarray | torch.Tensor,
+    device: torch.device | str = "cpu",
+) -> Footholds:
+    """Footholds of E envs, env e on ``layouts[e]`` spawned at world point ``origins[e]``.
+
+    ``origins`` (E, 3) are the world positions of each layout's ``origin`` (mjlab's
+    ``env_origins``); boxes keep their offset from it. Padded to the longest layout.
+    """
+    p = _pack(layouts)
+    o = _as_tensor(origins, device).reshape(-1, 3)
+    if o.shape[0] != len(layouts):
+        raise ValueError(f"{len(layouts)} layouts but {o.shape[0]} origins")
+    return _footholds(
+        _as_tensor(p["center"], device),
+        _as_tensor(p["half_size"], device),
+        torch.as_tensor(p["valid"], device=device),
+        _as_tensor(p["goal_distance"], device),
+        _as_tensor(p["course_length"], device),
+        o,
+    )
+
+
+@dataclass
+class FootholdTable:
+    """Foothold ground truth of every cell (row = curriculum level, col = column) of a terrain.
+
+    Built once per compiled terrain (``march.env.terrain.foothold_table``); positions are
+    stored relative to each cell's spawn origin so that :meth:`for_envs` only adds mjlab's
+    ``env_origins``. The table itself never changes: curriculum level changes only move an
+    env to another (row, col), so look the env up again after every level change - in mjlab
+    the curriculum manager runs first in ``_reset_idx`` and the command manager's reset later,
+    so a command term that calls :meth:`for_envs` in its reset sees the new levels.
+    """
+
+    center: torch.Tensor
+    """(R, C, S, 3) top-face centres relative to the cell's spawn origin [m]."""
+    half_size: torch.Tensor
+    """(R, C, S, 2) top-face half extents [m]."""
+    valid: torch.Tensor
+    """(R, C, S) bool: False for padding."""
+    goal_distance: torch.Tensor
+    """(R, C) progress from the spawn origin at which the goal platform begins [m]."""
+    course_length: torch.Tensor
+    """(R, C) progress from the spawn origin to the goal platform's far end [m]."""
+    origins: torch.Tensor
+    """(R, C, 3) world spawn origin of each cell (equals TerrainEntity.terrain_origins)."""
+    difficulty: torch.Tensor
+    """(R, C) difficulty each cell was generated at."""
+    layouts: list[list[CourseLayout]] = field(default_factory=list, repr=False)
+    """The layouts themselves, [row][col] (numpy, local frame) - for plots and checks."""
+
+    @classmethod
+    def from_layouts(
+        cls,
+        grid: Sequence[Sequence[CourseLayout]],
+        origins: np.ndarray | torch.Tensor,
+        device: torch.device | str = "cpu",
+    ) -> FootholdTable:
+        """Table of a [row][col] grid of layouts whose spawn origins are ``origins`` (R, C, 3)."""
+        rows, cols = len(grid), len(grid[0])
+        flat = [lay for row in grid for lay in row]
+        if len(flat) != rows * cols:
+            raise ValueError("ragged layout grid")
+        p = _pack(flat)
+        s = p["center"].shape[1]
+
+        def t(a: np.ndarray, *shape: int) -> torch.Tensor:
+            return _as_tensor(a, device).reshape(rows, cols, *shape)
+
+        return cls(
+            center=t(p["center"], s, 3),
+            half_size=t(p["half_size"], s, 2),
+            valid=torch.as_tensor(p["valid"], device=device).reshape(rows, cols, s),
+            goal_distance=t(p["goal_distance"]),
+            course_length=t(p["course_length"]),
+            origins=t(origins, 3),
+            difficulty=t(p["difficulty"]),
+            layouts=[list(row) for row in grid],
+        )
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """(rows, cols, max boxes per course)."""
+        r, c, s, _ = self.center.shape
+        return r, c, s
+
+    def to(self, device: torch.device | str) -> FootholdTable:
+        kw = {
+            k: (v.to(device) if isinstance(v, torch.Tensor) else v)
+            for k, v in self.__dict__.items()
+        }
+        return FootholdTable(**kw)
+
+    def world_center(self) -> torch.Tensor:
+        """(R, C, S, 3) top-face centres in the world frame [m]."""
+        return self.center + self.origins[:, :, None, :]
+
+    def for_envs(
+        self, terrain_levels: torch.Tensor, terrain_types: torch.Tensor, env_origins: torch.Tensor
+    ) -> Footholds:
+        """Footholds of envs on cells (terrain_levels[e], terrain_types[e]) spawned at
+        env_origins[e] (mjlab TerrainEntity.terrain_levels / .terrain_types / .env_origins,
+        or their values at a subset of env ids)."""
+        lv = terrain_levels.long().to(self.center.device)
+        ty = terrain_types.long().to(self.center.device)
+        o = env_origins.to(self.center.device, torch.float32)
+        return _footholds(
+            self.center[lv, ty],
+            self.half_size[lv, ty],
+            self.valid[lv, ty],
+            self.goal_distance[lv, ty],
+            self.course_length[lv, ty],
+            o,
+        )
