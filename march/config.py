@@ -12,6 +12,7 @@ Pure data: no simulator import.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
@@ -33,7 +34,9 @@ class ConfigError(ValueError):
 
 def _one_of(section: str, key: str, value: Any, valid: tuple[str, ...]) -> None:
     if value not in valid:
-        raise ConfigError(f"{section}.{key}={value!r} is not valid; choose one of {', '.join(valid)}")
+        raise ConfigError(
+            f"{section}.{key}={value!r} is not valid; choose one of {', '.join(valid)}"
+        )
 
 
 def _positive(section: str, key: str, value: float) -> None:
@@ -163,13 +166,17 @@ class StudentCfg:
     cnn_channels: tuple[int, ...] = (24, 32, 48, 64)
     """CNN output channels per layer."""
     cnn_kernels: tuple[int, ...] = (5, 3, 3, 3)
-    """CNN kernel sizes per layer."""
+    """Square kernel size [px] of each conv layer, same padding (kernel // 2)."""
+    cnn_strides: tuple[int, ...] = (1, 2, 2, 1)
+    """Stride of each conv layer; (1, 2, 2, 1) maps 24x32 to a 6x8 map = 48 image tokens."""
     d_model: int = 256
     """Transformer token width."""
     n_heads: int = 8
     """Attention heads."""
     n_layers: int = 2
     """Transformer encoder layers."""
+    dim_feedforward: int = 512
+    """Hidden width of each transformer layer's feed-forward block."""
     fusion_mlp: tuple[int, ...] = (512, 256)
     """Hidden sizes of the MLP that replaces the transformer (no_transformer)."""
     head_hidden: tuple[int, ...] = (256, 128)
@@ -182,15 +189,21 @@ class StudentCfg:
     """MDN log-std lower clamp."""
     log_std_max: float = 2.0
     """MDN log-std upper clamp."""
+    init_log_std: float = 0.0
+    """Initial log-std of every MDN mode."""
     activation: str = "elu"
-    """Activation function."""
+    """Activation of the CNN and MLPs (the transformer layers use GELU)."""
     huber_delta: float = 1.0
-    """Huber loss delta for no_mdn."""
+    """Huber loss threshold (action units) of no_mdn."""
+    normalizer_eps: float = 1e-2
+    """eps added to the running std of the observation normalisers (rsl-rl default)."""
 
     def __post_init__(self) -> None:
         _one_of("student", "variant", self.variant, STUDENTS)
-        if len(self.cnn_channels) != len(self.cnn_kernels):
-            raise ConfigError("student.cnn_channels and student.cnn_kernels must have equal length")
+        if not len(self.cnn_channels) == len(self.cnn_kernels) == len(self.cnn_strides):
+            raise ConfigError(
+                "student.cnn_channels, cnn_kernels and cnn_strides must have equal length"
+            )
         if self.d_model % self.n_heads:
             raise ConfigError(f"student.d_model={self.d_model} must be divisible by n_heads")
         if self.log_std_min >= self.log_std_max:
@@ -396,12 +409,24 @@ class MarchConfig:
 
     def __post_init__(self) -> None:
         if self.stage not in STAGES:
-            raise ConfigError(f"stage={self.stage!r} is not valid; choose one of {', '.join(STAGES)}")
+            raise ConfigError(
+                f"stage={self.stage!r} is not valid; choose one of {', '.join(STAGES)}"
+            )
+
+
+SWEEPS_DIR = Path(__file__).resolve().parent.parent / "sweeps"
 
 
 def register_schema() -> None:
-    """Register the schema so conf/config.yaml can extend it (idempotent)."""
-    ConfigStore.instance().store(name="march_schema", node=MarchConfig)
+    """Register the schema (conf/config.yaml extends it) and the sweeps (idempotent).
+
+    Each ``sweeps/<name>.yaml`` becomes the option ``sweep=<name>`` (package _global_), so
+    ``python -m march.train -m +sweep=baseline`` finds it wherever march is run from.
+    """
+    cs = ConfigStore.instance()
+    cs.store(name="march_schema", node=MarchConfig)
+    for path in sorted(SWEEPS_DIR.glob("*.yaml")):
+        cs.store(group="sweep", name=path.stem, node=OmegaConf.load(path), package="_global_")
 
 
 register_schema()

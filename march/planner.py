@@ -15,7 +15,9 @@ Solver: random shooting with R = 16 greedy rollouts. At each step every rollout 
 discretised durations (7 in [0.45, 0.7] s) times candidate footholds on the M stones nearest to the
 nominal foothold; candidates per stone are the nominal foothold clamped into the stone (with the
 hard margin, and with margin + edge clearance) plus K random points on it. Rollout 0 is the pure
-greedy choice; rollouts 1.. perturb the step scores with Gumbel noise (= sampling from a softmin
+greedy choice on a deterministic candidate set (a fixed ring of K points instead of random ones),
+so a single-rollout planner is plain greedy and more rollouts can only lower the cost; rollouts
+1.. draw random points and perturb the step scores with Gumbel noise (= sampling from a softmin
 with temperature ``explore_temperature``), which lets them trade a worse step now for a reachable
 next stone. The rollout with the lowest noise-free cost wins; a plan is feasible when every step
 met every constraint.
@@ -90,7 +92,9 @@ class PlannerCfg:
         """T_nom: the middle of ``duration_range`` [s] (a candidate when num_durations is odd)."""
         return 0.5 * (self.duration_range[0] + self.duration_range[1])
 
-    def duration_grid(self, device: torch.device | str = "cpu", dtype=torch.float32) -> torch.Tensor:
+    def duration_grid(
+        self, device: torch.device | str = "cpu", dtype=torch.float32
+    ) -> torch.Tensor:
         """(num_durations,) candidate step durations [s]."""
         return torch.linspace(*self.duration_range, self.num_durations, device=device, dtype=dtype)
 
@@ -282,6 +286,10 @@ def plan_footsteps(
     gen_device = generator.device if generator is not None else device
     unit = torch.rand((n, 2, r, m, k), generator=generator, device=gen_device).to(device, dtype)
     unit = 2.0 * unit - 1.0
+    # Rollout 0 is deterministic: a fixed ring of points at half the stone's usable extent.
+    theta = 2.0 * torch.pi * (torch.arange(k, device=device, dtype=dtype) + 0.5) / max(k, 1)
+    ring = 0.5 * torch.stack([torch.cos(theta), torch.sin(theta)])  # (2, K)
+    unit[:, :, 0] = ring[None, :, None, :]
     u = torch.rand((n, r, nt * m * (k + 2)), generator=generator, device=gen_device)
     gumbel = -torch.log(-torch.log(u.clamp(1e-12, 1.0 - 1e-7))).to(device, dtype)
     gumbel[:, 0] = 0.0  # rollout 0 is plain greedy
@@ -304,70 +312,81 @@ def plan_footsteps(
         # Nominal foothold for each duration, (E, R, T, 1): stance + width offset + v_D dt.
         nom_x = px.view(e, r, 1, 1) + (side * cfg.step_width * lx + vx * dur)[..., 0]
         nom_y = py.view(e, r, 1, 1) + (side * cfg.step_width * ly + vy * dur)[..., 0]
-        mid_x = nom_x[:, :, nt // 2, 0]
-        mid_y = nom_y[:, :, nt // 2, 0]
-        cx, cy, cz, hx, hy, valid = _nearest_stones(footholds, mid_x, mid_y, m)
+        cx, cy, cz, hx, hy, valid = _nearest_stones(
+            footholds, nom_x[:, :, nt // 2, 0], nom_y[:, :, nt // 2, 0], m
+        )
         hard_x, hard_y = hx - cfg.stone_margin - _EPS, hy - cfg.stone_margin - _EPS
         valid = valid & (hard_x >= 0.0) & (hard_y >= 0.0)
         hard_x, hard_y = hard_x.clamp(min=0.0), hard_y.clamp(min=0.0)
         soft_x = (hx - cfg.stone_margin - cfg.edge_clearance).clamp(min=0.0)
         soft_y = (hy - cfg.stone_margin - cfg.edge_clearance).clamp(min=0.0)
         c4x, c4y = cx[:, :, None], cy[:, :, None]  # (E, R, 1, M)
-        # Candidates (E, R, T, M, C): clamped nominal (hard, soft margins) + random points.
-        cand_x = torch.cat(
+        # Two candidate groups, scored separately because only the first depends on dt:
+        # (a) the nominal foothold clamped into each stone (hard and soft margins), (E, R, T, M, 2);
+        # (b) random points on each stone, (E, R, 1, M, K).
+        ax_ = torch.stack(
             [
-                _clamp_into(nom_x, c4x, hard_x[:, :, None])[..., None],
-                _clamp_into(nom_x, c4x, soft_x[:, :, None])[..., None],
-                (cx[..., None] + unit[i, 0] * hard_x[..., None])[:, :, None].expand(
-                    -1, -1, nt, -1, -1
-                ),
+                _clamp_into(nom_x, c4x, hard_x[:, :, None]),
+                _clamp_into(nom_x, c4x, soft_x[:, :, None]),
             ],
             dim=-1,
         )
-        cand_y = torch.cat(
+        ay_ = torch.stack(
             [
-                _clamp_into(nom_y, c4y, hard_y[:, :, None])[..., None],
-                _clamp_into(nom_y, c4y, soft_y[:, :, None])[..., None],
-                (cy[..., None] + unit[i, 1] * hard_y[..., None])[:, :, None].expand(
-                    -1, -1, nt, -1, -1
-                ),
+                _clamp_into(nom_y, c4y, hard_y[:, :, None]),
+                _clamp_into(nom_y, c4y, soft_y[:, :, None]),
             ],
             dim=-1,
         )
+        bx_ = (cx[..., None] + unit[i, 0] * hard_x[..., None])[:, :, None]
+        by_ = (cy[..., None] + unit[i, 1] * hard_y[..., None])[:, :, None]
         c5x, c5y = c4x[..., None], c4y[..., None]
-        clear = torch.minimum(
-            hx[:, :, None, :, None] - (cand_x - c5x).abs(),
-            hy[:, :, None, :, None] - (cand_y - c5y).abs(),
-        )
-        clear = clear.masked_fill(~valid[:, :, None, :, None], -1.0)
-        cost, ok = _step_cost(
-            (px.view(e, r, 1, 1, 1), py.view(e, r, 1, 1, 1)),
-            pz.view(e, r, 1, 1, 1),
-            (cand_x, cand_y),
-            cz[:, :, None, :, None],
-            clear,
-            dur,
-            left,
-            (vx, vy),
-            (ax, ay),
-            (lx, ly),
-            cfg,
-        )
+        h5x, h5y = hx[:, :, None, :, None], hy[:, :, None, :, None]
+        invalid = ~valid[:, :, None, :, None]
+        scored = []
+        for gx, gy in ((ax_, ay_), (bx_, by_)):
+            clear = torch.minimum(h5x - (gx - c5x).abs(), h5y - (gy - c5y).abs())
+            cost, ok = _step_cost(
+                (px.view(e, r, 1, 1, 1), py.view(e, r, 1, 1, 1)),
+                pz.view(e, r, 1, 1, 1),
+                (gx, gy),
+                cz[:, :, None, :, None],
+                clear.masked_fill(invalid, -1.0),
+                dur,
+                left,
+                (vx, vy),
+                (ax, ay),
+                (lx, ly),
+                cfg,
+            )
+            scored.append((cost, ok.expand_as(cost)))
+        cost = torch.cat([scored[0][0], scored[1][0]], dim=-1)  # (E, R, T, M, C)
+        ok = torch.cat([scored[0][1], scored[1][1]], dim=-1)
         flat_cost = cost.reshape(e, r, -1)
         noisy = flat_cost + cfg.explore_temperature * gumbel[i]
         pick = noisy.argmin(-1, keepdim=True)  # (E, R, 1)
-        step_cost = flat_cost.gather(-1, pick)[..., 0]
-        step_ok = ok.reshape(e, r, -1).gather(-1, pick)[..., 0]
-        px = cand_x.reshape(e, r, -1).gather(-1, pick)[..., 0]
-        py = cand_y.reshape(e, r, -1).gather(-1, pick)[..., 0]
-        # Index decomposition of the flat (T, M, C) choice.
-        t_idx = pick[..., 0] // (m * (k + 2))
+        total = total + flat_cost.gather(-1, pick)[..., 0]
+        feasible = feasible & ok.reshape(e, r, -1).gather(-1, pick)[..., 0]
+        # Decompose the flat (T, M, C) index and read the chosen point from its group.
+        c_idx = pick[..., 0] % (k + 2)
         m_idx = (pick[..., 0] // (k + 2)) % m
+        t_idx = pick[..., 0] // (m * (k + 2))
+        in_a = (t_idx * m + m_idx) * 2 + c_idx.clamp(max=1)
+        in_b = m_idx * k + (c_idx - 2).clamp(min=0)
+        from_a = c_idx < 2
+        px = torch.where(
+            from_a,
+            ax_.reshape(e, r, -1).gather(-1, in_a[..., None])[..., 0],
+            bx_.reshape(e, r, -1).gather(-1, in_b[..., None])[..., 0],
+        )
+        py = torch.where(
+            from_a,
+            ay_.reshape(e, r, -1).gather(-1, in_a[..., None])[..., 0],
+            by_.reshape(e, r, -1).gather(-1, in_b[..., None])[..., 0],
+        )
         pz = cz.gather(-1, m_idx[..., None])[..., 0]
         out_xyz[:, :, i] = torch.stack([px, py, pz], dim=-1)
         out_t[:, :, i] = durations[t_idx]
-        total = total + step_cost
-        feasible = feasible & step_ok
 
     # Best rollout: feasible ones first, then the lowest noise-free cost.
     rank = total + torch.where(feasible, 0.0, float("inf"))

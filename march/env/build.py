@@ -250,7 +250,9 @@ def _events(cfg: MarchConfig, base: dict[str, EventTermCfg]) -> dict[str, EventT
     return events
 
 
-def build_env_cfg(cfg: MarchConfig, purpose: str, num_envs: int | None = None) -> ManagerBasedRlEnvCfg:
+def build_env_cfg(
+    cfg: MarchConfig, purpose: str, num_envs: int | None = None
+) -> ManagerBasedRlEnvCfg:
     """The mjlab env config for ``purpose`` (teacher | student | eval)."""
     if purpose not in PURPOSES:
         raise ValueError(f"purpose={purpose!r}; choose one of {PURPOSES}")
@@ -276,9 +278,7 @@ def build_env_cfg(cfg: MarchConfig, purpose: str, num_envs: int | None = None) -
     env_cfg.sim.contact_sensor_maxmatch = 64
     env_cfg.sim.nconmax = None
 
-    sensors = tuple(
-        s for s in (env_cfg.scene.sensors or ()) if s.name not in ("foot_height_scan",)
-    )
+    sensors = tuple(s for s in (env_cfg.scene.sensors or ()) if s.name not in ("foot_height_scan",))
     if purpose in ("student", "eval"):
         sensors = sensors + (depth_camera_cfg(cfg),)
     env_cfg.scene.sensors = sensors

@@ -69,7 +69,10 @@ def _term_specs() -> dict[str, tuple[Callable[..., torch.Tensor], dict[str, Any]
         "forward_progress": (forward_progress, {"command_name": "twist"}),
         "upright": (
             vel_mdp.upright,
-            {"std": math.sqrt(0.2), "asset_cfg": SceneEntityCfg("robot", body_names=("torso_link",))},
+            {
+                "std": math.sqrt(0.2),
+                "asset_cfg": SceneEntityCfg("robot", body_names=("torso_link",)),
+            },
         ),
         "torque": (torque_l2, {}),
         "joint_limits": (_penalty(envs_mdp.joint_pos_limits), {}),

@@ -25,8 +25,9 @@ Variants (``StudentNetCfg.variant``):
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Literal
+
+from march.config import StudentCfg
 
 import torch
 import torch.nn.functional as F
@@ -46,49 +47,8 @@ Variant = Literal["full", "no_transformer", "no_mdn"]
 VARIANTS: tuple[str, ...] = ("full", "no_transformer", "no_mdn")
 
 
-@dataclass
-class StudentNetCfg:
-    """Student network architecture (paper Table: CNN-Transformer-MDN, ELU; sizes from the
-    first author's code where the paper is silent)."""
-
-    variant: Variant = "full"
-    """"full" (CNN-transformer-MDN), "no_transformer" (MLP fusion) or "no_mdn" (deterministic
-    head + Huber loss)."""
-    cnn_channels: tuple[int, ...] = (24, 32, 48, 64)
-    """Output channels of the depth CNN's conv layers (one entry per layer)."""
-    cnn_kernels: tuple[int, ...] = (5, 3, 3, 3)
-    """Square kernel size (pixels) of each conv layer; 'same' padding (kernel // 2)."""
-    cnn_strides: tuple[int, ...] = (1, 2, 2, 1)
-    """Stride of each conv layer; (1, 2, 2, 1) maps 24x32 to a 6x8 feature map = 48 image tokens."""
-    d_model: int = 256
-    """Transformer token width."""
-    n_heads: int = 8
-    """Attention heads per transformer layer (d_model must be divisible by it)."""
-    n_layers: int = 2
-    """Transformer encoder layers."""
-    dim_feedforward: int = 512
-    """Hidden width of each transformer layer's feed-forward block."""
-    fusion_mlp: tuple[int, ...] = (512, 256)
-    """Hidden sizes of the fusion MLP replacing the transformer in "no_transformer"."""
-    head_hidden: tuple[int, ...] = (256, 128)
-    """Hidden sizes of the MLP between the fused feature and the output layer (all variants)."""
-    num_modes: int = 2
-    """MDN mixture components K."""
-    min_std: float = 1e-3
-    """Floor on each mode's standard deviation (action units)."""
-    log_std_min: float = -3.0
-    """Lower clamp of each mode's natural-log std (binds before min_std: e^-3 ~ 0.05)."""
-    log_std_max: float = 2.0
-    """Upper clamp of each mode's natural-log std."""
-    init_log_std: float = 0.0
-    """Initial log-std of every mode (bias of the log-std layer)."""
-    activation: str = "elu"
-    """Activation of the CNN and MLPs ("elu", "relu", "gelu", "silu", "tanh"). The transformer
-    layers use GELU (torch's fused encoder path supports relu/gelu only)."""
-    huber_delta: float = 1.0
-    """Huber loss threshold (action units) of the "no_mdn" ablation."""
-    normalizer_eps: float = 1e-2
-    """eps added to the running std in the observation normalisers (rsl-rl default)."""
+StudentNetCfg = StudentCfg
+"""The architecture is the ``student`` section of the run config (march.config.StudentCfg)."""
 
 
 def _activation(name: str) -> nn.Module:

@@ -1,0 +1,235 @@
+"""Student depth image: camera config on the G1 torso and post-processing in plain torch.
+
+Pipeline, per control step (all tensors (E, H, W) in metres until the last step):
+
+1. ``raw``: MuJoCo Warp's planar depth (distance along the optical axis); rays that hit nothing
+   read 0, exactly like an invalid D435 pixel.
+2. ``corrupt`` (training only): Gaussian noise sigma = noise_scale * depth on valid pixels, then
+   pixel dropout - a dropped pixel is set to 0, i.e. *invalid*, the value the real camera gives
+   for a pixel it cannot match; step 4 turns it into max range like any other invalid pixel, so
+   the deployed robot runs the very same ``normalize`` on the D435 stream.
+3. ``DepthDelay``: the frame from k control steps ago, k per env (sampled at reset).
+4. ``normalize``: invalid (<= 0 or non-finite) -> max range, clip to [min_range, max_range],
+   map linearly to [0, 1] (0 = min_range, 1 = max range or nothing seen).
+
+Randomness comes from an optional ``torch.Generator`` (on the tensors' device) or torch's
+global RNG, which march seeds from the run's ``seed``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import torch
+
+if TYPE_CHECKING:
+    from mjlab.sensor import CameraSensorCfg
+
+TORSO_BODY = "robot/torso_link"
+"""The G1 torso body in mjlab's scene (entity "robot", body "torso_link" of the G1 MJCF)."""
+
+
+@dataclass
+class DepthCfg:
+    """Chest depth camera (Realsense D435i-like) and its corruption."""
+
+    name: str = "depth_cam"
+    """Camera / sensor name in the scene."""
+    width: int = 32
+    """Image width [px]."""
+    height: int = 24
+    """Image height [px]."""
+    fovy: float = 55.2
+    """Vertical field of view [deg]."""
+    min_range: float = 0.1
+    """Closest depth the camera reports [m] (D435i ~0.1 m at low resolution); nearer is clipped."""
+    max_range: float = 3.0
+    """Farthest depth kept [m]; misses, invalid and dropped pixels read as this."""
+    pos: tuple[float, float, float] = (0.0576, 0.0175, 0.42)
+    """Camera position in the torso_link frame [m] (x forward, y left, z up): the D435 mount of
+    Unitree's G1 URDF (d435_joint), ~1.25 m above the ground when standing."""
+    pitch_deg: float = 47.6
+    """Downward pitch of the optical axis below the torso's forward (+x) axis [deg] (URDF
+    d435_joint: 0.83 rad); with fovy 55.2 the view spans ~20-75 deg below the horizon."""
+    geom_groups: tuple[int, ...] = (0,)
+    """Geom groups the camera renders: 0 = terrain only (the robot's own visual geoms are
+    group 2). All cameras of a scene must share this (mujoco_warp)."""
+    noise_scale: float = 0.1
+    """Gaussian depth noise sigma as a fraction of depth (sigma = noise_scale * depth)."""
+    dropout: float = 0.05
+    """Fraction of pixels dropped (set invalid -> max range) per frame."""
+    delay_steps: tuple[int, int] = (0, 1)
+    """Per-env delay [control steps], drawn uniformly from [lo, hi] at reset (1 step = 20 ms)."""
+
+
+def camera_quat(pitch_deg: float) -> tuple[float, float, float, float]:
+    """(w, x, y, z) of a MuJoCo camera looking along its parent's +x, pitched down by pitch_deg.
+
+    A MuJoCo camera looks along its local -z with +y up. Looking along +x with +z up means the
+    camera axes (x, y, z) = (-y, +z, -x) of the parent, a quarter turn about x then about z:
+    q0 = (0.5, 0.5, -0.5, -0.5). Pitching down is a rotation by +pitch about the parent's +y
+    (it takes +x to (cos, 0, -sin)): q = q_y(pitch) * q0.
+    """
+    h = 0.5 * math.radians(pitch_deg)
+    a = (math.cos(h), 0.0, math.sin(h), 0.0)
+    b = (0.5, 0.5, -0.5, -0.5)
+    w1, x1, y1, z1 = a
+    w2, x2, y2, z2 = b
+    return (
+        w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+        w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+    )
+
+
+def depth_camera_cfg(cfg: DepthCfg, parent_body: str = TORSO_BODY) -> CameraSensorCfg:
+    """mjlab camera sensor creating a depth camera on the G1 torso (add it to
+    ``env_cfg.scene.sensors``; read ``env.scene[cfg.name].data.depth``, (E, H, W, 1) metres)."""
+    from mjlab.sensor import CameraSensorCfg
+
+    return CameraSensorCfg(
+        name=cfg.name,
+        parent_body=parent_body,
+        pos=tuple(cfg.pos),
+        quat=camera_quat(cfg.pitch_deg),
+        fovy=cfg.fovy,
+        width=cfg.width,
+        height=cfg.height,
+        data_types=("depth",),
+        use_textures=False,
+        enabled_geom_groups=tuple(cfg.geom_groups),
+    )
+
+
+def normalize(depth: torch.Tensor, min_range: float, max_range: float) -> torch.Tensor:
+    """Invalid (<= 0, NaN, inf) -> max_range, clip to [min_range, max_range], map to [0, 1]."""
+    invalid = ~torch.isfinite(depth) | (depth <= 0.0)
+    d = torch.where(invalid, torch.full_like(depth, max_range), depth)
+    d = d.clamp(min_range, max_range)
+    return (d - min_range) / (max_range - min_range)
+
+
+def corrupt(
+    depth: torch.Tensor,
+    noise_scale: float,
+    dropout: float,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
+    """Depth [m] with noise N(0, (noise_scale * depth)^2) on valid pixels and a fraction
+    ``dropout`` of pixels set to 0 (invalid). Invalid input pixels stay 0."""
+    valid = depth > 0.0
+    out = depth
+    if noise_scale > 0.0:
+        noise = torch.randn(
+            depth.shape, generator=generator, device=depth.device, dtype=depth.dtype
+        )
+        # A valid pixel stays valid: noise beyond -depth (a 10-sigma event) clamps to 1 mm.
+        out = torch.where(valid, (depth + noise_scale * depth * noise).clamp(min=1e-3), depth)
+    if dropout > 0.0:
+        drop = torch.rand(depth.shape, generator=generator, device=depth.device) < dropout
+        out = torch.where(drop, torch.zeros_like(out), out)
+    return out
+
+
+class DepthDelay:
+    """Ring buffer returning each env's frame from k control steps ago (k per env).
+
+    ``push(frame)`` once per control step, then ``get()``; k = 0 returns the frame just pushed.
+    ``reset(env_ids, frame)`` fills those envs' history with ``frame`` (no frames leak from the
+    previous episode) and redraws their delay from ``delay_steps``.
+    """
+
+    def __init__(
+        self,
+        num_envs: int,
+        frame_shape: tuple[int, ...],
+        delay_steps: tuple[int, int] = (0, 0),
+        device: torch.device | str = "cpu",
+        generator: torch.Generator | None = None,
+    ) -> None:
+        lo, hi = int(delay_steps[0]), int(delay_steps[1])
+        if not 0 <= lo <= hi:
+            raise ValueError(f"delay_steps={delay_steps}: need 0 <= lo <= hi")
+        self.delay_steps = (lo, hi)
+        self.generator = generator
+        self.buffer = torch.zeros(hi + 1, num_envs, *frame_shape, device=device)
+        self.head = 0
+        """Slot of the latest frame."""
+        self.delay = torch.full((num_envs,), lo, dtype=torch.long, device=device)
+        """(E,) current delay of each env [control steps]."""
+        self._env = torch.arange(num_envs, device=device)
+
+    @property
+    def max_delay(self) -> int:
+        return self.buffer.shape[0] - 1
+
+    def sample_delay(self, env_ids: torch.Tensor | None = None) -> None:
+        ids = self._env if env_ids is None else env_ids
+        lo, hi = self.delay_steps
+        k = torch.randint(
+            lo, hi + 1, (len(ids),), generator=self.generator, device=self.buffer.device
+        )
+        self.delay[ids] = k
+
+    def set_delay(self, delay: torch.Tensor | int, env_ids: torch.Tensor | None = None) -> None:
+        """Fix the delay of some envs (0..max_delay)."""
+        ids = self._env if env_ids is None else env_ids
+        d = torch.as_tensor(delay, dtype=torch.long, device=self.buffer.device)
+        if (d < 0).any() or (d > self.max_delay).any():
+            raise ValueError(f"delay must be in [0, {self.max_delay}]")
+        self.delay[ids] = d
+
+    def push(self, frame: torch.Tensor) -> None:
+        self.head = (self.head + 1) % self.buffer.shape[0]
+        self.buffer[self.head] = frame
+
+    def get(self) -> torch.Tensor:
+        slot = (self.head - self.delay) % self.buffer.shape[0]
+        return self.buffer[slot, self._env]
+
+    def reset(self, env_ids: torch.Tensor, frame: torch.Tensor | None = None) -> None:
+        """Fill the envs' history with ``frame`` ((len(env_ids), ...), zeros if None) and
+        redraw their delay."""
+        fill = 0.0 if frame is None else frame
+        self.buffer[:, env_ids] = fill
+        self.sample_delay(env_ids)
+
+
+class DepthPipeline:
+    """``corrupt`` -> ``DepthDelay`` -> ``normalize`` for E envs, per :class:`DepthCfg`.
+
+    ``step(raw)`` takes the camera's (E, H, W) or (E, H, W, 1) depth [m] once per control step
+    and returns (E, 1, H, W) in [0, 1]; with ``train=False`` there is no noise, dropout or delay.
+    """
+
+    def __init__(
+        self,
+        cfg: DepthCfg,
+        num_envs: int,
+        device: torch.device | str = "cpu",
+        train: bool = True,
+        generator: torch.Generator | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.train = train
+        self.generator = generator
+        delay = tuple(cfg.delay_steps) if train else (0, 0)
+        self.delay = DepthDelay(num_envs, (cfg.height, cfg.width), delay, device, generator)
+        self.delay.sample_delay()
+
+    def step(self, raw: torch.Tensor) -> torch.Tensor:
+        d = raw[..., 0] if raw.dim() == 4 else raw
+        if self.train:
+            d = corrupt(d, self.cfg.noise_scale, self.cfg.dropout, self.generator)
+        self.delay.push(d)
+        out = normalize(self.delay.get(), self.cfg.min_range, self.cfg.max_range)
+        return out.unsqueeze(1)
+
+    def reset(self, env_ids: torch.Tensor, raw: torch.Tensor | None = None) -> None:
+        """New episode for ``env_ids``: history filled with their current raw frame (or
+        invalid = max range if None), delay redrawn."""
+        frame = None if raw is None else (raw[..., 0] if raw.dim() == 4 else raw)
+        self.delay.reset(env_ids, frame)

@@ -1,0 +1,1 @@
+"""Learning: PPO teacher runner (rsl-rl's PPO), distillation algorithm and runner, checkpoints."""

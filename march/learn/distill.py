@@ -1,0 +1,250 @@
+"""Teacher -> student distillation (DAgger): the student acts, the frozen teacher labels.
+
+Our own runner, because rsl-rl 5.4.2's Distillation offers only MSE/Huber and mjlab 1.6.0 ships no
+distillation runner. The loss is the student's own (:meth:`StudentPolicy.distill_loss`): NLL of
+``teacher_samples`` actions drawn from N(teacher mean, (teacher_std_scale * teacher std)^2) for
+the MDN students, Huber against the teacher mean for ``no_mdn``. Every ``gradient_length``
+consecutive steps of a rollout make one optimiser step; ``num_learning_epochs`` passes per rollout.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import torch
+from mjlab.envs import ManagerBasedRlEnv
+from tensordict import TensorDict
+
+from march.config import MarchConfig
+from march.env.course import CourseRuler
+from march.learn.checkpoint import check_layout, latest_checkpoint, load_checkpoint, save_checkpoint
+from march.learn.metrics import MetricsLog, Progress
+from march.learn.teacher import EpisodeStats, build_teacher_actor
+from march.policies.student import StudentPolicy
+
+COMMAND = "twist"
+
+
+def student_inputs(env: ManagerBasedRlEnv, obs: dict[str, Any]) -> tuple[torch.Tensor, ...]:
+    """(proprio history (E,H,P), command (E,3), depth (E,1,H,W)) from the env's observations."""
+    return obs["student"], env.command_manager.get_command(COMMAND), obs["depth"]
+
+
+def student_layout(obs: dict[str, Any], cfg: MarchConfig, num_actions: int) -> dict[str, Any]:
+    return {
+        "variant": cfg.student.variant,
+        "proprio_dim": int(obs["student"].shape[-1]),
+        "history_len": int(obs["student"].shape[1]),
+        "image_hw": [int(obs["depth"].shape[-2]), int(obs["depth"].shape[-1])],
+        "num_actions": int(num_actions),
+    }
+
+
+def build_student(cfg: MarchConfig, layout: dict[str, Any], device: str) -> StudentPolicy:
+    return StudentPolicy(
+        cfg.student,
+        proprio_dim=layout["proprio_dim"],
+        history_len=layout["history_len"],
+        command_dim=3,
+        image_hw=tuple(layout["image_hw"]),
+        num_actions=layout["num_actions"],
+    ).to(device)
+
+
+def load_student(
+    path: str | Path, cfg: MarchConfig, obs: dict[str, Any], num_actions: int
+) -> StudentPolicy:
+    payload = load_checkpoint(path, "student", cfg.compute.device)
+    check_layout(payload["layout"], student_layout(obs, cfg, num_actions), "student", path)
+    student = build_student(cfg, payload["layout"], cfg.compute.device)
+    student.load_state_dict(payload["student_state_dict"])
+    student.eval()
+    return student
+
+
+def student_policy(
+    env: ManagerBasedRlEnv, student: StudentPolicy
+) -> Callable[[dict], torch.Tensor]:
+    def act(obs: dict[str, Any]) -> torch.Tensor:
+        student.eval()
+        return student.act_inference(*student_inputs(env, obs))
+
+    return act
+
+
+class DistillRunner:
+    """Distils a frozen teacher into the configured student on the student env."""
+
+    def __init__(
+        self,
+        env: ManagerBasedRlEnv,
+        cfg: MarchConfig,
+        run_dir: Path,
+        log: MetricsLog,
+        teacher_payload: dict[str, Any],
+        teacher_path: str,
+        evaluate_fn: Callable[[StudentPolicy, int, int], dict[str, Any]] | None = None,
+    ) -> None:
+        self.env, self.cfg, self.run_dir, self.log = env, cfg, run_dir, log
+        self.device = cfg.compute.device
+        self.ruler = CourseRuler(env)
+        self.ckpt_dir = run_dir / "student"
+        self.evaluate_fn = evaluate_fn
+        obs, _ = env.reset()
+        self.obs = obs
+        num_actions = env.action_manager.total_action_dim
+        self.teacher = build_teacher_actor(
+            teacher_payload, self._teacher_obs(obs), num_actions, self.device, teacher_path
+        )
+        self.teacher_path = teacher_path
+        self.layout = student_layout(obs, cfg, num_actions)
+        self.student = build_student(cfg, self.layout, self.device)
+        d = cfg.distill
+        self.optimizer = torch.optim.Adam(self.student.parameters(), lr=d.learning_rate)
+        self.generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
+        self.iteration = 0
+        self.env_steps = 0
+        self.wall_s = 0.0
+
+    def _teacher_obs(self, obs: dict[str, Any]) -> TensorDict:
+        return TensorDict({"actor": obs["actor"]}, batch_size=[self.env.num_envs])
+
+    def payload(self) -> dict[str, Any]:
+        return {
+            "kind": "student",
+            "iteration": self.iteration,
+            "env_steps": self.env_steps,
+            "wall_s": self.wall_s,
+            "config": asdict(self.cfg),
+            "layout": self.layout,
+            "teacher_ckpt": str(self.teacher_path),
+            "student_state_dict": self.student.state_dict(),
+            "optimizer_state_dict": self.optimizer.state_dict(),
+            "generator": self.generator.get_state(),
+            "rng": torch.get_rng_state(),
+            "common_step_counter": self.env.common_step_counter,
+        }
+
+    def try_resume(self) -> bool:
+        path = latest_checkpoint(self.ckpt_dir)
+        if path is None:
+            return False
+        payload = load_checkpoint(path, "student", self.device)
+        check_layout(payload["layout"], self.layout, "student", path)
+        self.student.load_state_dict(payload["student_state_dict"])
+        self.optimizer.load_state_dict(payload["optimizer_state_dict"])
+        self.generator.set_state(payload["generator"])
+        torch.set_rng_state(payload["rng"])
+        self.iteration = int(payload["iteration"])
+        self.env_steps = int(payload["env_steps"])
+        self.wall_s = float(payload.get("wall_s", 0.0))
+        self.env.common_step_counter = payload.get("common_step_counter", 0)
+        self.log.resume_from("student", self.iteration - 1)
+        print(f"[student] resuming from {path} at iteration {self.iteration}")
+        return True
+
+    @torch.no_grad()
+    def _rollout(self, stats: EpisodeStats) -> tuple[list[tuple[torch.Tensor, ...]], float]:
+        steps = []
+        reward_sum = 0.0
+        obs = self.obs
+        self.student.eval()
+        for _ in range(self.cfg.distill.num_steps_per_env):
+            inputs = student_inputs(self.env, obs)
+            self.teacher(self._teacher_obs(obs), stochastic_output=True)
+            teacher_mean = self.teacher.output_mean.clone()
+            teacher_std = self.teacher.output_std.expand_as(teacher_mean).clone()
+            actions = self.student.act_inference(*inputs)
+            steps.append(tuple(x.clone() for x in inputs) + (teacher_mean, teacher_std))
+            before = self.ruler.progress()
+            obs, reward, terminated, truncated, _ = self.env.step(actions)
+            stats.step(reward, terminated | truncated, before)
+            reward_sum += reward.mean().item()
+        self.obs = obs
+        return steps, reward_sum / len(steps)
+
+    def _update(self, steps: list[tuple[torch.Tensor, ...]]) -> dict[str, float]:
+        d = self.cfg.distill
+        self.student.train()
+        for proprio, command, _, _, _ in steps:
+            self.student.update_normalization(proprio, command)
+        totals: dict[str, float] = {}
+        count = 0
+        for _ in range(d.num_learning_epochs):
+            for start in range(0, len(steps), d.gradient_length):
+                chunk = steps[start : start + d.gradient_length]
+                loss = torch.zeros((), device=self.device)
+                for proprio, command, depth, mean, std in chunk:
+                    step_loss, info = self.student.distill_loss(
+                        proprio,
+                        command,
+                        depth,
+                        mean,
+                        std,
+                        num_samples=d.teacher_samples,
+                        std_scale=d.teacher_std_scale,
+                        generator=self.generator,
+                    )
+                    loss = loss + step_loss / len(chunk)
+                    for k, v in info.items():
+                        totals[k] = totals.get(k, 0.0) + float(v)
+                    count += 1
+                self.optimizer.zero_grad()
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(self.student.parameters(), d.max_grad_norm)
+                self.optimizer.step()
+        return {k: v / max(count, 1) for k, v in totals.items()}
+
+    def learn(self, total_iterations: int) -> Path:
+        d = self.cfg.distill
+        stats = EpisodeStats(self.env.num_envs, self.device)
+        progress = Progress("student", self.iteration, total_iterations)
+        for it in range(self.iteration, total_iterations):
+            t0 = time.time()
+            steps, teacher_reward = self._rollout(stats)
+            info = self._update(steps)
+            self.iteration = it + 1
+            self.env_steps += d.num_steps_per_env * self.env.num_envs
+            self.wall_s += time.time() - t0
+            row = {
+                "stage": "student",
+                "iteration": self.iteration,
+                "env_steps": self.env_steps,
+                "wall_s": self.wall_s,
+                **stats.pop(),
+                "loss": info.get("loss", float("nan")),
+                "action_error": info.get("action_error", float("nan")),
+                "teacher_reward": teacher_reward,
+                "mode_weight_0": info.get("mode_weight_0", float("nan")),
+                "mode_weight_1": info.get("mode_weight_1", float("nan")),
+            }
+            self.log.log(row)
+            print(
+                progress.line(
+                    it,
+                    {
+                        "loss": row["loss"],
+                        "action_err": row["action_error"],
+                        "teacher_reward": teacher_reward,
+                        "ep_len": row["mean_episode_length"],
+                    },
+                ),
+                flush=True,
+            )
+            last = self.iteration == total_iterations
+            if self.iteration % d.save_interval == 0 or last:
+                save_checkpoint(self.payload(), self.ckpt_dir, self.iteration)
+            # The final iteration's evaluation is the pipeline's eval stage (summary.json).
+            if (
+                self.evaluate_fn is not None
+                and not last
+                and (d.eval_interval and self.iteration % d.eval_interval == 0)
+            ):
+                self.evaluate_fn(self.student, self.iteration, self.env_steps)
+        if latest_checkpoint(self.ckpt_dir) is None:
+            save_checkpoint(self.payload(), self.ckpt_dir, self.iteration)
+        return self.ckpt_dir / "latest.pt"

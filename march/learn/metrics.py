@@ -1,0 +1,140 @@
+"""Per-iteration metrics: metrics.csv (always), plus tensorboard or wandb when selected."""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+from march.config import LoggerCfg
+
+METRIC_COLUMNS = (
+    "stage",
+    "iteration",
+    "env_steps",
+    "wall_s",
+    "mean_reward",
+    "mean_episode_length",
+    "mean_distance_m",
+    "value_loss",
+    "surrogate_loss",
+    "entropy",
+    "learning_rate",
+    "action_std",
+    "loss",
+    "action_error",
+    "teacher_reward",
+    "mode_weight_0",
+    "mode_weight_1",
+)
+
+EVAL_METRICS = ("distance_m", "success_rate", "abs_torque_nm", "abs_ang_jerk", "reward")
+EVAL_COLUMNS = ("stage", "iteration", "env_steps", "n_rollouts") + tuple(
+    f"{p}_{m}" for m in EVAL_METRICS for p in ("mean", "se")
+)
+
+
+def _truncate(path: Path, stage: str, after_iteration: int) -> None:
+    """Drop rows of ``stage`` past ``after_iteration`` (a resumed run re-does them)."""
+    if not path.is_file():
+        return
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    keep = [r for r in rows if r["stage"] != stage or int(r["iteration"]) <= after_iteration]
+    if len(keep) == len(rows):
+        return
+    tmp = path.with_suffix(".tmp")
+    with tmp.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
+        writer.writeheader()
+        writer.writerows(keep)
+    os.replace(tmp, path)
+
+
+def append_row(path: Path, columns: tuple[str, ...], row: dict[str, Any]) -> None:
+    new = not path.is_file()
+    with path.open("a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(columns), extrasaction="ignore")
+        if new:
+            writer.writeheader()
+        writer.writerow({k: _fmt(row.get(k)) for k in columns})
+
+
+def _fmt(v: Any) -> Any:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return "" if math.isnan(v) else f"{v:.6g}"
+    return v
+
+
+class MetricsLog:
+    """metrics.csv in the run dir and the selected external logger."""
+
+    def __init__(self, run_dir: Path, logger: LoggerCfg, run_name: str) -> None:
+        self.path = run_dir / "metrics.csv"
+        self.run_dir = run_dir
+        self._writer: Any = None
+        self._wandb: Any = None
+        if logger.name == "tensorboard":
+            from torch.utils.tensorboard import SummaryWriter
+
+            self._writer = SummaryWriter(log_dir=str(run_dir / "tensorboard"))
+        elif logger.name == "wandb":
+            os.environ.setdefault("WANDB_MODE", "offline")
+            import wandb  # lazy: only when selected
+
+            self._wandb = wandb.init(
+                project=logger.project, name=run_name, dir=str(run_dir), reinit=True
+            )
+
+    def resume_from(self, stage: str, iteration: int) -> None:
+        _truncate(self.path, stage, iteration)
+
+    def log(self, row: dict[str, Any]) -> None:
+        append_row(self.path, METRIC_COLUMNS, row)
+        step = int(row["env_steps"])
+        scalars = {
+            f"{row['stage']}/{k}": float(v)
+            for k, v in row.items()
+            if k not in ("stage", "iteration", "env_steps")
+            and isinstance(v, (int, float))
+            and not (isinstance(v, float) and math.isnan(v))
+        }
+        if self._writer is not None:
+            for k, v in scalars.items():
+                self._writer.add_scalar(k, v, step)
+        if self._wandb is not None:
+            self._wandb.log(scalars, step=step)
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+        if self._wandb is not None:
+            self._wandb.finish()
+
+
+class Progress:
+    """One console line per iteration with rate and ETA."""
+
+    def __init__(self, stage: str, start: int, total: int) -> None:
+        self.stage, self.start, self.total = stage, start, total
+        self.t0 = time.time()
+
+    def line(self, it: int, fields: dict[str, float]) -> str:
+        done = it + 1 - self.start
+        elapsed = time.time() - self.t0
+        eta = elapsed / max(done, 1) * (self.total - it - 1)
+        body = "  ".join(f"{k} {v:.3g}" for k, v in fields.items() if v == v)
+        return (
+            f"[{self.stage}] it {it + 1}/{self.total}  {body}  "
+            f"({elapsed:.0f}s elapsed, ETA {_hms(eta)})"
+        )
+
+
+def _hms(s: float) -> str:
+    s = int(s)
+    return f"{s // 3600}h{s % 3600 // 60:02d}m" if s >= 3600 else f"{s // 60}m{s % 60:02d}s"

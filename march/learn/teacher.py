@@ -1,0 +1,243 @@
+"""The PPO teacher runner: rsl-rl's PPO (algorithm, models, storage) on the mjlab env.
+
+The runner owns the loop (rollout, logging, checkpoints, resume); rsl-rl's PPO owns the update.
+mjlab's own ``train`` CLI is not used: it assumes a GPU.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import torch
+from mjlab.envs import ManagerBasedRlEnv
+from mjlab.rl.vecenv_wrapper import RslRlVecEnvWrapper
+from rsl_rl.algorithms import PPO
+from rsl_rl.models import MLPModel
+from tensordict import TensorDict
+
+from march.config import MarchConfig, TeacherCfg
+from march.env.course import CourseRuler
+from march.learn.checkpoint import (
+    check_layout,
+    latest_checkpoint,
+    load_checkpoint,
+    save_checkpoint,
+)
+from march.learn.metrics import MetricsLog, Progress
+
+
+def ppo_train_cfg(t: TeacherCfg) -> dict[str, Any]:
+    """The rsl-rl runner dict for the paper's PPO table (SPEC §2)."""
+    return {
+        "num_steps_per_env": t.num_steps_per_env,
+        "obs_groups": {"actor": ["actor"], "critic": ["critic"]},
+        "multi_gpu": None,
+        "actor": {
+            "class_name": "MLPModel",
+            "hidden_dims": list(t.hidden_dims),
+            "activation": t.activation,
+            "obs_normalization": True,
+            "distribution_cfg": {
+                "class_name": "GaussianDistribution",
+                "init_std": t.init_std,
+                "std_type": "scalar",
+            },
+        },
+        "critic": {
+            "class_name": "MLPModel",
+            "hidden_dims": list(t.hidden_dims),
+            "activation": t.activation,
+            "obs_normalization": True,
+        },
+        "algorithm": {
+            "class_name": "PPO",
+            "num_learning_epochs": t.num_learning_epochs,
+            "num_mini_batches": t.num_mini_batches,
+            "clip_param": t.clip_param,
+            "gamma": t.gamma,
+            "lam": t.lam,
+            "value_loss_coef": t.value_loss_coef,
+            "entropy_coef": t.entropy_coef,
+            "learning_rate": t.learning_rate,
+            "max_grad_norm": t.max_grad_norm,
+            "use_clipped_value_loss": True,
+            "schedule": t.schedule,
+            "desired_kl": t.desired_kl,
+            "rnd_cfg": None,
+            "symmetry_cfg": None,
+        },
+    }
+
+
+def teacher_layout(obs: TensorDict | dict, num_actions: int) -> dict[str, Any]:
+    """What a teacher checkpoint must agree on with the env it is used in."""
+    return {"actor_obs_dim": int(obs["actor"].shape[-1]), "num_actions": int(num_actions)}
+
+
+def build_teacher_actor(
+    payload: dict[str, Any], obs: TensorDict, num_actions: int, device: str, path: str
+) -> MLPModel:
+    """The frozen teacher policy from a teacher checkpoint (for distillation and evaluation)."""
+    check_layout(payload["layout"], teacher_layout(obs, num_actions), "teacher", path)
+    actor_cfg = copy.deepcopy(payload["ppo"]["actor"])
+    actor_cfg.pop("class_name")
+    actor = MLPModel(obs, {"actor": ["actor"]}, "actor", num_actions, **actor_cfg).to(device)
+    actor.load_state_dict(payload["actor_state_dict"])
+    actor.eval()
+    for p in actor.parameters():
+        p.requires_grad_(False)
+    return actor
+
+
+class EpisodeStats:
+    """Returns, lengths and course progress of the episodes that end during an iteration."""
+
+    def __init__(self, num_envs: int, device: str) -> None:
+        self.ret = torch.zeros(num_envs, device=device)
+        self.len = torch.zeros(num_envs, device=device)
+        self.finished_ret: list[torch.Tensor] = []
+        self.finished_len: list[torch.Tensor] = []
+        self.finished_dist: list[torch.Tensor] = []
+
+    def step(self, reward: torch.Tensor, done: torch.Tensor, progress: torch.Tensor) -> None:
+        self.ret += reward
+        self.len += 1
+        ids = done.nonzero(as_tuple=False).squeeze(-1)
+        if len(ids):
+            self.finished_ret.append(self.ret[ids].clone())
+            self.finished_len.append(self.len[ids].clone())
+            self.finished_dist.append(progress[ids].clone())
+            self.ret[ids] = 0
+            self.len[ids] = 0
+
+    def pop(self) -> dict[str, float]:
+        if not self.finished_ret:
+            nan = float("nan")
+            return {"mean_reward": nan, "mean_episode_length": nan, "mean_distance_m": nan}
+        out = {
+            "mean_reward": torch.cat(self.finished_ret).mean().item(),
+            "mean_episode_length": torch.cat(self.finished_len).mean().item(),
+            "mean_distance_m": torch.cat(self.finished_dist).mean().item(),
+        }
+        self.finished_ret, self.finished_len, self.finished_dist = [], [], []
+        return out
+
+
+class TeacherRunner:
+    """PPO on the teacher env; checkpoints in ``<run>/teacher/``; resumes by itself."""
+
+    def __init__(self, env: ManagerBasedRlEnv, cfg: MarchConfig, run_dir: Path, log: MetricsLog):
+        self.cfg, self.run_dir, self.log = cfg, run_dir, log
+        self.device = cfg.compute.device
+        self.env = RslRlVecEnvWrapper(env)
+        self.ruler = CourseRuler(env)
+        self.ckpt_dir = run_dir / "teacher"
+        self.train_cfg = ppo_train_cfg(cfg.teacher)
+        obs = self.env.get_observations()
+        self.layout = teacher_layout(obs, self.env.num_actions)
+        self.alg = PPO.construct_algorithm(
+            obs, self.env, copy.deepcopy(self.train_cfg), self.device
+        )
+        self.iteration = 0  # iterations completed
+        self.env_steps = 0
+        self.wall_s = 0.0
+
+    def payload(self) -> dict[str, Any]:
+        return {
+            "kind": "teacher",
+            "iteration": self.iteration,
+            "env_steps": self.env_steps,
+            "wall_s": self.wall_s,
+            "config": asdict(self.cfg),
+            "layout": self.layout,
+            "ppo": self.train_cfg,
+            **self.alg.save(),
+            "learning_rate": self.alg.learning_rate,
+            "rng": torch.get_rng_state(),
+            "common_step_counter": self.env.unwrapped.common_step_counter,
+        }
+
+    def try_resume(self) -> bool:
+        """Continue from ``<run>/teacher/latest.pt`` if it exists (killed run, Slurm requeue)."""
+        path = latest_checkpoint(self.ckpt_dir)
+        if path is None:
+            return False
+        payload = load_checkpoint(path, "teacher", self.device)
+        check_layout(payload["layout"], self.layout, "teacher", path)
+        self.alg.load(payload, None, strict=True)
+        self.alg.learning_rate = payload.get("learning_rate", self.alg.learning_rate)
+        for group in self.alg.optimizer.param_groups:
+            group["lr"] = self.alg.learning_rate
+        self.iteration = int(payload["iteration"])
+        self.env_steps = int(payload["env_steps"])
+        self.wall_s = float(payload.get("wall_s", 0.0))
+        torch.set_rng_state(payload["rng"])
+        self.env.unwrapped.common_step_counter = payload.get("common_step_counter", 0)
+        self.log.resume_from("teacher", self.iteration - 1)
+        print(f"[teacher] resuming from {path} at iteration {self.iteration}")
+        return True
+
+    def save(self) -> Path:
+        return save_checkpoint(self.payload(), self.ckpt_dir, self.iteration)
+
+    def learn(self, total_iterations: int) -> Path:
+        t = self.cfg.teacher
+        obs = self.env.get_observations().to(self.device)
+        self.alg.train_mode()
+        stats = EpisodeStats(self.env.num_envs, self.device)
+        progress = Progress("teacher", self.iteration, total_iterations)
+        last = latest_checkpoint(self.ckpt_dir)
+        for it in range(self.iteration, total_iterations):
+            t0 = time.time()
+            with torch.inference_mode():
+                for _ in range(t.num_steps_per_env):
+                    before = self.ruler.progress()
+                    actions = self.alg.act(obs)
+                    obs, rewards, dones, extras = self.env.step(actions.to(self.env.device))
+                    obs, rewards, dones = (
+                        obs.to(self.device),
+                        rewards.to(self.device),
+                        dones.to(self.device),
+                    )
+                    self.alg.process_env_step(obs, rewards, dones, extras)
+                    # The env auto-resets: a finished episode's distance is its last pre-reset one.
+                    stats.step(rewards, dones.bool(), before)
+                self.alg.compute_returns(obs)
+            losses = self.alg.update()
+            self.iteration = it + 1
+            self.env_steps += t.num_steps_per_env * self.env.num_envs
+            self.wall_s += time.time() - t0
+            row = {
+                "stage": "teacher",
+                "iteration": self.iteration,
+                "env_steps": self.env_steps,
+                "wall_s": self.wall_s,
+                **stats.pop(),
+                "value_loss": losses.get("value", losses.get("value_function", float("nan"))),
+                "surrogate_loss": losses.get("surrogate", float("nan")),
+                "entropy": losses.get("entropy", float("nan")),
+                "learning_rate": self.alg.learning_rate,
+                "action_std": self.alg.get_policy().output_std.mean().item(),
+            }
+            self.log.log(row)
+            print(
+                progress.line(
+                    it,
+                    {
+                        "reward": row["mean_reward"],
+                        "ep_len": row["mean_episode_length"],
+                        "dist_m": row["mean_distance_m"],
+                        "value_loss": row["value_loss"],
+                    },
+                ),
+                flush=True,
+            )
+            if self.iteration % t.save_interval == 0 or self.iteration == total_iterations:
+                last = self.save()
+        if last is None:
+            last = self.save()
+        return self.ckpt_dir / "latest.pt"

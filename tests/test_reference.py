@@ -1,0 +1,183 @@
+"""Reference trajectory: swing Bezier end points, end velocities and apex; angle wrapping; the
+flattened output layout."""
+
+import math
+
+import pytest
+import torch
+
+from march.hlip import HlipCfg, hlip_com_state
+from march.planner import Plan
+from march.reference import (
+    ReferenceCfg,
+    StepState,
+    angle_mask,
+    bezier,
+    output_names,
+    reference_at,
+    step_state_from_plan,
+    swing_trajectory,
+    tracking_error,
+    wrap_to_pi,
+)
+
+torch.set_num_threads(1)
+F64 = torch.float64
+
+
+def _swing_case():
+    start = torch.tensor([[0.0, -0.12, 0.0], [0.1, 0.1, 0.05], [0.3, 0.0, 0.1]], dtype=F64)
+    end = torch.tensor([[0.35, -0.12, 0.0], [0.5, 0.2, -0.03], [0.9, -0.1, 0.18]], dtype=F64)
+    duration = torch.tensor([0.5, 0.45, 0.7], dtype=F64)
+    return start, end, duration
+
+
+def test_swing_end_points_and_zero_end_velocity():
+    start, end, duration = _swing_case()
+    for phase, point in ((0.0, start), (1.0, end)):
+        pos, vel = swing_trajectory(start, end, torch.full((3,), phase, dtype=F64), duration, 0.1)
+        torch.testing.assert_close(pos, point)
+        assert vel.abs().max() < 1e-12
+    # Past the planned duration the foot rests at the target.
+    pos, vel = swing_trajectory(start, end, torch.full((3,), 1.3, dtype=F64), duration, 0.1)
+    torch.testing.assert_close(pos, end)
+    assert vel.abs().max() == 0.0
+
+
+def test_swing_apex_height():
+    start, end, duration = _swing_case()
+    z_sw = 0.1
+    apex = torch.maximum(start[:, 2], end[:, 2]) + z_sw
+    mid, _ = swing_trajectory(start, end, torch.full((3,), 0.5, dtype=F64), duration, z_sw)
+    torch.testing.assert_close(mid[:, 2], apex)
+    s = torch.linspace(0, 1, 201, dtype=F64)
+    z = torch.stack(
+        [swing_trajectory(start, end, si.expand(3), duration, z_sw)[0][:, 2] for si in s]
+    )
+    # Equal heights: mid-swing is the maximum; otherwise it is at least the apex and close to it.
+    assert float(z[:, 0].max()) == pytest.approx(float(apex[0]), abs=1e-9)
+    assert (z.max(0).values >= apex - 1e-9).all()
+    assert (z.max(0).values <= apex + 0.02).all()
+    # Never below the lower end point (no scuffing into the stone edge).
+    assert (z >= torch.minimum(start[:, 2], end[:, 2]) - 1e-9).all()
+
+
+def test_swing_velocity_is_time_derivative():
+    start, end, duration = _swing_case()
+    tau, h = 0.2, 1e-6
+    pa, _ = swing_trajectory(start, end, (tau - h) / duration, duration, 0.1)
+    pb, _ = swing_trajectory(start, end, (tau + h) / duration, duration, 0.1)
+    _, vel = swing_trajectory(start, end, tau / duration, duration, 0.1)
+    torch.testing.assert_close(vel, (pb - pa) / (2 * h), atol=1e-6, rtol=0)
+
+
+def test_bezier_derivative_against_finite_difference():
+    ctrl = torch.randn(4, 7, 3, dtype=F64, generator=torch.Generator().manual_seed(0))
+    s, h = torch.full((4,), 0.37, dtype=F64), 1e-6
+    _, d = bezier(ctrl, s)
+    torch.testing.assert_close(d, (bezier(ctrl, s + h)[0] - bezier(ctrl, s - h)[0]) / (2 * h))
+
+
+def test_wrap_to_pi():
+    x = torch.tensor([0.0, math.pi - 1e-6, math.pi + 0.1, -math.pi - 0.1, 7.0, -20.0, 3 * math.pi])
+    w = wrap_to_pi(x)
+    assert (w >= -math.pi).all() and (w < math.pi).all()
+    torch.testing.assert_close(torch.sin(w), torch.sin(x), atol=1e-5, rtol=0)
+    torch.testing.assert_close(torch.cos(w), torch.cos(x), atol=1e-5, rtol=0)
+    assert float(w[2]) == pytest.approx(-math.pi + 0.1, abs=1e-6)
+    assert float(w[3]) == pytest.approx(math.pi - 0.1, abs=1e-6)
+
+
+def test_tracking_error_wraps_only_angles():
+    names = output_names(2)
+    mask = angle_mask(2)
+    y = torch.zeros(1, len(names))
+    ref = torch.zeros(1, len(names))
+    yaw, com_x = names.index("pelvis_yaw"), names.index("com_x")
+    y[0, yaw], ref[0, yaw] = 3.1, -3.1  # 0.083 rad apart across the seam, not 6.2
+    y[0, com_x], ref[0, com_x] = 6.0, 0.0  # positions are never wrapped
+    eta = tracking_error(y, ref, mask)
+    assert float(eta[0, yaw]) == pytest.approx(6.2 - 2 * math.pi, abs=1e-5)
+    assert float(eta[0, com_x]) == pytest.approx(6.0)
+
+
+def _plan(e=2):
+    feet = torch.tensor(
+        [[0.35, -0.125, 0.05], [0.7, 0.125, 0.0], [1.0, -0.1, 0.0], [1.3, 0.1, 0.0]]
+    )
+    return Plan(
+        footholds=feet.expand(e, 4, 3).clone(),
+        durations=torch.tensor([0.5, 0.55, 0.6, 0.6]).expand(e, 4).clone(),
+        lands_left=torch.tensor([False, True, False, True]).expand(e, 4).clone(),
+        cost=torch.zeros(e),
+        feasible=torch.ones(e, dtype=torch.bool),
+        start=torch.tensor([0.0, 0.125, 0.0]).expand(e, 3).clone(),
+    )
+
+
+def _step(e=2, yaw0=0.0, yaw_rate=0.2) -> StepState:
+    plan = _plan(e)
+    swing = torch.tensor([-0.05, -0.125, 0.0]).expand(e, 3).clone()
+    return step_state_from_plan(
+        plan, plan.start, swing, torch.full((e,), yaw0), torch.full((e,), yaw_rate)
+    )
+
+
+def test_reference_layout_and_flatten():
+    ref = reference_at(_step(), torch.tensor([0.1, 0.3]), num_upper=17)
+    pos, vel = ref.flatten()
+    assert pos.shape == (2, 29) and vel.shape == (2, 29)
+    assert ref.names == output_names(17) and len(ref.names) == 29
+    assert ref.names[:3] == ["com_x", "com_y", "com_z"] and ref.names[-1] == "upper_16"
+    torch.testing.assert_close(pos[:, 6:9], ref.swing_pos)
+    assert angle_mask(17).sum() == 6 and angle_mask(17)[5] and not angle_mask(17)[6]
+    assert (pos[:, 12:] == 0).all() and (vel[:, 12:] == 0).all()
+
+
+def test_reference_components():
+    step = _step(yaw0=3.1, yaw_rate=0.2)
+    tau = torch.tensor([0.0, 0.5])
+    ref = reference_at(step, tau, ReferenceCfg(swing_height=0.1), HlipCfg(), num_upper=3)
+    # Swing: lift-off point at touchdown, planned foothold at the planned duration.
+    torch.testing.assert_close(ref.swing_pos[0], step.swing_start[0])
+    torch.testing.assert_close(ref.swing_pos[1], step.target[1])
+    # CoM: HLIP in x/y anchored at the stance foot, constant height z0 above it.
+    xy, vxy = hlip_com_state(
+        step.stance_pos[:, :2],
+        step.target[:, :2] - step.stance_pos[:, :2],
+        step.next_target[:, :2] - step.target[:, :2],
+        step.duration,
+        step.next_duration,
+        tau,
+        HlipCfg().lam,
+    )
+    torch.testing.assert_close(ref.com_pos[:, :2], xy)
+    torch.testing.assert_close(ref.com_vel[:, :2], vxy)
+    torch.testing.assert_close(ref.com_pos[:, 2], torch.full((2,), 0.67))
+    assert (ref.com_vel[:, 2] == 0).all()
+    # At the end of the step the CoM is halfway between stance and landing foot along the course
+    # (period-1 orbit r- = l/2; laterally only for equal durations, not the case here).
+    mid = 0.5 * (step.stance_pos[1, :2] + step.target[1, :2])
+    assert float(ref.com_pos[1, 0]) == pytest.approx(float(mid[0]), abs=1e-6)
+    # Yaw tracks the commanded rate and is wrapped; roll/pitch vanish at touchdown.
+    assert float(ref.pelvis_ori[1, 2]) == pytest.approx(3.2 - 2 * math.pi, abs=1e-5)
+    assert (ref.pelvis_rate[:, 2] == 0.2).all()
+    assert ref.pelvis_ori[:, :2].abs().max() < 1e-6
+    # Swing foot flat with the pelvis yaw.
+    torch.testing.assert_close(ref.swing_ori[:, 2], ref.pelvis_ori[:, 2])
+    assert (ref.swing_ori[:, :2] == 0).all()
+
+
+def test_pelvis_leans_toward_stance_and_rates_are_derivatives():
+    step = _step(yaw_rate=-0.3)  # left stance
+    cfg = ReferenceCfg()
+    tau, h = torch.tensor([0.17, 0.25]), 1e-3
+    ref = reference_at(step, tau, cfg, num_upper=0)
+    assert float(ref.pelvis_ori[1, 0]) == pytest.approx(-cfg.roll_amplitude, abs=1e-6)
+    a = reference_at(step, tau - h, cfg, num_upper=0)
+    b = reference_at(step, tau + h, cfg, num_upper=0)
+    pos_a, _ = a.flatten()
+    pos_b, _ = b.flatten()
+    _, vel = ref.flatten()
+    fd = tracking_error(pos_b, pos_a, angle_mask(0)) / (2 * h)
+    torch.testing.assert_close(vel, fd, atol=2e-3, rtol=1e-3)
