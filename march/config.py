@@ -18,6 +18,8 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
+from march.terrain import CourseCfg
+
 STAGES = ("all", "teacher", "student", "eval")
 REWARDS = ("clf", "modelfree")
 STUDENTS = ("full", "no_transformer", "no_mdn")
@@ -85,37 +87,56 @@ class EnvCfg:
     """Lateral velocity command range [m/s]."""
     command_yaw_rate: tuple[float, float] = (-0.2, 0.2)
     """Yaw-rate command range [rad/s]."""
-    depth_width: int = 32
-    """Depth image width [px] (student)."""
-    depth_height: int = 24
-    """Depth image height [px] (student)."""
-    depth_fovy_deg: float = 55.2
-    """Depth camera vertical field of view [deg] (D435i-like)."""
-    depth_max_m: float = 3.0
-    """Depth clip range [m]; misses (0) read as this."""
-    depth_pos: tuple[float, float, float] = (0.1, 0.0, 0.35)
-    """Depth camera position in the torso frame [m]."""
-    depth_pitch_deg: float = 50.0
-    """Depth camera pitch below the horizon [deg] (looks forward and down)."""
-    depth_noise_scale: float = 0.1
-    """Depth noise sigma as a fraction of depth (sigma = scale * depth)."""
-    depth_dropout: float = 0.05
-    """Fraction of depth pixels dropped (set to max range) in training."""
-    depth_delay_steps: tuple[int, int] = (0, 1)
-    """Depth delay range [control steps]."""
 
     def __post_init__(self) -> None:
         _positive("env", "episode_length_s", self.episode_length_s)
         _positive("env", "sim_dt", self.sim_dt)
         _positive("env", "decimation", self.decimation)
         _positive("env", "history_length", self.history_length)
-        _positive("env", "depth_max_m", self.depth_max_m)
-        if not 0.0 <= self.depth_dropout < 1.0:
-            raise ConfigError(f"env.depth_dropout={self.depth_dropout} must be in [0, 1)")
-        for key in ("command_vx", "command_vy", "command_yaw_rate", "depth_delay_steps"):
+        for key in ("command_vx", "command_vy", "command_yaw_rate"):
             lo, hi = getattr(self, key)
             if lo > hi:
                 raise ConfigError(f"env.{key}=[{lo}, {hi}]: the lower bound exceeds the upper")
+
+
+@dataclass
+class DepthCfg:
+    """Chest depth camera (Realsense D435i-like) and its corruption."""
+
+    name: str = "depth_cam"
+    """Camera / sensor name in the scene."""
+    width: int = 32
+    """Image width [px]."""
+    height: int = 24
+    """Image height [px]."""
+    fovy: float = 55.2
+    """Vertical field of view [deg]."""
+    min_range: float = 0.1
+    """Closest depth the camera reports [m] (D435i ~0.1 m at low resolution); nearer is clipped."""
+    max_range: float = 3.0
+    """Farthest depth kept [m]; misses, invalid and dropped pixels read as this."""
+    pos: tuple[float, float, float] = (0.0576, 0.0175, 0.42)
+    """Camera position in the torso_link frame [m] (x forward, y left, z up): the D435 mount of
+    Unitree's G1 URDF (d435_joint), ~1.25 m above the ground when standing."""
+    pitch_deg: float = 47.6
+    """Downward pitch of the optical axis below the torso's forward (+x) axis [deg] (URDF
+    d435_joint: 0.83 rad); with fovy 55.2 the view spans ~20-75 deg below the horizon."""
+    geom_groups: tuple[int, ...] = (0,)
+    """Geom groups the camera renders: 0 = terrain only (the robot's own visual geoms are
+    group 2). All cameras of a scene must share this (mujoco_warp)."""
+    noise_scale: float = 0.1
+    """Gaussian depth noise sigma as a fraction of depth (sigma = noise_scale * depth)."""
+    dropout: float = 0.05
+    """Fraction of pixels dropped (set invalid -> max range) per frame."""
+    delay_steps: tuple[int, int] = (0, 1)
+    """Per-env delay [control steps], drawn uniformly from [lo, hi] at reset (1 step = 20 ms)."""
+
+    def __post_init__(self) -> None:
+        _positive("depth", "max_range", self.max_range)
+        if not 0.0 <= self.dropout < 1.0:
+            raise ConfigError(f"depth.dropout={self.dropout} must be in [0, 1)")
+        if self.delay_steps[0] > self.delay_steps[1] or self.delay_steps[0] < 0:
+            raise ConfigError(f"depth.delay_steps={list(self.delay_steps)}: need 0 <= lo <= hi")
 
 
 @dataclass
@@ -148,13 +169,25 @@ class CurriculumCfg:
     """Courses per level (terrain columns)."""
     max_init_level: int = 0
     """Highest level an env may start on."""
-    flat_fraction: float = 0.0
-    """Fraction of courses that are flat ground (flat_first starts on them)."""
+    flat_levels: int = 0
+    """Lowest levels that are flat ground (flat_first: envs start there and climb onto stones)."""
+    terrain_seed: int = 0
+    """Seed of the terrain generator; fixed so the foothold table can regenerate the courses."""
+    promote_fraction: float = 1.0
+    """Level up when progress >= this x the goal distance (the goal platform was reached)."""
+    demote_fraction: float = 0.3
+    """Level down when progress < this x the goal distance."""
 
     def __post_init__(self) -> None:
         _one_of("curriculum", "name", self.name, CURRICULA)
         _positive("curriculum", "num_levels", self.num_levels)
         _positive("curriculum", "num_cols", self.num_cols)
+        if self.name == "flat_first" and not 0 < self.flat_levels < self.num_levels:
+            raise ConfigError(
+                f"curriculum.flat_levels={self.flat_levels}: flat_first needs 1..num_levels-1"
+            )
+        if self.name == "stones" and self.flat_levels:
+            raise ConfigError("curriculum=stones has no flat levels; set curriculum.flat_levels=0")
 
 
 @dataclass
@@ -406,6 +439,8 @@ class MarchConfig:
     eval: EvalCfg = field(default_factory=EvalCfg)
     logger: LoggerCfg = field(default_factory=LoggerCfg)
     dr: DrCfg = field(default_factory=DrCfg)
+    depth: DepthCfg = field(default_factory=DepthCfg)
+    terrain: CourseCfg = field(default_factory=CourseCfg)
 
     def __post_init__(self) -> None:
         if self.stage not in STAGES:

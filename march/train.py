@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import os
 import random
-import sys
 import time
 import traceback
 from pathlib import Path

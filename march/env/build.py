@@ -15,45 +15,36 @@ student and evaluation always see the same world:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
-import numpy as np
 import torch
 from mjlab.envs import ManagerBasedRlEnv, ManagerBasedRlEnvCfg
 from mjlab.envs import mdp as envs_mdp
+from mjlab.managers.curriculum_manager import CurriculumTermCfg
 from mjlab.managers.event_manager import EventTermCfg
 from mjlab.managers.observation_manager import ObservationGroupCfg, ObservationTermCfg
-from mjlab.managers.scene_entity_config import SceneEntityCfg
 from mjlab.managers.termination_manager import TerminationTermCfg
-from mjlab.sensor import CameraSensorCfg
 from mjlab.tasks.velocity import mdp as vel_mdp
 from mjlab.tasks.velocity.config.g1.env_cfgs import unitree_g1_rough_env_cfg
 from mjlab.tasks.velocity.mdp import UniformVelocityCommandCfg
+from mjlab.terrains import TerrainEntityCfg
 from mjlab.utils.noise import UniformNoiseCfg as Unoise
-from scipy.spatial.transform import Rotation
 
 from march.config import MarchConfig
+from march.env.course import course_levels
+from march.env.depth import corrupt, depth_camera_cfg, normalize
+from march.env.randomization import apply_dr
 from march.env.rewards import reward_terms
+from march.env.terrain import terrain_entity_cfg
 
 PURPOSES = ("teacher", "student", "eval")
-DEPTH_SENSOR = "depth_cam"
 
 # Honest list of what still stands in for the paper's pieces; printed in the start banner and
 # reported by march.inspect. Each later issue removes its entry.
 PLACEHOLDERS = {
-    "terrain": "flat plane stands in for the stepping-stone courses until the world issue lands; "
-    "distance is measured along +x from the spawn point over a nominal 8 m course",
     "reward=clf": "velocity-tracking terms stand in for r_clf / r_dclf until the CLF teacher lands",
     "reference": "no planner/HLIP reference in the teacher observation yet (reference issue)",
-    "dr": "mjlab's G1 randomization terms set to the paper's ranges where they exist; link mass, "
-    "added base mass, effort limits, joint damping/friction, control delay and camera pose/FOV "
-    "randomization arrive with the world issue",
 }
-
-NOMINAL_COURSE_LENGTH_M = 8.0
-"""Placeholder course length on flat ground [m]: distance is clipped to it."""
-NOMINAL_GOAL_DISTANCE_M = 6.0
-"""Placeholder success threshold: progress beyond this counts as reaching the goal [m]."""
 
 
 @dataclass
@@ -67,53 +58,24 @@ class EnvSpec:
     placeholders: dict[str, str] = field(default_factory=dict)
 
 
-def _camera_quat(pitch_deg: float) -> tuple[float, float, float, float]:
-    """(w, x, y, z) of a camera looking along the body's +x axis, pitched down by pitch_deg.
-
-    A MuJoCo camera looks along its -z axis with +y up; xyaxes (0,-1,0),(0,0,1) looks along +x.
-    """
-    forward = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]]).T
-    pitched = Rotation.from_euler("y", pitch_deg, degrees=True).as_matrix() @ forward
-    x, y, z, w = Rotation.from_matrix(pitched).as_quat()
-    return (float(w), float(x), float(y), float(z))
-
-
-def depth_camera_cfg(cfg: MarchConfig) -> CameraSensorCfg:
-    e = cfg.env
-    return CameraSensorCfg(
-        name=DEPTH_SENSOR,
-        parent_body="robot/torso_link",
-        pos=tuple(e.depth_pos),
-        quat=_camera_quat(e.depth_pitch_deg),
-        fovy=e.depth_fovy_deg,
-        width=e.depth_width,
-        height=e.depth_height,
-        data_types=("depth",),
-        use_textures=False,
-        enabled_geom_groups=(0,),
-    )
-
-
 def depth_image(
     env: ManagerBasedRlEnv,
     sensor_name: str,
-    max_m: float,
+    min_range: float,
+    max_range: float,
     noise_scale: float,
     dropout: float,
 ) -> torch.Tensor:
-    """(E, 1, H, W) depth in [0, 1] (1 = max range); misses (0) read as max range.
+    """(E, 1, H, W) depth in [0, 1] (1 = max range) from the chest camera.
 
-    With noise_scale/dropout > 0 (training) the image is corrupted: Gaussian noise with
-    sigma = noise_scale * depth, and a fraction ``dropout`` of pixels set to max range.
+    Training corruption (noise_scale, dropout > 0): Gaussian noise sigma = noise_scale * depth and
+    a fraction ``dropout`` of pixels invalid; misses and invalid pixels read as max range. The
+    delay is the observation term's (delay_min_lag / delay_max_lag).
     """
-    raw = env.scene[sensor_name].data.depth  # (E, H, W, 1)
-    depth = raw[..., 0].clone()
-    depth = torch.where(depth <= 0.0, torch.full_like(depth, max_m), depth)
-    if noise_scale > 0:
-        depth = depth + torch.randn_like(depth) * noise_scale * depth
-    if dropout > 0:
-        depth = torch.where(torch.rand_like(depth) < dropout, torch.full_like(depth, max_m), depth)
-    return (depth.clamp(0.0, max_m) / max_m).unsqueeze(1)
+    raw = env.scene[sensor_name].data.depth[..., 0]  # (E, H, W), 0 = miss
+    if noise_scale > 0 or dropout > 0:
+        raw = corrupt(raw, noise_scale, dropout)
+    return normalize(raw, min_range, max_range).unsqueeze(1)
 
 
 def _proprio_terms(noisy: bool) -> dict[str, ObservationTermCfg]:
@@ -175,20 +137,21 @@ def _observations(cfg: MarchConfig, purpose: str) -> dict[str, ObservationGroupC
             history_length=h,
             flatten_history_dim=False,
         )
-        corrupt = purpose == "student" or cfg.eval.corruption
-        e = cfg.env
+        noisy = purpose == "student" or cfg.eval.corruption
+        d = cfg.depth
         groups["depth"] = ObservationGroupCfg(
             terms={
                 "depth": ObservationTermCfg(
                     func=depth_image,
                     params={
-                        "sensor_name": DEPTH_SENSOR,
-                        "max_m": e.depth_max_m,
-                        "noise_scale": e.depth_noise_scale if corrupt else 0.0,
-                        "dropout": e.depth_dropout if corrupt else 0.0,
+                        "sensor_name": d.name,
+                        "min_range": d.min_range,
+                        "max_range": d.max_range,
+                        "noise_scale": d.noise_scale if noisy else 0.0,
+                        "dropout": d.dropout if noisy else 0.0,
                     },
-                    delay_min_lag=e.depth_delay_steps[0] if corrupt else 0,
-                    delay_max_lag=e.depth_delay_steps[1] if corrupt else 0,
+                    delay_min_lag=d.delay_steps[0] if noisy else 0,
+                    delay_max_lag=d.delay_steps[1] if noisy else 0,
                 )
             },
             concatenate_terms=True,
@@ -215,8 +178,9 @@ def _terminations(cfg: MarchConfig) -> dict[str, TerminationTermCfg]:
     }
 
 
-def _events(cfg: MarchConfig, base: dict[str, EventTermCfg]) -> dict[str, EventTermCfg]:
-    events = {
+def _reset_events(base: dict[str, EventTermCfg]) -> dict[str, EventTermCfg]:
+    """Spawn on the start platform facing along the course (+x), small pose noise."""
+    return {
         "reset_base": EventTermCfg(
             func=vel_mdp.reset_root_state_uniform,
             mode="reset",
@@ -227,27 +191,28 @@ def _events(cfg: MarchConfig, base: dict[str, EventTermCfg]) -> dict[str, EventT
         ),
         "reset_robot_joints": base["reset_robot_joints"],
     }
-    if cfg.dr.name == "none":
-        return events
-    dr = cfg.dr
-    friction = base["foot_friction"]
-    friction.params["ranges"] = tuple(dr.friction)
-    bias = base["encoder_bias"]
-    bias.params["bias_range"] = tuple(dr.encoder_bias_rad)
-    com = base["base_com"]
-    com.params["ranges"] = {i: (-r, r) for i, r in enumerate(dr.base_com_offset_m)}
-    push = base["push_robot"]
-    push.interval_range_s = tuple(dr.push_interval_s)
-    lv, av = dr.push_lin_vel, dr.push_ang_vel
-    push.params["velocity_range"] = {
-        "x": (-lv, lv),
-        "y": (-lv, lv),
-        "roll": (-av, av),
-        "pitch": (-av, av),
-        "yaw": (-av, av),
-    }
-    events.update(foot_friction=friction, encoder_bias=bias, base_com=com, push_robot=push)
-    return events
+
+
+def _terrain(cfg: MarchConfig, purpose: str) -> TerrainEntityCfg:
+    """Training: curriculum rows (levels) of stone courses (flat rows first for flat_first).
+    Evaluation: the same courses, envs spread uniformly over all levels; or the hardware course."""
+    c = cfg.curriculum
+    common = {"num_rows": c.num_levels, "num_cols": c.num_cols, "seed": c.terrain_seed}
+    if purpose == "eval":
+        if cfg.eval.course == "hardware":
+            return terrain_entity_cfg("hardware", cfg.terrain, max_init_terrain_level=None)
+        return terrain_entity_cfg("stones", cfg.terrain, max_init_terrain_level=None, **common)
+    if c.name == "flat_first":
+        return terrain_entity_cfg(
+            "flat_first",
+            cfg.terrain,
+            max_init_terrain_level=c.max_init_level,
+            flat_levels=c.flat_levels,
+            **common,
+        )
+    return terrain_entity_cfg(
+        "stones", cfg.terrain, max_init_terrain_level=c.max_init_level, **common
+    )
 
 
 def build_env_cfg(
@@ -268,19 +233,24 @@ def build_env_cfg(
         cfg.eval.episode_length_s if purpose == "eval" else cfg.env.episode_length_s
     )
 
-    # Terrain (placeholder: flat plane; see PLACEHOLDERS).
-    assert env_cfg.scene.terrain is not None
-    env_cfg.scene.terrain.terrain_type = "plane"
-    env_cfg.scene.terrain.terrain_generator = None
-    env_cfg.curriculum = {}
-    env_cfg.sim.njmax = 300
-    env_cfg.sim.mujoco.ccd_iterations = 50
-    env_cfg.sim.contact_sensor_maxmatch = 64
-    env_cfg.sim.nconmax = None
+    env_cfg.scene.terrain = _terrain(cfg, purpose)
+    env_cfg.curriculum = (
+        {
+            "terrain_levels": CurriculumTermCfg(
+                func=course_levels,
+                params={
+                    "promote_fraction": cfg.curriculum.promote_fraction,
+                    "demote_fraction": cfg.curriculum.demote_fraction,
+                },
+            )
+        }
+        if purpose != "eval"
+        else {}
+    )
 
     sensors = tuple(s for s in (env_cfg.scene.sensors or ()) if s.name not in ("foot_height_scan",))
     if purpose in ("student", "eval"):
-        sensors = sensors + (depth_camera_cfg(cfg),)
+        sensors = sensors + (depth_camera_cfg(cfg.depth),)
     env_cfg.scene.sensors = sensors
 
     twist = env_cfg.commands["twist"]
@@ -308,15 +278,12 @@ def build_env_cfg(
     env_cfg.observations = _observations(cfg, purpose)
     env_cfg.rewards = reward_terms(cfg.reward)
     env_cfg.terminations = _terminations(cfg)
-    env_cfg.events = _events(cfg, base_events)
+    env_cfg.events = _reset_events(base_events)
+    camera = cfg.depth.name if purpose in ("student", "eval") else None
+    dr = cfg.dr if purpose != "eval" or cfg.eval.randomization else replace(cfg.dr, name="none")
+    apply_dr(env_cfg, dr, camera=camera)
     env_cfg.metrics = {}
-    if purpose == "eval" and not cfg.eval.randomization:
-        env_cfg.events = _events_without_dr(env_cfg.events)
     return env_cfg
-
-
-def _events_without_dr(events: dict[str, EventTermCfg]) -> dict[str, EventTermCfg]:
-    return {k: v for k, v in events.items() if k in ("reset_base", "reset_robot_joints")}
 
 
 def make_env(cfg: MarchConfig, purpose: str, num_envs: int | None = None) -> ManagerBasedRlEnv:
@@ -331,7 +298,3 @@ def make_env(cfg: MarchConfig, purpose: str, num_envs: int | None = None) -> Man
         placeholders=dict(PLACEHOLDERS),
     )
     return env
-
-
-def robot_entity_cfg() -> SceneEntityCfg:
-    return SceneEntityCfg("robot")

@@ -1,8 +1,10 @@
-"""The evaluation's ruler: progress along the course and whether the goal was reached.
+"""The course as the env sees it: the ruler (progress, goal) and the level curriculum.
 
-Placeholder (see march.env.build.PLACEHOLDERS) until the stepping-stone courses land: on flat
-ground the course is the +x direction from the env's origin, NOMINAL_COURSE_LENGTH_M long, and the
-goal begins at NOMINAL_GOAL_DISTANCE_M. With stone courses the ruler reads the env's Footholds.
+Every env's course comes from the foothold table of the compiled terrain
+(:func:`march.env.terrain.terrain_foothold_table`), built once per env and cached on it. Progress
+is the pelvis displacement along the course direction (+x) from the env's spawn origin on the
+start platform, clipped to [0, course length]; the goal is reached when progress passes the
+start of the goal platform.
 """
 
 from __future__ import annotations
@@ -10,26 +12,76 @@ from __future__ import annotations
 import torch
 from mjlab.envs import ManagerBasedRlEnv
 
-from march.env.build import NOMINAL_COURSE_LENGTH_M, NOMINAL_GOAL_DISTANCE_M
+from march.env.terrain import terrain_foothold_table
+from march.footholds import Footholds
+from march.terrain import FootholdTable
+
+_TABLE_ATTR = "_march_foothold_table"
+
+
+def foothold_table(env: ManagerBasedRlEnv) -> FootholdTable:
+    """The env's foothold table (built on first use, then cached on the env)."""
+    table = getattr(env, _TABLE_ATTR, None)
+    if table is None:
+        table = terrain_foothold_table(env.scene.terrain, device=env.device)
+        setattr(env, _TABLE_ATTR, table)
+    return table
 
 
 class CourseRuler:
+    """Progress along each env's current course and whether its goal was reached."""
+
     def __init__(self, env: ManagerBasedRlEnv) -> None:
         self.env = env
         self.robot = env.scene["robot"]
-        n = env.num_envs
-        self.direction = torch.tensor([1.0, 0.0], device=env.device).expand(n, 2)
-        self.course_length = torch.full((n,), NOMINAL_COURSE_LENGTH_M, device=env.device)
-        self.goal_distance = torch.full((n,), NOMINAL_GOAL_DISTANCE_M, device=env.device)
+        self.terrain = env.scene.terrain
+        self.table = foothold_table(env)
 
-    def start_xy(self) -> torch.Tensor:
-        return self.env.scene.env_origins[:, :2]
+    def _cell(self) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.terrain.terrain_levels, self.terrain.terrain_types
+
+    @property
+    def course_length(self) -> torch.Tensor:
+        return self.table.course_length[self._cell()]
+
+    @property
+    def goal_distance(self) -> torch.Tensor:
+        return self.table.goal_distance[self._cell()]
+
+    def footholds(self) -> Footholds:
+        levels, types = self._cell()
+        return self.table.for_envs(levels, types, self.env.scene.env_origins)
 
     def progress(self) -> torch.Tensor:
         """(E,) pelvis progress along the course from the start [m], clipped to [0, length]."""
-        xy = self.robot.data.root_link_pos_w[:, :2]
-        along = ((xy - self.start_xy()) * self.direction).sum(-1)
+        along = self.robot.data.root_link_pos_w[:, 0] - self.env.scene.env_origins[:, 0]
         return torch.minimum(along.clamp(min=0.0), self.course_length)
 
     def reached_goal(self, progress: torch.Tensor) -> torch.Tensor:
         return progress >= self.goal_distance
+
+
+def course_levels(
+    env: ManagerBasedRlEnv,
+    env_ids: torch.Tensor,
+    promote_fraction: float,
+    demote_fraction: float,
+) -> dict[str, torch.Tensor]:
+    """Curriculum term: level up when the episode got ``promote_fraction`` of the way to the goal
+    platform, down when it got less than ``demote_fraction`` of it (SPEC: levels move with how
+    far along the course the robot got). For flat_first the lowest rows are flat ground, so
+    the same rule walks envs from flat ground onto stones."""
+    terrain = env.scene.terrain
+    table = foothold_table(env)
+    levels, types = terrain.terrain_levels[env_ids], terrain.terrain_types[env_ids]
+    robot = env.scene["robot"]
+    along = robot.data.root_link_pos_w[env_ids, 0] - env.scene.env_origins[env_ids, 0]
+    goal = table.goal_distance[levels, types]
+    move_up = along >= promote_fraction * goal
+    move_down = (along < demote_fraction * goal) & ~move_up
+    if env.common_step_counter == 0:  # initial reset: the robot has not walked yet
+        move_up = torch.zeros_like(move_up)
+        move_down = torch.zeros_like(move_down)
+    terrain.update_env_origins(env_ids, move_up, move_down)
+    lv = terrain.terrain_levels.float()
+    return {"mean": lv.mean(), "max": lv.max()}

@@ -19,49 +19,17 @@ global RNG, which march seeds from the run's ``seed``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import torch
+
+from march.config import DepthCfg
 
 if TYPE_CHECKING:
     from mjlab.sensor import CameraSensorCfg
 
 TORSO_BODY = "robot/torso_link"
 """The G1 torso body in mjlab's scene (entity "robot", body "torso_link" of the G1 MJCF)."""
-
-
-@dataclass
-class DepthCfg:
-    """Chest depth camera (Realsense D435i-like) and its corruption."""
-
-    name: str = "depth_cam"
-    """Camera / sensor name in the scene."""
-    width: int = 32
-    """Image width [px]."""
-    height: int = 24
-    """Image height [px]."""
-    fovy: float = 55.2
-    """Vertical field of view [deg]."""
-    min_range: float = 0.1
-    """Closest depth the camera reports [m] (D435i ~0.1 m at low resolution); nearer is clipped."""
-    max_range: float = 3.0
-    """Farthest depth kept [m]; misses, invalid and dropped pixels read as this."""
-    pos: tuple[float, float, float] = (0.0576, 0.0175, 0.42)
-    """Camera position in the torso_link frame [m] (x forward, y left, z up): the D435 mount of
-    Unitree's G1 URDF (d435_joint), ~1.25 m above the ground when standing."""
-    pitch_deg: float = 47.6
-    """Downward pitch of the optical axis below the torso's forward (+x) axis [deg] (URDF
-    d435_joint: 0.83 rad); with fovy 55.2 the view spans ~20-75 deg below the horizon."""
-    geom_groups: tuple[int, ...] = (0,)
-    """Geom groups the camera renders: 0 = terrain only (the robot's own visual geoms are
-    group 2). All cameras of a scene must share this (mujoco_warp)."""
-    noise_scale: float = 0.1
-    """Gaussian depth noise sigma as a fraction of depth (sigma = noise_scale * depth)."""
-    dropout: float = 0.05
-    """Fraction of pixels dropped (set invalid -> max range) per frame."""
-    delay_steps: tuple[int, int] = (0, 1)
-    """Per-env delay [control steps], drawn uniformly from [lo, hi] at reset (1 step = 20 ms)."""
 
 
 def camera_quat(pitch_deg: float) -> tuple[float, float, float, float]:

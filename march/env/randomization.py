@@ -14,8 +14,8 @@ friction U(0.5, 1.25)       ``dr.geom_friction`` abs, tangential axis, one value
                             shared by the 14 foot collision geoms (they carry
                             contact priority 1, so their friction is the contact's)
 link mass x U(0.9, 1.2)     :func:`scale_link_mass`: mass *and* inertia of every   startup
-                            robot body times one draw per body (uniform density,
-                            as Isaac Lab's ``recompute_inertia``); COM unchanged
+                            robot body times one draw per body (uniform density:
+                            a heavier link is a denser link); COM unchanged
 base added mass U(-1, 3)    :func:`add_base_mass`: point mass at the torso_link    startup
                             COM (mass only, inertia untouched)
 encoder bias U(+-0.015)     ``dr.encoder_bias`` per joint                          reset
@@ -79,7 +79,7 @@ from mjlab.envs.mdp import dr as mjdr
 from mjlab.managers.event_manager import EventTermCfg, RecomputeLevel, requires_model_fields
 from mjlab.managers.scene_entity_config import SceneEntityCfg
 
-from march.config import DrCfg, EnvCfg
+from march.config import DepthCfg, DrCfg
 
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv, ManagerBasedRlEnvCfg
@@ -519,17 +519,17 @@ def _u(lo: float, hi: float) -> str:
 def describe_dr(
     dr: DrCfg,
     camera: str | None = None,
-    env: EnvCfg | None = None,
+    depth: DepthCfg | None = None,
     physics_dt: float = 0.005,
 ) -> list[dict[str, Any]]:
     """One dict per row of the paper's table: row, term, mode, range, units, note.
 
     ``mode`` is startup / reset / interval for event terms, "depth pipeline" for the two image
-    corruptions (``env`` gives their values; EnvCfg defaults otherwise), and "off" for a row not
+    corruptions (``depth`` gives their values; DepthCfg defaults otherwise), and "off" for a row not
     applied (dr=none, or a camera row without ``camera``).
     """
     d = dr
-    e = env or EnvCfg()
+    e = depth or DepthCfg()
     on = d.name != "none"
     cam_on = on and camera is not None
     com = d.base_com_offset_m
@@ -673,9 +673,9 @@ def describe_dr(
             "row": PAPER_ROWS[13],
             "term": None,
             "mode": "depth pipeline",
-            "range": f"{e.depth_dropout:g}",
+            "range": f"{e.dropout:g}",
             "units": "fraction of pixels",
-            "note": "march.env.build.depth_image (student training), set to max range",
+            "note": "march.env.depth (student training), set to max range",
         }
     )
     out.append(
@@ -683,9 +683,9 @@ def describe_dr(
             "row": PAPER_ROWS[14],
             "term": None,
             "mode": "depth pipeline",
-            "range": f"sigma = {e.depth_noise_scale:g} x depth",
+            "range": f"sigma = {e.noise_scale:g} x depth",
             "units": "m",
-            "note": "march.env.build.depth_image (student training), Gaussian",
+            "note": "march.env.depth (student training), Gaussian",
         }
     )
     return out

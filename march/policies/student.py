@@ -27,13 +27,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Literal
 
-from march.config import StudentCfg
-
 import torch
 import torch.nn.functional as F
 from rsl_rl.modules.normalization import EmpiricalNormalization
 from torch import nn
 
+from march.config import StudentCfg
 from march.policies.mdn import (
     MDNHead,
     MDNParams,

@@ -1,0 +1,183 @@
+"""``python -m march.inspect <overrides>``: build the composed env (no training), print JSON.
+
+Observation groups and shapes (teacher ``actor``, ``critic``, ``student``, ``depth``), reward terms
+with weights, terminations, events (domain randomization) with their ranges, terrain and camera,
+and the pieces that are still placeholders. How a researcher checks a config before spending GPU
+hours.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import sys
+
+import numpy as np
+from typing import Any
+
+from march.cli import run_tool
+from march.config import MarchConfig
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, float):
+        return value if math.isfinite(value) else str(value)
+    if isinstance(value, (int, str, bool)) or value is None:
+        return value
+    if callable(value):
+        return getattr(value, "__name__", repr(value))
+    if hasattr(value, "name") and hasattr(value, "body_names"):  # SceneEntityCfg
+        parts = {
+            k: getattr(value, k)
+            for k in ("name", "body_names", "joint_names", "geom_names", "site_names")
+            if getattr(value, k, None) not in (None, (), [])
+        }
+        return _jsonable(parts)
+    return repr(value)
+
+
+def describe_env(env: Any) -> dict[str, Any]:
+    """The JSON-able description of a built mjlab env."""
+    om, rm, tm, em = (
+        env.observation_manager,
+        env.reward_manager,
+        env.termination_manager,
+        env.event_manager,
+    )
+    observations = {
+        group: {
+            "shape": list(om.group_obs_dim[group]),
+            "terms": {
+                name: list(dim)
+                for name, dim in zip(
+                    om.active_terms[group], om.group_obs_term_dim[group], strict=True
+                )
+            },
+        }
+        for group in om.active_terms
+    }
+    rewards = [{"name": n, "weight": rm.get_term_cfg(n).weight} for n in rm.active_terms]
+    terminations = [
+        {
+            "name": n,
+            "time_out": tm.get_term_cfg(n).time_out,
+            "params": _jsonable(tm.get_term_cfg(n).params),
+        }
+        for n in tm.active_terms
+    ]
+    events = []
+    for mode, names in em.active_terms.items():
+        for n in names:
+            term = em.get_term_cfg(n)
+            entry = {
+                "name": n,
+                "mode": mode,
+                "func": _jsonable(term.func),
+                "params": _jsonable(term.params),
+            }
+            if mode == "interval":
+                entry["interval_range_s"] = _jsonable(term.interval_range_s)
+            events.append(entry)
+    return {
+        "num_envs": env.num_envs,
+        "step_dt_s": env.step_dt,
+        "episode_length_s": env.max_episode_length_s,
+        "num_actions": env.action_manager.total_action_dim,
+        "observations": observations,
+        "rewards": rewards,
+        "terminations": terminations,
+        "events": events,
+    }
+
+
+def terrain_summary(cfg: MarchConfig, table: Any) -> dict[str, Any]:
+    """Levels with their sampling ranges and what the compiled courses actually contain."""
+    from march.terrain import ROLE_PAIR, ROLE_STONE, difficulty_ranges
+
+    stone_roles = (ROLE_STONE, ROLE_PAIR)
+
+    levels = []
+    for row, layouts in enumerate(table.layouts):
+        d = float(table.difficulty[row, 0])
+        r = difficulty_ranges(d, cfg.terrain)
+        stones = [lay for lay in layouts if lay.kind != "flat"]
+        n_steps = sum(lay.num_steps for lay in stones)
+        n_pairs = sum(lay.num_pairs for lay in stones)
+        levels.append(
+            {
+                "level": row,
+                "difficulty": round(d, 3),
+                "kind": "flat" if not stones else "stones",
+                "stone_size_m": list(r.stone_size) if stones else None,
+                "gap_m": list(r.gap) if stones else None,
+                "height_variation_m": r.height if stones else None,
+                "lateral_zigzag_m": list(r.lateral) if stones else None,
+                "pair_fraction": round(n_pairs / n_steps, 3) if n_steps else None,
+                "stones_per_course": (
+                    round(
+                        sum(int(np.isin(lay.role, stone_roles).sum()) for lay in stones)
+                        / len(stones),
+                        1,
+                    )
+                    if stones
+                    else 0
+                ),
+            }
+        )
+    return {
+        "cells": list(table.shape) if hasattr(table, "shape") else None,
+        "cell_size_m": list(cfg.terrain.size),
+        "curriculum": cfg.curriculum.name,
+        "pair_probability": cfg.terrain.pair_prob,
+        "pit_depth_m": cfg.terrain.pit_depth,
+        "levels": levels,
+    }
+
+
+def inspect(cfg: MarchConfig) -> dict[str, Any]:
+    from dataclasses import asdict
+
+    from march.env.build import PLACEHOLDERS, make_env
+    from march.env.course import foothold_table
+    from march.env.randomization import describe_dr
+
+    # mjlab and warp report to stdout while building: keep stdout for the JSON alone.
+    with contextlib.redirect_stdout(sys.stderr):
+        env = make_env(cfg, "eval", num_envs=2)
+        table = foothold_table(env)
+    report = {
+        "config": {
+            "stage": cfg.stage,
+            "reward": cfg.reward.name,
+            "student": cfg.student.variant,
+            "curriculum": cfg.curriculum.name,
+            "compute": cfg.compute.name,
+            "device": cfg.compute.device,
+            "dr": cfg.dr.name,
+            "seed": cfg.seed,
+        },
+        "placeholders": PLACEHOLDERS,
+        **describe_env(env),
+        "camera": {**_jsonable(asdict(cfg.depth)), "parent_body": "torso_link"},
+        "domain_randomization": _jsonable(describe_dr(cfg.dr, cfg.depth.name, cfg.depth)),
+        "terrain": terrain_summary(cfg, table),
+    }
+    env.close()
+    return report
+
+
+def main() -> None:
+    def job(cfg: MarchConfig) -> None:
+        report = inspect(cfg)
+        print(json.dumps(report, indent=2))
+
+    run_tool(job, usage="usage: python -m march.inspect [key=value ...]")
+
+
+if __name__ == "__main__":
+    main()

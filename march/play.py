@@ -1,0 +1,265 @@
+"""``python -m march.play``: roll one checkpoint out on the evaluation course and film it.
+
+    python -m march.play student_ckpt=outputs/<run>/student/latest.pt            # rollout.mp4
+    python -m march.play teacher_ckpt=outputs/<run>/teacher/latest.pt out=teacher.gif
+    python -m march.play student_ckpt=... out=short.mp4 eval.episode_length_s=5 seed=3
+
+One env built for the ``eval`` purpose (the evaluation protocol as configured: command, episode
+length, depth corruption and domain randomization), one episode (until time-out or a fall),
+rendered offscreen on the CPU with MuJoCo by a camera that follows the robot's torso from a
+three-quarter front view. Prints the course progress once per simulated second, then the file,
+its frames and fps, and the rollout's distance and success as ``march.evaluate`` measures them.
+
+Rendering needs an OpenGL backend for MuJoCo: mjlab picks ``MUJOCO_GL=egl`` (Mesa's software
+EGL works without a GPU; Debian/Ubuntu packages ``libegl1 libgl1-mesa-dri``); set
+``MUJOCO_GL=osmesa`` (package ``libosmesa6``) where EGL is missing.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from march.cli import fail, run_tool
+from march.config import MarchConfig
+
+USAGE = (
+    "usage: python -m march.play student_ckpt=<file> | teacher_ckpt=<file> "
+    "[out=rollout.mp4|.gif] [key=value ...]"
+)
+DEFAULT_OUT = "rollout.mp4"
+SUFFIXES = (".mp4", ".gif")
+WIDTH, HEIGHT = 640, 360
+TARGET_FPS = 25.0
+"""Frames per second of simulated time the video aims at (every k-th control step is drawn)."""
+CAMERA = {"distance": 3.5, "elevation": -15.0, "azimuth": 135.0}
+"""Tracking camera on the torso: in front of the robot and to its right, looking back at it."""
+
+Policy = Callable[[dict[str, Any]], Any]
+
+
+@dataclass
+class PlayResult:
+    out: Path
+    kind: str
+    frames: int
+    fps: float
+    steps: int
+    duration_s: float
+    distance_m: float
+    success: bool
+    fell: bool
+
+
+def checkpoint_arg(cfg: MarchConfig) -> tuple[str, str]:
+    """(kind, path) of the one checkpoint given, or a clear error."""
+    given = [(k, p) for k, p in (("student", cfg.student_ckpt), ("teacher", cfg.teacher_ckpt)) if p]
+    if not given:
+        fail(
+            "give a checkpoint: student_ckpt=<file> (outputs/<run>/student/latest.pt) or "
+            f"teacher_ckpt=<file>. {USAGE}"
+        )
+    if len(given) > 1:
+        fail("give student_ckpt=<file> or teacher_ckpt=<file>, not both")
+    kind, path = given[0]
+    if not Path(path).is_file():
+        fail(f"{kind}_ckpt={path}: no such file")
+    return kind, path
+
+
+def out_path(cfg: MarchConfig) -> Path:
+    out = Path(cfg.out or DEFAULT_OUT)
+    if out.suffix.lower() not in SUFFIXES:
+        fail(f"out={out}: write a video ending in {' or '.join(SUFFIXES)}")
+    return out
+
+
+def rendering_error() -> str | None:
+    """None if MuJoCo can render offscreen in this process, else why not (one line)."""
+    import mjlab  # noqa: F401  (sets MUJOCO_GL=egl on Linux before mujoco loads)
+    import mujoco
+
+    xml = "<mujoco><worldbody><geom type='sphere' size='.1'/></worldbody></mujoco>"
+    backend = os.environ.get("MUJOCO_GL", "default")
+    try:
+        renderer = mujoco.Renderer(mujoco.MjModel.from_xml_string(xml), 8, 8)
+        renderer.close()
+    except Exception as err:  # noqa: BLE001 - any backend failure means the same to the user
+        return (
+            f"MuJoCo cannot render offscreen with MUJOCO_GL={backend} "
+            f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}); "
+            "on Debian/Ubuntu install libegl1 libgl1-mesa-dri (EGL), or libosmesa6 and set "
+            "MUJOCO_GL=osmesa"
+        )
+    return None
+
+
+def make_policy(cfg: MarchConfig, env: Any, kind: str, path: str, obs: dict[str, Any]) -> Policy:
+    """The checkpoint's deterministic policy on ``env`` (as ``march.train stage=eval`` does)."""
+    num_actions = env.action_manager.total_action_dim
+    if kind == "student":
+        from march.learn.distill import load_student, student_policy
+
+        return student_policy(env, load_student(path, cfg, obs, num_actions))
+
+    from tensordict import TensorDict
+
+    from march.learn.checkpoint import load_checkpoint
+    from march.learn.teacher import build_teacher_actor
+
+    payload = load_checkpoint(path, "teacher", cfg.compute.device)
+    td = TensorDict({"actor": obs["actor"]}, batch_size=[env.num_envs])
+    actor = build_teacher_actor(payload, td, num_actions, cfg.compute.device, path)
+
+    def act(o: dict[str, Any]) -> Any:
+        return actor(TensorDict({"actor": o["actor"]}, batch_size=[env.num_envs]))
+
+    return act
+
+
+def make_renderer(env: Any) -> Any:
+    """mjlab's offscreen renderer on env 0 with a tracking camera on the torso."""
+    from mjlab.viewer import ViewerConfig
+    from mjlab.viewer.offscreen_renderer import OffscreenRenderer
+
+    view = ViewerConfig(
+        origin_type=ViewerConfig.OriginType.ASSET_BODY,
+        entity_name="robot",
+        body_name="torso_link",
+        width=WIDTH,
+        height=HEIGHT,
+        max_extra_envs=0,
+        **CAMERA,
+    )
+    renderer = OffscreenRenderer(
+        model=env.sim.mj_model,
+        cfg=view,
+        scene=env.scene,
+        sim_model=env.sim.model,
+        expanded_fields=env.sim.expanded_fields,
+    )
+    renderer.initialize()
+    return renderer
+
+
+def frame_stride(step_dt: float) -> int:
+    """Draw every k-th control step so the video runs near TARGET_FPS in real time."""
+    return max(1, round(1.0 / (TARGET_FPS * step_dt)))
+
+
+def write_video(path: Path, frames: Sequence[Any], fps: float) -> None:
+    import imageio_ffmpeg
+    import mediapy
+
+    mediapy.set_ffmpeg(imageio_ffmpeg.get_ffmpeg_exe())
+    path.parent.mkdir(parents=True, exist_ok=True)
+    codec = "gif" if path.suffix.lower() == ".gif" else "h264"
+    mediapy.write_video(path, frames, fps=fps, codec=codec)
+
+
+def play(cfg: MarchConfig, env: Any = None) -> PlayResult:
+    """Roll the checkpoint out for one episode on the eval env and write the video.
+
+    ``env`` (an ``eval``-purpose env) may be passed in to reuse one; otherwise one env is built
+    and closed here.
+    """
+    import torch
+
+    from march.env.course import CourseRuler
+    from march.learn.checkpoint import CheckpointError
+
+    kind, path = checkpoint_arg(cfg)
+    out = out_path(cfg)
+    why = rendering_error()
+    if why:
+        fail(why)
+    torch.manual_seed(cfg.seed)
+    own_env = env is None
+    if own_env:
+        from march.env.build import make_env
+
+        env = make_env(cfg, "eval", num_envs=1)
+    renderer = None
+    try:
+        obs, _ = env.reset()
+        try:
+            policy = make_policy(cfg, env, kind, path, obs)
+        except CheckpointError as err:
+            fail(str(err))
+        renderer = make_renderer(env)
+        ruler = CourseRuler(env)
+        dt = env.step_dt
+        stride = frame_stride(dt)
+        fps = 1.0 / (stride * dt)
+        per_second = max(1, round(1.0 / dt))
+        horizon = int(env.max_episode_length)
+        print(
+            f"[play] {kind} {path}: one episode of up to {horizon * dt:g} s on the eval course "
+            f"(command vx {cfg.eval.command_vx:g} m/s), {WIDTH}x{HEIGHT} at {fps:g} fps",
+            flush=True,
+        )
+
+        def draw() -> Any:
+            renderer.update(env.sim.data)
+            return renderer.render().copy()
+
+        frames = [draw()]
+        distance, fell, steps = 0.0, False, 0
+        with torch.no_grad():
+            for step in range(1, horizon + 2):
+                before = float(ruler.progress()[0])
+                obs, _, terminated, truncated, _ = env.step(policy(obs))
+                steps = step
+                if bool(terminated[0] | truncated[0]):
+                    # The env has already reset: the episode's last state is the one before.
+                    distance, fell = before, bool(terminated[0])
+                    break
+                distance = float(ruler.progress()[0])
+                if step % stride == 0:
+                    frames.append(draw())
+                if step % per_second == 0:
+                    print(f"  t {step * dt:5.1f} s  distance {distance:6.2f} m", flush=True)
+        success = bool(ruler.reached_goal(torch.tensor([distance], device=env.device))[0])
+        success = success and not fell
+        write_video(out, frames, fps)
+    finally:
+        if renderer is not None:
+            renderer.close()
+        if own_env:
+            env.close()
+    result = PlayResult(
+        out=out,
+        kind=kind,
+        frames=len(frames),
+        fps=fps,
+        steps=steps,
+        duration_s=steps * dt,
+        distance_m=distance,
+        success=success,
+        fell=fell,
+    )
+    end = "fell" if fell else "time-out"
+    print(
+        f"wrote {out}: {result.frames} frames at {fps:g} fps ({result.frames / fps:.1f} s); "
+        f"episode {result.duration_s:.2f} s ({end}), distance {distance:.2f} m, "
+        f"success {'yes' if success else 'no'}",
+        flush=True,
+    )
+    return result
+
+
+def expected_frames(steps: int, stride: int) -> int:
+    """Frames ``play`` writes for an episode of ``steps`` control steps (the reset state is 1)."""
+    return 1 + (steps - 1) // stride  # the last step's state belongs to the auto-reset episode
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    run_tool(play, argv, usage=USAGE)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
