@@ -170,10 +170,14 @@ def play(cfg: MarchConfig, env: Any = None) -> PlayResult:
     import torch
 
     from march.env.course import CourseRuler
-    from march.learn.checkpoint import CheckpointError
+    from march.learn.checkpoint import CheckpointError, load_checkpoint
 
     kind, path = checkpoint_arg(cfg)
     out = out_path(cfg)
+    try:  # a wrong or unreadable file fails here, before the env is built
+        load_checkpoint(path, kind, cfg.compute.device)
+    except CheckpointError as err:
+        fail(str(err))
     why = rendering_error()
     if why:
         fail(why)

@@ -111,7 +111,7 @@ def run_pipeline(cfg: MarchConfig, run_dir: Path) -> dict[str, Any] | None:
     summary = None
     try:
         if cfg.stage in ("all", "teacher"):
-            env = make_env(cfg, "teacher")
+            env = make_env(cfg, "teacher", log=run_dir / "env.log")
             runner = TeacherRunner(env, cfg, run_dir, log)
             runner.try_resume()
             teacher_path = str(runner.learn(cfg.teacher.iterations))
@@ -121,7 +121,7 @@ def run_pipeline(cfg: MarchConfig, run_dir: Path) -> dict[str, Any] | None:
         if cfg.stage == "teacher":
             return None
 
-        eval_env = make_env(cfg, "eval")
+        eval_env = make_env(cfg, "eval", log=run_dir / "env.log")
 
         def eval_student(student, iteration: int, env_steps: int) -> dict[str, Any]:
             row = evaluate(
@@ -142,7 +142,7 @@ def run_pipeline(cfg: MarchConfig, run_dir: Path) -> dict[str, Any] | None:
 
         if cfg.stage in ("all", "student"):
             teacher_payload = load_checkpoint(teacher_path, "teacher", cfg.compute.device)
-            env = make_env(cfg, "student")
+            env = make_env(cfg, "student", log=run_dir / "env.log")
             runner = DistillRunner(
                 env, cfg, run_dir, log, teacher_payload, teacher_path, eval_student
             )

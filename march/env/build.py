@@ -14,8 +14,12 @@ student and evaluation always see the same world:
 
 from __future__ import annotations
 
+import contextlib
 import math
+import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import torch
 from mjlab.envs import ManagerBasedRlEnv, ManagerBasedRlEnvCfg
@@ -286,10 +290,28 @@ def build_env_cfg(
     return env_cfg
 
 
-def make_env(cfg: MarchConfig, purpose: str, num_envs: int | None = None) -> ManagerBasedRlEnv:
-    """Build the real mjlab env for ``purpose`` on ``cfg.compute.device``."""
+@contextlib.contextmanager
+def _output_to(log: Path | None) -> Iterator[None]:
+    """mjlab and warp print tables and kernel timings while building: keep them in a log file."""
+    if log is None:
+        yield
+        return
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with log.open("a") as f, contextlib.redirect_stdout(f):
+        yield
+
+
+def make_env(
+    cfg: MarchConfig, purpose: str, num_envs: int | None = None, log: Path | None = None
+) -> ManagerBasedRlEnv:
+    """Build the real mjlab env for ``purpose`` on ``cfg.compute.device``.
+
+    With ``log``, mjlab's build report goes to that file and one summary line is printed.
+    """
     env_cfg = build_env_cfg(cfg, purpose, num_envs)
-    env = ManagerBasedRlEnv(cfg=env_cfg, device=cfg.compute.device)
+    t0 = time.time()
+    with _output_to(log):
+        env = ManagerBasedRlEnv(cfg=env_cfg, device=cfg.compute.device)
     env.march_spec = EnvSpec(  # type: ignore[attr-defined]
         purpose=purpose,
         num_envs=env.num_envs,
@@ -297,4 +319,14 @@ def make_env(cfg: MarchConfig, purpose: str, num_envs: int | None = None) -> Man
         has_camera=purpose in ("student", "eval"),
         placeholders=dict(PLACEHOLDERS),
     )
+    if log is not None:
+        shapes = ", ".join(
+            f"{g} {tuple(d)}" for g, d in env.observation_manager.group_obs_dim.items()
+        )
+        print(
+            f"[env] {purpose}: {env.num_envs} envs on {cfg.compute.device}, built in "
+            f"{time.time() - t0:.0f}s; obs {shapes}; {env.action_manager.total_action_dim} actions"
+            f" (build log: {log})",
+            flush=True,
+        )
     return env

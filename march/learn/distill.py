@@ -22,7 +22,7 @@ from tensordict import TensorDict
 from march.config import MarchConfig
 from march.env.course import CourseRuler
 from march.learn.checkpoint import check_layout, latest_checkpoint, load_checkpoint, save_checkpoint
-from march.learn.metrics import MetricsLog, Progress
+from march.learn.metrics import MetricsLog, Progress, truncate_rows
 from march.learn.teacher import EpisodeStats, build_teacher_actor
 from march.policies.student import StudentPolicy
 
@@ -143,7 +143,8 @@ class DistillRunner:
         self.env_steps = int(payload["env_steps"])
         self.wall_s = float(payload.get("wall_s", 0.0))
         self.env.common_step_counter = payload.get("common_step_counter", 0)
-        self.log.resume_from("student", self.iteration - 1)
+        self.log.resume_from("student", self.iteration)
+        truncate_rows(self.run_dir / "eval.csv", "student", self.iteration)
         print(f"[student] resuming from {path} at iteration {self.iteration}")
         return True
 

@@ -37,7 +37,7 @@ EVAL_COLUMNS = ("stage", "iteration", "env_steps", "n_rollouts") + tuple(
 )
 
 
-def _truncate(path: Path, stage: str, after_iteration: int) -> None:
+def truncate_rows(path: Path, stage: str, after_iteration: int) -> None:
     """Drop rows of ``stage`` past ``after_iteration`` (a resumed run re-does them)."""
     if not path.is_file():
         return
@@ -92,7 +92,7 @@ class MetricsLog:
             )
 
     def resume_from(self, stage: str, iteration: int) -> None:
-        _truncate(self.path, stage, iteration)
+        truncate_rows(self.path, stage, iteration)
 
     def log(self, row: dict[str, Any]) -> None:
         append_row(self.path, METRIC_COLUMNS, row)

@@ -177,7 +177,7 @@ class TeacherRunner:
         self.wall_s = float(payload.get("wall_s", 0.0))
         torch.set_rng_state(payload["rng"])
         self.env.unwrapped.common_step_counter = payload.get("common_step_counter", 0)
-        self.log.resume_from("teacher", self.iteration - 1)
+        self.log.resume_from("teacher", self.iteration)
         print(f"[teacher] resuming from {path} at iteration {self.iteration}")
         return True
 

@@ -1,0 +1,229 @@
+"""The thin CLIs: march.export, march.viz, march.bench (one command-line convention, SPEC §1)."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+import pytest
+import torch
+
+from march.config import MarchConfig, StudentCfg
+from march.policies.student import StudentPolicy
+
+REPO = Path(__file__).resolve().parent.parent
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+A, H = 4, 5
+P = 9 + 3 * A  # base_ang_vel 3, projected_gravity 3, joint_pos/joint_vel/actions A, command 3
+
+
+def small_student_cfg(variant: str = "full") -> StudentCfg:
+    return StudentCfg(
+        variant=variant,
+        cnn_channels=(4, 8),
+        cnn_kernels=(3, 3),
+        cnn_strides=(2, 2),
+        d_model=32,
+        n_heads=4,
+        n_layers=1,
+        dim_feedforward=64,
+        fusion_mlp=(64,),
+        head_hidden=(32,),
+    )
+
+
+def write_student_ckpt(path: Path, variant: str = "full") -> StudentPolicy:
+    """A checkpoint in the format DistillRunner.payload() writes, with a tiny student."""
+    torch.manual_seed(0)
+    cfg = MarchConfig(student=small_student_cfg(variant))
+    layout = {
+        "variant": variant,
+        "proprio_dim": P,
+        "history_len": H,
+        "image_hw": [24, 32],
+        "num_actions": A,
+    }
+    policy = StudentPolicy(cfg.student, P, H, 3, (24, 32), A)
+    # non-trivial normaliser statistics, so that baking them into the graph is exercised
+    policy.update_normalization(torch.randn(64, H, P) * 2.0 + 1.0, torch.randn(64, 3))
+    torch.save(
+        {
+            "kind": "student",
+            "iteration": 7,
+            "env_steps": 7 * 120 * 4,
+            "wall_s": 1.0,
+            "config": asdict(cfg),
+            "layout": layout,
+            "teacher_ckpt": "outputs/run/teacher/latest.pt",
+            "student_state_dict": policy.state_dict(),
+        },
+        path,
+    )
+    return policy
+
+
+def run_module(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", *args], cwd=REPO, capture_output=True, text=True, timeout=300
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# march.export
+
+
+@pytest.mark.parametrize("variant", ["full", "no_mdn"])
+def test_export_writes_onnx_with_parity_and_metadata(tmp_path, capsys, variant):
+    from march.export import main
+    from march.onnx_export import read_onnx_metadata
+
+    ckpt = tmp_path / "run" / "student" / "latest.pt"
+    ckpt.parent.mkdir(parents=True)
+    write_student_ckpt(ckpt, variant)
+    main([f"student_ckpt={ckpt}"])
+    out = capsys.readouterr().out
+    onnx_file = ckpt.parent / "student.onnx"  # default: next to the checkpoint
+    assert onnx_file.is_file() and onnx_file.stat().st_size > 10_000
+    parity = float(re.search(r"max \|onnx - torch\| = (\S+)", out).group(1))
+    assert 0.0 <= parity < 1e-4
+    median, p95 = map(float, re.search(r"median (\S+) ms, p95 (\S+) ms", out).groups())
+    assert 0.0 < median <= p95 < 1000.0
+    assert f"wrote {onnx_file}" in out
+
+    meta = read_onnx_metadata(onnx_file)
+    assert meta["variant"] == variant and meta["iteration"] == "7"
+    assert meta["teacher_ckpt"] == "outputs/run/teacher/latest.pt"
+    obs = json.loads(meta["observations"])
+    assert obs["proprio_hist"]["shape"] == [1, H, P]
+    names = [t["name"] for t in obs["proprio_hist"]["terms"]]
+    assert names == [
+        "base_ang_vel",
+        "projected_gravity",
+        "joint_pos",
+        "joint_vel",
+        "actions",
+        "command",
+    ]
+    assert sum(t["dim"] for t in obs["proprio_hist"]["terms"]) == P
+    assert obs["command"]["shape"] == [1, 3]
+    assert obs["depth"]["shape"] == [1, 1, 24, 32] and obs["depth"]["range"] == [0.0, 1.0]
+    assert json.loads(meta["actions"])["shape"] == [1, A]
+    assert "normalised" in meta["input_depth"]  # not metres: the env feeds normalised depth
+
+
+def test_export_out_override(tmp_path, capsys):
+    from march.export import main
+
+    ckpt = tmp_path / "ckpt.pt"
+    write_student_ckpt(ckpt, "no_transformer")
+    target = tmp_path / "deploy" / "g1.onnx"
+    main([f"student_ckpt={ckpt}", f"out={target}"])
+    assert target.is_file() and target.stat().st_size > 10_000
+    assert not (tmp_path / "student.onnx").exists()
+    assert f"wrote {target}" in capsys.readouterr().out
+
+
+def test_export_missing_checkpoint_is_one_line_exit_2(tmp_path):
+    res = run_module("march.export", f"student_ckpt={tmp_path / 'nope.pt'}")
+    assert res.returncode == 2
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "no such file" in lines[0]
+    assert "Traceback" not in res.stderr
+
+
+def test_export_wrong_checkpoint_kind_and_no_argument(tmp_path, capsys):
+    from march.export import main
+
+    teacher = tmp_path / "teacher.pt"
+    torch.save({"kind": "teacher", "iteration": 1}, teacher)
+    with pytest.raises(SystemExit) as exc:
+        main([f"student_ckpt={teacher}"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "'teacher' checkpoint, not a student" in err[0]
+
+    with pytest.raises(SystemExit) as exc:
+        main([])
+    assert exc.value.code == 2
+    assert "student_ckpt=<file>" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------------
+# march.viz (terrain and plan need no simulator)
+
+
+def test_viz_terrain_writes_png(tmp_path, capsys):
+    from march.viz import main
+
+    out = tmp_path / "t.png"
+    main(["terrain", f"out={out}"])
+    assert capsys.readouterr().out.strip().endswith(str(out))
+    data = out.read_bytes()
+    assert data[:8] == PNG_MAGIC and len(data) > 50_000
+
+
+def test_viz_plan_writes_png(tmp_path, capsys):
+    from march.viz import main
+
+    out = tmp_path / "p.png"
+    main(["plan", f"out={out}", "seed=1"])
+    assert capsys.readouterr().out.strip().endswith(str(out))
+    data = out.read_bytes()
+    assert data[:8] == PNG_MAGIC and len(data) > 50_000
+
+
+def test_viz_unknown_job_names_the_valid_ones():
+    res = run_module("march.viz", "bogus")
+    assert res.returncode == 2
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1
+    for job in ("terrain", "depth", "plan"):
+        assert job in lines[0]
+
+
+def test_bench_options_are_popped_and_checked():
+    from march.bench import pop_bench_options
+
+    rest, opts = pop_bench_options(["compute.num_envs=8", "bench.steps=7", "seed=2"])
+    assert rest == ["compute.num_envs=8", "seed=2"]
+    assert opts == {"steps": 7, "warmup": 10}
+    with pytest.raises(SystemExit) as exc:
+        pop_bench_options(["bench.steps=0"])
+    assert exc.value.code == 2
+    with pytest.raises(SystemExit):
+        pop_bench_options(["bench.bogus=1"])
+
+
+# ---------------------------------------------------------------------------------------------
+# Slow: these build real mjlab envs (left out of the default run; pytest -m slow)
+
+
+@pytest.mark.slow
+def test_viz_depth_writes_png(tmp_path):
+    out = tmp_path / "d.png"
+    res = run_module("march.viz", "depth", f"out={out}", "compute=cpu")
+    assert res.returncode == 0, res.stderr[-2000:]
+    data = out.read_bytes()
+    assert data[:8] == PNG_MAGIC and len(data) > 20_000
+    levels = [int(m) for m in re.findall(r"env \d: level (\d+)", res.stdout)]
+    assert levels == [0, 3, 6, 9]
+
+
+@pytest.mark.slow
+def test_bench_env_prints_one_json_object():
+    res = run_module(
+        "march.bench", "env", "compute=cpu", "compute.num_envs=2", "bench.steps=3", "bench.warmup=1"
+    )
+    assert res.returncode == 0, res.stderr[-2000:]
+    result = json.loads(res.stdout)  # stdout is the JSON object and nothing else
+    assert result["num_envs"] == 2 and result["steps"] == 3
+    for key in ("march_teacher_steps_per_s", "bare_rough_steps_per_s", "bare_flat_steps_per_s"):
+        assert result[key] > 0
+    assert result["ratio_march_vs_rough"] == pytest.approx(
+        result["march_teacher_steps_per_s"] / result["bare_rough_steps_per_s"]
+    )
+    assert set(result["build_s"]) == {"march_teacher", "bare_rough", "bare_flat"}

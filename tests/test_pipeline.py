@@ -1,0 +1,119 @@
+"""End to end on the real mjlab env (CPU): the smoke pipeline, checkpoints, resume, determinism."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from march.cli import load
+from march.learn.checkpoint import CheckpointError, load_checkpoint
+from march.train import run_pipeline
+
+ROOT = Path(__file__).resolve().parent.parent
+pytestmark = pytest.mark.sim
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture(scope="session")
+def smoke_run(tmp_path_factory) -> Path:
+    """`python -m march.train compute=smoke` exactly as a user runs it (one run per session)."""
+    run_dir = tmp_path_factory.mktemp("smoke")
+    out = subprocess.run(
+        [sys.executable, "-m", "march.train", "compute=smoke", f"hydra.run.dir={run_dir}"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    (run_dir / "stdout.txt").write_text(out.stdout)
+    return run_dir
+
+
+def test_smoke_summary_in_range(smoke_run):
+    cfg = load(["compute=smoke"])
+    summary = json.loads((smoke_run / "summary.json").read_text())
+    assert summary["n_rollouts"] == cfg.eval.num_rollouts
+    assert 0.0 <= summary["mean_success_rate"] <= 1.0
+    table_len = cfg.terrain.size[0]
+    assert 0.0 <= summary["mean_distance_m"] <= table_len
+    assert summary["mean_abs_torque_nm"] > 0.0  # a standing G1 holds itself up
+    assert summary["mean_abs_ang_jerk"] >= 0.0
+    for key in ("mean_distance_m", "mean_abs_torque_nm", "mean_reward"):
+        assert math.isfinite(summary[key]) and math.isfinite(summary[key.replace("mean_", "se_")])
+    assert json.loads((smoke_run / "status.json").read_text())["state"] == "done"
+
+
+def test_smoke_logs_every_iteration(smoke_run):
+    cfg = load(["compute=smoke"])
+    rows = _rows(smoke_run / "metrics.csv")
+    teacher = [r for r in rows if r["stage"] == "teacher"]
+    student = [r for r in rows if r["stage"] == "student"]
+    assert [int(r["iteration"]) for r in teacher] == list(range(1, cfg.teacher.iterations + 1))
+    assert [int(r["iteration"]) for r in student] == list(range(1, cfg.distill.max_iterations + 1))
+    steps = cfg.compute.num_envs * cfg.teacher.num_steps_per_env
+    assert [int(r["env_steps"]) for r in teacher] == [steps * (i + 1) for i in range(len(teacher))]
+    assert all(math.isfinite(float(r["loss"])) and float(r["loss"]) > -1e6 for r in student)
+    mode_w = [float(r["mode_weight_0"]) + float(r["mode_weight_1"]) for r in student]
+    assert all(abs(w - 1.0) < 1e-4 for w in mode_w)  # MDN mode weights sum to one
+    evals = _rows(smoke_run / "eval.csv")
+    assert [int(r["iteration"]) for r in evals] == list(range(1, cfg.distill.max_iterations + 1))
+    assert all(int(r["n_rollouts"]) == cfg.eval.num_rollouts for r in evals)
+    text = (smoke_run / "stdout.txt").read_text()
+    assert "scale: compute=smoke" in text and "ETA" in text and "summary (mean" in text
+
+
+def test_smoke_checkpoints_load(smoke_run):
+    teacher = load_checkpoint(smoke_run / "teacher" / "latest.pt", "teacher")
+    student = load_checkpoint(smoke_run / "student" / "latest.pt", "student")
+    assert teacher["iteration"] == 2 and student["iteration"] == 2
+    assert teacher["layout"]["num_actions"] == 29 == student["layout"]["num_actions"]
+    assert student["layout"]["image_hw"] == [24, 32]
+    assert student["config"]["student"]["variant"] == "full"
+    with pytest.raises(CheckpointError, match="not a 'student'|not a student"):
+        load_checkpoint(smoke_run / "teacher" / "latest.pt", "student")
+
+
+def test_student_checkpoint_rejects_other_variant(smoke_run):
+    from march.learn.checkpoint import check_layout
+
+    payload = load_checkpoint(smoke_run / "student" / "latest.pt", "student")
+    other = dict(payload["layout"], variant="no_mdn")
+    with pytest.raises(CheckpointError, match="variant"):
+        check_layout(payload["layout"], other, "student", "x.pt")
+
+
+def _teacher_only(run_dir: Path, iterations: int):
+    cfg = load(["compute=smoke", "stage=teacher", f"teacher.max_iterations={iterations}"])
+    run_pipeline(cfg, run_dir)
+    return _rows(run_dir / "metrics.csv")
+
+
+def test_resume_continues_iteration_count(tmp_path):
+    first = _teacher_only(tmp_path, 1)
+    assert [r["iteration"] for r in first] == ["1"]
+    rows = _teacher_only(tmp_path, 3)  # same dir: resumes from teacher/latest.pt
+    assert [r["iteration"] for r in rows] == ["1", "2", "3"]
+    assert int(rows[-1]["env_steps"]) == 3 * int(rows[0]["env_steps"])
+    assert load_checkpoint(tmp_path / "teacher" / "latest.pt", "teacher")["iteration"] == 3
+
+
+def test_same_seed_same_numbers(tmp_path):
+    a = _teacher_only(tmp_path / "a", 1)
+    b = _teacher_only(tmp_path / "b", 1)
+    keys = ("value_loss", "surrogate_loss", "entropy", "action_std")
+    assert [a[0][k] for k in keys] == [b[0][k] for k in keys]
+    wa = load_checkpoint(tmp_path / "a" / "teacher" / "latest.pt", "teacher")["actor_state_dict"]
+    wb = load_checkpoint(tmp_path / "b" / "teacher" / "latest.pt", "teacher")["actor_state_dict"]
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)
