@@ -1,0 +1,41 @@
+# march: one-command set-up. `make train` and `make test` create .venv if missing, install march
+# with the CPU torch pin (constraints-cpu.txt) unless a GPU is present, then run.
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PYTHON ?= python3
+ARGS ?=
+export WARP_CACHE_PATH ?= $(CURDIR)/.warp_cache
+export WANDB_MODE ?= offline
+
+# On a machine with an NVIDIA driver let pip choose the CUDA torch build.
+ifeq ($(shell command -v nvidia-smi 2>/dev/null),)
+CONSTRAINTS := -c constraints-cpu.txt
+else
+CONSTRAINTS :=
+endif
+
+.PHONY: install train smoke test test-all lint figures
+
+$(VENV)/.installed: pyproject.toml constraints-cpu.txt
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet $(CONSTRAINTS) -e '.[dev]'
+	touch $@
+
+install: $(VENV)/.installed
+
+train: $(VENV)/.installed  ## the main job: CLF teacher -> full student -> evaluation
+	$(PY) -m march.train reward=clf student=full $(ARGS)
+
+smoke: $(VENV)/.installed  ## the whole pipeline in a few minutes
+	$(PY) -m march.train compute=smoke $(ARGS)
+
+test: $(VENV)/.installed  ## the test suite CI runs (slow extras left out)
+	$(PY) -m pytest -q $(ARGS)
+
+test-all: $(VENV)/.installed  ## including tests marked slow
+	$(PY) -m pytest -q -m "" $(ARGS)
+
+lint: $(VENV)/.installed
+	$(VENV)/bin/ruff check march tests analysis
+	$(VENV)/bin/ruff format --check march tests analysis
