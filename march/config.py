@@ -152,6 +152,9 @@ class RewardCfg:
     """Terminate when the torso tilts beyond this [deg]."""
     min_base_height_m: float = 0.4
     """Terminate when the pelvis is lower than this above the start platform [m]."""
+    max_foot_drop_m: float = 0.15
+    """Terminate when a foot is more than this below the start platform top [m] (it fell off a
+    stone; stone tops vary by at most terrain.height_hard = 0.10 m)."""
 
     def __post_init__(self) -> None:
         _one_of("reward", "name", self.name, REWARDS)

@@ -12,9 +12,9 @@ import contextlib
 import json
 import math
 import sys
+from typing import Any
 
 import numpy as np
-from typing import Any
 
 from march.cli import run_tool
 from march.config import MarchConfig

@@ -80,15 +80,17 @@ def out_path(cfg: MarchConfig) -> Path:
 
 def rendering_error() -> str | None:
     """None if MuJoCo can render offscreen in this process, else why not (one line)."""
-    import mjlab  # noqa: F401  (sets MUJOCO_GL=egl on Linux before mujoco loads)
-    import mujoco
-
     xml = "<mujoco><worldbody><geom type='sphere' size='.1'/></worldbody></mujoco>"
-    backend = os.environ.get("MUJOCO_GL", "default")
     try:
+        # mjlab sets MUJOCO_GL=egl on Linux before mujoco loads; with the GL library missing
+        # even ``import mujoco`` fails, so the imports are part of the check.
+        import mjlab  # noqa: F401
+        import mujoco
+
         renderer = mujoco.Renderer(mujoco.MjModel.from_xml_string(xml), 8, 8)
         renderer.close()
     except Exception as err:  # noqa: BLE001 - any backend failure means the same to the user
+        backend = os.environ.get("MUJOCO_GL", "default")
         return (
             f"MuJoCo cannot render offscreen with MUJOCO_GL={backend} "
             f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}); "
@@ -106,19 +108,13 @@ def make_policy(cfg: MarchConfig, env: Any, kind: str, path: str, obs: dict[str,
 
         return student_policy(env, load_student(path, cfg, obs, num_actions))
 
-    from tensordict import TensorDict
-
     from march.learn.checkpoint import load_checkpoint
-    from march.learn.teacher import build_teacher_actor
+    from march.learn.teacher import build_teacher_actor, teacher_obs, teacher_policy
 
     payload = load_checkpoint(path, "teacher", cfg.compute.device)
-    td = TensorDict({"actor": obs["actor"]}, batch_size=[env.num_envs])
+    td = teacher_obs(obs, env.num_envs)
     actor = build_teacher_actor(payload, td, num_actions, cfg.compute.device, path)
-
-    def act(o: dict[str, Any]) -> Any:
-        return actor(TensorDict({"actor": o["actor"]}, batch_size=[env.num_envs]))
-
-    return act
+    return teacher_policy(env, actor)
 
 
 def make_renderer(env: Any) -> Any:
@@ -169,7 +165,6 @@ def play(cfg: MarchConfig, env: Any = None) -> PlayResult:
     """
     import torch
 
-    from march.env.course import CourseRuler
     from march.learn.checkpoint import CheckpointError, load_checkpoint
 
     kind, path = checkpoint_arg(cfg)
@@ -181,6 +176,8 @@ def play(cfg: MarchConfig, env: Any = None) -> PlayResult:
     why = rendering_error()
     if why:
         fail(why)
+    from march.env.course import CourseRuler
+
     torch.manual_seed(cfg.seed)
     own_env = env is None
     if own_env:

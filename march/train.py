@@ -17,17 +17,18 @@ import json
 import os
 import random
 import time
-import traceback
 from pathlib import Path
 from typing import Any
 
 import hydra
 import numpy as np
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from march.cli import fail, resolve_compute
 from march.config import ConfigError, MarchConfig, to_march_config
+from march.learn.checkpoint import CheckpointError
 
 
 def _seed_everything(seed: int) -> None:
@@ -100,12 +101,29 @@ def run_pipeline(cfg: MarchConfig, run_dir: Path) -> dict[str, Any] | None:
     from march.learn.checkpoint import load_checkpoint
     from march.learn.distill import DistillRunner, load_student, student_policy
     from march.learn.metrics import MetricsLog
-    from march.learn.teacher import TeacherRunner, build_teacher_actor
+    from march.learn.teacher import (
+        TeacherRunner,
+        build_teacher_actor,
+        teacher_obs,
+        teacher_policy,
+    )
 
     if cfg.compute.torch_threads:
         torch.set_num_threads(cfg.compute.torch_threads)
     _seed_everything(cfg.seed)
     print(banner(cfg, run_dir, PLACEHOLDERS), flush=True)
+    dev = cfg.compute.device
+    # Checkpoints the user passed are read before any simulation starts.
+    teacher_payload = (
+        load_checkpoint(cfg.teacher_ckpt, "teacher", dev)
+        if cfg.teacher_ckpt and cfg.stage in ("student", "eval")
+        else None
+    )
+    student_payload = (
+        load_checkpoint(cfg.student_ckpt, "student", dev)
+        if cfg.stage == "eval" and cfg.eval.policy == "student"
+        else None
+    )
     log = MetricsLog(run_dir, cfg.logger, run_dir.name)
     teacher_path = cfg.teacher_ckpt
     summary = None
@@ -141,7 +159,8 @@ def run_pipeline(cfg: MarchConfig, run_dir: Path) -> dict[str, Any] | None:
             return row
 
         if cfg.stage in ("all", "student"):
-            teacher_payload = load_checkpoint(teacher_path, "teacher", cfg.compute.device)
+            if teacher_payload is None:
+                teacher_payload = load_checkpoint(teacher_path, "teacher", dev)
             env = make_env(cfg, "student", log=run_dir / "env.log")
             runner = DistillRunner(
                 env, cfg, run_dir, log, teacher_payload, teacher_path, eval_student
@@ -154,23 +173,17 @@ def run_pipeline(cfg: MarchConfig, run_dir: Path) -> dict[str, Any] | None:
         else:  # stage == eval
             obs, _ = eval_env.reset()
             num_actions = eval_env.action_manager.total_action_dim
-            if cfg.eval.policy == "student":
-                student = load_student(cfg.student_ckpt, cfg, obs, num_actions)
-                payload = load_checkpoint(cfg.student_ckpt, "student", cfg.compute.device)
+            if student_payload is not None:
+                payload = student_payload
+                student = load_student(payload, cfg, obs, num_actions, cfg.student_ckpt)
                 policy = student_policy(eval_env, student)
                 extra = {"student_ckpt": cfg.student_ckpt}
             else:
-                from tensordict import TensorDict
-
-                payload = load_checkpoint(cfg.teacher_ckpt, "teacher", cfg.compute.device)
-                td = TensorDict({"actor": obs["actor"]}, batch_size=[eval_env.num_envs])
+                payload = teacher_payload
                 actor = build_teacher_actor(
-                    payload, td, num_actions, cfg.compute.device, cfg.teacher_ckpt
+                    payload, teacher_obs(obs, eval_env.num_envs), num_actions, dev, cfg.teacher_ckpt
                 )
-
-                def policy(o):
-                    return actor(TensorDict({"actor": o["actor"]}, batch_size=[eval_env.num_envs]))
-
+                policy = teacher_policy(eval_env, actor)
                 extra = {"teacher_ckpt": cfg.teacher_ckpt}
             summary = evaluate(
                 eval_env,
@@ -198,6 +211,8 @@ def main(dcfg: DictConfig) -> None:
         cfg = to_march_config(dcfg)
         _check_inputs(cfg)
     except ConfigError as err:
+        if hc.mode == RunMode.MULTIRUN:
+            raise
         fail(str(err))
     run_dir = Path(cfg.resume) if cfg.resume else Path(hc.runtime.output_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -217,9 +232,10 @@ def main(dcfg: DictConfig) -> None:
         run_pipeline(cfg, run_dir)
     except BaseException as err:
         _write_status(run_dir, "failed", stage=cfg.stage, error=f"{type(err).__name__}: {err}")
-        if isinstance(err, ConfigError) or type(err).__name__ == "CheckpointError":
+        # A single run ends with one clear line; in a sweep the error is raised so that Hydra
+        # records this job as failed and goes on with the others.
+        if hc.mode == RunMode.RUN and isinstance(err, (ConfigError, CheckpointError)):
             fail(str(err))
-        traceback.print_exc()
         raise
     _write_status(run_dir, "done", stage=cfg.stage)
 

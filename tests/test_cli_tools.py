@@ -127,6 +127,35 @@ def test_export_out_override(tmp_path, capsys):
     assert f"wrote {target}" in capsys.readouterr().out
 
 
+def test_export_metadata_for_the_g1_layout():
+    from march.export import metadata
+
+    payload = {
+        "layout": {
+            "variant": "full",
+            "proprio_dim": 96,
+            "history_len": 5,
+            "image_hw": [24, 32],
+            "num_actions": 29,
+        },
+        "config": asdict(MarchConfig()),
+        "iteration": 1500,
+    }
+    meta = metadata(payload)
+    assert all(isinstance(k, str) and isinstance(v, str) for k, v in meta.items())
+    names = json.loads(meta["action_joint_names"])
+    scale = json.loads(meta["action_scale"])
+    default = json.loads(meta["default_joint_pos"])
+    assert len(names) == len(scale) == len(default) == 29
+    assert names[0] == "left_hip_pitch_joint" and names[-1] == "right_wrist_yaw_joint"
+    assert all(0.0 < s < 1.0 for s in scale)
+    assert default[names.index("left_knee_joint")] > 0.3  # the G1's bent-knee default pose
+    terms = json.loads(meta["observations"])["proprio_hist"]["terms"]
+    assert [t["dim"] for t in terms] == [3, 3, 29, 29, 29, 3]
+    depth = json.loads(meta["observations"])["depth"]
+    assert (depth["min_range_m"], depth["max_range_m"]) == (0.1, 3.0)
+
+
 def test_export_missing_checkpoint_is_one_line_exit_2(tmp_path):
     res = run_module("march.export", f"student_ckpt={tmp_path / 'nope.pt'}")
     assert res.returncode == 2

@@ -53,15 +53,15 @@ def test_argument_errors(args, message, tmp_path, capsys):
 
 @pytest.mark.sim
 def test_play_writes_a_moving_video_of_a_student(tmp_path):
+    why = play.rendering_error()  # first: without a GL library even ``import mujoco`` fails
+    if why:
+        pytest.skip(f"offscreen rendering unavailable: {why}")
     import imageio.v3 as iio
 
     from march.cli import load
     from march.env.build import make_env
     from march.learn.distill import build_student, student_layout
 
-    why = play.rendering_error()
-    if why:
-        pytest.skip(f"offscreen rendering unavailable: {why}")
     torch.set_num_threads(1)
     ckpt, out = tmp_path / "student.pt", tmp_path / "rollout.gif"
     cfg = load(["compute=smoke", "eval.episode_length_s=0.5", f"student_ckpt={ckpt}", f"out={out}"])

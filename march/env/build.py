@@ -22,6 +22,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
+import warp as wp
 from mjlab.envs import ManagerBasedRlEnv, ManagerBasedRlEnvCfg
 from mjlab.envs import mdp as envs_mdp
 from mjlab.managers.curriculum_manager import CurriculumTermCfg
@@ -37,18 +38,21 @@ from mjlab.utils.noise import UniformNoiseCfg as Unoise
 from march.config import MarchConfig
 from march.env.course import course_levels
 from march.env.depth import corrupt, depth_camera_cfg, normalize
+from march.env.observations import reference_obs, stones_ahead
 from march.env.randomization import apply_dr
-from march.env.rewards import reward_terms
+from march.env.reference_command import ReferenceCommandCfg
+from march.env.rewards import REFERENCE_COMMAND, needs_reference, reward_terms
+from march.env.terminations import foot_too_low, planner_infeasible
 from march.env.terrain import terrain_entity_cfg
 
 PURPOSES = ("teacher", "student", "eval")
 
+# Warp reports every kernel module it loads (hundreds of lines per run); warnings still show.
+wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+
 # Honest list of what still stands in for the paper's pieces; printed in the start banner and
 # reported by march.inspect. Each later issue removes its entry.
-PLACEHOLDERS = {
-    "reward=clf": "velocity-tracking terms stand in for r_clf / r_dclf until the CLF teacher lands",
-    "reference": "no planner/HLIP reference in the teacher observation yet (reference issue)",
-}
+PLACEHOLDERS: dict[str, str] = {}
 
 
 @dataclass
@@ -110,6 +114,17 @@ def _privileged_terrain_term() -> ObservationTermCfg:
     )
 
 
+def _privileged_teacher_terms(cfg: MarchConfig) -> dict[str, ObservationTermCfg]:
+    """Privileged terms of the teacher (actor and critic): the next stones as rectangles for
+    both rewards (SPEC: the same privileged terrain), and the reference for reward=clf only."""
+    terms = {"stones": ObservationTermCfg(func=stones_ahead)}
+    if needs_reference(cfg.reward):
+        terms["reference"] = ObservationTermCfg(
+            func=reference_obs, params={"command_name": REFERENCE_COMMAND}
+        )
+    return terms
+
+
 def _observations(cfg: MarchConfig, purpose: str) -> dict[str, ObservationGroupCfg]:
     h = cfg.env.history_length
     actor = {}
@@ -117,6 +132,7 @@ def _observations(cfg: MarchConfig, purpose: str) -> dict[str, ObservationGroupC
         term.history_length = h
         actor[name] = term
     actor["height_scan"] = _privileged_terrain_term()
+    actor.update(_privileged_teacher_terms(cfg))
     groups = {
         "actor": ObservationGroupCfg(terms=actor, concatenate_terms=True, enable_corruption=True)
     }
@@ -126,6 +142,7 @@ def _observations(cfg: MarchConfig, purpose: str) -> dict[str, ObservationGroupC
             term.history_length = h
             critic[name] = term
         critic["height_scan"] = _privileged_terrain_term()
+        critic.update(_privileged_teacher_terms(cfg))
         critic["base_lin_vel"] = ObservationTermCfg(
             func=vel_mdp.builtin_sensor, params={"sensor_name": "robot/imu_lin_vel"}
         )
@@ -170,7 +187,9 @@ def pelvis_too_low(env: ManagerBasedRlEnv, min_height: float) -> torch.Tensor:
 
 
 def _terminations(cfg: MarchConfig) -> dict[str, TerminationTermCfg]:
-    return {
+    """time_out, tilt, pelvis_too_low, foot_too_low (both rewards); planner_infeasible when the
+    env runs the planner (reward=clf)."""
+    terms = {
         "time_out": TerminationTermCfg(func=envs_mdp.time_out, time_out=True),
         "tilt": TerminationTermCfg(
             func=envs_mdp.bad_orientation,
@@ -179,7 +198,15 @@ def _terminations(cfg: MarchConfig) -> dict[str, TerminationTermCfg]:
         "pelvis_too_low": TerminationTermCfg(
             func=pelvis_too_low, params={"min_height": cfg.reward.min_base_height_m}
         ),
+        "foot_too_low": TerminationTermCfg(
+            func=foot_too_low, params={"max_drop": cfg.reward.max_foot_drop_m}
+        ),
     }
+    if needs_reference(cfg.reward):
+        terms["planner_infeasible"] = TerminationTermCfg(
+            func=planner_infeasible, params={"command_name": REFERENCE_COMMAND}
+        )
+    return terms
 
 
 def _reset_events(base: dict[str, EventTermCfg]) -> dict[str, EventTermCfg]:
@@ -278,6 +305,10 @@ def build_env_cfg(
             ang_vel_z=tuple(cfg.env.command_yaw_rate),
             heading=None,
         )
+
+    if needs_reference(cfg.reward):
+        # Stage (1): planner + HLIP/Bezier reference + CLF state (march.env.reference_command).
+        env_cfg.commands[REFERENCE_COMMAND] = ReferenceCommandCfg(planner_seed=cfg.seed)
 
     env_cfg.observations = _observations(cfg, purpose)
     env_cfg.rewards = reward_terms(cfg.reward)

@@ -21,8 +21,17 @@ from mjlab.managers.scene_entity_config import SceneEntityCfg
 from mjlab.tasks.velocity import mdp as vel_mdp
 
 from march.config import ConfigError, RewardCfg
+from march.env.course import CourseRuler
+from march.env.reference_command import reference_term
+from march.planner import locate_on_stones
 
 FOOT_SITES = ("left_foot", "right_foot")
+
+REFERENCE_COMMAND = "reference"
+"""Name of the ``reference`` command term (march.env.reference_command) the CLF terms read."""
+
+CLF_TERMS = ("clf", "dclf", "holonomic_pos", "holonomic_vel")
+"""Terms that need the planner/reference command term (only reward=clf builds it)."""
 
 
 def _penalty(func: Callable[..., torch.Tensor]) -> Callable[..., torch.Tensor]:
@@ -53,6 +62,60 @@ def forward_progress(env: ManagerBasedRlEnv, command_name: str) -> torch.Tensor:
 def torque_l2(env: ManagerBasedRlEnv) -> torch.Tensor:
     """Sum of squared actuator forces [N^2 m^2] (returned <= 0)."""
     return -env.scene["robot"].data.actuator_force.square().sum(-1)
+
+
+def clf(env: ManagerBasedRlEnv, command_name: str = REFERENCE_COMMAND) -> torch.Tensor:
+    """r_clf = exp(-min(V, Vmax)/Vmax) in [e^-1, 1] (V computed once per step by the command)."""
+    term = reference_term(env, command_name)
+    v, _, _ = term.clf_state()
+    return term.clf.clf_reward(v)
+
+
+def dclf(env: ManagerBasedRlEnv, command_name: str = REFERENCE_COMMAND) -> torch.Tensor:
+    """r_dclf = -max((dV/dt + alpha V)/Vdmax, 0) <= 0; 0 where V has no history yet (episode
+    start, or the step after a reference switch), so it is reset-safe."""
+    term = reference_term(env, command_name)
+    v, vdot, valid = term.clf_state()
+    return term.clf.dclf_reward(v, vdot, valid)
+
+
+def holonomic_pos(
+    env: ManagerBasedRlEnv, sigma: float = math.sqrt(0.05), command_name: str = REFERENCE_COMMAND
+) -> torch.Tensor:
+    """exp(-||p - p_td||^2 / sigma^2) in (0, 1]: stance foot site displacement from where it
+    touched down (author's sigma^2 = 0.05 m^2; position only, no orientation part)."""
+    term = reference_term(env, command_name)
+    pos, _, _ = term.stance_foot()
+    d2 = (pos - term.stance_anchor).square().sum(-1)
+    return torch.exp(-d2 / sigma**2)
+
+
+def holonomic_vel(
+    env: ManagerBasedRlEnv, sigma: float = math.sqrt(0.1), command_name: str = REFERENCE_COMMAND
+) -> torch.Tensor:
+    """exp(-(||v||^2 + w_z^2) / sigma^2) in (0, 1]: stance foot site linear velocity and yaw
+    rate should be zero (author's sigma^2 = 0.1)."""
+    term = reference_term(env, command_name)
+    _, vel, omega = term.stance_foot()
+    e2 = vel.square().sum(-1) + omega[:, 2].square()
+    return torch.exp(-e2 / sigma**2)
+
+
+def feet_edge_distance(
+    env: ManagerBasedRlEnv, clearance: float = 0.08, sensor_name: str = "feet_ground_contact"
+) -> torch.Tensor:
+    """Foothold safety (model-free set), in [-2, 0]: for each foot touching the terrain,
+    -(1 - min(d_edge / clearance, 1)), d_edge = distance of the foot site to the nearest edge of
+    the stone under it (negative off every stone, which scores -1 or less, clipped at -1).
+    0 while every foot in contact stands at least ``clearance`` inside a stone."""
+    robot = env.scene["robot"]
+    site_ids, _ = robot.find_sites(FOOT_SITES, preserve_order=True)
+    feet = robot.data.site_pos_w[:, site_ids, :2]  # (E, 2, 2)
+    fh = CourseRuler(env).footholds()
+    d_edge, _ = locate_on_stones(fh, feet)
+    contact = env.scene[sensor_name].data.found > 0  # (E, 2): primaries left, right
+    pen = 1.0 - (d_edge / clearance).clamp(min=0.0, max=1.0)
+    return -(pen * contact.float()).sum(-1)
 
 
 def _term_specs() -> dict[str, tuple[Callable[..., torch.Tensor], dict[str, Any]]]:
@@ -90,11 +153,21 @@ def _term_specs() -> dict[str, tuple[Callable[..., torch.Tensor], dict[str, Any]
             _penalty(vel_mdp.body_angular_velocity_penalty),
             {"asset_cfg": SceneEntityCfg("robot", body_names=("torso_link",))},
         ),
+        "clf": (clf, {}),
+        "dclf": (dclf, {}),
+        "holonomic_pos": (holonomic_pos, {}),
+        "holonomic_vel": (holonomic_vel, {}),
+        "feet_edge_distance": (feet_edge_distance, {}),
     }
 
 
 def available_terms() -> list[str]:
     return sorted(_term_specs())
+
+
+def needs_reference(reward: RewardCfg) -> bool:
+    """Whether the env needs the ``reference`` command term: reward=clf, or any CLF term."""
+    return reward.name == "clf" or any(t in reward.terms for t in CLF_TERMS)
 
 
 def reward_terms(reward: RewardCfg) -> dict[str, RewardTermCfg]:

@@ -23,7 +23,7 @@ from march.config import MarchConfig
 from march.env.course import CourseRuler
 from march.learn.checkpoint import check_layout, latest_checkpoint, load_checkpoint, save_checkpoint
 from march.learn.metrics import MetricsLog, Progress, truncate_rows
-from march.learn.teacher import EpisodeStats, build_teacher_actor
+from march.learn.teacher import EpisodeStats, build_teacher_actor, teacher_obs
 from march.policies.student import StudentPolicy
 
 COMMAND = "twist"
@@ -111,7 +111,7 @@ class DistillRunner:
         self.wall_s = 0.0
 
     def _teacher_obs(self, obs: dict[str, Any]) -> TensorDict:
-        return TensorDict({"actor": obs["actor"]}, batch_size=[self.env.num_envs])
+        return teacher_obs(obs, self.env.num_envs)
 
     def payload(self) -> dict[str, Any]:
         return {

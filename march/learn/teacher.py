@@ -93,6 +93,20 @@ def build_teacher_actor(
     return actor
 
 
+def teacher_obs(obs: dict[str, Any], num_envs: int) -> TensorDict:
+    """The teacher's view of an env observation dict."""
+    return TensorDict({"actor": obs["actor"]}, batch_size=[num_envs])
+
+
+def teacher_policy(env: ManagerBasedRlEnv, actor: MLPModel):
+    """obs -> deterministic teacher action (the mean)."""
+
+    def act(obs: dict[str, Any]) -> torch.Tensor:
+        return actor(teacher_obs(obs, env.num_envs))
+
+    return act
+
+
 class EpisodeStats:
     """Returns, lengths and course progress of the episodes that end during an iteration."""
 

@@ -1,0 +1,477 @@
+"""The ``reference`` command term: stage (1) of the CLF teacher inside the mjlab env.
+
+It keeps, per env, the walking state the CLF rewards need: which foot is the stance foot and
+where it touched down, the current footstep plan (N = 4 steps from :func:`march.planner.
+plan_footsteps`), the time ``tau`` since the step began and its planned duration, the reference
+outputs ``y_ref`` (:func:`march.reference.reference_at`) and the measured outputs ``y_sim``, and
+the CLF value V with its derivative.
+
+Decisions (documented here once; the README repeats them)
+- **Velocity command.** mjlab's ``twist`` command stays the one velocity command (sampled once per
+  episode from ``env.command_vx/vy/yaw_rate``; the proprioceptive ``command`` observation and the
+  distillation code read it). This term reads it: its body-frame (vx, vy) is rotated into the
+  world frame with the pelvis-yaw reference before planning; the yaw rate drives the pelvis-yaw
+  reference.
+- **Initial stance (episode reset).** The foot that is further behind along the course direction
+  is the stance foot; when the feet are level within ``stance_tie_m`` (the usual spawn) the left
+  foot is the stance foot, so the right foot swings first. The first plan starts from that foot
+  on the start platform. Robot state is only valid after mjlab's post-reset ``forward()``, so a
+  reset marks the env pending and the plan is made in the command update that follows it.
+- **Touchdown.** The swing foot's contact (``found`` of the ``feet_ground_contact`` sensor, per
+  foot) counts as a touchdown once ``tau >= touchdown_min_fraction * duration`` (author: 0.6);
+  earlier contacts (the foot has not left yet, or scuffs) are ignored. At a touchdown the swing
+  foot becomes the stance foot, a new plan is made from its actual position (only for the envs
+  that touched down), the reference is re-anchored there (HLIP orbit of the new step anchored at
+  the actual stance foot; lift-off = the new swing foot's current position), ``tau`` restarts
+  and ``step_switched`` is set so the V history restarts (no derivative across the switch).
+- **Timeout.** If the swing foot has not touched down by ``tau >= touchdown_timeout_fraction *
+  duration`` the step is restarted instead of switched: the swing foot is still in the air, so
+  making it the stance foot would anchor the reference (and the holonomic terms) on a foot that
+  bears no weight. The plan is remade from the same stance foot, the new swing starts where the
+  foot is, ``tau`` restarts and ``step_switched`` is set (counted in ``forced_count``).
+- **CoM.** Whole-body CoM: ``subtree_com`` of the robot's root body (MuJoCo's mass-weighted CoM of
+  all robot bodies, domain-randomised masses included); its velocity is the mass-weighted mean of
+  the bodies' CoM velocities (``body_com_lin_vel_w``), with the per-world body masses.
+- **Outputs** (``CLF_OUTPUT_NAMES`` order, 29): CoM x/y/z (world), pelvis roll/pitch/yaw (ZYX Euler
+  of the root link) and their Euler-angle rates, swing-foot site position/velocity (world) and its
+  roll/pitch/yaw with Euler rates, 17 upper-body joints relative to their defaults. The swing-foot
+  site is at sole level on the G1 (z ~ 1.5 mm standing), so ``ReferenceCfg.foot_height_offset``
+  is 0.
+- **When V is evaluated.** mjlab computes rewards *before* the command update of a step. V is
+  computed once per env step, lazily, by the first CLF reward term that asks
+  (:meth:`ReferenceCommand.clf_state`): y_sim of the state the action produced against y_ref at
+  ``tau + step_dt`` (the same instant), then ``VHistory.update``. Both CLF terms read that same V.
+  The command update then detects touchdowns and refreshes ``y_ref``/``y_sim`` at the new ``tau``
+  for the observations.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import torch
+from mjlab.managers.command_manager import CommandTerm, CommandTermCfg
+from mjlab.utils.lab_api.math import euler_xyz_from_quat, quat_apply_inverse
+
+from march.clf import CLF_OUTPUT_NAMES, UPPER_BODY_JOINTS, ClfCfg, ClfModel, VHistory
+from march.env.course import foothold_table
+from march.footholds import Footholds
+from march.hlip import HlipCfg
+from march.planner import Plan, PlannerCfg, course_frame, plan_footsteps
+from march.reference import (
+    ReferenceCfg,
+    StepState,
+    angle_mask,
+    reference_at,
+    step_state_from_plan,
+    tracking_error,
+    wrap_to_pi,
+)
+
+if TYPE_CHECKING:
+    from mjlab.envs import ManagerBasedRlEnv
+
+NUM_OUTPUTS = len(CLF_OUTPUT_NAMES)
+
+
+def euler_rates(euler: torch.Tensor, omega_b: torch.Tensor) -> torch.Tensor:
+    """ZYX Euler-angle rates (roll, pitch, yaw)-dot (E, 3) from the body-frame angular velocity.
+
+    R = Rz(yaw) Ry(pitch) Rx(roll) (``euler_xyz_from_quat``'s convention); cos(pitch) is kept
+    away from 0 (the tilt termination ends episodes long before the singularity).
+    """
+    roll, pitch = euler[:, 0], euler[:, 1]
+    p, q, r = omega_b.unbind(-1)
+    sr, cr = torch.sin(roll), torch.cos(roll)
+    cp = torch.cos(pitch)
+    cp = torch.where(cp.abs() < 0.1, torch.full_like(cp, 0.1), cp)
+    tp = torch.sin(pitch) / cp
+    a = q * sr + r * cr
+    return torch.stack([p + a * tp, q * cr - r * sr, a / cp], dim=-1)
+
+
+def _euler(quat: torch.Tensor) -> torch.Tensor:
+    return torch.stack(euler_xyz_from_quat(quat), dim=-1)
+
+
+def _yaw_rotate(vec: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
+    """Rotate the xy part of (E, ..., 2|3) vectors by -yaw (world -> yaw-aligned base frame)."""
+    c, s = torch.cos(yaw), torch.sin(yaw)
+    while c.dim() < vec.dim() - 1:
+        c, s = c[..., None], s[..., None]
+    x, y = vec[..., 0], vec[..., 1]
+    out = vec.clone()
+    out[..., 0] = c * x + s * y
+    out[..., 1] = -s * x + c * y
+    return out
+
+
+class ReferenceCommand(CommandTerm):
+    """Planner + reference + CLF state per env (see the module docstring)."""
+
+    cfg: ReferenceCommandCfg
+
+    def __init__(self, cfg: ReferenceCommandCfg, env: ManagerBasedRlEnv):
+        super().__init__(cfg, env)
+        e, dev = self.num_envs, self.device
+        self.robot = env.scene[cfg.entity_name]
+        self.sensor = env.scene[cfg.contact_sensor]
+        names = list(self.sensor.primary_names)
+        self._contact_idx = torch.tensor(
+            [names.index(b) for b in cfg.foot_bodies], device=dev, dtype=torch.long
+        )
+        site_ids, _ = self.robot.find_sites(cfg.foot_sites, preserve_order=True)
+        self._site_ids = torch.tensor(site_ids, device=dev, dtype=torch.long)
+        joint_ids, _ = self.robot.find_joints(UPPER_BODY_JOINTS, preserve_order=True)
+        self._upper_ids = torch.tensor(joint_ids, device=dev, dtype=torch.long)
+        self._body_ids = torch.as_tensor(self.robot.indexing.body_ids, device=dev).long()
+        self._root_body = int(self.robot.indexing.root_body_id)
+
+        self.table = foothold_table(env)
+        self.footholds: Footholds = self._lookup_footholds(torch.arange(e, device=dev))
+        """(E envs) the stones of each env's current course (refreshed on reset)."""
+
+        self.clf = ClfModel(cfg.clf, device=dev)
+        """The single CLF model of this env (P from CARE, built once)."""
+        self.v_history = VHistory(e, env.step_dt, device=dev)
+        self.mask = angle_mask(len(UPPER_BODY_JOINTS), device=dev)
+        self.generator = torch.Generator(device=dev)
+        self.generator.manual_seed(int(cfg.planner_seed if cfg.planner_seed is not None else 0))
+
+        n = cfg.planner.num_steps
+        zeros3 = torch.zeros(e, 3, device=dev)
+        self.stance_is_left = torch.ones(e, dtype=torch.bool, device=dev)
+        """(E,) the stance foot is the left one."""
+        self.stance_anchor = zeros3.clone()
+        """(E, 3) stance foot site position at its touchdown (world) [m]: holonomic anchor."""
+        self.plan_footholds = torch.zeros(e, n, 3, device=dev)
+        """(E, N, 3) current plan: footholds (stone-top z), world [m]."""
+        self.plan_durations = torch.full((e, n), cfg.planner.nominal_duration, device=dev)
+        """(E, N) current plan: step durations [s]."""
+        self.plan_feasible = torch.ones(e, dtype=torch.bool, device=dev)
+        """(E,) the current plan met every planner constraint."""
+        self.tau = torch.zeros(e, device=dev)
+        """(E,) time since the current step began [s]."""
+        self.yaw0 = torch.zeros(e, device=dev)
+        self.step_switched = torch.zeros(e, dtype=torch.bool, device=dev)
+        """(E,) the reference switched (touchdown, restart or reset) in the last update."""
+        self.touchdown_count = torch.zeros(e, dtype=torch.long, device=dev)
+        """(E,) touchdowns (stance switches) since the env was built."""
+        self.forced_count = torch.zeros(e, dtype=torch.long, device=dev)
+        """(E,) timeout restarts since the env was built."""
+        self.replan_count = torch.zeros(e, dtype=torch.long, device=dev)
+        """(E,) plans made (resets, touchdowns, restarts) since the env was built."""
+        self._pending = torch.ones(e, dtype=torch.bool, device=dev)
+        self._dt: float | torch.Tensor = 0.0
+        self.step = StepState(
+            stance_pos=zeros3.clone(),
+            stance_is_left=self.stance_is_left.clone(),
+            swing_start=zeros3.clone(),
+            target=zeros3.clone(),
+            next_target=zeros3.clone(),
+            duration=self.plan_durations[:, 0].clone(),
+            next_duration=self.plan_durations[:, 1].clone(),
+            yaw0=torch.zeros(e, device=dev),
+            yaw_rate=torch.zeros(e, device=dev),
+            axis=torch.tensor([[1.0, 0.0]], device=dev).repeat(e, 1),
+        )
+        self.y_ref_pos = torch.zeros(e, NUM_OUTPUTS, device=dev)
+        """(E, 29) reference outputs at the current tau (CLF_OUTPUT_NAMES order)."""
+        self.y_ref_vel = torch.zeros(e, NUM_OUTPUTS, device=dev)
+        self.y_sim_pos = torch.zeros(e, NUM_OUTPUTS, device=dev)
+        """(E, 29) measured outputs (refreshed with y_ref)."""
+        self.y_sim_vel = torch.zeros(e, NUM_OUTPUTS, device=dev)
+        self.v = torch.zeros(e, device=dev)
+        """(E,) CLF value V of the last env step (see :meth:`clf_state`)."""
+        self.vdot = torch.zeros(e, device=dev)
+        self.v_valid = torch.zeros(e, dtype=torch.bool, device=dev)
+        self._v_step = -1
+        self.metrics["touchdowns"] = torch.zeros(e, device=dev)
+        self.metrics["timeouts"] = torch.zeros(e, device=dev)
+
+    # ---------------------------------------------------------------- mjlab interface
+
+    @property
+    def command(self) -> torch.Tensor:
+        """The privileged reference observation (E, 2*29 + 3N + 2); see :meth:`observation`."""
+        return self.observation()
+
+    def compute(self, dt: float | torch.Tensor, env_ids: torch.Tensor | None = None) -> None:
+        self._dt = dt  # _update_command advances tau by it (per env on the auto-reset path)
+        super().compute(dt, env_ids)
+
+    def _update_metrics(self) -> None:
+        pass
+
+    def _resample_command(self, env_ids: torch.Tensor) -> None:
+        """Episode reset: new course cell (the curriculum ran first), plan after forward()."""
+        self._pending[env_ids] = True
+        fh = self._lookup_footholds(env_ids)
+        for name in ("center", "half_size", "valid", "start_xy", "direction"):
+            getattr(self.footholds, name)[env_ids] = getattr(fh, name)
+        self.footholds.goal_distance[env_ids] = fh.goal_distance
+        self.footholds.course_length[env_ids] = fh.course_length
+        self.v_history.reset(env_ids)
+        self.tau[env_ids] = 0.0
+        self.plan_feasible[env_ids] = True
+
+    def _update_command(self, env_ids: torch.Tensor | None) -> None:
+        e = self.num_envs
+        ids = torch.arange(e, device=self.device) if env_ids is None else env_ids
+        self.step_switched[ids] = False
+        dt = self._dt
+        if isinstance(dt, torch.Tensor):
+            self.tau[ids] += dt[ids]
+        else:
+            self.tau[ids] += float(dt)
+        active = torch.zeros(e, dtype=torch.bool, device=self.device)
+        active[ids] = True
+        pending = active & self._pending
+        if pending.any():
+            self._start_episode(pending.nonzero().flatten())
+        running = active & ~pending
+        contact = self.foot_contact()
+        swing_contact = torch.where(self.stance_is_left, contact[:, 1], contact[:, 0])
+        dur = self.step.duration
+        touchdown = running & swing_contact & (self.tau >= self.cfg.touchdown_min_fraction * dur)
+        timeout = running & ~touchdown & (self.tau >= self.cfg.touchdown_timeout_fraction * dur)
+        if touchdown.any():
+            td = touchdown.nonzero().flatten()
+            self.stance_is_left[td] = ~self.stance_is_left[td]
+            self.touchdown_count[td] += 1
+            self.metrics["touchdowns"][td] += 1.0
+            self._new_step(td, advance_yaw=True)
+        if timeout.any():
+            to = timeout.nonzero().flatten()
+            self.forced_count[to] += 1
+            self.metrics["timeouts"][to] += 1.0
+            self._new_step(to, advance_yaw=True)
+        self._refresh_outputs()
+
+    # ---------------------------------------------------------------- planning
+
+    def _lookup_footholds(self, env_ids: torch.Tensor) -> Footholds:
+        terrain = self._env.scene.terrain
+        return self.table.for_envs(
+            terrain.terrain_levels[env_ids],
+            terrain.terrain_types[env_ids],
+            self._env.scene.env_origins[env_ids],
+        )
+
+    def feet_pos(self) -> torch.Tensor:
+        """(E, 2, 3) left and right foot site positions, world [m]."""
+        return self.robot.data.site_pos_w[:, self._site_ids]
+
+    def foot_contact(self) -> torch.Tensor:
+        """(E, 2) bool: left / right foot touches the terrain."""
+        found = self.sensor.data.found
+        return found[:, self._contact_idx] > 0
+
+    def _world_command(self, env_ids: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
+        """(n, 3) velocity command [vx, vy, yaw_rate] with vx, vy rotated into the world frame."""
+        cmd = self._env.command_manager.get_command(self.cfg.velocity_command)[env_ids]
+        c, s = torch.cos(yaw), torch.sin(yaw)
+        vx = c * cmd[:, 0] - s * cmd[:, 1]
+        vy = s * cmd[:, 0] + c * cmd[:, 1]
+        return torch.stack([vx, vy, cmd[:, 2]], dim=-1)
+
+    def _start_episode(self, env_ids: torch.Tensor) -> None:
+        feet = self.feet_pos()[env_ids]
+        axis, _ = course_frame(self.footholds.index(env_ids))
+        along = (feet[..., :2] * axis[:, None]).sum(-1)  # (n, 2)
+        right_behind = along[:, 1] < along[:, 0] - self.cfg.stance_tie_m
+        self.stance_is_left[env_ids] = ~right_behind
+        self.yaw0[env_ids] = self.robot.data.heading_w[env_ids]
+        self.tau[env_ids] = 0.0
+        self._pending[env_ids] = False
+        self._new_step(env_ids, advance_yaw=False)
+
+    def replan(self, env_ids: torch.Tensor) -> Plan:
+        """Plan from the current stance foot of ``env_ids`` and make step 0 the current step.
+
+        Used at reset, touchdown and timeout; public so tools and tests can force a replan.
+        """
+        return self._new_step(env_ids, advance_yaw=False)
+
+    def _new_step(self, env_ids: torch.Tensor, advance_yaw: bool) -> Plan:
+        if advance_yaw:
+            self.yaw0[env_ids] = wrap_to_pi(
+                self.yaw0[env_ids] + self.step.yaw_rate[env_ids] * self.tau[env_ids]
+            )
+        feet = self.feet_pos()[env_ids]  # (n, 2, 3)
+        left = self.stance_is_left[env_ids]
+        stance = torch.where(left[:, None], feet[:, 0], feet[:, 1])
+        swing = torch.where(left[:, None], feet[:, 1], feet[:, 0])
+        fh = self.footholds.index(env_ids)
+        cmd = self._world_command(env_ids, self.yaw0[env_ids])
+        plan = plan_footsteps(
+            stance[:, :2].contiguous(), left, cmd, fh, self.cfg.planner, self.generator
+        )
+        axis, _ = course_frame(fh)
+        st = step_state_from_plan(
+            plan,
+            stance_pos=plan.start,
+            swing_start=swing,
+            yaw0=self.yaw0[env_ids],
+            yaw_rate=cmd[:, 2],
+            axis=axis,
+        )
+        for name in (
+            "stance_pos",
+            "stance_is_left",
+            "swing_start",
+            "target",
+            "next_target",
+            "duration",
+            "next_duration",
+            "yaw0",
+            "yaw_rate",
+            "axis",
+        ):
+            getattr(self.step, name)[env_ids] = getattr(st, name)
+        self.stance_anchor[env_ids] = stance
+        self.plan_footholds[env_ids] = plan.footholds
+        self.plan_durations[env_ids] = plan.durations
+        self.plan_feasible[env_ids] = plan.feasible
+        self.tau[env_ids] = 0.0
+        self.step_switched[env_ids] = True
+        self.replan_count[env_ids] += 1
+        self.v_history.reset(env_ids)
+        return plan
+
+    # ---------------------------------------------------------------- outputs and V
+
+    def reference(self, tau: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(E, 29) reference positions and velocities at time ``tau`` into the current step."""
+        ref = reference_at(
+            self.step, tau, self.cfg.reference, self.cfg.hlip, num_upper=len(UPPER_BODY_JOINTS)
+        )
+        return ref.flatten()
+
+    def measured(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(E, 29) measured outputs y_sim (positions) and their rates (module docstring)."""
+        data = self.robot.data
+        com = self._env.sim.data.subtree_com[:, self._root_body]
+        mass = self._env.sim.model.body_mass
+        mass = mass[:, self._body_ids] if mass.dim() == 2 else mass[self._body_ids][None]
+        com_vel = (data.body_com_lin_vel_w * mass[..., None]).sum(1) / mass.sum(1, keepdim=True)
+        quat = data.root_link_quat_w
+        pelvis = _euler(quat)
+        pelvis_rate = euler_rates(pelvis, data.root_link_ang_vel_b)
+        left = self.stance_is_left
+        sites = self._site_ids
+        swing_site = torch.where(left, sites[1], sites[0])
+        rows = torch.arange(self.num_envs, device=self.device)
+        swing_pos = data.site_pos_w[rows, swing_site]
+        swing_vel = data.site_lin_vel_w[rows, swing_site]
+        swing_quat = data.site_quat_w[rows, swing_site]
+        swing_ori = _euler(swing_quat)
+        swing_omega_b = quat_apply_inverse(swing_quat, data.site_ang_vel_w[rows, swing_site])
+        swing_rate = euler_rates(swing_ori, swing_omega_b)
+        upper = data.joint_pos[:, self._upper_ids] - data.default_joint_pos[:, self._upper_ids]
+        upper_vel = data.joint_vel[:, self._upper_ids]
+        pos = torch.cat([com, pelvis, swing_pos, swing_ori, upper], dim=-1)
+        vel = torch.cat([com_vel, pelvis_rate, swing_vel, swing_rate, upper_vel], dim=-1)
+        return pos, vel
+
+    def stance_foot(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Stance foot site position (E, 3), linear velocity (E, 3) and angular velocity (E, 3)."""
+        data = self.robot.data
+        site = torch.where(self.stance_is_left, self._site_ids[0], self._site_ids[1])
+        rows = torch.arange(self.num_envs, device=self.device)
+        return (
+            data.site_pos_w[rows, site],
+            data.site_lin_vel_w[rows, site],
+            data.site_ang_vel_w[rows, site],
+        )
+
+    def _refresh_outputs(self) -> None:
+        self.y_ref_pos, self.y_ref_vel = self.reference(self.tau)
+        self.y_sim_pos, self.y_sim_vel = self.measured()
+
+    def clf_state(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(V, dV/dt, valid), each (E,), for the current env step; computed once per step.
+
+        Called by the reward terms (before this step's command update): y_sim of the current
+        physics state against y_ref at ``tau + step_dt``, then one ``VHistory.update``.
+        """
+        step = int(self._env.common_step_counter)
+        if step != self._v_step:
+            self._v_step = step
+            ref_pos, ref_vel = self.reference(self.tau + self._env.step_dt)
+            sim_pos, sim_vel = self.measured()
+            eta = tracking_error(sim_pos, ref_pos, self.mask)
+            self.v = self.clf.value(eta, sim_vel - ref_vel)
+            self.vdot, self.v_valid = self.v_history.update(self.v)
+        return self.v, self.vdot, self.v_valid
+
+    # ---------------------------------------------------------------- observation
+
+    def observation(self) -> torch.Tensor:
+        """Privileged reference observation, relative to the base (yaw-aligned pelvis frame).
+
+        Layout (E, 29 + 29 + 3N + 2): y_ref positions, y_ref velocities, the N planned footholds
+        (dx, dy, dz from the pelvis), then tau / duration and duration [s]. Position-like
+        outputs (CoM, swing foot) are taken relative to the pelvis and rotated by -heading,
+        their velocities rotated by -heading; the pelvis and swing-foot yaw references are
+        given relative to the heading (wrapped); roll, pitch and joints as they are.
+        """
+        data = self.robot.data
+        base = data.root_link_pos_w
+        yaw = data.heading_w
+        pos, vel = self.y_ref_pos.clone(), self.y_ref_vel.clone()
+        for k in (0, 6):  # com_xyz, swing_xyz
+            pos[:, k : k + 3] = _yaw_rotate(pos[:, k : k + 3] - base, yaw)
+            vel[:, k : k + 3] = _yaw_rotate(vel[:, k : k + 3], yaw)
+        for k in (5, 11):  # pelvis_yaw, swing_yaw
+            pos[:, k] = wrap_to_pi(pos[:, k] - yaw)
+        feet = _yaw_rotate(self.plan_footholds - base[:, None], yaw).flatten(1)
+        dur = self.step.duration
+        phase = torch.stack([(self.tau / dur).clamp(max=2.0), dur], dim=-1)
+        return torch.cat([pos, vel, feet, phase], dim=-1)
+
+
+@dataclass(kw_only=True)
+class ReferenceCommandCfg(CommandTermCfg):
+    """Configuration of the ``reference`` command term (defaults: author values, SPEC §2)."""
+
+    resampling_time_range: tuple[float, float] = (1.0e9, 1.0e9)
+    """Only episode resets restart the term (no timed resampling)."""
+    entity_name: str = "robot"
+    velocity_command: str = "twist"
+    """The velocity command term this one reads (v_D and the yaw rate)."""
+    contact_sensor: str = "feet_ground_contact"
+    foot_bodies: tuple[str, str] = ("left_ankle_roll_link", "right_ankle_roll_link")
+    """Contact-sensor primaries of the left and right foot."""
+    foot_sites: tuple[str, str] = ("left_foot", "right_foot")
+    """Sites tracked as the feet (sole level)."""
+    touchdown_min_fraction: float = 0.6
+    """A swing-foot contact counts as touchdown from tau >= this x planned duration (author 0.6)."""
+    touchdown_timeout_fraction: float = 1.5
+    """No touchdown by tau >= this x planned duration: restart the step from the same stance."""
+    stance_tie_m: float = 0.01
+    """At reset, feet within this along the course count as level (then the left foot stands)."""
+    planner_seed: int | None = 0
+    """Seed of the planner's random draws (torch.Generator on the env device)."""
+    planner: PlannerCfg = field(default_factory=PlannerCfg)
+    reference: ReferenceCfg = field(default_factory=ReferenceCfg)
+    hlip: HlipCfg = field(default_factory=HlipCfg)
+    clf: ClfCfg = field(default_factory=ClfCfg)
+
+    def build(self, env: ManagerBasedRlEnv) -> ReferenceCommand:
+        return ReferenceCommand(self, env)
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.touchdown_min_fraction < self.touchdown_timeout_fraction:
+            raise ValueError("need 0 <= touchdown_min_fraction < touchdown_timeout_fraction")
+        if math.isclose(self.planner.step_width, self.hlip.step_width) is False:
+            raise ValueError("planner.step_width and hlip.step_width must agree")
+
+
+def reference_term(env: ManagerBasedRlEnv, command_name: str = "reference") -> ReferenceCommand:
+    term = env.command_manager.get_term(command_name)
+    if not isinstance(term, ReferenceCommand):
+        raise TypeError(f"command {command_name!r} is not a ReferenceCommand")
+    return term

@@ -1,0 +1,26 @@
+"""Termination terms beyond mjlab's own (time out, bad orientation) and build.pelvis_too_low."""
+
+from __future__ import annotations
+
+import torch
+from mjlab.envs import ManagerBasedRlEnv
+
+from march.env.reference_command import reference_term
+
+FOOT_SITES = ("left_foot", "right_foot")
+
+
+def foot_too_low(env: ManagerBasedRlEnv, max_drop: float) -> torch.Tensor:
+    """A foot site is more than ``max_drop`` below the env's start-platform top (its terrain
+    origin z): the foot fell off a stone into the pit. Stone tops vary by at most
+    ``terrain.height_hard`` (0.10 m) around the platform, so a 0.15 m drop is off every stone."""
+    robot = env.scene["robot"]
+    site_ids, _ = robot.find_sites(FOOT_SITES, preserve_order=True)
+    z = robot.data.site_pos_w[:, site_ids, 2]
+    return (z < env.scene.env_origins[:, 2:3] - max_drop).any(-1)
+
+
+def planner_infeasible(env: ManagerBasedRlEnv, command_name: str = "reference") -> torch.Tensor:
+    """The footstep plan made at the last touchdown (or reset) violates a planner constraint:
+    no safe sequence of N footholds exists from where the robot stands (reward=clf only)."""
+    return ~reference_term(env, command_name).plan_feasible
