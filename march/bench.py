@@ -11,20 +11,23 @@ goes to stderr, so stdout is the JSON object alone (``... | jq`` works).
 
 ``env``: on ``compute.device`` with ``compute.num_envs`` envs, one after another (each closed
 before the next is built): (a) the march teacher env (``make_env(cfg, "teacher")``: stepping
-stones, privileged observations, paper domain randomization), (b) mjlab's bare
+stones, privileged observations, paper domain randomization and, for reward=clf, the
+``reference`` command term that runs the footstep planner), (b) mjlab's bare
 ``Mjlab-Velocity-Rough-Unitree-G1`` and (c) bare ``Mjlab-Velocity-Flat-Unitree-G1`` (their
 registered configs, only ``scene.num_envs`` and ``seed`` set). Each is reset and stepped with the
 same seeded random actions (uniform in [-1, 1], one torch generator reseeded per env) for
 ``warmup`` steps, then ``steps`` timed steps. ``*_steps_per_s`` counts env steps (num_envs x
-control steps) per second of wall time; ``ms_per_step`` is one batched control step.
+control steps) per second of wall time; ``ms_per_step`` is one batched control step;
+``march_teacher_planner_*`` is the time the teacher env spent inside the planner.
 
 ``planner``: :func:`march.bench_planner.bench_planner` (``steps`` timed replans of all
 ``num_envs`` envs on synthetic courses), plus the march teacher env's step time measured in the
-same run, and ``planner_share_of_env_step`` = ms per full-batch replan / ms per env step. Only
-envs that touch down replan: ``touchdown_rate_per_env_step`` (control step / mean step
-duration of the planner's own walks over generated courses at the configured forward command)
-gives the expected replanning envs per step, and ``planner_share_touchdown_estimate`` times a
-replan of that many envs instead of all of them.
+same run: ``planner_share_of_env_step`` = ms per full-batch replan / ms per env step (an upper
+bound: only envs at a reset, touchdown or step timeout replan). ``in_env_*`` measures the
+planner calls the teacher env itself made in its timed steps (random actions: mostly resets
+after falls); ``walk_*`` estimates a walking robot's share: touchdown rate = control step / mean
+step duration of the planner's own walks over generated courses, times one replan of that many
+envs.
 """
 
 from __future__ import annotations
@@ -113,8 +116,38 @@ def bare_env(task: str, cfg: MarchConfig) -> Any:
     return ManagerBasedRlEnv(cfg=env_cfg, device=cfg.compute.device)
 
 
-def time_env_steps(env: Any, steps: int, warmup: int, seed: int) -> float:
-    """Seconds for ``steps`` control steps after ``warmup`` untimed ones, seeded random actions."""
+@contextlib.contextmanager
+def planner_timer(device: str) -> Iterator[dict[str, float]]:
+    """Time every ``plan_footsteps`` call the env's ``reference`` command term makes (reward=clf
+    envs replan at resets, touchdowns and step timeouts, for those envs only). Yields running
+    totals ``{"calls", "envs", "s"}``; clear them with ``.update(calls=0, envs=0, s=0.0)``."""
+    import march.env.reference_command as rc
+
+    stats = {"calls": 0, "envs": 0, "s": 0.0}
+    original = rc.plan_footsteps
+
+    def timed(stance: Any, *args: Any, **kwargs: Any) -> Any:
+        _sync(device)
+        t0 = time.perf_counter()
+        plan = original(stance, *args, **kwargs)
+        _sync(device)
+        stats["s"] += time.perf_counter() - t0
+        stats["calls"] += 1
+        stats["envs"] += int(stance.shape[0])
+        return plan
+
+    rc.plan_footsteps = timed
+    try:
+        yield stats
+    finally:
+        rc.plan_footsteps = original
+
+
+def time_env_steps(
+    env: Any, steps: int, warmup: int, seed: int, planner: dict[str, float] | None = None
+) -> float:
+    """Seconds for ``steps`` control steps after ``warmup`` untimed ones, seeded random actions.
+    ``planner`` (from :func:`planner_timer`) is cleared when the timed steps begin."""
     import torch
 
     device = str(env.device)
@@ -129,6 +162,8 @@ def time_env_steps(env: Any, steps: int, warmup: int, seed: int) -> float:
         for _ in range(warmup):
             env.step(act())
         _sync(device)
+        if planner is not None:
+            planner.update(calls=0, envs=0, s=0.0)
         t0 = time.perf_counter()
         for _ in range(steps):
             env.step(act())
@@ -137,14 +172,19 @@ def time_env_steps(env: Any, steps: int, warmup: int, seed: int) -> float:
 
 
 def _measure(
-    build: Callable[[], Any], steps: int, warmup: int, seed: int, device: str
+    build: Callable[[], Any],
+    steps: int,
+    warmup: int,
+    seed: int,
+    device: str,
+    planner: dict[str, float] | None = None,
 ) -> tuple[float, float, int]:
     """(build seconds, timed seconds, num_envs) of one env, closed afterwards."""
     t0 = time.perf_counter()
     env = build()
     build_s = time.perf_counter() - t0
     try:
-        elapsed = time_env_steps(env, steps, warmup, seed)
+        elapsed = time_env_steps(env, steps, warmup, seed, planner)
         n = env.num_envs
     finally:
         env.close()
@@ -165,10 +205,14 @@ def bench_env(cfg: MarchConfig, steps: int, warmup: int) -> dict[str, Any]:
     sps: dict[str, float] = {}
     ms: dict[str, float] = {}
     build: dict[str, float] = {}
-    with stdout_to_stderr():
+    planner_ms = 0.0
+    with stdout_to_stderr(), planner_timer(device) as planner:
         for name, make in builders.items():
             print(f"[bench] {name}: building {cfg.compute.num_envs} envs on {device}", flush=True)
-            build_s, elapsed, n = _measure(make, steps, warmup, cfg.seed, device)
+            timer = planner if name == "march_teacher" else None
+            build_s, elapsed, n = _measure(make, steps, warmup, cfg.seed, device, timer)
+            if timer is not None:
+                planner_ms = 1e3 * timer["s"] / steps
             build[name] = round(build_s, 2)
             sps[name] = n * steps / elapsed
             ms[name] = 1e3 * elapsed / steps
@@ -185,9 +229,13 @@ def bench_env(cfg: MarchConfig, steps: int, warmup: int) -> dict[str, Any]:
         "ratio_march_vs_rough": sps["march_teacher"] / sps["bare_rough"],
         "ratio_march_vs_flat": sps["march_teacher"] / sps["bare_flat"],
         "ms_per_step": ms,
+        "march_teacher_planner_ms_per_step": planner_ms,
+        "march_teacher_planner_share": planner_ms / ms["march_teacher"],
         "build_s": build,
         "units": "steps_per_s = env steps (num_envs x control steps) per wall second; "
-        "ms_per_step = one batched control step",
+        "ms_per_step = one batched control step; march_teacher_planner_* = time inside the "
+        "footstep planner during the march teacher's timed steps (reward=clf replans at "
+        "touchdowns, step timeouts and resets)",
     }
 
 
@@ -221,35 +269,44 @@ def touchdown_rate(cfg: MarchConfig, num_courses: int = 8) -> tuple[float, float
 def bench_planner_share(cfg: MarchConfig, steps: int, warmup: int) -> dict[str, Any]:
     from march.bench_planner import bench_planner
     from march.env.build import make_env
+    from march.env.rewards import needs_reference
 
     n, device = cfg.compute.num_envs, cfg.compute.device
     result = bench_planner(n, device, steps, cfg.seed)
-    with stdout_to_stderr():
+    with stdout_to_stderr(), planner_timer(device) as planner:
         print(f"[bench] march_teacher: building {n} envs on {device}", flush=True)
         build_s, elapsed, _ = _measure(
-            lambda: make_env(cfg, "teacher"), steps, warmup, cfg.seed, device
+            lambda: make_env(cfg, "teacher"), steps, warmup, cfg.seed, device, planner
         )
     ms_env = 1e3 * elapsed / steps
     mean_t, rate = touchdown_rate(cfg)
     k = min(n, max(1, math.ceil(rate * n)))
     subset = bench_planner(k, device, steps, cfg.seed)
+    in_env = needs_reference(cfg.reward)  # only the CLF teacher env runs the planner
     result.update(
         {
             "ms_per_env_step": ms_env,
             "env_build_s": round(build_s, 2),
             "planner_share_of_env_step": result["ms_per_replan_mean"] / ms_env,
-            "mean_step_duration_s": mean_t,
-            "touchdown_rate_per_env_step": rate,
-            "envs_replanning_per_step": k,
-            "ms_per_replan_touchdown_envs": subset["ms_per_replan_mean"],
-            "planner_share_touchdown_estimate": subset["ms_per_replan_mean"] / ms_env,
+            "in_env_planner_ms_per_env_step": 1e3 * planner["s"] / steps if in_env else None,
+            "in_env_planner_share": 1e3 * planner["s"] / steps / ms_env if in_env else None,
+            "in_env_replans_per_env_per_step": planner["envs"] / (n * steps) if in_env else None,
+            "in_env_planner_calls_per_step": planner["calls"] / steps if in_env else None,
+            "walk_mean_step_duration_s": mean_t,
+            "walk_touchdown_rate_per_env_step": rate,
+            "walk_envs_replanning_per_step": k,
+            "walk_ms_per_replan_touchdown_envs": subset["ms_per_replan_mean"],
+            "walk_planner_share_estimate": subset["ms_per_replan_mean"] / ms_env,
             "note": (
-                "planner_share_of_env_step: one replan of all num_envs envs (synthetic courses) "
-                "per march teacher env step (random actions, same num_envs and device) - an "
-                "upper bound. Only envs touching down replan: touchdown_rate = control step / "
-                "mean planned step duration of the planner's own walks over generated courses; "
-                "planner_share_touchdown_estimate times one replan of ceil(rate * num_envs) envs "
-                "per env step (the env does not run the planner yet)."
+                "planner_share_of_env_step: one replan of all num_envs envs (synthetic courses, "
+                "ms_per_replan_mean) per march teacher env step (random actions, same num_envs "
+                "and device; the step already includes the env's own replans) - an upper bound. "
+                "in_env_*: the planner calls the teacher env's reference command made during "
+                "the timed steps (only envs at a reset, touchdown or step timeout replan; with "
+                "random actions the robot falls, so resets dominate; null for reward=modelfree, "
+                "which has no planner). walk_*: a walking estimate - touchdown rate = control "
+                "step / mean planned step duration of the planner's own walks over generated "
+                "courses, and the time of one replan of ceil(rate * num_envs) envs per step."
             ),
         }
     )

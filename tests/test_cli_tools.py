@@ -256,3 +256,20 @@ def test_bench_env_prints_one_json_object():
         result["march_teacher_steps_per_s"] / result["bare_rough_steps_per_s"]
     )
     assert set(result["build_s"]) == {"march_teacher", "bare_rough", "bare_flat"}
+    assert 0.0 <= result["march_teacher_planner_share"] < 1.0
+
+
+@pytest.mark.slow
+def test_bench_planner_prints_one_json_object():
+    res = run_module(
+        "march.bench", "planner", "compute=cpu", "compute.num_envs=2", "bench.steps=30"
+    )
+    assert res.returncode == 0, res.stderr[-2000:]
+    result = json.loads(res.stdout)
+    assert result["num_envs"] == 2 and result["feasible_fraction"] == 1.0
+    assert 0.0 < result["ms_per_replan_mean"] and 0.0 < result["ms_per_env_step"]
+    assert result["planner_share_of_env_step"] == pytest.approx(
+        result["ms_per_replan_mean"] / result["ms_per_env_step"]
+    )
+    assert 0.0 <= result["in_env_planner_share"] < 1.0  # reward=clf: the env runs the planner
+    assert 0.0 < result["walk_touchdown_rate_per_env_step"] < 0.1  # steps of 0.45-0.7 s at 50 Hz

@@ -5,8 +5,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -23,22 +21,6 @@ pytestmark = pytest.mark.sim
 def _rows(path: Path) -> list[dict[str, str]]:
     with path.open(newline="") as f:
         return list(csv.DictReader(f))
-
-
-@pytest.fixture(scope="session")
-def smoke_run(tmp_path_factory) -> Path:
-    """`python -m march.train compute=smoke` exactly as a user runs it (one run per session)."""
-    run_dir = tmp_path_factory.mktemp("smoke")
-    out = subprocess.run(
-        [sys.executable, "-m", "march.train", "compute=smoke", f"hydra.run.dir={run_dir}"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
-    (run_dir / "stdout.txt").write_text(out.stdout)
-    return run_dir
 
 
 def test_smoke_summary_in_range(smoke_run):

@@ -21,7 +21,7 @@ from mjlab.asset_zoo.robots.unitree_g1.g1_constants import G1_ACTUATOR_5020  # n
 from mjlab.managers.event_manager import RecomputeLevel  # noqa: E402
 from mjlab.tasks.velocity.config.g1.env_cfgs import unitree_g1_flat_env_cfg  # noqa: E402
 
-from march.config import DrCfg, EnvCfg  # noqa: E402
+from march.config import DepthCfg, DrCfg  # noqa: E402
 from march.env import randomization as R  # noqa: E402
 
 CAM = "depth_cam"
@@ -73,11 +73,11 @@ def test_describe_dr_covers_every_paper_row():
         "roll U(-2.5, 2.5), pitch U(-3, 3), yaw U(-2.5, 2.5)"
     )
     assert by_row["Depth Camera FOV"]["range"] == "U(-2, 2)"
-    # Pixel dropout and depth noise live in the depth pipeline, with EnvCfg's numbers.
-    env = EnvCfg()
+    # Pixel dropout and depth noise live in the depth pipeline, with DepthCfg's numbers.
+    depth = DepthCfg()
     assert by_row["Pixel Dropout"]["mode"] == "depth pipeline"
     assert by_row["Pixel Dropout"]["term"] is None
-    assert by_row["Pixel Dropout"]["range"] == f"{env.depth_dropout:g}" == "0.05"
+    assert by_row["Pixel Dropout"]["range"] == f"{depth.dropout:g}" == "0.05"
     assert by_row["Depth Noise"]["range"] == "sigma = 0.1 x depth"
 
 

@@ -1,0 +1,242 @@
+"""The teacher env with stage (1) wired in: reference command term, CLF rewards, terminations and
+privileged observations, for reward=clf and reward=modelfree (one env per reward, built once)."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from march.clf import CLF_OUTPUT_NAMES
+from march.cli import load
+from march.env.build import build_env_cfg, make_env
+from march.env.course import CourseRuler
+from march.env.observations import NUM_STONES, STONE_FEATURES
+
+ROOT = Path(__file__).resolve().parent.parent
+STEPS = 200
+
+# The documented difference between the two reward sets (conf/reward/*.yaml, README).
+CLF_ONLY = {"clf", "dclf", "holonomic_pos", "holonomic_vel"}
+MODELFREE_ONLY = {
+    "track_linear_velocity",
+    "track_angular_velocity",
+    "forward_progress",
+    "alive",
+    "upright",
+    "feet_edge_distance",
+    "foot_slip",
+}
+SHARED = {"torque": 1.0e-5, "joint_limits": 1.0, "action_rate": 0.01}
+
+
+def _cfg(reward: str):
+    return load(["compute=smoke", f"reward={reward}"])
+
+
+# ------------------------------------------------------------------ config level (no env)
+
+
+def test_reward_sets_differ_in_the_documented_terms():
+    clf = build_env_cfg(_cfg("clf"), "teacher")
+    free = build_env_cfg(_cfg("modelfree"), "teacher")
+    ck, fk = set(clf.rewards), set(free.rewards)
+    assert ck - fk == CLF_ONLY
+    assert fk - ck == MODELFREE_ONLY
+    assert ck & fk == set(SHARED)
+    for name, weight in SHARED.items():
+        assert clf.rewards[name].weight == free.rewards[name].weight == weight
+    assert clf.rewards["clf"].weight == 10.0 and clf.rewards["dclf"].weight == 1.0
+    assert clf.rewards["holonomic_pos"].weight == 4.0
+    assert clf.rewards["holonomic_vel"].weight == 2.0
+    # One sign convention: every weight is positive (penalties return values <= 0).
+    assert all(t.weight > 0 for t in [*clf.rewards.values(), *free.rewards.values()])
+    # Only clf runs the planner: its command, its termination and its observation.
+    assert set(clf.commands) - set(free.commands) == {"reference"}
+    assert set(clf.terminations) - set(free.terminations) == {"planner_infeasible"}
+    assert "foot_too_low" in free.terminations
+    for group in ("actor", "critic"):
+        ct, ft = set(clf.observations[group].terms), set(free.observations[group].terms)
+        assert ct - ft == {"reference"}
+        assert "stones" in ft
+
+
+def test_no_placeholders_left_for_the_teacher():
+    from march.env.build import PLACEHOLDERS
+
+    assert "reward=clf" not in PLACEHOLDERS and "reference" not in PLACEHOLDERS
+
+
+# ------------------------------------------------------------------ rollouts on the real env
+
+
+def _rollout(env, steps: int = STEPS) -> dict:
+    """Random actions with resets; per-term extremes of the reward manager's per-step buffers."""
+    rm = env.reward_manager
+    names = list(rm.active_terms)
+    lo = {n: math.inf for n in names}
+    hi = {n: -math.inf for n in names}
+    finite = {n: True for n in names}
+    term = (
+        env.command_manager.get_term("reference")
+        if "reference" in env.command_manager.active_terms
+        else None
+    )
+    gen = torch.Generator().manual_seed(0)
+    n_act = env.action_manager.total_action_dim
+    resets = 0
+    plans_checked = plans_off = 0
+    env.reset()
+    for _ in range(steps):
+        action = 0.3 * torch.randn(env.num_envs, n_act, generator=gen)
+        _, reward, terminated, truncated, _ = env.step(action)
+        assert torch.isfinite(reward).all()
+        resets += int((terminated | truncated).sum())
+        for j, n in enumerate(names):
+            raw = rm.get_term_cfg(n).func(env, **rm.get_term_cfg(n).params)
+            finite[n] &= bool(torch.isfinite(raw).all())
+            v = rm._step_reward[:, j] / rm.get_term_cfg(n).weight
+            lo[n] = min(lo[n], float(v.min()))
+            hi[n] = max(hi[n], float(v.max()))
+        if term is not None:
+            new = term.step_switched & term.plan_feasible
+            if new.any():
+                ids = new.nonzero().flatten()
+                fh = term.footholds.index(ids)
+                margin = term.cfg.planner.stone_margin - 1e-3
+                on = fh.contains(term.plan_footholds[ids, :, :2], margin=margin)
+                plans_checked += on.numel()
+                plans_off += int((~on).sum())
+    return {
+        "names": names,
+        "lo": lo,
+        "hi": hi,
+        "finite": finite,
+        "resets": resets,
+        "plans_checked": plans_checked,
+        "plans_off": plans_off,
+    }
+
+
+@pytest.fixture(scope="module")
+def clf_env():
+    env = make_env(_cfg("clf"), "teacher")
+    yield env
+    env.close()
+
+
+@pytest.fixture(scope="module")
+def clf_run(clf_env):
+    return _rollout(clf_env)
+
+
+@pytest.mark.sim
+def test_clf_terms_finite_and_in_range(clf_run):
+    assert clf_run["resets"] > 0  # the rollout crossed episode resets
+    assert all(clf_run["finite"].values()), clf_run["finite"]
+    lo, hi = clf_run["lo"], clf_run["hi"]
+    assert set(clf_run["names"]) == CLF_ONLY | set(SHARED)
+    assert math.exp(-1.0) - 1e-6 <= lo["clf"] <= hi["clf"] <= 1.0 + 1e-6
+    assert hi["dclf"] <= 0.0
+    assert lo["dclf"] < 0.0  # random actions violate the decrease condition somewhere
+    for name in ("holonomic_pos", "holonomic_vel"):
+        assert 0.0 <= lo[name] <= hi[name] <= 1.0
+    for name in SHARED:
+        assert hi[name] <= 0.0  # penalties
+
+
+@pytest.mark.sim
+def test_clf_outputs_and_replanning(clf_env, clf_run):
+    term = clf_env.command_manager.get_term("reference")
+    e = clf_env.num_envs
+    for t in (term.y_ref_pos, term.y_ref_vel, term.y_sim_pos, term.y_sim_vel):
+        assert t.shape == (e, len(CLF_OUTPUT_NAMES)) and torch.isfinite(t).all()
+    assert term.plan_feasible.shape == (e,) and term.plan_feasible.dtype == torch.bool
+    assert term.v.shape == (e,) and torch.isfinite(term.v).all()
+    # Touchdowns happened and triggered replans; every feasible new plan lies on stones.
+    assert int(term.touchdown_count.sum()) > 0
+    assert bool((term.replan_count >= term.touchdown_count + 1).all())
+    assert clf_run["plans_checked"] > 0 and clf_run["plans_off"] == 0
+    # The term's footholds follow the curriculum's cells (table lookup redone on reset).
+    ruler = CourseRuler(clf_env).footholds()
+    assert torch.allclose(term.footholds.center, ruler.center)
+    # Both CLF terms read the one V of this step.
+    v, _, _ = term.clf_state()
+    assert v is term.v
+    obs = clf_env.observation_manager.compute()
+    om = clf_env.observation_manager
+    dims = dict(zip(om.active_terms["actor"], om.group_obs_term_dim["actor"], strict=True))
+    n = term.cfg.planner.num_steps
+    assert dims["reference"] == (2 * len(CLF_OUTPUT_NAMES) + 3 * n + 2,)
+    assert dims["stones"] == (NUM_STONES * STONE_FEATURES,)
+    assert torch.isfinite(obs["actor"]).all() and torch.isfinite(obs["critic"]).all()
+
+
+@pytest.mark.sim
+def test_planner_infeasible_terminates(clf_env, clf_run):
+    term = clf_env.command_manager.get_term("reference")
+    ids = torch.tensor([0], device=clf_env.device)
+    term.footholds.center[0, :, :2] += 50.0  # every stone far away: no safe foothold
+    plan = term.replan(ids)
+    assert not bool(plan.feasible[0]) and not bool(term.plan_feasible[0])
+    n_act = clf_env.action_manager.total_action_dim
+    _, _, terminated, _, _ = clf_env.step(torch.zeros(clf_env.num_envs, n_act))
+    assert bool(clf_env.termination_manager.get_term("planner_infeasible")[0])
+    assert bool(terminated[0])
+    # The reset restored the env's real course and a feasible plan from the start platform.
+    assert torch.allclose(term.footholds.center[0], CourseRuler(clf_env).footholds().center[0])
+    assert bool(term.plan_feasible[0])
+
+
+@pytest.fixture(scope="module")
+def modelfree_run():
+    # Built after the clf tests ran (file order), so only one env is ever being built.
+    env = make_env(_cfg("modelfree"), "teacher")
+    try:
+        run = _rollout(env)
+        run["commands"] = list(env.command_manager.active_terms)
+        run["terminations"] = list(env.termination_manager.active_terms)
+        om = env.observation_manager
+        run["actor_terms"] = dict(
+            zip(om.active_terms["actor"], om.group_obs_term_dim["actor"], strict=True)
+        )
+    finally:
+        env.close()
+    return run
+
+
+@pytest.mark.sim
+def test_modelfree_terms_finite(modelfree_run):
+    run = modelfree_run
+    assert run["resets"] > 0
+    assert all(run["finite"].values()), run["finite"]
+    assert set(run["names"]) == MODELFREE_ONLY | set(SHARED)
+    assert -2.0 <= run["lo"]["feet_edge_distance"] <= run["hi"]["feet_edge_distance"] <= 0.0
+    assert "reference" not in run["commands"]
+    assert "planner_infeasible" not in run["terminations"]
+    assert "foot_too_low" in run["terminations"]
+    assert "reference" not in run["actor_terms"]
+    assert run["actor_terms"]["stones"] == (NUM_STONES * STONE_FEATURES,)
+
+
+@pytest.mark.sim
+def test_inspect_lists_clf_terms(modelfree_run):
+    # After the in-process envs are done (never two env builds at once).
+    out = subprocess.run(
+        [sys.executable, "-m", "march.inspect", "reward=clf", "compute=smoke"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    info = json.loads(out.stdout)
+    names = [r["name"] for r in info["rewards"]]
+    assert "clf" in names and "dclf" in names
+    assert "planner_infeasible" in [t["name"] for t in info["terminations"]]
+    assert "reward=clf" not in info["placeholders"]
