@@ -24,10 +24,27 @@ from typing import Any
 import torch
 from mjlab.envs import ManagerBasedRlEnv
 
+from march.config import MarchConfig
 from march.env.course import CourseRuler
 from march.learn.metrics import EVAL_COLUMNS, EVAL_METRICS, append_row
 
 Policy = Callable[[dict[str, Any]], torch.Tensor]
+
+
+def policy_from_checkpoint(
+    env: ManagerBasedRlEnv, cfg: MarchConfig, kind: str, payload: dict[str, Any], path: str
+) -> Policy:
+    """The deterministic policy of a loaded teacher or student checkpoint on ``env``."""
+    from march.learn.distill import load_student, student_policy
+    from march.learn.teacher import build_teacher_actor, teacher_obs, teacher_policy
+
+    obs = env.observation_manager.compute()
+    num_actions = env.action_manager.total_action_dim
+    if kind == "student":
+        return student_policy(env, load_student(payload, cfg, obs, num_actions, path))
+    td = teacher_obs(obs, env.num_envs)
+    actor = build_teacher_actor(payload, td, num_actions, cfg.compute.device, path)
+    return teacher_policy(env, actor)
 
 
 def _summarise(per_rollout: dict[str, torch.Tensor]) -> dict[str, float]:

@@ -100,23 +100,6 @@ def rendering_error() -> str | None:
     return None
 
 
-def make_policy(cfg: MarchConfig, env: Any, kind: str, path: str, obs: dict[str, Any]) -> Policy:
-    """The checkpoint's deterministic policy on ``env`` (as ``march.train stage=eval`` does)."""
-    num_actions = env.action_manager.total_action_dim
-    if kind == "student":
-        from march.learn.distill import load_student, student_policy
-
-        return student_policy(env, load_student(path, cfg, obs, num_actions))
-
-    from march.learn.checkpoint import load_checkpoint
-    from march.learn.teacher import build_teacher_actor, teacher_obs, teacher_policy
-
-    payload = load_checkpoint(path, "teacher", cfg.compute.device)
-    td = teacher_obs(obs, env.num_envs)
-    actor = build_teacher_actor(payload, td, num_actions, cfg.compute.device, path)
-    return teacher_policy(env, actor)
-
-
 def make_renderer(env: Any) -> Any:
     """mjlab's offscreen renderer on env 0 with a tracking camera on the torso."""
     from mjlab.viewer import ViewerConfig
@@ -170,25 +153,26 @@ def play(cfg: MarchConfig, env: Any = None) -> PlayResult:
     kind, path = checkpoint_arg(cfg)
     out = out_path(cfg)
     try:  # a wrong or unreadable file fails here, before the env is built
-        load_checkpoint(path, kind, cfg.compute.device)
+        payload = load_checkpoint(path, kind, cfg.compute.device)
     except CheckpointError as err:
         fail(str(err))
     why = rendering_error()
     if why:
         fail(why)
     from march.env.course import CourseRuler
+    from march.evaluate import policy_from_checkpoint
 
     torch.manual_seed(cfg.seed)
     own_env = env is None
     if own_env:
         from march.env.build import make_env
 
-        env = make_env(cfg, "eval", num_envs=1)
+        env = make_env(cfg, "eval", num_envs=1, log=Path(out).with_suffix(".env.log"))
     renderer = None
     try:
         obs, _ = env.reset()
         try:
-            policy = make_policy(cfg, env, kind, path, obs)
+            policy = policy_from_checkpoint(env, cfg, kind, payload, path)
         except CheckpointError as err:
             fail(str(err))
         renderer = make_renderer(env)

@@ -97,15 +97,12 @@ def run_pipeline(cfg: MarchConfig, run_dir: Path) -> dict[str, Any] | None:
     import torch
 
     from march.env.build import PLACEHOLDERS, make_env
-    from march.evaluate import evaluate, format_summary, write_summary
+    from march.evaluate import evaluate, format_summary, policy_from_checkpoint, write_summary
     from march.learn.checkpoint import load_checkpoint
-    from march.learn.distill import DistillRunner, load_student, student_policy
+    from march.learn.distill import DistillRunner, student_policy
     from march.learn.metrics import MetricsLog
     from march.learn.teacher import (
         TeacherRunner,
-        build_teacher_actor,
-        teacher_obs,
-        teacher_policy,
     )
 
     if cfg.compute.torch_threads:
@@ -171,20 +168,12 @@ def run_pipeline(cfg: MarchConfig, run_dir: Path) -> dict[str, Any] | None:
             extra = {"student_ckpt": str(student_path), "teacher_ckpt": str(teacher_path)}
             env.close()
         else:  # stage == eval
-            obs, _ = eval_env.reset()
-            num_actions = eval_env.action_manager.total_action_dim
-            if student_payload is not None:
-                payload = student_payload
-                student = load_student(payload, cfg, obs, num_actions, cfg.student_ckpt)
-                policy = student_policy(eval_env, student)
-                extra = {"student_ckpt": cfg.student_ckpt}
-            else:
-                payload = teacher_payload
-                actor = build_teacher_actor(
-                    payload, teacher_obs(obs, eval_env.num_envs), num_actions, dev, cfg.teacher_ckpt
-                )
-                policy = teacher_policy(eval_env, actor)
-                extra = {"teacher_ckpt": cfg.teacher_ckpt}
+            eval_env.reset()
+            kind = cfg.eval.policy
+            payload = student_payload if kind == "student" else teacher_payload
+            path = cfg.student_ckpt if kind == "student" else cfg.teacher_ckpt
+            policy = policy_from_checkpoint(eval_env, cfg, kind, payload, path)
+            extra = {f"{kind}_ckpt": path}
             summary = evaluate(
                 eval_env,
                 policy,

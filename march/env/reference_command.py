@@ -466,7 +466,7 @@ class ReferenceCommandCfg(CommandTermCfg):
     def __post_init__(self) -> None:
         if not 0.0 <= self.touchdown_min_fraction < self.touchdown_timeout_fraction:
             raise ValueError("need 0 <= touchdown_min_fraction < touchdown_timeout_fraction")
-        if math.isclose(self.planner.step_width, self.hlip.step_width) is False:
+        if not math.isclose(self.planner.step_width, self.hlip.step_width):
             raise ValueError("planner.step_width and hlip.step_width must agree")
 
 

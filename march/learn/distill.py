@@ -56,9 +56,9 @@ def build_student(cfg: MarchConfig, layout: dict[str, Any], device: str) -> Stud
 
 
 def load_student(
-    path: str | Path, cfg: MarchConfig, obs: dict[str, Any], num_actions: int
+    payload: dict[str, Any], cfg: MarchConfig, obs: dict[str, Any], num_actions: int, path: str
 ) -> StudentPolicy:
-    payload = load_checkpoint(path, "student", cfg.compute.device)
+    """The student of a loaded checkpoint, checked against the env's observation layout."""
     check_layout(payload["layout"], student_layout(obs, cfg, num_actions), "student", path)
     student = build_student(cfg, payload["layout"], cfg.compute.device)
     student.load_state_dict(payload["student_state_dict"])
