@@ -12,7 +12,13 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 pytestmark = pytest.mark.sim
 
-QUICK = ["compute=smoke", "teacher.max_iterations=1", "distill.max_iterations=1"]
+# Episodes of 0.1 s end inside one 8-step iteration, so every curve has points.
+QUICK = [
+    "compute=smoke",
+    "teacher.max_iterations=2",
+    "distill.max_iterations=1",
+    "env.episode_length_s=0.1",
+]
 
 
 def _run(args: list[str], timeout: int = 900) -> subprocess.CompletedProcess:

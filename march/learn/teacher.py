@@ -108,37 +108,34 @@ def teacher_policy(env: ManagerBasedRlEnv, actor: MLPModel):
 
 
 class EpisodeStats:
-    """Returns, lengths and course progress of the episodes that end during an iteration."""
+    """Return, length [control steps] and course progress of finished episodes.
 
-    def __init__(self, num_envs: int, device: str) -> None:
+    Reported as means over the last ``window`` finished episodes (rsl-rl's convention), so an
+    iteration in which no episode ended still has a value once any episode has ended.
+    """
+
+    def __init__(self, num_envs: int, device: str, window: int = 100) -> None:
         self.ret = torch.zeros(num_envs, device=device)
         self.len = torch.zeros(num_envs, device=device)
-        self.finished_ret: list[torch.Tensor] = []
-        self.finished_len: list[torch.Tensor] = []
-        self.finished_dist: list[torch.Tensor] = []
+        self.window = window
+        self.recent = torch.empty(0, 3, device=device)  # (return, length, distance)
 
     def step(self, reward: torch.Tensor, done: torch.Tensor, progress: torch.Tensor) -> None:
         self.ret += reward
         self.len += 1
         ids = done.nonzero(as_tuple=False).squeeze(-1)
         if len(ids):
-            self.finished_ret.append(self.ret[ids].clone())
-            self.finished_len.append(self.len[ids].clone())
-            self.finished_dist.append(progress[ids].clone())
+            ended = torch.stack([self.ret[ids], self.len[ids], progress[ids]], dim=-1)
+            self.recent = torch.cat([self.recent, ended])[-self.window :]
             self.ret[ids] = 0
             self.len[ids] = 0
 
     def pop(self) -> dict[str, float]:
-        if not self.finished_ret:
+        if not len(self.recent):
             nan = float("nan")
             return {"mean_reward": nan, "mean_episode_length": nan, "mean_distance_m": nan}
-        out = {
-            "mean_reward": torch.cat(self.finished_ret).mean().item(),
-            "mean_episode_length": torch.cat(self.finished_len).mean().item(),
-            "mean_distance_m": torch.cat(self.finished_dist).mean().item(),
-        }
-        self.finished_ret, self.finished_len, self.finished_dist = [], [], []
-        return out
+        ret, length, dist = self.recent.mean(0).tolist()
+        return {"mean_reward": ret, "mean_episode_length": length, "mean_distance_m": dist}
 
 
 class TeacherRunner:
