@@ -47,11 +47,11 @@ class ActInferenceWrapper(nn.Module):
 def example_inputs(
     policy: StudentPolicy, batch_size: int = 1, generator: torch.Generator | None = None
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Random float32 CPU inputs of the policy's shapes (depth uniform in [0, 3] m)."""
+    """Random float32 CPU inputs of the policy's shapes (depth uniform in [0, 1], as the env feeds it)."""
     h, w = policy.image_hw
     proprio = torch.randn(batch_size, policy.history_len, policy.proprio_dim, generator=generator)
     command = torch.randn(batch_size, policy.command_dim, generator=generator)
-    depth = 3.0 * torch.rand(batch_size, 1, h, w, generator=generator)
+    depth = torch.rand(batch_size, 1, h, w, generator=generator)
     return proprio, command, depth
 
 
@@ -125,7 +125,7 @@ def export_student_onnx(
         "student_variant": p.variant,
         "input_proprio_hist": f"float32[batch,{p.history_len},{p.proprio_dim}]",
         "input_command": f"float32[batch,{p.command_dim}]",
-        "input_depth": f"float32[batch,1,{p.image_hw[0]},{p.image_hw[1]}] (metres)",
+        "input_depth": f"float32[batch,1,{p.image_hw[0]},{p.image_hw[1]}] normalised to [0, 1] over the camera range",
         "output_actions": f"float32[batch,{p.num_actions}]",
         "inference_mode": "top_mode_mean" if p.is_mdn else "deterministic",
         "observation_normalization": "embedded",

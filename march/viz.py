@@ -60,7 +60,7 @@ def plan(cfg: MarchConfig) -> Path:
     import torch
 
     from march.terrain import footholds_from_layouts, generate_course, hardware_course
-    from march.viz_plan import _on_stones, draw_plans, walk_course
+    from march.viz_plan import draw_plans, on_stones, walk_course
 
     out = _out(cfg, "plan.png")
     rng = np.random.default_rng(cfg.seed)
@@ -80,7 +80,7 @@ def plan(cfg: MarchConfig) -> Path:
         name = "hardware course" if lay.kind == "hardware" else f"difficulty {lay.difficulty:.2f}"
         titles.append(
             f"{name}: {n} steps at v_x {cfg.eval.command_vx:g} m/s, "
-            f"all on stones (margin) = {_on_stones(footholds, walked, i)}, "
+            f"all on stones (margin) = {on_stones(footholds, walked, i)}, "
             f"reached goal platform = {reached}"
         )
     draw_plans(footholds, walked, com, str(out), titles)

@@ -172,14 +172,14 @@ def demo_plan_figure(path: str, seed: int = 0) -> Plan:
     titles = [
         f"difficulty {d:.2f}: {int(torch.isfinite(walked.footholds[i, :, 0]).sum())} steps, "
         f"all on stones (margin) = "
-        f"{bool(_on_stones(footholds, walked, i))}"
+        f"{bool(on_stones(footholds, walked, i))}"
         for i, d in enumerate(difficulties)
     ]
     draw_plans(footholds, walked, com, path, titles)
     return walked
 
 
-def _on_stones(footholds: Footholds, plan: Plan, i: int) -> bool:
+def on_stones(footholds: Footholds, plan: Plan, i: int) -> bool:
     feet = plan.footholds[i : i + 1, :, :2]
     ok = torch.isfinite(feet[..., 0])
     one = footholds.index(torch.tensor([i]))

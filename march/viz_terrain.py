@@ -5,7 +5,6 @@
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -120,7 +119,3 @@ def draw_terrain(
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return out
-
-
-if __name__ == "__main__":
-    print(draw_terrain(CourseCfg(), sys.argv[1] if len(sys.argv) > 1 else "terrain.png"))

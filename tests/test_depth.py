@@ -9,8 +9,6 @@ import torch
 
 from march.env.depth import (
     DepthCfg,
-    DepthDelay,
-    DepthPipeline,
     camera_quat,
     corrupt,
     normalize,
@@ -58,49 +56,30 @@ def test_corruption_is_reproducible_with_a_generator():
     assert torch.equal(a, b) and not torch.equal(a, c)
 
 
+def test_depth_delay_is_wired_as_configured():
+    """The student's depth term is delayed by mjlab's observation delay buffer with
+    cfg.depth.delay_steps; evaluation without corruption has neither delay nor corruption."""
+    from march.cli import load
+    from march.env.build import build_env_cfg
+
+    cfg = load(["compute=smoke"])
+    term = build_env_cfg(cfg, "student").observations["depth"].terms["depth"]
+    assert (term.delay_min_lag, term.delay_max_lag) == tuple(cfg.depth.delay_steps) == (0, 1)
+    assert term.params["noise_scale"] == 0.1 and term.params["dropout"] == 0.05
+    clean_cfg = load(["compute=smoke", "eval.corruption=false"])
+    clean = build_env_cfg(clean_cfg, "eval").observations["depth"].terms["depth"]
+    assert (clean.delay_min_lag, clean.delay_max_lag) == (0, 0)
+    assert clean.params["noise_scale"] == 0.0 and clean.params["dropout"] == 0.0
+
+
 def test_delay_returns_the_frame_from_k_steps_ago():
-    buf = DepthDelay(4, (2, 3), delay_steps=(0, 3))
-    buf.set_delay(torch.tensor([0, 1, 2, 3]))
-    for t in range(10):
-        buf.push(torch.full((4, 2, 3), float(t)))
-    out = buf.get()
-    assert out[:, 0, 0].tolist() == [9.0, 8.0, 7.0, 6.0]
-    # Reset fills an env's history with its current frame: no stale frames from the last episode.
-    buf.reset(torch.tensor([3]), torch.full((1, 2, 3), -1.0))
-    buf.set_delay(3, torch.tensor([3]))
-    buf.push(torch.full((4, 2, 3), 10.0))
-    assert buf.get()[:, 0, 0].tolist() == [10.0, 9.0, 8.0, -1.0]
-    for t in (11, 12):
-        buf.push(torch.full((4, 2, 3), float(t)))
-    assert buf.get()[:, 0, 0].tolist() == [12.0, 11.0, 10.0, -1.0]
-    buf.push(torch.full((4, 2, 3), 13.0))
-    assert buf.get()[3, 0, 0].item() == 10.0
+    from mjlab.utils.buffers.delay_buffer import DelayBuffer
 
-
-def test_delay_sampled_per_env_within_range():
-    g = torch.Generator().manual_seed(0)
-    buf = DepthDelay(1000, (1,), delay_steps=(1, 3), generator=g)
-    buf.sample_delay()
-    counts = torch.bincount(buf.delay, minlength=4).tolist()
-    assert counts[0] == 0 and min(counts[1:]) > 250
-    with pytest.raises(ValueError):
-        buf.set_delay(4)
-
-
-def test_pipeline_eval_mode_is_clean_and_shaped():
-    cfg = DepthCfg()
-    raw = torch.full((3, 24, 32, 1), 1.55)
-    raw[0, 5, 7, 0] = 0.0
-    pipe = DepthPipeline(cfg, 3, train=False)
-    out = pipe.step(raw)
-    assert out.shape == (3, 1, 24, 32)
-    assert out[0, 0, 5, 7].item() == 1.0
-    assert out[1].unique().tolist() == pytest.approx([0.5])
-    train = DepthPipeline(cfg, 3, train=True, generator=torch.Generator().manual_seed(0))
-    assert set(train.delay.delay.tolist()) <= {0, 1}
-    noisy = train.step(raw)
-    assert noisy.min().item() >= 0.0 and noisy.max().item() <= 1.0
-    assert (noisy != out).float().mean().item() > 0.9
+    buf = DelayBuffer(min_lag=2, max_lag=2, batch_size=3)
+    for t in range(6):
+        buf.append(torch.full((3, 1, 2, 2), float(t)))
+        out = buf.compute()
+    assert out[:, 0, 0, 0].tolist() == [3.0, 3.0, 3.0]  # frame T - 2 at T = 5
 
 
 def test_camera_looks_forward_and_down():

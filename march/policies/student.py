@@ -5,7 +5,7 @@ Inputs (one control step, batch B):
 * ``proprio_hist`` (B, history_len, proprio_dim): the last ``history_len`` proprioception vectors,
   oldest first (the order only has to be the same in training and deployment);
 * ``command`` (B, command_dim): the velocity command (v_x m/s, v_y m/s, yaw rate rad/s);
-* ``depth`` (B, 1, H, W): one depth image in metres (H=24 rows, W=32 columns), fed as given.
+* ``depth`` (B, 1, H, W): one depth image normalised to [0, 1] over the camera range (1 = far or no return; H=24 rows, W=32 columns).
 
 Proprioception and command pass through empirical running mean/std normalisers (rsl-rl's
 ``EmpiricalNormalization``; buffers live in the state_dict and are baked into the ONNX export).
