@@ -136,7 +136,7 @@ def clf_run(clf_env):
 
 
 @pytest.mark.sim
-def test_clf_terms_finite_and_in_range(clf_run):
+def test_clf_terms_finite_and_in_range(clf_env, clf_run):
     assert clf_run["resets"] > 0  # the rollout crossed episode resets
     assert all(clf_run["finite"].values()), clf_run["finite"]
     lo, hi = clf_run["lo"], clf_run["hi"]
@@ -144,6 +144,8 @@ def test_clf_terms_finite_and_in_range(clf_run):
     assert math.exp(-1.0) - 1e-6 <= lo["clf"] <= hi["clf"] <= 1.0 + 1e-6
     assert hi["dclf"] <= 0.0
     assert lo["dclf"] < 0.0  # random actions violate the decrease condition somewhere
+    clip = clf_env.command_manager.get_term("reference").cfg.clf.dclf_clip
+    assert clip is None or lo["dclf"] >= -clip - 1e-6
     for name in ("holonomic_pos", "holonomic_vel"):
         assert 0.0 <= lo[name] <= hi[name] <= 1.0
     for name in SHARED:

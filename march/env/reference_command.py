@@ -37,6 +37,10 @@ Decisions (documented here once; the README repeats them)
   roll/pitch/yaw with Euler rates, 17 upper-body joints relative to their defaults. The swing-foot
   site is at sole level on the G1 (z ~ 1.5 mm standing), so ``ReferenceCfg.foot_height_offset``
   is 0.
+- **r_dclf clip.** ``ClfCfg.dclf_clip = 1.0`` (the author's ``clip(., 0, 1)``; the paper prints
+  no clip): unclipped, under the initial policy's action noise (std 1) the weighted r_dclf
+  averages about -22 per step against +3.7 for the weighted r_clf (8 envs, 150 steps), so the
+  decrease term swamps every other signal; clipped it averages about -0.5.
 - **When V is evaluated.** mjlab computes rewards *before* the command update of a step. V is
   computed once per env step, lazily, by the first CLF reward term that asks
   (:meth:`ReferenceCommand.clf_state`): y_sim of the state the action produced against y_ref at
@@ -458,7 +462,8 @@ class ReferenceCommandCfg(CommandTermCfg):
     planner: PlannerCfg = field(default_factory=PlannerCfg)
     reference: ReferenceCfg = field(default_factory=ReferenceCfg)
     hlip: HlipCfg = field(default_factory=HlipCfg)
-    clf: ClfCfg = field(default_factory=ClfCfg)
+    clf: ClfCfg = field(default_factory=lambda: ClfCfg(dclf_clip=1.0))
+    """CLF outputs and normalisers; r_dclf clipped at -1 as in the author's code (module doc)."""
 
     def build(self, env: ManagerBasedRlEnv) -> ReferenceCommand:
         return ReferenceCommand(self, env)
