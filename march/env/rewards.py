@@ -1,10 +1,9 @@
 """Reward terms by name: the vocabulary that ``conf/reward/*.yaml`` weights.
 
-Each entry maps a term name to the mjlab reward function and its parameters. Sign convention
-(SPEC §2): a penalty's function returns a value <= 0... except mjlab's own L2/limit penalties,
-which return a positive magnitude; those are wrapped by :func:`_penalty` so that every term here
-is "reward-signed" and every weight in the YAML is positive. A weight's sign is then never a
-second place where a penalty hides.
+Each entry maps a term name to a reward function and its parameters. Sign convention (SPEC §2):
+every term here is reward-signed — a penalty returns a value <= 0 — and every weight in the YAML
+is positive. mjlab's own L2/limit costs return a positive magnitude, so they are wrapped by
+:func:`_penalty`. A weight's sign is then never a second place where a penalty hides.
 """
 
 from __future__ import annotations
