@@ -242,3 +242,25 @@ def test_inspect_lists_clf_terms(modelfree_run):
     assert "clf" in names and "dclf" in names
     assert "planner_infeasible" in [t["name"] for t in info["terminations"]]
     assert "reward=clf" not in info["placeholders"]
+
+
+@pytest.mark.sim
+def test_g1_stands_on_the_start_platform(clf_env):
+    """Spawned on the start platform, the G1 neither falls through it nor sticks in a stone:
+    over the first 0.3 s with zero actions the feet rest on the platform top and the pelvis stays
+    at standing height."""
+    env = clf_env
+    env.reset()
+    robot = env.scene["robot"]
+    feet = [robot.site_names.index(s) for s in ("left_foot", "right_foot")]
+    top = env.scene.env_origins[:, 2]
+    for _ in range(15):
+        _, _, terminated, _, _ = env.step(
+            torch.zeros(env.num_envs, env.action_manager.total_action_dim)
+        )
+        assert not terminated.any()
+        foot_z = robot.data.site_pos_w[:, feet, 2] - top[:, None]
+        assert foot_z.min() > -0.01, foot_z  # not sunk into the platform
+        assert foot_z.max() < 0.05, foot_z  # resting on it, not stuck above
+        pelvis = robot.data.root_link_pos_w[:, 2] - top
+        assert (pelvis > 0.6).all() and (pelvis < 0.85).all(), pelvis
