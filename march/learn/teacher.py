@@ -6,6 +6,7 @@ mjlab's own ``train`` CLI is not used: it assumes a GPU.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import time
 from dataclasses import asdict
@@ -150,9 +151,11 @@ class TeacherRunner:
         self.train_cfg = ppo_train_cfg(cfg.teacher)
         obs = self.env.get_observations()
         self.layout = teacher_layout(obs, self.env.num_actions)
-        self.alg = PPO.construct_algorithm(
-            obs, self.env, copy.deepcopy(self.train_cfg), self.device
-        )
+        # rsl-rl prints both networks; they belong in the run's log, not on the console.
+        with (run_dir / "env.log").open("a") as f, contextlib.redirect_stdout(f):
+            self.alg = PPO.construct_algorithm(
+                obs, self.env, copy.deepcopy(self.train_cfg), self.device
+            )
         self.iteration = 0  # iterations completed
         self.env_steps = 0
         self.wall_s = 0.0
