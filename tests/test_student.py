@@ -25,8 +25,10 @@ from march.policies import (  # noqa: E402
     mdn_sample,
     mixture_weights,
     mode_mean,
+    squash_log_std,
     top_mode_mean,
 )
+from march.policies.mdn import unsquash_log_std  # noqa: E402
 
 P, HIST, CMD, HW, A = 10, 5, 3, (24, 32), 4
 
@@ -120,7 +122,7 @@ def test_top_mode_and_mode_mean():
         assert torch.equal(mode_mean(params, k), params.means[:, k])
 
 
-def test_log_std_clamp_and_min_std_on_extreme_raw_outputs():
+def test_log_std_range_and_min_std_on_extreme_raw_outputs():
     head = MDNHead(8, 3, num_modes=2, min_std=1e-3, log_std_min=-3.0, log_std_max=2.0)
     raw_logits = torch.zeros(4, 2)
     raw_means = torch.zeros(4, 6)
@@ -129,8 +131,14 @@ def test_log_std_clamp_and_min_std_on_extreme_raw_outputs():
     ).repeat(2, 1)
     p = head.params_from_raw(torch.zeros(4, 2), torch.zeros(4, 6), raw)
     assert p.log_std.shape == (4, 2, 3)
-    expected = raw.clamp(-3.0, 2.0).reshape(4, 2, 3)
-    assert torch.equal(p.log_std, expected)  # in-range values pass through unchanged
+    # a scaled sigmoid: -3 + 5 sigmoid(raw), monotone, inside [-3, 2] with a gradient everywhere
+    expected = (-3.0 + 5.0 * torch.sigmoid(raw)).reshape(4, 2, 3)
+    assert torch.allclose(p.log_std, expected)
+    assert (p.log_std.reshape(4, 6)[:, :-1] <= p.log_std.reshape(4, 6)[:, 1:]).all()
+    grad_raw = torch.tensor([-6.0, 0.0, 6.0], requires_grad=True)
+    squash_log_std(grad_raw, -3.0, 2.0, 1e-3).sum().backward()
+    assert (grad_raw.grad > 0).all()  # a mode can always widen or narrow again
+    assert unsquash_log_std(0.0, -3.0, 2.0) == pytest.approx(math.log(0.6 / 0.4))
     assert p.log_std.min().item() == pytest.approx(-3.0)
     assert p.log_std.max().item() == pytest.approx(2.0)
     std = p.log_std.exp()

@@ -36,9 +36,22 @@ class MDNParams(NamedTuple):
 def squash_log_std(
     raw: torch.Tensor, log_std_min: float, log_std_max: float, min_std: float
 ) -> torch.Tensor:
-    """Clamp a raw log-std to ``[log_std_min, log_std_max]``, then floor it at ``log(min_std)``."""
-    log_std = raw.clamp(log_std_min, log_std_max)
+    """Squash a raw log-std smoothly into ``[log_std_min, log_std_max]`` (a scaled sigmoid), then
+    floor it at ``log(min_std)``.
+
+    A hard clamp would leave no gradient once the raw value passes a bound: a mode whose std hit
+    e^-3 could never widen again, and its NLL on the next states the student visits explodes.
+    """
+    log_std = log_std_min + (log_std_max - log_std_min) * torch.sigmoid(raw)
     return log_std.clamp_min(math.log(min_std))
+
+
+def unsquash_log_std(log_std: float, log_std_min: float, log_std_max: float) -> float:
+    """The raw value that :func:`squash_log_std` maps to ``log_std`` (for initialisation)."""
+    frac = (log_std - log_std_min) / (log_std_max - log_std_min)
+    if not 0.0 < frac < 1.0:
+        raise ValueError(f"log_std {log_std} must lie inside ({log_std_min}, {log_std_max})")
+    return math.log(frac / (1.0 - frac))
 
 
 class MDNHead(nn.Module):
@@ -77,7 +90,9 @@ class MDNHead(nn.Module):
         nn.init.normal_(self.logits.weight, std=1e-3)
         nn.init.zeros_(self.logits.bias)
         nn.init.normal_(self.log_std.weight, std=1e-3)
-        nn.init.constant_(self.log_std.bias, init_log_std)
+        nn.init.constant_(
+            self.log_std.bias, unsquash_log_std(init_log_std, log_std_min, log_std_max)
+        )
 
     def params_from_raw(
         self, logits: torch.Tensor, means: torch.Tensor, raw_log_std: torch.Tensor
