@@ -125,24 +125,23 @@ def _privileged_teacher_terms(cfg: MarchConfig) -> dict[str, ObservationTermCfg]
     return terms
 
 
+def _teacher_terms(cfg: MarchConfig, noisy: bool) -> dict[str, ObservationTermCfg]:
+    """Proprioception history + privileged terrain (+ the reference for clf): actor and critic."""
+    terms = _proprio_terms(noisy=noisy)
+    for term in terms.values():
+        term.history_length = cfg.env.history_length
+    terms["height_scan"] = _privileged_terrain_term()
+    terms.update(_privileged_teacher_terms(cfg))
+    return terms
+
+
 def _observations(cfg: MarchConfig, purpose: str) -> dict[str, ObservationGroupCfg]:
-    h = cfg.env.history_length
-    actor = {}
-    for name, term in _proprio_terms(noisy=True).items():
-        term.history_length = h
-        actor[name] = term
-    actor["height_scan"] = _privileged_terrain_term()
-    actor.update(_privileged_teacher_terms(cfg))
+    actor = _teacher_terms(cfg, noisy=True)
     groups = {
         "actor": ObservationGroupCfg(terms=actor, concatenate_terms=True, enable_corruption=True)
     }
     if purpose in ("teacher", "eval"):
-        critic = {}
-        for name, term in _proprio_terms(noisy=False).items():
-            term.history_length = h
-            critic[name] = term
-        critic["height_scan"] = _privileged_terrain_term()
-        critic.update(_privileged_teacher_terms(cfg))
+        critic = _teacher_terms(cfg, noisy=False)
         critic["base_lin_vel"] = ObservationTermCfg(
             func=vel_mdp.builtin_sensor, params={"sensor_name": "robot/imu_lin_vel"}
         )
@@ -155,7 +154,7 @@ def _observations(cfg: MarchConfig, purpose: str) -> dict[str, ObservationGroupC
             terms=_proprio_terms(noisy=True),
             concatenate_terms=True,
             enable_corruption=True,
-            history_length=h,
+            history_length=cfg.env.history_length,
             flatten_history_dim=False,
         )
         noisy = purpose == "student" or cfg.eval.corruption
