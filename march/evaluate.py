@@ -15,7 +15,6 @@ Summary: mean and standard error (sample std / sqrt(n)) over ``eval.num_rollouts
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -26,6 +25,7 @@ from mjlab.envs import ManagerBasedRlEnv
 
 from march.config import MarchConfig
 from march.env.course import CourseRuler
+from march.learn.checkpoint import write_json_atomic
 from march.learn.metrics import EVAL_COLUMNS, EVAL_METRICS, append_row
 
 Policy = Callable[[dict[str, Any]], torch.Tensor]
@@ -137,9 +137,7 @@ def evaluate(
 
 def write_summary(row: dict[str, Any], run_dir: Path, extra: dict[str, Any]) -> Path:
     path = run_dir / "summary.json"
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps({**row, **extra}, indent=2, default=float))
-    tmp.replace(path)
+    write_json_atomic({**row, **extra}, path)
     return path
 
 

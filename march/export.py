@@ -40,18 +40,10 @@ from typing import Any
 
 from march.cli import fail, run_tool
 from march.config import MarchConfig
+from march.env.build import PROPRIO_TERMS
 
 USAGE = "usage: python -m march.export student_ckpt=<file> [out=student.onnx] [key=value ...]"
 DEFAULT_NAME = "student.onnx"
-PROPRIO_TERMS = (
-    "base_ang_vel",
-    "projected_gravity",
-    "joint_pos",
-    "joint_vel",
-    "actions",
-    "command",
-)
-"""Per-step term order of the ``student`` observation group (march.env.build._proprio_terms)."""
 
 
 def _one_line(err: BaseException, limit: int = 400) -> str:

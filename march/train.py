@@ -13,7 +13,6 @@ from them by itself (this is what makes a Slurm requeue continue).
 
 from __future__ import annotations
 
-import json
 import os
 import random
 import time
@@ -28,7 +27,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from march.cli import fail, resolve_compute
 from march.config import ConfigError, MarchConfig, to_march_config
-from march.learn.checkpoint import CheckpointError
+from march.learn.checkpoint import CheckpointError, write_json_atomic
 
 
 def _seed_everything(seed: int) -> None:
@@ -40,10 +39,7 @@ def _seed_everything(seed: int) -> None:
 
 
 def _write_status(run_dir: Path, state: str, **extra: Any) -> None:
-    path = run_dir / "status.json"
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps({"state": state, "time": time.time(), **extra}, indent=2))
-    tmp.replace(path)
+    write_json_atomic({"state": state, "time": time.time(), **extra}, run_dir / "status.json")
 
 
 def banner(cfg: MarchConfig, run_dir: Path, placeholders: dict[str, str]) -> str:

@@ -21,9 +21,15 @@ ROOT = __import__("pathlib").Path(__file__).resolve().parent.parent
     list(itertools.product(REWARDS, STUDENTS, CURRICULA, COMPUTES)),
 )
 def test_every_combination_composes(reward, student, curriculum, compute):
-    cfg = load([f"reward={reward}", f"student={student}", f"curriculum={curriculum}", f"compute={compute}"])
+    cfg = load(
+        [f"reward={reward}", f"student={student}", f"curriculum={curriculum}", f"compute={compute}"]
+    )
     assert isinstance(cfg, MarchConfig)
-    assert (cfg.reward.name, cfg.student.variant, cfg.curriculum.name) == (reward, student, curriculum)
+    assert (cfg.reward.name, cfg.student.variant, cfg.curriculum.name) == (
+        reward,
+        student,
+        curriculum,
+    )
     # auto resolves to a concrete preset (no CUDA here -> cpu)
     assert cfg.compute.name == (compute if compute != "auto" else "cpu")
     assert cfg.reward.terms, "every reward option names its terms"
@@ -33,15 +39,24 @@ def test_paper_values_are_the_defaults():
     cfg = load(["compute=gpu"])
     t, d = cfg.teacher, cfg.distill
     assert (cfg.compute.num_envs, t.max_iterations, d.max_iterations, cfg.eval.num_rollouts) == (
-        4096, 10000, 1500, 2048
+        4096,
+        10000,
+        1500,
+        2048,
     )
     assert (t.learning_rate, t.num_learning_epochs, t.num_mini_batches, t.entropy_coef) == (
-        5e-5, 5, 4, 0.008
+        5e-5,
+        5,
+        4,
+        0.008,
     )
     assert (t.gamma, t.lam, t.desired_kl, t.num_steps_per_env) == (0.99, 0.95, 0.01, 24)
     assert tuple(t.hidden_dims) == (512, 256, 128)
     assert (d.learning_rate, d.num_learning_epochs, d.gradient_length, d.max_grad_norm) == (
-        5e-4, 10, 2, 2.0
+        5e-4,
+        10,
+        2,
+        2.0,
     )
     assert (d.teacher_samples, d.teacher_std_scale, d.num_steps_per_env) == (8, 0.1, 120)
     assert (cfg.student.num_modes, cfg.student.min_std) == (2, 1e-3)
@@ -119,7 +134,9 @@ def test_cli_bad_value_and_missing_checkpoint_are_one_line_errors(tmp_path):
     out = _train("compute=smoke", "compute.num_envs=0", f"hydra.run.dir={tmp_path}/a")
     assert out.returncode == 2
     assert out.stderr.strip().splitlines() == ["error: compute.num_envs=0 must be > 0"]
-    out = _train("compute=smoke", "stage=student", "teacher_ckpt=/nope.pt", f"hydra.run.dir={tmp_path}/b")
+    out = _train(
+        "compute=smoke", "stage=student", "teacher_ckpt=/nope.pt", f"hydra.run.dir={tmp_path}/b"
+    )
     assert out.returncode == 2
     assert out.stderr.strip() == "error: teacher_ckpt=/nope.pt: no such file"
     assert not (tmp_path / "b" / "teacher").exists()  # nothing started

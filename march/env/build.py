@@ -108,6 +108,10 @@ def _proprio_terms(noisy: bool) -> dict[str, ObservationTermCfg]:
     }
 
 
+PROPRIO_TERMS = tuple(_proprio_terms(noisy=False))
+"""Per-step term order of proprioception (the student's ``student`` group; ONNX metadata)."""
+
+
 def _privileged_terrain_term() -> ObservationTermCfg:
     return ObservationTermCfg(
         func=envs_mdp.height_scan, params={"sensor_name": "terrain_scan"}, scale=1 / 5.0

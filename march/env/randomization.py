@@ -154,6 +154,16 @@ def _body_idx(env: ManagerBasedRlEnv, asset_cfg: SceneEntityCfg) -> torch.Tensor
     return asset.indexing.body_ids[asset_cfg.body_ids].to(env.device, dtype=torch.long)
 
 
+def _mass_fields(env: ManagerBasedRlEnv, env_ids: torch.Tensor | None, asset_cfg: SceneEntityCfg):
+    """(model, env index grid, body index grid, default masses, default inertias)."""
+    ids = _env_ids(env, env_ids)
+    idx = _body_idx(env, asset_cfg)
+    eg, bg = torch.meshgrid(ids, idx, indexing="ij")
+    m_def = _defaults(env, "body_mass", ids, idx)
+    i_def = _defaults(env, "body_inertia", ids, idx)
+    return env.sim.model, eg, bg, m_def, i_def
+
+
 @requires_model_fields("body_mass", "body_inertia", recompute=RecomputeLevel.set_const)
 def scale_link_mass(
     env: ManagerBasedRlEnv,
@@ -166,12 +176,7 @@ def scale_link_mass(
     Mass that :func:`add_base_mass` added on top (``mass - default * applied_scale``) is kept, so
     the two terms commute and neither accumulates over repeated calls.
     """
-    ids = _env_ids(env, env_ids)
-    idx = _body_idx(env, asset_cfg)
-    model = env.sim.model
-    eg, bg = torch.meshgrid(ids, idx, indexing="ij")
-    m_def = _defaults(env, "body_mass", ids, idx)
-    i_def = _defaults(env, "body_inertia", ids, idx)
+    model, eg, bg, m_def, i_def = _mass_fields(env, env_ids, asset_cfg)
     added = model.body_mass[eg, bg] - m_def * _applied_scale(model.body_inertia[eg, bg], i_def)
     s = _uniform(scale_range[0], scale_range[1], tuple(m_def.shape), env.device)
     model.body_mass[eg, bg] = m_def * s + added
@@ -188,12 +193,7 @@ def add_base_mass(
     """Base mass = default x (link-mass factor in effect) + U(mass_range) kg: a point mass at the
     COM (inertia untouched). Reads the link-mass factor back from the inertia, so it does not
     matter whether :func:`scale_link_mass` runs before or after, or at all."""
-    ids = _env_ids(env, env_ids)
-    idx = _body_idx(env, asset_cfg)
-    model = env.sim.model
-    eg, bg = torch.meshgrid(ids, idx, indexing="ij")
-    m_def = _defaults(env, "body_mass", ids, idx)
-    i_def = _defaults(env, "body_inertia", ids, idx)
+    model, eg, bg, m_def, i_def = _mass_fields(env, env_ids, asset_cfg)
     scale = _applied_scale(model.body_inertia[eg, bg], i_def)
     added = _uniform(mass_range[0], mass_range[1], tuple(m_def.shape), env.device)
     model.body_mass[eg, bg] = m_def * scale + added

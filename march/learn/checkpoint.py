@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import tempfile
@@ -34,6 +35,13 @@ def save_atomic(payload: dict[str, Any], path: Path) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def write_json_atomic(obj: Any, path: Path) -> None:
+    """A JSON file replaced in one rename: readers never see half of it."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=2, default=float))
+    os.replace(tmp, path)
 
 
 def save_checkpoint(payload: dict[str, Any], directory: Path, iteration: int) -> Path:
