@@ -32,6 +32,18 @@ def cuda_available() -> bool:
     return torch.cuda.is_available()
 
 
+def preset_name(name: str) -> str:
+    """The compute preset ``name`` stands for on this machine: auto -> gpu or cpu, else itself."""
+    if name != "auto":
+        return name
+    return "gpu" if cuda_available() else "cpu"
+
+
+# ``${march_preset:${compute.name}}`` in conf/config.yaml names run directories after the preset
+# that actually runs (``_gpu``, ``_cpu``), not ``_auto``.
+OmegaConf.register_new_resolver("march_preset", preset_name, replace=True)
+
+
 def resolve_compute(cfg: DictConfig, overrides: Sequence[str]) -> DictConfig:
     """compute=auto -> the gpu preset when CUDA is available, else cpu.
 
@@ -41,7 +53,7 @@ def resolve_compute(cfg: DictConfig, overrides: Sequence[str]) -> DictConfig:
     """
     if cfg.compute.name != "auto":
         return cfg
-    chosen = "gpu" if cuda_available() else "cpu"
+    chosen = preset_name("auto")
     preset = OmegaConf.load(CONF_DIR / "compute" / f"{chosen}.yaml")
     merged = OmegaConf.merge(cfg, preset)
     parsed = OverridesParser.create().parse_overrides(list(overrides))

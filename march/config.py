@@ -82,11 +82,17 @@ class EnvCfg:
     history_length: int = 5
     """Proprioception history length [control steps] for teacher and student."""
     command_vx: tuple[float, float] = (0.3, 0.8)
-    """Forward velocity command range [m/s], sampled per episode (forward-biased)."""
-    command_vy: tuple[float, float] = (-0.1, 0.1)
-    """Lateral velocity command range [m/s]."""
+    """Forward speed command range [m/s], sampled once per episode; the speed along the course
+    (``Footholds.direction``; the robot is steered to face it)."""
+    command_vy: tuple[float, float] = (0.0, 0.0)
+    """Lateral velocity command range [m/s], across the course. 0 on the straight stone courses:
+    0.1 m/s sideways for a 20 s episode is 2 m off the course axis (README, reference/commands)."""
     command_yaw_rate: tuple[float, float] = (-0.2, 0.2)
-    """Yaw-rate command range [rad/s]."""
+    """Bounds of the yaw-rate command [rad/s]. The yaw rate is not sampled: a heading controller
+    steers back to the course heading, yaw rate = clip(command_heading_stiffness * (course
+    heading - robot heading), these bounds) (mjlab's heading command); must contain 0."""
+    command_heading_stiffness: float = 0.5
+    """Gain of that heading controller [1/s] (mjlab's velocity task uses 0.5)."""
 
     def __post_init__(self) -> None:
         _positive("env", "episode_length_s", self.episode_length_s)
@@ -97,6 +103,16 @@ class EnvCfg:
             lo, hi = getattr(self, key)
             if lo > hi:
                 raise ConfigError(f"env.{key}=[{lo}, {hi}]: the lower bound exceeds the upper")
+        lo, hi = self.command_yaw_rate
+        if not lo <= 0.0 <= hi:
+            raise ConfigError(
+                f"env.command_yaw_rate=[{lo}, {hi}] must contain 0: it bounds the heading "
+                "controller that steers back to the course (0 once the robot faces along it)"
+            )
+        if self.command_heading_stiffness < 0.0:
+            raise ConfigError(
+                f"env.command_heading_stiffness={self.command_heading_stiffness} must be >= 0"
+            )
 
 
 @dataclass
@@ -286,6 +302,10 @@ class TeacherCfg:
     """Gradient clip."""
     save_interval: int = 50
     """Checkpoint every this many iterations."""
+    eval_interval: int = 500
+    """Evaluate the current teacher (deterministic actor) on the fixed stone evaluation set
+    every this many iterations (a ``stage=teacher`` row in eval.csv, same protocol for every
+    arm); 0 = only at the end of the teacher stage, which is always evaluated."""
 
     @property
     def iterations(self) -> int:
@@ -298,6 +318,8 @@ class TeacherCfg:
         _positive("teacher", "learning_rate", self.learning_rate)
         _positive("teacher", "save_interval", self.save_interval)
         _one_of("teacher", "schedule", self.schedule, ("adaptive", "fixed"))
+        if self.eval_interval < 0:
+            raise ConfigError("teacher.eval_interval must be >= 0 (0 = only at the end)")
 
 
 @dataclass
@@ -341,13 +363,16 @@ class EvalCfg:
     """Evaluation protocol (SPEC §2)."""
 
     num_rollouts: int = 2048
-    """Episodes rolled out per evaluation."""
+    """Episodes rolled out per evaluation; rollout i runs on course cell (level i mod L,
+    column (i // L + i mod L) mod C), so every level gets num_rollouts / L rollouts (+-1)."""
     episode_length_s: float = 20.0
-    """Fixed episode length [s]."""
+    """Fixed episode length [s]; the farthest goal platform must be reached at command_vx
+    with >= 25% of it to spare (tests/test_evaluate.py checks every compute preset)."""
     course: str = "stones"
-    """stones (all difficulty levels, uniformly) or hardware (4 alternating stones)."""
-    command_vx: float = 0.5
-    """Forward velocity command during evaluation [m/s]."""
+    """stones (every level x column of the stone courses) or hardware (4 alternating stones)."""
+    command_vx: float = 0.7
+    """Forward velocity command along the course during evaluation [m/s], inside
+    env.command_vx: 0.7 m/s reaches the 12 m course's farthest goal (9.25 m) in 13.2 s of 20."""
     corruption: bool = True
     """Depth corruption (noise, dropout, delay) as in training."""
     randomization: bool = True
@@ -360,6 +385,7 @@ class EvalCfg:
         _positive("eval", "episode_length_s", self.episode_length_s)
         _one_of("eval", "course", self.course, COURSES)
         _one_of("eval", "policy", self.policy, ("student", "teacher"))
+        _positive("eval", "command_vx", self.command_vx)
 
 
 @dataclass
@@ -449,6 +475,12 @@ class MarchConfig:
         if self.stage not in STAGES:
             raise ConfigError(
                 f"stage={self.stage!r} is not valid; choose one of {', '.join(STAGES)}"
+            )
+        lo, hi = self.env.command_vx
+        if not lo <= self.eval.command_vx <= hi:
+            raise ConfigError(
+                f"eval.command_vx={self.eval.command_vx} lies outside the training range "
+                f"env.command_vx=[{lo}, {hi}]: evaluate at a command the policy was trained on"
             )
 
 

@@ -1,16 +1,32 @@
 """Evaluation protocol (SPEC §2): fixed-length rollouts, honest metrics measured from them.
 
-Per rollout (one episode of ``eval.episode_length_s``, or until a fall):
+One protocol for every arm (reward=clf and reward=modelfree, either curriculum, teacher or
+student): the eval env (``march.env.build``, purpose ``eval``) ends a rollout only by time-out or
+a fall (``EVAL_TERMINATIONS``), runs the stone courses of every difficulty level with DR and depth
+corruption as in training and the forward command ``eval.command_vx`` along the course.
+
+Sampling: rollout i runs on course cell (level i mod L, column (i // L + i mod L) mod C)
+(:func:`march.env.course.eval_cells`), in waves of ``env.num_envs``; each env contributes the
+first episode of its wave. Every level gets floor(n/L) or ceil(n/L) of the n rollouts, so the plain
+mean over rollouts weights the levels (nearly) equally. The torch random state is forked and
+seeded with the env's seed for every evaluation: each evaluation draws the same randomization
+sequence, whatever training did before it, and does not disturb training's random stream.
+
+Per rollout (one episode of ``eval.episode_length_s``, or until a fall), computed from per-step
+tensors by :func:`episode_metrics`:
 - ``distance_m``: pelvis progress along the course from the start, clipped at the course end,
   taken at the last control step before the episode ended.
 - ``success_rate``: 1 if the goal was reached and the episode ended by time-out, not by a fall.
-- ``abs_torque_nm``: mean over control steps and joints of |actuator force| [N m].
-- ``abs_ang_jerk``: mean over control steps and the three body axes of |d^2 omega / dt^2|, with
-  omega the pelvis angular velocity in the body frame sampled at the control rate and the second
-  derivative taken as (omega_t - 2 omega_{t-1} + omega_{t-2}) / dt^2 [rad/s^3]; the first two
-  steps of an episode have no jerk.
+- ``abs_torque_nm``: mean over the episode's live control steps (those whose post-step state
+  still belongs to it) and joints of |actuator force| [N m]; undefined with no live step.
+- ``abs_ang_jerk``: mean over live control steps and the three body axes of |d^2 omega / dt^2|,
+  with omega the pelvis angular velocity in the body frame sampled at the control rate and the
+  second derivative taken as (omega_t - 2 omega_{t-1} + omega_{t-2}) / dt^2 [rad/s^3]; the first
+  two steps have none, so it is undefined with fewer than 3 live steps. Never spans a reset.
 - ``reward``: the episode's return under the teacher's full reward function (the env's reward).
-Summary: mean and standard error (sample std / sqrt(n)) over ``eval.num_rollouts`` rollouts.
+Summary: mean and standard error (sample std / sqrt(n)) over the rollouts where the metric is
+defined; ``n_torque`` / ``n_jerk`` count those for torque and jerk (a rollout too short for them
+is left out, not counted as 0).
 """
 
 from __future__ import annotations
@@ -24,7 +40,7 @@ import torch
 from mjlab.envs import ManagerBasedRlEnv
 
 from march.config import MarchConfig
-from march.env.course import CourseRuler
+from march.env.course import CourseRuler, assign_eval_cells
 from march.learn.checkpoint import write_json_atomic
 from march.learn.metrics import EVAL_COLUMNS, EVAL_METRICS, append_row
 
@@ -47,69 +63,150 @@ def policy_from_checkpoint(
     return teacher_policy(env, actor)
 
 
-def _summarise(per_rollout: dict[str, torch.Tensor]) -> dict[str, float]:
-    out: dict[str, float] = {}
+def episode_metrics(
+    torque: torch.Tensor,
+    ang_vel: torch.Tensor,
+    reward: torch.Tensor,
+    terminated: torch.Tensor,
+    truncated: torch.Tensor,
+    progress: torch.Tensor,
+    goal_distance: torch.Tensor,
+    dt: float,
+) -> dict[str, torch.Tensor]:
+    """Per-rollout metrics of E rollouts from T recorded control steps (pure tensor arithmetic).
+
+    Step t records, for each env: ``torque[t]`` (E,) the mean |actuator force| over joints and
+    ``ang_vel[t]`` (E, 3) the pelvis angular velocity (body frame) read after ``env.step`` (the
+    post-step state, which is the next episode's after an auto-reset); ``reward[t]``,
+    ``terminated[t]``, ``truncated[t]`` as the step returned them; ``progress[t]`` the progress
+    along the course [m] read *before* the step. ``goal_distance`` (E,) [m]; ``dt`` the control
+    step [s].
+
+    Rollout e is its env's first episode: steps 0..end_e, end_e the first step with terminated or
+    truncated (a rollout still running at step T-1 counts as timed out there). Its live steps are
+    t < end_e. Returns (E,) tensors keyed by ``EVAL_METRICS``; torque is NaN with no live step,
+    jerk with fewer than 3.
+    """
+    t_len, e = reward.shape
+    if torque.shape != (t_len, e) or ang_vel.shape != (t_len, e, 3):
+        raise ValueError(
+            f"torque {tuple(torque.shape)} / ang_vel {tuple(ang_vel.shape)} do not match "
+            f"reward {(t_len, e)} (want (T, E) and (T, E, 3))"
+        )
+    dev = reward.device
+    done = terminated.bool() | truncated.bool()
+    ended = done.any(0)
+    end = torch.where(
+        ended, done.int().argmax(0), torch.full_like(ended, t_len - 1, dtype=torch.long)
+    )
+    t = torch.arange(t_len, device=dev)[:, None]
+    live = t < end[None]
+    in_episode = t <= end[None]
+    nan = torch.tensor(float("nan"), device=dev, dtype=torch.float64)
+
+    n_live = live.sum(0)
+    torque_sum = torch.where(live, torque.double(), 0.0).sum(0)
+    abs_torque = torch.where(n_live > 0, torque_sum / n_live.clamp(min=1), nan)
+
+    w = ang_vel.double()
+    jerk = torch.zeros(t_len, e, device=dev, dtype=torch.float64)
+    if t_len >= 3:
+        jerk[2:] = ((w[2:] - 2 * w[1:-1] + w[:-2]) / dt**2).abs().mean(-1)
+    jerk_ok = live & (t >= 2)  # live at t => t-1 and t-2 are live: never across a reset
+    n_jerk = jerk_ok.sum(0)
+    jerk_sum = torch.where(jerk_ok, jerk, 0.0).sum(0)
+    abs_jerk = torch.where(n_jerk > 0, jerk_sum / n_jerk.clamp(min=1), nan)
+
+    idx = end[None]
+    last_progress = progress.double().gather(0, idx).squeeze(0)
+    fell = terminated.bool().gather(0, idx).squeeze(0) & ended
+    success = (last_progress >= goal_distance.double()) & ~fell
+    ret = torch.where(in_episode, reward.double(), 0.0).sum(0)
+    return {
+        "distance_m": last_progress,
+        "success_rate": success.double(),
+        "abs_torque_nm": abs_torque,
+        "abs_ang_jerk": abs_jerk,
+        "reward": ret,
+    }
+
+
+def summarise(per_rollout: dict[str, torch.Tensor]) -> dict[str, float | int]:
+    """mean_/se_ of each metric over the rollouts where it is defined (finite), the standard
+    error being the unbiased sample std / sqrt(n) (NaN for n < 2); n_torque / n_jerk count the
+    rollouts behind the torque and jerk means."""
+    out: dict[str, float | int] = {}
     for name in EVAL_METRICS:
-        x = per_rollout[name].double()
+        x = per_rollout[name].double().flatten()
+        x = x[torch.isfinite(x)]
         n = x.numel()
-        out[f"mean_{name}"] = x.mean().item()
+        out[f"mean_{name}"] = x.mean().item() if n else float("nan")
         out[f"se_{name}"] = (x.std(unbiased=True).item() / math.sqrt(n)) if n > 1 else float("nan")
+    out["n_torque"] = int(torch.isfinite(per_rollout["abs_torque_nm"]).sum())
+    out["n_jerk"] = int(torch.isfinite(per_rollout["abs_ang_jerk"]).sum())
     return out
+
+
+@torch.no_grad()
+def _wave(env: ManagerBasedRlEnv, policy: Policy, ruler: CourseRuler) -> dict[str, torch.Tensor]:
+    """Reset every env and step until each has finished its first episode; per-rollout metrics."""
+    robot = env.scene["robot"]
+    obs, _ = env.reset()
+    goal = ruler.goal_distance.clone()
+    rec: dict[str, list[torch.Tensor]] = {
+        k: [] for k in ("torque", "ang_vel", "reward", "terminated", "truncated", "progress")
+    }
+    finished = torch.zeros(env.num_envs, dtype=torch.bool, device=env.device)
+    for _ in range(int(env.max_episode_length) + 1):
+        rec["progress"].append(ruler.progress())
+        obs, reward, terminated, truncated, _ = env.step(policy(obs))
+        rec["torque"].append(robot.data.actuator_force.abs().mean(-1))
+        rec["ang_vel"].append(robot.data.root_link_ang_vel_b.clone())
+        rec["reward"].append(reward)
+        rec["terminated"].append(terminated)
+        rec["truncated"].append(truncated)
+        finished |= terminated | truncated
+        if finished.all():
+            break
+    s = {k: torch.stack(v) for k, v in rec.items()}
+    return episode_metrics(
+        s["torque"],
+        s["ang_vel"],
+        s["reward"],
+        s["terminated"],
+        s["truncated"],
+        s["progress"],
+        goal,
+        env.step_dt,
+    )
+
+
+def _eval_rng(env: ManagerBasedRlEnv):
+    """A forked torch random state seeded with the env's seed (see module doc)."""
+    dev = torch.device(env.device)
+    devices = [dev.index or 0] if dev.type == "cuda" else []
+    return torch.random.fork_rng(devices=devices)
 
 
 @torch.no_grad()
 def rollout_metrics(
     env: ManagerBasedRlEnv, policy: Policy, num_rollouts: int
 ) -> dict[str, torch.Tensor]:
-    """Run waves of ``env.num_envs`` episodes until ``num_rollouts`` are collected."""
+    """Per-rollout metrics of ``num_rollouts`` rollouts on the stratified course cells, run in
+    waves of ``env.num_envs`` (the last wave keeps its first envs, i.e. the next rollout
+    indices)."""
     ruler = CourseRuler(env)
-    robot = env.scene["robot"]
-    n_env, dev = env.num_envs, env.device
-    horizon = int(env.max_episode_length)
-    dt = env.step_dt
-    collected: dict[str, list[torch.Tensor]] = {m: [] for m in EVAL_METRICS}
+    collected: dict[str, list[torch.Tensor]] = {}
     total = 0
-    while total < num_rollouts:
-        obs, _ = env.reset()
-        active = torch.ones(n_env, dtype=torch.bool, device=dev)
-        ret = torch.zeros(n_env, device=dev)
-        torque_sum = torch.zeros(n_env, device=dev)
-        jerk_sum = torch.zeros(n_env, device=dev)
-        steps = torch.zeros(n_env, device=dev)
-        jerk_steps = torch.zeros(n_env, device=dev)
-        dist = torch.zeros(n_env, device=dev)
-        success = torch.zeros(n_env, device=dev)
-        w_prev2 = w_prev1 = None
-        for _ in range(horizon + 1):
-            before = ruler.progress()
-            obs, reward, terminated, truncated, _ = env.step(policy(obs))
-            done = terminated | truncated
-            ret += reward * active
-            live = active & ~done  # post-step state belongs to this episode only if not reset
-            torque_sum += robot.data.actuator_force.abs().mean(-1) * live
-            steps += live.float()
-            w = robot.data.root_link_ang_vel_b.clone()
-            if w_prev2 is not None:
-                jerk = ((w - 2 * w_prev1 + w_prev2) / dt**2).abs().mean(-1)
-                ok = live & (steps >= 3)
-                jerk_sum += jerk * ok
-                jerk_steps += ok.float()
-            w_prev2, w_prev1 = w_prev1, w
-            ended = active & done
-            dist = torch.where(ended, before, dist)
-            success = torch.where(
-                ended, (ruler.reached_goal(before) & ~terminated).float(), success
-            )
-            active &= ~done
-            if not active.any():
-                break
-        take = min(n_env, num_rollouts - total)
-        collected["distance_m"].append(dist[:take])
-        collected["success_rate"].append(success[:take])
-        collected["abs_torque_nm"].append((torque_sum / steps.clamp(min=1))[:take])
-        collected["abs_ang_jerk"].append((jerk_sum / jerk_steps.clamp(min=1))[:take])
-        collected["reward"].append(ret[:take])
-        total += take
+    with _eval_rng(env):
+        torch.manual_seed(int(env.cfg.seed or 0))
+        while total < num_rollouts:
+            assign_eval_cells(env, total)
+            per = _wave(env, policy, ruler)
+            take = min(env.num_envs, num_rollouts - total)
+            for k, v in per.items():
+                collected.setdefault(k, []).append(v[:take])
+            total += take
     return {k: torch.cat(v).cpu() for k, v in collected.items()}
 
 
@@ -129,7 +226,7 @@ def evaluate(
         "iteration": iteration,
         "env_steps": env_steps,
         "n_rollouts": num_rollouts,
-        **_summarise(per),
+        **summarise(per),
     }
     append_row(run_dir / "eval.csv", EVAL_COLUMNS, row)
     return row
@@ -145,8 +242,15 @@ def format_summary(row: dict[str, Any]) -> str:
     def pm(name: str, unit: str = "", scale: float = 1.0) -> str:
         return f"{row[f'mean_{name}'] * scale:.3g} ± {row[f'se_{name}'] * scale:.2g}{unit}"
 
+    n = row["n_rollouts"]
+    left_out = ""
+    if row.get("n_torque", n) < n or row.get("n_jerk", n) < n:
+        left_out = (
+            f" ({n - row.get('n_torque', n)} too short for torque, "
+            f"{n - row.get('n_jerk', n)} for jerk: left out of those means)"
+        )
     return (
-        f"  rollouts          {row['n_rollouts']}\n"
+        f"  rollouts          {n}{left_out}\n"
         f"  distance          {pm('distance_m', ' m')}\n"
         f"  success           {pm('success_rate', ' %', 100.0)}\n"
         f"  |joint torque|    {pm('abs_torque_nm', ' N m')}\n"

@@ -31,6 +31,13 @@ Reference anchoring (SPEC decision): the CoM reference of a step is the HLIP orb
 planned length and duration, anchored at the actual stance foot at touchdown, i.e. the state at
 time tau is e^{-A (T - tau)} xi*^- (backward flow from the orbit's pre-impact state). Flowing the
 measured touchdown state forward instead would diverge by about e^{lam T} (~7x) per step.
+
+Late touchdown (decision, issue 10): past the planned duration the same formula holds with
+tau > T, i.e. the reference keeps flowing forward from the pre-impact state (the robot is still
+on the same stance foot, so the LIP keeps falling). Position and velocity stay consistent
+(earlier the position froze at tau = T while the velocity kept its pre-impact value). The
+command term restarts the step at 1.5 T at the latest, so the flow lasts at most 0.5 T
+(cosh(lam T / 2) <= 2.1 for T <= 0.7 s).
 """
 
 from __future__ import annotations
@@ -163,7 +170,9 @@ def hlip_com_state(
 
     stance_xy: (E, 2) stance foot at touchdown (the anchor); step0: (E, 2) the planned step of the
     current swing (landing - stance); step1: (E, 2) the planned step after it; duration0/1: (E,)
-    their durations [s]; tau: (E,) time since touchdown [s] (clamped to [0, duration0]);
+    their durations [s]; tau: (E,) time since touchdown [s] (clamped at 0; past duration0 - a
+    late touchdown - the stance phase continues: the state flows on from the pre-impact state,
+    so position and velocity stay one solution of the LIP, d pos / d tau = vel);
     axis: (E, 2) unit sagittal direction (default +x; the course direction). The sagittal plane
     follows the period-1 orbit of step0, the lateral plane the period-2 orbit of (step0, step1).
     Returns (E, 2) position and (E, 2) velocity, world frame.
@@ -172,12 +181,13 @@ def hlip_com_state(
         axis = torch.zeros_like(stance_xy)
         axis[:, 0] = 1.0
     lat = torch.stack([-axis[:, 1], axis[:, 0]], dim=-1)
-    tau = torch.minimum(tau.clamp(min=0.0), duration0)
+    tau = tau.clamp(min=0.0)
     l0x, l0y = (step0 * axis).sum(-1), (step0 * lat).sum(-1)
     l1y = (step1 * lat).sum(-1)
     rx, vx = hlip_orbit(l0x, duration0, lam)
     ry, vy = hlip_orbit_p2(l0y, l1y, duration0, duration1, lam)
-    # Backward flow from the orbit's pre-impact state to the current time in the step.
+    # Flow from the orbit's pre-impact state to the current time in the step (backward within
+    # the planned duration, forward past it).
     back = tau - duration0
     rx, vx = hlip_flow(rx, vx, back, lam)
     ry, vy = hlip_flow(ry, vy, back, lam)

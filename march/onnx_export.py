@@ -29,6 +29,9 @@ from march.policies.student import StudentPolicy
 INPUT_NAMES = ("proprio_hist", "command", "depth")
 OUTPUT_NAME = "actions"
 DEFAULT_OPSET = 17
+GRAPHS = ("deploy", "trace")
+"""``deploy``: :class:`DeployGraph` (fast batch-1 CPU graph, same maths); ``trace``: the traced
+``act_inference`` as it runs in training (the pre-optimisation export, kept for comparison)."""
 
 
 class ActInferenceWrapper(nn.Module):
@@ -42,6 +45,87 @@ class ActInferenceWrapper(nn.Module):
         self, proprio_hist: torch.Tensor, command: torch.Tensor, depth: torch.Tensor
     ) -> torch.Tensor:
         return self.policy.act_inference(proprio_hist, command, depth)
+
+
+class DeployGraph(nn.Module):
+    """``act_inference`` of a student, written for a fast batch-1 CPU graph (same maths).
+
+    What it changes against tracing ``policy.act_inference`` (measured in the README's
+    "Deploy: sim-to-sim" section):
+
+    - the **last transformer layer computes only the CLS row**: the policy reads nothing but
+      the CLS output, so the last layer's queries, attention output, feed-forward and norms of
+      the other tokens (55 tokens for the G1 student, 54 of them unused) are dead work; its keys
+      and values still come from every token. This drops ~40% of the matrix products;
+    - **attention written out** with constant head reshapes (``reshape(-1, n, heads, d_head)``)
+      instead of ``nn.MultiheadAttention``'s traced graph, whose shape arithmetic
+      (Shape/Gather/Unsqueeze/Concat per layer) was ~15% of a call;
+    - the MDN's log-std head (unused by the top-mode mean) is left out.
+
+    Variants without a transformer (``no_transformer``) keep the policy's own path.
+    """
+
+    def __init__(self, policy: StudentPolicy) -> None:
+        super().__init__()
+        self.policy = policy
+        self.has_transformer = hasattr(policy, "transformer")
+        if self.has_transformer:
+            for layer in policy.transformer.layers:
+                if not layer.norm_first or layer.self_attn.batch_first is not True:
+                    raise ValueError("DeployGraph expects pre-LN, batch-first encoder layers")
+
+    def _attend(self, layer: nn.Module, y: torch.Tensor, q_rows: int | None) -> torch.Tensor:
+        """Multi-head self-attention of ``y`` (B, N, d); queries from the first ``q_rows`` rows
+        (all when None). Returns (B, Nq, d) after the output projection."""
+        att = layer.self_attn
+        d, h = att.embed_dim, att.num_heads
+        dh = d // h
+        n = y.shape[1]
+        w, b = att.in_proj_weight, att.in_proj_bias
+        yq = y if q_rows is None else y[:, :q_rows]
+        nq = n if q_rows is None else q_rows
+        q = torch.nn.functional.linear(yq, w[:d], b[:d])
+        kv = torch.nn.functional.linear(y, w[d:], b[d:])
+        k, v = kv[..., :d], kv[..., d:]
+        q = q.reshape(-1, nq, h, dh).transpose(1, 2) * (dh**-0.5)
+        k = k.reshape(-1, n, h, dh).permute(0, 2, 3, 1)
+        v = v.reshape(-1, n, h, dh).transpose(1, 2)
+        a = torch.softmax(q @ k, dim=-1) @ v  # (B, h, Nq, dh)
+        return att.out_proj(a.transpose(1, 2).reshape(-1, nq, d))
+
+    def _layer(self, layer: nn.Module, x: torch.Tensor, cls_only: bool) -> torch.Tensor:
+        y = layer.norm1(x)
+        if cls_only:
+            x = x[:, :1] + self._attend(layer, y, 1)
+        else:
+            x = x + self._attend(layer, y, None)
+        ff = layer.linear2(layer.activation(layer.linear1(layer.norm2(x))))
+        return x + ff
+
+    def forward(
+        self, proprio_hist: torch.Tensor, command: torch.Tensor, depth: torch.Tensor
+    ) -> torch.Tensor:
+        p = self.policy
+        if not self.has_transformer:
+            return p.act_inference(proprio_hist, command, depth)
+        pn = p.proprio_normalizer(proprio_hist)
+        c = p.command_normalizer(command)
+        fmap = p.cnn(depth)
+        img = p.image_proj(fmap.flatten(2).transpose(1, 2))
+        hist = p.proprio_proj(pn)
+        cmd = p.command_proj(c).unsqueeze(1)
+        cls = p.cls_token.expand(img.shape[0], -1, -1)
+        x = torch.cat([cls, cmd, hist, img], dim=1) + p.pos_embed
+        layers = list(p.transformer.layers)
+        for i, layer in enumerate(layers):
+            x = self._layer(layer, x, cls_only=i == len(layers) - 1)
+        z = p.head_mlp(p.out_norm(x[:, 0]))
+        if not p.is_mdn:
+            return p.action_out(z)
+        logits = p.mdn.logits(z)
+        means = p.mdn.means(z).reshape(-1, p.mdn.num_modes, p.num_actions)
+        idx = torch.argmax(logits, dim=-1).reshape(-1, 1, 1).expand(-1, 1, p.num_actions)
+        return torch.gather(means, 1, idx).squeeze(1)
 
 
 def example_inputs(
@@ -94,6 +178,7 @@ def export_student_onnx(
     latency_calls: int = 200,
     warmup_calls: int = 20,
     seed: int = 0,
+    graph: str = "deploy",
 ) -> dict[str, Any]:
     """Export ``policy.act_inference`` to ``path`` and verify it with onnxruntime.
 
@@ -108,7 +193,11 @@ def export_student_onnx(
     if bad:
         raise TypeError(f"metadata must map str -> str; offending entries: {bad}")
 
-    model = ActInferenceWrapper(copy.deepcopy(policy).to("cpu").float()).eval()
+    if graph not in GRAPHS:
+        raise ValueError(f"graph={graph!r}; choose one of {GRAPHS}")
+    reference = ActInferenceWrapper(copy.deepcopy(policy).to("cpu").float()).eval()
+    # parity is always against the policy's own act_inference, whichever graph is written
+    model = DeployGraph(reference.policy).eval() if graph == "deploy" else reference
     gen = torch.Generator().manual_seed(seed)
     dummy = example_inputs(model.policy, 1, gen)
     fastpath = torch.backends.mha.get_fastpath_enabled()
@@ -129,6 +218,7 @@ def export_student_onnx(
         "output_actions": f"float32[batch,{p.num_actions}]",
         "inference_mode": "top_mode_mean" if p.is_mdn else "deterministic",
         "observation_normalization": "embedded",
+        "export_graph": graph,
         **metadata,
     }
     proto = onnx.load(str(path))
@@ -142,7 +232,7 @@ def export_student_onnx(
     with torch.no_grad():
         for bs in check_batch_sizes:
             inputs = example_inputs(p, bs, gen)
-            ref = model(*inputs).numpy()
+            ref = reference(*inputs).numpy()
             got = sess.run([OUTPUT_NAME], _feeds(inputs))[0]
             if got.shape != ref.shape:
                 raise RuntimeError(f"ONNX output shape {got.shape} != torch {ref.shape}")
@@ -163,6 +253,7 @@ def export_student_onnx(
         "latency_ms_p95": float(np.percentile(times, 95)),
         "path": str(path),
         "opset": opset,
+        "graph": graph,
         "num_params": p.num_params(),
         "metadata_keys": sorted(props),
     }

@@ -3,8 +3,31 @@
 Problem (per env): from the current stance foot p_0, choose N steps l_i and durations dt_i,
 
     min  sum_i ||v_i - v_D||^2 + c_edge(p_i)  (+ optional w_time (dt_i - T_nom)^2)
+                               + c_pace(l_i, dt_i)                     (progress term, below)
     s.t. p_{i+1} = p_i + l_i,  v_i = (l_i - n_i) / dt_i,  p_i on a stone with a margin,
          l_i within the step bounds, feet alternate left/right, lateral limits per foot.
+
+Progress term (decision, docs/decisions.md "Planner progress"). With the paper's cost alone a
+step onto a stone farther than v_D * 0.7 s ahead costs more than a step in place: at 0.3 m/s and
+a 0.68 m stone pitch, (0.68/0.7 - 0.3)^2 = 0.45 against 0.3^2 = 0.09, so the walk stepped in
+place before every far stone and kept pace on 15-21% of the generated courses. Each step now
+pays
+
+    c_pace = pace_cost * max(0, rho v_D dt - a) / (rho v_D dt)   while the goal lies ahead,
+
+with a = l . d the step's advance along the course direction d, v_D the command's component
+along d, rho = ``pace_fraction`` (0.9). It is zero for every step that keeps pace (a step of
+exactly v_D dt, the paper's optimum on open ground, is untouched), and ``pace_cost`` (1000) is
+larger than any edge + velocity cost, so a step that keeps pace always wins over one that does
+not; among steps that cannot keep pace, the one advancing most wins (a step in place pays the
+full pace_cost, a backward step more). It stays below ``infeasible_cost``, so a feasible short
+step still beats an infeasible one. "Goal lies ahead" = the stance foot of that step is before
+the goal platform (progress < goal_distance); on the goal platform the paper's cost alone
+applies (the walk may slow down and stand at its far end). Consequence: on courses whose stones
+are farther apart than the command allows, the plan walks faster than commanded rather than
+stepping in place (at a 0.3 m/s command the planner-only walk reaches the goal at about
+0.45 m/s on the easiest and 0.8 m/s on the hardest level). The plan
+carries a stall flag (``Plan.stalled``): some step could not keep pace while the goal lay ahead.
 
 n_i is the nominal lateral offset of the landing foot (+/- step width across the course): the
 paper writes v_i = l_i / dt_i; measured raw, the alternating +/- w lateral part of every step would
@@ -86,6 +109,15 @@ class PlannerCfg:
     """Softmin temperature of the randomised rollouts [cost units]; 0 makes all rollouts greedy."""
     infeasible_cost: float = 1.0e4
     """Cost added per violated step; keeps costs finite and ranks least-violating fallbacks."""
+    pace_fraction: float = 0.9
+    """rho: a step keeps pace when its advance along the course is at least rho * v_D * dt
+    (v_D the command's component along the course, dt the step's duration). 0 disables the
+    progress term (the paper's cost alone, which steps in place before a far stone)."""
+    pace_cost: float = 1.0e3
+    """Cost per step of missing the pace entirely: pace_cost * max(0, rho v_D dt - advance) /
+    (rho v_D dt), charged only while the goal platform lies ahead of the stance foot. Larger than
+    any edge + velocity cost (<= ~110) so a step that keeps pace always beats one that does not,
+    smaller than ``infeasible_cost`` so a feasible short step still beats an infeasible one."""
 
     @property
     def nominal_duration(self) -> float:
@@ -110,11 +142,16 @@ class Plan:
     lands_left: torch.Tensor
     """(E, N) bool: True where the left foot lands at that step (steps alternate)."""
     cost: torch.Tensor
-    """(E,) plan cost (velocity + edge + time terms, plus ``infeasible_cost`` per violation)."""
+    """(E,) plan cost (velocity + edge + time + progress terms, plus ``infeasible_cost`` per
+    violation)."""
     feasible: torch.Tensor
     """(E,) bool: every step met every constraint."""
     start: torch.Tensor
     """(E, 3) stance foot the plan starts from (xy as given, z = top of the stone under it) [m]."""
+    stalled: torch.Tensor | None = None
+    """(E,) bool stall flag: some step advances less than the pace requirement rho v_D dt while
+    the goal platform lies ahead (the stones in reach do not allow the commanded pace). None for
+    plans not made by :func:`plan_footsteps`."""
 
     @property
     def num_steps(self) -> int:
@@ -165,12 +202,15 @@ def _step_cost(
     v_cmd: Vec,
     axis: Vec,
     lat: Vec,
+    pace: tuple[torch.Tensor, torch.Tensor],
     cfg: PlannerCfg,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Cost and feasibility of one step; all inputs broadcast against each other.
 
     ``clearance`` is the landing point's distance to the nearest edge of its stone (negative off
     the stones). The velocity is measured between the feet's nominal lines (module docstring).
+    ``pace`` = (floor, scale) from :func:`pace_terms`: the progress term is
+    scale * max(0, floor - advance / dt).
     """
     sx, sy = pos[0] - prev[0], pos[1] - prev[1]
     along = sx * axis[0] + sy * axis[1]
@@ -185,6 +225,8 @@ def _step_cost(
     pen = ((cfg.edge_clearance - clearance) / cfg.edge_clearance).clamp(0.0, 1.0)
     c_edge = cfg.edge_cost * pen**2
     c_time = cfg.w_time * (duration - cfg.nominal_duration) ** 2
+    floor, scale = pace
+    c_pace = (floor - along_v).clamp_(min=0.0).mul_(scale)
     signed_lat = side * across
     feasible = (
         (clearance >= cfg.stone_margin - 2 * _EPS)
@@ -194,8 +236,34 @@ def _step_cost(
         & (signed_lat <= cfg.max_lateral)
         & ((z - prev_z).abs() <= cfg.max_step_height)
     )
-    cost = c_vel + c_edge + c_time + cfg.infeasible_cost * (~feasible).to(sx.dtype)
-    return cost, feasible
+    # In place on the freshly allocated (full-shape) velocity cost: the summands only broadcast.
+    cost = c_vel.add_(c_edge).add_(c_time).add_(c_pace)
+    return torch.where(feasible, cost, cost + cfg.infeasible_cost), feasible
+
+
+def goal_ahead(footholds: Footholds, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """(E, ...) bool: points (x, y), each (E, ...), lie before the goal platform along the course."""
+    shape = (-1,) + (1,) * (x.dim() - 1)
+    ax, ay = (a.view(shape) for a in footholds.direction.unbind(-1))
+    sx, sy = (a.view(shape) for a in footholds.start_xy.unbind(-1))
+    along = (x - sx) * ax + (y - sy) * ay
+    return along < footholds.goal_distance.view(shape)
+
+
+def pace_terms(
+    cmd_along: torch.Tensor, ahead: torch.Tensor, cfg: PlannerCfg
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(floor, scale) of the progress term, broadcast from the inputs.
+
+    floor = rho * max(v_D, 0) is the least step velocity along the course that keeps pace [m/s]
+    (an advance of rho v_D dt in a step of duration dt); scale = pace_cost / floor where the term
+    applies (goal ahead and floor > 0), else 0, so that scale * max(0, floor - advance / dt) is
+    pace_cost times the fraction of the required advance rho v_D dt that the step misses.
+    """
+    floor = cfg.pace_fraction * cmd_along.clamp(min=0.0)
+    on = ahead & (floor > 1e-6)
+    scale = torch.where(on, cfg.pace_cost / floor.clamp(min=1e-6), 0.0)
+    return floor, scale
 
 
 def evaluate_plan(
@@ -216,6 +284,8 @@ def evaluate_plan(
     clear, z = locate_on_stones(footholds, footholds_xy)
     prev_xy = torch.cat([start_xy[:, None], footholds_xy[:, :-1]], dim=1)
     prev_z = torch.cat([z_start[:, None], z[:, :-1]], dim=1)
+    ahead = goal_ahead(footholds, prev_xy[..., 0], prev_xy[..., 1])
+    cmd_along = (command[:, :2] * axis).sum(-1, keepdim=True)
     cost, ok = _step_cost(
         prev_xy.unbind(-1),
         prev_z,
@@ -227,6 +297,7 @@ def evaluate_plan(
         command[:, None, :2].unbind(-1),
         axis[:, None].unbind(-1),
         lat[:, None].unbind(-1),
+        pace_terms(cmd_along, ahead, cfg),
         cfg,
     )
     return cost.sum(-1), ok.all(-1)
@@ -281,6 +352,7 @@ def plan_footsteps(
     lx, ly = (a.view(e, 1, 1, 1, 1) for a in lat.unbind(-1))
     vx, vy = (a.view(e, 1, 1, 1, 1) for a in command[:, :2].unbind(-1))
     dur = durations.view(1, 1, nt, 1, 1)
+    cmd_along = vx * ax + vy * ay
 
     # Shared random draws (shape independent of E; see module docstring).
     gen_device = generator.device if generator is not None else device
@@ -302,6 +374,7 @@ def plan_footsteps(
     out_t = torch.zeros(e, r, n, dtype=dtype, device=device)
     total = torch.zeros(e, r, dtype=dtype, device=device)
     feasible = torch.ones(e, r, dtype=torch.bool, device=device)
+    stalled = torch.zeros(e, r, dtype=torch.bool, device=device)
     lands_left = torch.stack(
         [~stance_is_left if i % 2 == 0 else stance_is_left for i in range(n)], dim=1
     )
@@ -343,6 +416,8 @@ def plan_footsteps(
         c5x, c5y = c4x[..., None], c4y[..., None]
         h5x, h5y = hx[:, :, None, :, None], hy[:, :, None, :, None]
         invalid = ~valid[:, :, None, :, None]
+        ahead = goal_ahead(footholds, px, py)  # (E, R): the progress term applies
+        floor, scale = pace_terms(cmd_along, ahead.view(e, r, 1, 1, 1), cfg)
         scored = []
         for gx, gy in ((ax_, ay_), (bx_, by_)):
             clear = torch.minimum(h5x - (gx - c5x).abs(), h5y - (gy - c5y).abs())
@@ -357,16 +432,15 @@ def plan_footsteps(
                 (vx, vy),
                 (ax, ay),
                 (lx, ly),
+                (floor, scale),
                 cfg,
             )
-            scored.append((cost, ok.expand_as(cost)))
+            scored.append((cost, ok))
         cost = torch.cat([scored[0][0], scored[1][0]], dim=-1)  # (E, R, T, M, C)
-        ok = torch.cat([scored[0][1], scored[1][1]], dim=-1)
         flat_cost = cost.reshape(e, r, -1)
         noisy = flat_cost + cfg.explore_temperature * gumbel[i]
         pick = noisy.argmin(-1, keepdim=True)  # (E, R, 1)
         total = total + flat_cost.gather(-1, pick)[..., 0]
-        feasible = feasible & ok.reshape(e, r, -1).gather(-1, pick)[..., 0]
         # Decompose the flat (T, M, C) index and read the chosen point from its group.
         c_idx = pick[..., 0] % (k + 2)
         m_idx = (pick[..., 0] // (k + 2)) % m
@@ -374,6 +448,16 @@ def plan_footsteps(
         in_a = (t_idx * m + m_idx) * 2 + c_idx.clamp(max=1)
         in_b = m_idx * k + (c_idx - 2).clamp(min=0)
         from_a = c_idx < 2
+        # Feasibility of the chosen candidate, read from its group (group b's does not depend
+        # on dt: (E, R, 1, M, K)), so the masks are never expanded and concatenated.
+        ok_a, ok_b = scored[0][1], scored[1][1]
+        ok_b = ok_b.expand(e, r, 1, m, k)
+        feasible = feasible & torch.where(
+            from_a,
+            ok_a.expand(e, r, nt, m, 2).reshape(e, r, -1).gather(-1, in_a[..., None])[..., 0],
+            ok_b.reshape(e, r, -1).gather(-1, in_b[..., None])[..., 0],
+        )
+        prev_x, prev_y = px, py
         px = torch.where(
             from_a,
             ax_.reshape(e, r, -1).gather(-1, in_a[..., None])[..., 0],
@@ -385,6 +469,10 @@ def plan_footsteps(
             by_.reshape(e, r, -1).gather(-1, in_b[..., None])[..., 0],
         )
         pz = cz.gather(-1, m_idx[..., None])[..., 0]
+        # Stall flag: the chosen step falls short of the pace while the goal lies ahead.
+        advance = (px - prev_x) * axis[:, 0:1] + (py - prev_y) * axis[:, 1:2]
+        need = floor.view(e, 1) * durations[t_idx]
+        stalled = stalled | (ahead & (advance < need - _EPS))
         out_xyz[:, :, i] = torch.stack([px, py, pz], dim=-1)
         out_t[:, :, i] = durations[t_idx]
 
@@ -399,4 +487,5 @@ def plan_footsteps(
         cost=total[env, best],
         feasible=feasible[env, best],
         start=torch.cat([stance_xy, z0[:, None]], dim=-1),
+        stalled=stalled[env, best],
     )

@@ -4,8 +4,11 @@
     python -m march.play teacher_ckpt=outputs/<run>/teacher/latest.pt out=teacher.gif
     python -m march.play student_ckpt=... out=short.mp4 eval.episode_length_s=5 seed=3
 
-One env built for the ``eval`` purpose (the evaluation protocol as configured: command, episode
-length, depth corruption and domain randomization), one episode (until time-out or a fall),
+The checkpoint defines the policy: its saved config's reward set, student network and observation
+layout replace the command line's (``march.learn.provenance``); a conflicting explicit choice
+(``reward=clf`` for a modelfree checkpoint) is one line on stderr. One env built for the ``eval``
+purpose (the evaluation protocol as configured: command, episode length, depth corruption and
+domain randomization), one episode (until time-out or a fall),
 rendered offscreen on the CPU with MuJoCo by a camera that follows the robot's torso from a
 three-quarter front view. Prints the course progress once per simulated second, then the file,
 its frames and fps, and the rollout's distance and success as ``march.evaluate`` measures them.
@@ -140,22 +143,35 @@ def write_video(path: Path, frames: Sequence[Any], fps: float) -> None:
     mediapy.write_video(path, frames, fps=fps, codec=codec)
 
 
-def play(cfg: MarchConfig, env: Any = None) -> PlayResult:
+def play(cfg: MarchConfig, env: Any = None, explicit_overrides: Sequence[str] = ()) -> PlayResult:
     """Roll the checkpoint out for one episode on the eval env and write the video.
 
     ``env`` (an ``eval``-purpose env) may be passed in to reuse one; otherwise one env is built
-    and closed here.
+    and closed here. ``explicit_overrides``: the command line's ``key=value`` arguments, which
+    must not contradict the checkpoint's policy.
     """
     import torch
 
+    from march.config import ConfigError
     from march.learn.checkpoint import CheckpointError, load_checkpoint
+    from march.learn.provenance import apply_checkpoint_config, policy_changes
 
     kind, path = checkpoint_arg(cfg)
     out = out_path(cfg)
     try:  # a wrong or unreadable file fails here, before the env is built
         payload = load_checkpoint(path, kind, cfg.compute.device)
-    except CheckpointError as err:
+        policy_cfg = apply_checkpoint_config(cfg, payload, explicit_overrides, path, kind)
+    except (CheckpointError, ConfigError) as err:
         fail(str(err))
+    changes = policy_changes(cfg, policy_cfg, kind)
+    if changes and env is not None:
+        fail(
+            f"the env passed to play() was built for another policy than {kind}_ckpt={path} "
+            f"({changes[0]}); build it from the checkpoint's config"
+        )
+    cfg = policy_cfg
+    for change in changes:
+        print(f"[checkpoint] {kind}_ckpt={path} defines the policy: {change}", flush=True)
     why = rendering_error()
     if why:
         fail(why)
@@ -243,7 +259,8 @@ def expected_frames(steps: int, stride: int) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    run_tool(play, argv, usage=USAGE)
+    args = list(sys.argv[1:] if argv is None else argv)
+    run_tool(lambda cfg: play(cfg, explicit_overrides=args), args, usage=USAGE)
 
 
 if __name__ == "__main__":

@@ -4,8 +4,9 @@ Outputs, in this order (``output_names``), each with a position and a velocity:
 
     com_x, com_y, com_z                  CoM [m]: HLIP orbit in x/y anchored at the stance foot,
                                          constant height z0 above the stance foot
-    pelvis_roll, pelvis_pitch, pelvis_yaw  pelvis Euler angles [rad]: yaw tracks the commanded yaw
-                                         rate; small roll/pitch oscillations at step frequency
+    pelvis_roll, pelvis_pitch, pelvis_yaw  pelvis Euler angles [rad]: yaw = yaw0 + yaw_rate tau
+                                         (the command term holds it at the course heading,
+                                         yaw_rate 0); small roll/pitch oscillations per step
     swing_x, swing_y, swing_z            swing foot [m]: Bezier from lift-off to the planned foothold
     swing_roll, swing_pitch, swing_yaw   swing foot orientation [rad]: flat, yaw = pelvis yaw
     upper_0 ... upper_{U-1}              upper-body joints relative to default [rad]: zero
@@ -18,6 +19,19 @@ Swing foot: horizontal part is a 5th-degree Bezier with control points (p0, p0, 
 i.e. zero velocity and acceleration at lift-off and touchdown; vertical part a 6th-degree Bezier
 (z0, z0, c, c, c, z1, z1) with c chosen so that the height at mid-swing is the apex
 max(z0, z1) + z_sw (when z0 != z1 the maximum lies slightly past mid-swing and is slightly higher).
+
+Start from standing (decision, issue 10): the first step of an episode (``StepState.ramp``) does
+not begin on the steady-state orbit (about 0.7 m/s of CoM velocity while the robot stands still,
+a jump in V at every reset). Its CoM reference blends from rest at the measured CoM
+(``ramp_from``) into that step's HLIP orbit reference with a smoothstep s = 3 phi^2 - 2 phi^3,
+phi = tau / T:
+
+    p = p0 + s (p_orbit - p0),   v = s v_orbit + (ds/dtau) (p_orbit - p0),
+
+so it starts at the measured CoM with zero velocity, v is the exact time derivative of p, and at
+the planned touchdown (s = 1, ds/dtau = 0) it is on the orbit's pre-impact state, where the
+following steps continue as before. Past the planned duration every step's CoM reference keeps
+flowing along the HLIP (:func:`march.hlip.hlip_com_state`).
 """
 
 from __future__ import annotations
@@ -152,6 +166,11 @@ class StepState:
     """(E,) commanded yaw rate [rad/s]."""
     axis: torch.Tensor
     """(E, 2) unit sagittal direction for the HLIP planes (the course direction)."""
+    ramp: torch.Tensor | None = None
+    """(E,) bool: this step starts the episode from standing; its CoM reference ramps from rest
+    at ``ramp_from`` (module docstring). None = no env ramps."""
+    ramp_from: torch.Tensor | None = None
+    """(E, 2) measured CoM xy at the start of a ramping step [m] (read where ``ramp``)."""
 
 
 def step_state_from_plan(
@@ -161,12 +180,23 @@ def step_state_from_plan(
     yaw0: torch.Tensor,
     yaw_rate: torch.Tensor,
     axis: torch.Tensor | None = None,
+    ramp_from: torch.Tensor | None = None,
 ) -> StepState:
-    """The step state right after a touchdown and replan: step 0 of ``plan`` is being taken."""
+    """The step state right after a touchdown and replan: step 0 of ``plan`` is being taken.
+
+    ``ramp_from`` (E, 2): the measured CoM of envs that start from standing (episode start); the
+    step's CoM reference then ramps from rest there. None: every env continues a walk.
+    """
     if axis is None:
         axis = torch.zeros_like(stance_pos[:, :2])
         axis[:, 0] = 1.0
+    e = stance_pos.shape[0]
+    ramp = torch.full((e,), ramp_from is not None, dtype=torch.bool, device=stance_pos.device)
+    if ramp_from is None:
+        ramp_from = torch.zeros_like(stance_pos[:, :2])
     return StepState(
+        ramp=ramp,
+        ramp_from=ramp_from,
         stance_pos=stance_pos,
         stance_is_left=~plan.lands_left[:, 0],
         swing_start=swing_start,
@@ -219,6 +249,30 @@ class Reference:
         return Reference(**{f.name: getattr(self, f.name)[env_ids] for f in fields(self)})
 
 
+def smoothstep(tau: torch.Tensor, duration: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """s = 3 phi^2 - 2 phi^3 with phi = tau / duration clamped to [0, 1], and ds/dtau [1/s]."""
+    phi = (tau / duration).clamp(0.0, 1.0)
+    return phi * phi * (3.0 - 2.0 * phi), 6.0 * phi * (1.0 - phi) / duration
+
+
+def ramp_from_rest(
+    pos: torch.Tensor,
+    vel: torch.Tensor,
+    start: torch.Tensor,
+    ramp: torch.Tensor,
+    tau: torch.Tensor,
+    duration: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Blend the orbit reference (pos, vel) (E, D) from rest at ``start`` (E, D) where ``ramp``
+    (E,): p = start + s (pos - start), v = s vel + ds/dtau (pos - start) (module docstring)."""
+    s, ds = smoothstep(tau, duration)
+    gap = pos - start
+    blend_pos = start + s[:, None] * gap
+    blend_vel = s[:, None] * vel + ds[:, None] * gap
+    on = ramp[:, None]
+    return torch.where(on, blend_pos, pos), torch.where(on, blend_vel, vel)
+
+
 def pelvis_reference(
     step: StepState, tau: torch.Tensor, cfg: ReferenceCfg
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -247,7 +301,8 @@ def reference_at(
     """The full reference at time ``tau`` (E,) [s] since the touchdown that began ``step``.
 
     Past the planned duration (a late touchdown) the swing foot rests at the target and the CoM
-    keeps the orbit's pre-impact state.
+    keeps flowing along the HLIP from the orbit's pre-impact state (position and velocity stay
+    consistent). A ramping step (``step.ramp``) blends from rest (module docstring).
     """
     cfg = cfg or ReferenceCfg()
     hlip = hlip or HlipCfg()
@@ -269,6 +324,10 @@ def reference_at(
         hlip.lam,
         step.axis,
     )
+    if step.ramp is not None and step.ramp_from is not None:
+        com_xy, com_vxy = ramp_from_rest(
+            com_xy, com_vxy, step.ramp_from, step.ramp, tau, step.duration
+        )
     com_z = step.stance_pos[:, 2:3] + hlip.z0
     pelvis_ori, pelvis_rate = pelvis_reference(step, tau, cfg)
     zeros = torch.zeros_like(pelvis_ori)

@@ -95,6 +95,25 @@ class CourseCfg:
     """Hardware course: lateral offset of the 4 stones from the course axis, alternating
     left (+y) / right (-y) [m]."""
 
+    @property
+    def spawn_x(self) -> float:
+        """x of the spawn point (start platform centre) in the sub-terrain frame [m]."""
+        return self.end_margin + 0.5 * self.start_length
+
+    @property
+    def goal_distance_max(self) -> float:
+        """Worst case over every difficulty and seed of a course's ``goal_distance`` [m].
+
+        :func:`generate_course` adds a stone only while one more maximal gap and the minimum
+        goal platform still fit, so the goal platform starts at most at
+        ``size[0] - end_margin - goal_length`` - unless not even one stone fits, when it starts
+        one gap (at most the largest ``gap_*`` bound) after the start platform. The flat layout
+        puts its nominal goal exactly at the first bound.
+        """
+        goal_x1 = self.size[0] - self.end_margin
+        no_stone = self.end_margin + self.start_length + max(self.gap_easy[1], self.gap_hard[1])
+        return max(goal_x1 - self.goal_length, no_stone) - self.spawn_x
+
 
 @dataclass
 class CourseLayout:

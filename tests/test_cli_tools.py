@@ -273,3 +273,109 @@ def test_bench_planner_prints_one_json_object():
     )
     assert 0.0 <= result["in_env_planner_share"] < 1.0  # reward=clf: the env runs the planner
     assert 0.0 < result["walk_touchdown_rate_per_env_step"] < 0.1  # steps of 0.45-0.7 s at 50 Hz
+
+
+# ------------------------------------------------------------- what a run will cost (march.train)
+
+ETA_CFG = [
+    "compute=smoke",
+    "compute.num_envs=8",
+    "compute.eval_num_envs=4",
+    "teacher.max_iterations=10",
+    "teacher.num_steps_per_env=20",
+    "teacher.eval_interval=4",
+    "distill.max_iterations=6",
+    "distill.num_steps_per_env=40",
+    "distill.num_learning_epochs=2",
+    "distill.eval_interval=4",
+    "eval.num_rollouts=10",
+    "eval.episode_length_s=2",
+]
+
+
+@pytest.mark.parametrize(
+    ("seconds", "text"),
+    [
+        (0, "0 s"),
+        (59.4, "59 s"),
+        (60, "1 min"),
+        (3599, "1 h"),
+        (4200, "1 h 10 min"),
+        (93600, "26 h"),
+    ],
+)
+def test_format_duration(seconds, text):
+    from march.train import format_duration
+
+    assert format_duration(seconds) == text
+
+
+def test_wall_time_estimate_by_hand():
+    from march import train
+    from march.cli import load
+
+    cfg = load(ETA_CFG)
+    est = train.estimate_wall_s(cfg, teacher_s_per_it=2.0)
+    step = 2.0 / 20  # s per env step of the 8 teacher envs
+    k = train.STEP_COSTS["cpu"]
+    distill_it = step * 40 * (k.distill_rollout + 2 * k.distill_epoch)
+    # 3 waves of 4 envs (10 rollouts) x 100 control steps, at 4 of the 8 envs.
+    one_eval = 3 * 100 * step * k.eval * 4 / 8
+    # Teacher evaluations at 4, 8 and the end (10); student at 4 and the final one.
+    assert train.evaluation_counts(cfg) == (3, 2)
+    assert est["teacher"] == pytest.approx(20.0)
+    assert est["distill"] == pytest.approx(6 * distill_it)
+    assert est["eval"] == pytest.approx(5 * one_eval)
+    assert est["total"] == pytest.approx(20.0 + 6 * distill_it + 5 * one_eval)
+    # Resumed at teacher iteration 4: 6 iterations and 2 teacher evaluations are left.
+    est = train.estimate_wall_s(cfg, teacher_s_per_it=2.0, teacher_from=4)
+    assert est["teacher"] == pytest.approx(12.0) and est["eval"] == pytest.approx(4 * one_eval)
+    # stage=student: distillation and its evaluations only, from the distillation's speed.
+    cfg = load([*ETA_CFG, "stage=student"])
+    est = train.estimate_wall_s(cfg, distill_s_per_it=distill_it)
+    assert est["teacher"] == 0.0 and est["distill"] == pytest.approx(6 * distill_it)
+    assert est["eval"] == pytest.approx(2 * one_eval)
+
+
+def test_eta_line_after_the_first_iterations():
+    from march import train
+    from march.cli import load
+
+    cfg = load(ETA_CFG)
+    watch = train.EtaWatch(cfg, echo=False)
+    lines = [
+        watch.observe({"stage": "teacher", "iteration": i, "wall_s": w})
+        for i, w in ((1, 2.5), (2, 4.5), (3, 6.0), (4, 8.0))
+    ]
+    assert lines[:2] == [None, None] and lines[3] is None  # once, after 3 iterations
+    total = train.estimate_wall_s(cfg, teacher_s_per_it=2.0)["total"]
+    assert lines[2].startswith(
+        "[eta] measured 2 s/it over the first 3 iterations: teacher ~20 s, whole run "
+        f"~{train.format_duration(total)} (distillation ~"
+    )
+    distill = [
+        watch.observe({"stage": "student", "iteration": i, "wall_s": 10.0 * i}) for i in (1, 2, 3)
+    ]
+    rest = train.estimate_wall_s(cfg, 2.0, 10.0, teacher_from=10)
+    assert rest["teacher"] == 0.0
+    assert distill[2] == (
+        "[eta] measured 10 s/it over the first 3 distillation iterations: distillation ~1 min, "
+        f"rest of the run ~{train.format_duration(rest['distill'] + rest['eval'])}"
+    )
+    # A resumed stage is measured from where it resumed; a 2-iteration stage after 2.
+    watch = train.EtaWatch(load([*ETA_CFG, "teacher.max_iterations=6"]), echo=False)
+    watch.start("teacher", 4, 100.0)
+    assert watch.observe({"stage": "teacher", "iteration": 5, "wall_s": 103.0}) is None
+    line = watch.observe({"stage": "teacher", "iteration": 6, "wall_s": 106.0})
+    assert line.startswith("[eta] measured 3 s/it over the first 2 iterations: teacher ~6 s")
+
+
+def test_banner_says_the_chosen_scale():
+    from march.cli import load
+    from march.train import banner
+
+    text = banner(load(["compute=auto"]), Path("outputs/x_cpu"), {}, auto=True)
+    assert "scale: compute=cpu (compute=auto: no CUDA) on cpu" in text
+    assert "[eta] line after the first 3 teacher iterations" in text
+    text = banner(load(["compute=smoke", "stage=eval"]), Path("x"), {})
+    assert "scale: compute=smoke on cpu" in text and "[eta]" not in text

@@ -148,3 +148,151 @@ def test_cli_cfg_hydra_shows_choices():
     assert "reward: modelfree" in out.stdout
     assert "student: no_mdn" in out.stdout
     assert "curriculum: flat_first" in out.stdout
+
+
+# ------------------------------------------------------- a checkpoint defines its policy
+
+
+def _payload(overrides: list[str], kind: str = "student") -> dict:
+    """What march.train saves: ``dataclasses.asdict`` of the config a checkpoint trained with."""
+    from dataclasses import asdict
+
+    return {"kind": kind, "config": asdict(load(["compute=smoke", *overrides]))}
+
+
+TRAINED = [
+    "reward=modelfree",
+    "curriculum=flat_first",
+    "student=no_mdn",
+    "student.d_model=64",
+    "student.n_heads=4",
+    "env.history_length=3",
+    "depth.width=16",
+]
+
+
+def test_checkpoint_policy_replaces_the_command_line_defaults():
+    from march.learn.provenance import apply_checkpoint_config, policy_changes
+
+    today = ["compute=smoke", "stage=eval", "seed=7", "eval.num_rollouts=3", "dr=none"]
+    cfg = load(today)
+    new = apply_checkpoint_config(cfg, _payload(TRAINED), today, "s.pt", "student")
+    trained = load(["compute=smoke", *TRAINED])
+    assert new.reward == trained.reward  # name, every term weight (none of clf's left over)
+    assert set(new.reward.terms) == set(trained.reward.terms) and "clf" not in new.reward.terms
+    assert new.student == trained.student
+    assert (new.env.history_length, new.depth.width) == (3, 16)
+    assert (new.curriculum.name, new.curriculum.flat_levels) == ("flat_first", 2)
+    # The evaluation protocol stays the user's.
+    assert (new.seed, new.eval.num_rollouts, new.dr.name, new.compute) == (
+        7,
+        3,
+        "none",
+        cfg.compute,
+    )
+    assert new.stage == "eval" and new.depth.noise_scale == cfg.depth.noise_scale
+    changes = policy_changes(cfg, new, "student")
+    assert "reward.name: clf -> modelfree" in changes
+    assert "student.variant: full -> no_mdn" in changes and "env.history_length: 5 -> 3" in changes
+
+
+@pytest.mark.parametrize(
+    ("explicit", "named"),
+    [
+        (["reward=clf"], ("reward=clf", "reward.name=modelfree")),
+        (["+arm=clf"], ("+arm=clf", "reward.name=modelfree")),
+        (["student=full"], ("student=full", "student.variant=no_mdn")),
+        (["student.variant=full"], ("student.variant=full", "student.variant=no_mdn")),
+        (["student.d_model=256", "student.n_heads=8"], ("student.d_model=256", "=64")),
+        (["env.history_length=5"], ("env.history_length=5", "env.history_length=3")),
+        (["depth.width=32"], ("depth.width=32", "depth.width=16")),
+        (["reward=modelfree", "reward.terms.alive=2"], ("reward.terms.alive=2", "alive=0.5")),
+        (["reward.terms.clf=3"], ("reward.terms.clf=3", "reward.terms=")),
+        (["curriculum=stones"], ("curriculum=stones", "curriculum.name=flat_first")),
+    ],
+)
+def test_conflicting_explicit_choice_is_one_line_naming_both(explicit, named):
+    from march.learn.provenance import apply_checkpoint_config
+
+    cfg = load(["compute=smoke", "stage=eval", *explicit])
+    with pytest.raises(ConfigError) as err:
+        apply_checkpoint_config(cfg, _payload(TRAINED), explicit, "ckpt/s.pt", "student")
+    text = str(err.value)
+    assert "\n" not in text and "student_ckpt=ckpt/s.pt" in text
+    assert all(n in text for n in named), text
+
+
+@pytest.mark.parametrize(
+    "explicit",
+    [
+        ["reward=modelfree", "student=no_mdn", "curriculum=flat_first"],
+        [
+            "student.d_model=64",
+            "env.history_length=3",
+            "reward=modelfree",
+            "reward.terms.alive=0.5",
+        ],
+        ["seed=3", "eval.num_rollouts=5", "dr=none", "compute.num_envs=2", "depth.dropout=0.2"],
+        ["hydra.run.dir=/tmp/x", "+sweep=ablation"],
+    ],
+)
+def test_agreeing_or_protocol_choices_are_accepted(explicit):
+    from march.learn.provenance import apply_checkpoint_config
+
+    cfg = load(["compute=smoke", *explicit])
+    new = apply_checkpoint_config(cfg, _payload(TRAINED), explicit, "s.pt", "student")
+    assert (new.reward.name, new.student.variant, new.student.d_model) == (
+        "modelfree",
+        "no_mdn",
+        64,
+    )
+
+
+def test_teacher_checkpoint_keeps_the_users_student_and_distillation_curriculum():
+    from march.learn.provenance import apply_checkpoint_config
+
+    teacher = _payload(["reward=modelfree", "curriculum=flat_first", "teacher.hidden_dims=[8,8]"])
+    explicit = ["stage=student", "student=no_mdn", "curriculum=stones"]
+    cfg = load(["compute=smoke", *explicit])
+    new = apply_checkpoint_config(cfg, teacher, explicit, "t.pt", "teacher", distill=True)
+    assert new.reward.name == "modelfree" and list(new.teacher.hidden_dims) == [8, 8]
+    assert (new.student.variant, new.curriculum.name) == ("no_mdn", "stones")
+    # Evaluating the teacher: the curriculum is its label, the student section is not its.
+    cfg = load(["compute=smoke", "stage=eval", "eval.policy=teacher", "student=no_mdn"])
+    new = apply_checkpoint_config(cfg, teacher, ["student=no_mdn"], "t.pt", "teacher")
+    assert (new.curriculum.name, new.student.variant) == ("flat_first", "no_mdn")
+    with pytest.raises(ConfigError, match="reward=clf conflicts with teacher_ckpt=t.pt"):
+        apply_checkpoint_config(cfg, teacher, ["reward=clf"], "t.pt", "teacher")
+
+
+def test_checkpoint_without_config_is_a_clear_error():
+    from march.learn.provenance import apply_checkpoint_config
+
+    with pytest.raises(ConfigError, match="carries no saved config"):
+        apply_checkpoint_config(load(["compute=smoke"]), {"kind": "student"}, [], "x.pt", "student")
+
+
+def test_checkpoint_from_an_older_schema_keeps_missing_fields():
+    from march.learn.provenance import apply_checkpoint_config
+
+    payload = _payload(["reward=modelfree"])
+    del payload["config"]["student"]["huber_delta"], payload["config"]["depth"]
+    cfg = load(["compute=smoke", "student.huber_delta=0.3"])
+    new = apply_checkpoint_config(cfg, payload, [], "x.pt", "student")
+    assert new.reward.name == "modelfree" and new.student.huber_delta == 0.3
+
+
+def test_run_dirs_are_named_after_the_resolved_preset():
+    import hydra
+
+    from march.cli import CONF_DIR
+
+    for compute, suffix in (("auto", "cpu"), ("smoke", "smoke"), ("gpu", "gpu")):
+        with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = hydra.compose(
+                config_name="config",
+                overrides=[f"compute={compute}", "reward=modelfree"],
+                return_hydra_config=True,
+            )
+        assert cfg.hydra.run.dir.endswith(f"_modelfree_full_{suffix}")  # no CUDA here
+        assert cfg.hydra.sweep.dir.endswith(f"_{suffix}")

@@ -1,10 +1,15 @@
-"""Tests for analysis/figures.py on synthetic run directories with known numbers."""
+"""Tests for analysis/figures.py on synthetic run directories with known numbers.
+
+The synthetic runs (tests/synthetic_runs.py) plant distinctive values in eval.csv teacher rows,
+eval.csv student rows and metrics.csv training rows; these tests check that each figure, its
+plotted points (figure_data.csv) and each table carry the evaluation values and never the training
+ones, and that the relative differences match hand-computed numbers.
+"""
 
 from __future__ import annotations
 
 import ast
 import contextlib
-import importlib.util
 import io
 import json
 import math
@@ -16,206 +21,42 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+import synthetic_runs as syn
 
-SCRIPT = Path(__file__).resolve().parents[1] / "analysis" / "figures.py"
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "analysis" / "figures.py"
+sys.path.insert(0, str(ROOT))  # the analysis package lives at the repo root, beside march/
 
-
-def _load_module():
-    spec = importlib.util.spec_from_file_location("march_analysis_figures", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # dataclasses look the module up by name
-    spec.loader.exec_module(mod)
-    return mod
+from analysis import aggregate as agg  # noqa: E402
+from analysis import figures as fig  # noqa: E402
 
 
-fig = _load_module()
-
-STEPS_PER_IT = 98304
-SEED_OFF = {0: -1.0, 1: 1.0, 2: 0.0}  # symmetric per-seed offsets: seed means average out
-STUDENT_BASE = {"full": 1.0, "no_transformer": 0.8, "no_mdn": 0.6}
-TEACHER_SLOPE = {"clf": 0.1, "modelfree": 0.05}  # teacher distance = slope * iteration
-EVAL_D0 = {"clf": 3.0, "modelfree": 2.0}
-# final summary.json per (reward, variant, seed): distance, success, torque, jerk, reward
-FINAL = {
-    ("clf", "full", 0): (3.8, 0.7, 9.5, 45.0, 1.4),
-    ("clf", "full", 1): (4.2, 0.9, 10.5, 55.0, 1.6),
-    ("clf", "full", 2): (4.0, 0.8, 10.0, 50.0, 1.5),
-    ("modelfree", "full", 0): (2.8, 0.3, 8.6, 55.0, 1.1),
-    ("modelfree", "full", 1): (3.2, 0.5, 9.0, 65.0, 1.3),
-    ("clf", "no_transformer", 0): (3.6, 0.6, 11.0, 40.0, 1.2),
-    ("clf", "no_mdn", 0): (3.0, 0.4, 12.5, 70.0, 0.9),
-}
-KEYS = ["distance_m", "success_rate", "abs_torque_nm", "abs_ang_jerk", "reward"]
-RUN_SE = 0.3
-
-
-def _config_yaml(reward, variant, seed, stage="all"):
-    curriculum = "flat_first" if reward == "modelfree" else "stones"
-    return (
-        f"reward:\n  name: {reward}\nstudent:\n  variant: {variant}\n"
-        f"curriculum:\n  name: {curriculum}\nseed: {seed}\nstage: {stage}\n"
-        "compute:\n  name: smoke\n"
-    )
-
-
-def _teacher_rows(reward, seed, n_iter):
-    off = SEED_OFF[seed]
-    return [
-        {
-            "stage": "teacher",
-            "iteration": it,
-            "env_steps": it * STEPS_PER_IT,
-            "wall_s": 0.5 * it,
-            "mean_reward": 0.5 * it + off,
-            "mean_episode_length": 100 + it,
-            "mean_distance_m": TEACHER_SLOPE[reward] * it,
-            "value_loss": 0.1,
-            "surrogate_loss": -0.01,
-            "entropy": 1.0,
-            "learning_rate": 5e-5,
-        }
-        for it in range(n_iter)
-    ]
-
-
-def _student_rows(reward, variant, seed, n_iter=50):
-    base = STUDENT_BASE[variant] - (0.5 if reward == "modelfree" else 0.0)
-    return [
-        {
-            "stage": "student",
-            "iteration": it,
-            "env_steps": it * 1000,
-            "wall_s": 0.1 * it,
-            "mean_reward": 0.2,
-            "mean_episode_length": 300,
-            "mean_distance_m": 2.0,
-            "loss": 1.0 / (it + 1),
-            "action_error": 0.1,
-            "teacher_reward": base + 0.01 * it + 0.1 * SEED_OFF[seed],
-        }
-        for it in range(n_iter)
-    ]
-
-
-def _eval_rows(reward, seed):
-    rows = []
-    for it in (0, 25, 49):
-        row = {"stage": "student", "iteration": it, "env_steps": it * 1000, "n_rollouts": 64}
-        vals = {
-            "distance_m": EVAL_D0[reward] + 0.02 * it + 0.2 * SEED_OFF[seed],
-            "success_rate": 0.5,
-            "abs_torque_nm": 10.0,
-            "abs_ang_jerk": 50.0,
-            "reward": 1.0,
-        }
-        for k, v in vals.items():
-            row[f"mean_{k}"] = v
-            row[f"se_{k}"] = 0.05
-        rows.append(row)
-    # a teacher evaluation row that must not enter the (student) baseline figure
-    rows.append({**rows[-1], "stage": "teacher", "iteration": 59, "mean_distance_m": 99.0})
-    return rows
-
-
-def _make_run(
-    d: Path,
-    reward,
-    variant,
-    seed,
-    *,
-    hydra_only=False,
-    state="done",
-    teacher_iters=60,
-    student=True,
-    final=True,
-    truncate=False,
-    status=True,
-):
-    d.mkdir(parents=True)
-    cfg = _config_yaml(reward, variant, seed)
-    if hydra_only:
-        (d / ".hydra").mkdir()
-        (d / ".hydra" / "config.yaml").write_text(cfg)
-    else:
-        (d / "config.yaml").write_text(cfg)
-    rows = _teacher_rows(reward, seed, teacher_iters)
-    if student:
-        rows += _student_rows(reward, variant, seed)
-    text = pd.DataFrame(rows).to_csv(index=False)
-    if truncate:
-        text += "teacher,30,2949120,15.0,1"  # cut off mid-row, no newline
-    (d / "metrics.csv").write_text(text)
-    if student:
-        pd.DataFrame(_eval_rows(reward, seed)).to_csv(d / "eval.csv", index=False)
-    if final:
-        summary = {"stage": "student", "iteration": 49, "env_steps": 49000, "n_rollouts": 64}
-        for k, v in zip(KEYS, FINAL[(reward, variant, seed)], strict=True):
-            summary[f"mean_{k}"] = v
-            summary[f"se_{k}"] = RUN_SE
-        (d / "summary.json").write_text(json.dumps(summary))
-    if status:
-        error = "RuntimeError: simulated crash in PPO update" if state == "failed" else None
-        (d / "status.json").write_text(json.dumps({"state": state, "error": error}))
-
-
-def build_tree(root: Path) -> tuple[Path, Path]:
-    base = root / "sweep_base"
-    base.mkdir(parents=True)
-    (base / "multirun.yaml").write_text("hydra:\n  mode: MULTIRUN\n")
-    _make_run(base / "0", "clf", "full", 0)
-    _make_run(base / "1", "clf", "full", 1, hydra_only=True)
-    _make_run(base / "2", "modelfree", "full", 0)
-    _make_run(base / "3", "modelfree", "full", 1)
-    abl = root / "sweep_abl"
-    abl.mkdir()
-    (abl / "multirun.yaml").write_text("hydra:\n  mode: MULTIRUN\n")
-    _make_run(abl / "0", "clf", "full", 2)
-    _make_run(abl / "1", "clf", "no_transformer", 0)
-    _make_run(abl / "2", "clf", "no_mdn", 0)
-    # crashed: failed during the teacher stage, metrics.csv cut off mid-row
-    _make_run(
-        abl / "3",
-        "clf",
-        "no_mdn",
-        1,
-        state="failed",
-        teacher_iters=30,
-        student=False,
-        final=False,
-        truncate=True,
-    )
-    # never reported a status (killed before status.json was written)
-    _make_run(
-        abl / "4",
-        "clf",
-        "no_transformer",
-        1,
-        teacher_iters=10,
-        student=False,
-        final=False,
-        status=False,
-    )
-    return base, abl
+def _main(args: list[str]) -> tuple[int, str]:
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        code = fig.main(args)
+    return code, buf.getvalue()
 
 
 @pytest.fixture(scope="module")
 def tree(tmp_path_factory):
     root = tmp_path_factory.mktemp("runs")
-    base, abl = build_tree(root)
+    base, abl = syn.build_tree(root)
     out = root / "out"
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
-        code = fig.main(
-            [str(base), str(abl), "--out", str(out), "--smooth", "4", "--target-distance", "2.0"]
-        )
-    return {
-        "root": root,
-        "base": base,
-        "abl": abl,
-        "out": out,
-        "code": code,
-        "stdout": buf.getvalue(),
-    }
+    code, stdout = _main([str(base), str(abl), "--out", str(out), "--smooth", "4"])
+    points = pd.read_csv(out / "figure_data.csv")
+    return {"base": base, "abl": abl, "out": out, "code": code, "stdout": stdout, "pts": points}
+
+
+def _pts(tree, figure, panel, series, x_name="iteration"):
+    p = tree["pts"]
+    sel = p[
+        (p["figure"] == figure)
+        & (p["panel"] == panel)
+        & (p["series"] == series)
+        & (p["x_name"] == x_name)
+    ]
+    return sel.set_index("x")
 
 
 def test_discovery_and_listing_names_crashed_run(tree):
@@ -228,6 +69,9 @@ def test_discovery_and_listing_names_crashed_run(tree):
     assert "simulated crash" in crashed["error"]
     assert "cut off" in crashed["issues"]
     assert crashed["teacher_rows"] == 30  # the partial 31st row is dropped
+    assert (crashed["teacher_eval_rows"], crashed["student_eval_rows"]) == (3, 0)
+    mf = listing[listing["run"] == "sweep_base/2"].iloc[0]
+    assert (mf["teacher_eval_rows"], mf["student_eval_rows"]) == (12, 3)
     nostatus = listing[listing["run"] == "sweep_abl/4"].iloc[0]
     assert nostatus["status"] == "incomplete (no status.json)"
     hydra_only = listing[listing["run"] == "sweep_base/1"].iloc[0]
@@ -239,35 +83,126 @@ def test_discovery_and_listing_names_crashed_run(tree):
     assert "runs found: 9 (7 complete, 1 failed, 1 other incomplete)" in out
 
 
-def test_final_table_numbers_and_relative_differences(tree):
+def test_final_table_relative_differences_in_the_papers_convention(tree):
     table = pd.read_csv(tree["out"] / "final_metrics.csv")
+    table[["compared_to", "relative"]] = table[["compared_to", "relative"]].fillna("")
     assert len(table) == 4  # clf/full, clf/no_transformer, clf/no_mdn, modelfree/full
     by = {(r.reward, r.variant): r for r in table.itertuples()}
-    ref = by[("clf", "full")]
-    mf = by[("modelfree", "full")]
-    assert ref.n_runs == 3 and mf.n_runs == 2
-    assert ref.mean_abs_torque_nm == pytest.approx(10.0, abs=1e-12)
-    assert mf.mean_abs_torque_nm == pytest.approx(8.8, abs=1e-12)
+    clf, mf = by[("clf", "full")], by[("modelfree", "full")]
+    assert clf.n_runs == 3 and mf.n_runs == 2
+    assert (clf.n_rollouts, clf.n_torque, clf.n_jerk) == (3 * 64, 3 * 64, 3 * 63)
+    assert clf.mean_abs_torque_nm == pytest.approx(8.8) and mf.mean_abs_torque_nm == 10.0
     # SE across seeds: std(ddof=1)/sqrt(n)
-    assert ref.se_abs_torque_nm == pytest.approx(0.5 / math.sqrt(3), abs=1e-12)
-    assert mf.se_abs_torque_nm == pytest.approx(0.2, abs=1e-12)
-    assert mf.rel_abs_torque_nm == pytest.approx(-0.12, abs=1e-12)
-    assert mf.vs_clf_full == "distance -25%, success -50%, torque -12%, jerk +20%, reward -20%"
-    assert ref.vs_clf_full == "reference"
-    # a single-run group keeps its own rollout SE
-    nt = by[("clf", "no_transformer")]
-    assert nt.n_runs == 1 and nt.se_abs_torque_nm == pytest.approx(RUN_SE)
-    assert "torque +10%" in nt.vs_clf_full
-    assert "torque +25%" in by[("clf", "no_mdn")].vs_clf_full
+    assert clf.se_abs_torque_nm == pytest.approx(0.2 / math.sqrt(3))
+    assert mf.se_abs_torque_nm == pytest.approx(0.5)
+    # (clf - modelfree) / modelfree, by hand from the seed means
+    assert clf.compared_to == "modelfree/full"
+    assert clf.rel_abs_torque_nm == pytest.approx((8.8 - 10.0) / 10.0)
+    assert clf.rel_abs_ang_jerk == pytest.approx((30.5 - 50.0) / 50.0)
+    assert clf.rel_distance_m == pytest.approx((4.0 - 3.2) / 3.2)
+    assert clf.relative == "distance +25%, success +100%, torque -12%, jerk -39%, return +25%"
+    assert mf.compared_to == "" and mf.relative == ""
+    # (variant - full) / full, clf teacher
+    nt, nm = by[("clf", "no_transformer")], by[("clf", "no_mdn")]
+    assert nt.compared_to == nm.compared_to == "clf/full"
+    assert nt.relative == "distance -10%, success -25%, torque +10%, jerk +20%, return -20%"
+    assert nm.relative == "distance -25%, success -50%, torque +25%, jerk +50%, return -40%"
+    assert nt.rel_reward == pytest.approx((1.2 - 1.5) / 1.5)
+    assert nt.n_runs == 1 and nt.se_abs_torque_nm == pytest.approx(syn.RUN_SE)
     md = (tree["out"] / "final_metrics.md").read_text()
     mf_line = next(ln for ln in md.splitlines() if ln.startswith("| modelfree | full |"))
-    assert "8.8 ± 0.2" in mf_line and "torque -12%" in mf_line
-    assert "| clf | full | 3 | 4 ± 0.1155 |" in md
-    assert "modelfree/full (n=2)" in tree["stdout"] and "torque -12%" in tree["stdout"]
+    assert "| 10 ± 0.5 |" in mf_line
+    assert (
+        "- baseline clf vs modelfree ((clf - modelfree) / modelfree, student full): "
+        "distance +25%, success +100%, torque -12%, jerk -39%, return +25%" in md
+    )
+    assert "- ablation no_mdn vs full ((variant - full) / full, clf teacher): distance -25%" in md
+    out = tree["stdout"]
+    assert "clf (n=3, it 49): distance 4 m, success 80%, torque 8.8 Nm, jerk 30.5 rad/s^3" in out
+    assert "  clf vs modelfree: distance +25%, success +100%, torque -12%, jerk -39%" in out
+    assert "  no_transformer (n=1): return 1.2, distance 3.6 m, success 60%; vs full: " in out
+
+
+def test_baseline_plots_student_eval_rows(tree):
+    seeds = {"clf": [0, 1, 2], "modelfree": [0, 1]}
+    for reward, ss in seeds.items():
+        for key in ("distance_m", "abs_torque_nm", "abs_ang_jerk", "success_rate"):
+            pts = _pts(tree, "baseline", key, reward)
+            assert list(pts.index) == list(syn.STUDENT_EVAL_ITS)  # no teacher eval row
+            for it in syn.STUDENT_EVAL_ITS:
+                vals = [syn.student_eval_value(reward, "full", s, key, it) for s in ss]
+                assert pts.loc[it, "y"] == pytest.approx(np.mean(vals))
+                assert pts.loc[it, "n"] == len(vals)
+                se = np.std(vals, ddof=1) / math.sqrt(len(vals))
+                assert pts.loc[it, "yerr"] == pytest.approx(4 * se)  # 4 x SE across seeds
+    mf = _pts(tree, "baseline", "abs_torque_nm", "modelfree")
+    assert mf.loc[49, "y"] == 10.0 and mf.loc[49, "yerr"] == pytest.approx(4 * 0.5)
+    # the last student evaluation equals the final table's number
+    table = pd.read_csv(tree["out"] / "final_metrics.csv")
+    assert table.loc[table["reward"] == "modelfree", "mean_abs_torque_nm"].item() == 10.0
+
+
+def test_sample_efficiency_reads_teacher_eval_rows(tree):
+    eff = pd.read_csv(tree["out"] / "sample_efficiency.csv").fillna({"vs_modelfree": ""})
+    by = {r.reward: r for r in eff.itertuples()}
+    # seed-mean evaluation distance 0.06 * it (clf), 0.03 * it (modelfree), evaluated every 10
+    # iterations: first >= 2.0 m at 40 (2.4 m) and 70 (2.1 m). Training rows (50 + it m) would
+    # give iteration 0.
+    assert (by["clf"].iteration, by["modelfree"].iteration) == (40, 70)
+    assert by["clf"].env_steps == 40 * syn.STEPS_PER_IT
+    assert by["modelfree"].env_steps == 70 * syn.STEPS_PER_IT
+    assert by["clf"].vs_modelfree == "iterations -43%, env steps -43%"  # (40 - 70) / 70
+    assert by["modelfree"].vs_modelfree == ""
+    assert "sweep_base/0:40" in by["clf"].per_run and "sweep_base/3:70" in by["modelfree"].per_run
+    assert "sweep_abl/3:not reached" in by["clf"].per_run  # the crashed run still contributes
+    assert "eval.csv teacher rows" in by["clf"].source
+    clf = _pts(tree, "sample_efficiency", "distance_m", "clf")
+    assert list(clf.index) == list(range(0, 60, 10))
+    # it 0: four runs (seed offsets -0.1, +0.1, 0, +0.1); 10, 20: three; from 30 on: two
+    assert clf.loc[0, "y"] == pytest.approx(0.1 / 4) and clf.loc[0, "n"] == 4
+    assert clf.loc[10, "y"] == pytest.approx(0.6) and clf.loc[10, "n"] == 3
+    assert clf.loc[40, "y"] == pytest.approx(2.4) and clf.loc[40, "n"] == 2
+    # 1 x SE across seeds: std(2.3, 2.5; ddof=1) / sqrt(2) = 0.1
+    assert clf.loc[40, "yerr"] == pytest.approx(0.1)
+    mf = _pts(tree, "sample_efficiency", "distance_m", "modelfree")
+    assert list(mf.index) == list(range(0, 120, 10))
+    assert tree["pts"].query("figure == 'sample_efficiency'")["y"].max() < 10
+    steps = _pts(tree, "sample_efficiency", "distance_m", "modelfree", "env_steps")
+    assert list(steps.index) == [it * syn.STEPS_PER_IT for it in range(0, 120, 10)]
+    succ = _pts(tree, "sample_efficiency", "success_rate", "clf")
+    assert succ.loc[40, "y"] == pytest.approx(2.4 / 4)
+    out = tree["stdout"]
+    assert "clf: iteration 40 (3.932e+06 env steps)" in out
+    assert "modelfree: iteration 70" in out and "clf vs modelfree: iterations -43%" in out
+
+
+def test_ablation_plots_episode_return_from_student_eval_rows(tree):
+    seeds = {"full": [0, 1, 2], "no_transformer": [0], "no_mdn": [0]}
+    for variant, ss in seeds.items():
+        for key in ("reward", "distance_m", "success_rate"):
+            pts = _pts(tree, "ablation", key, variant)
+            assert list(pts.index) == list(syn.STUDENT_EVAL_ITS)
+            vals = [syn.student_eval_value("clf", variant, s, key, 49) for s in ss]
+            assert pts.loc[49, "y"] == pytest.approx(np.mean(vals))
+            se = np.std(vals, ddof=1) / math.sqrt(len(vals)) if len(vals) > 1 else syn.EVAL_SE
+            assert pts.loc[49, "yerr"] == pytest.approx(se)  # 1 x SE
+    full = _pts(tree, "ablation", "reward", "full")
+    assert full.loc[49, "y"] == pytest.approx(1.5) and full.loc[49, "n"] == 3
+    abl = tree["pts"].query("figure == 'ablation'")
+    assert set(abl["series"]) == {"full", "no_transformer", "no_mdn"}  # no modelfree student
+    assert (abl["y"] != syn.TRAIN_TEACHER_REWARD).all() and abl["y"].min() >= 0
+    assert "ablation: clf teacher only; student rows of reward modelfree not used" in tree["stdout"]
+
+
+def test_teacher_curves_stay_a_labelled_training_diagnostic(tree):
+    tc = tree["pts"].query("figure == 'teacher_curves' and panel == 'mean_distance_m'")
+    assert set(tc["series"]) == {"clf", "modelfree"}
+    assert tc["y"].min() >= syn.TRAIN_DISTANCE0  # metrics.csv rows, smoothed
+    assert set(tc["x_name"]) == {"env_steps"}
 
 
 def test_every_figure_written(tree):
-    for stem in ("ablation", "baseline", "teacher_curves"):
+    for stem in ("ablation", "baseline", "sample_efficiency", "teacher_curves"):
         png = (tree["out"] / f"{stem}.png").read_bytes()
         assert png[:8] == b"\x89PNG\r\n\x1a\n"
         width, height = struct.unpack(">II", png[16:24])
@@ -275,80 +210,94 @@ def test_every_figure_written(tree):
         pdf = (tree["out"] / f"{stem}.pdf").read_bytes()
         assert pdf[:5] == b"%PDF-" and len(pdf) > 1000
     written = [ln for ln in tree["stdout"].splitlines() if ln.startswith("wrote ")]
-    assert len(written) == 1 and written[0].startswith("wrote 11 files")
+    assert len(written) == 1 and written[0].startswith("wrote 14 files")
 
 
-def test_sample_efficiency_iteration(tree):
-    eff = pd.read_csv(tree["out"] / "sample_efficiency.csv")
-    by = {r.reward: r for r in eff.itertuples()}
-    # smoothed (window 4) distance at it = slope * (it - 1.5) -> first >= 2.0
-    assert by["clf"].iteration == 22
-    assert by["modelfree"].iteration == 42
-    assert by["clf"].env_steps == 22 * STEPS_PER_IT
-    assert "sweep_base/2:42" in by["modelfree"].per_run
-    assert "sweep_abl/3:22" in by["clf"].per_run  # the crashed run still contributes
-    assert "clf: iteration 22" in tree["stdout"]
-    assert "modelfree: iteration 42" in tree["stdout"]
-
-
-def test_ablation_and_baseline_data(tree):
-    runs = fig.discover([tree["base"], tree["abl"]])
-    notes: list[str] = []
-    abl = fig.ablation_data(runs, 4, notes)
-    assert list(abl) == ["full", "no_transformer", "no_mdn"]
-    last = {v: c.iloc[-1] for v, c in abl.items()}
-    assert last["full"]["iteration"] == 49
-    # smoothed teacher_reward at 49 = base + 0.01 * 47.5 (+ seed offsets, which cancel)
-    assert last["full"]["mean"] == pytest.approx(1.475)
-    assert last["full"]["n"] == 3
-    assert last["full"]["se"] == pytest.approx(0.1 / math.sqrt(3))
-    assert last["no_transformer"]["mean"] == pytest.approx(0.8 + 0.475 - 0.1)
-    assert math.isnan(last["no_mdn"]["se"]) and last["no_mdn"]["n"] == 1
-    assert any("modelfree not used" in n for n in notes)
-
-    base = fig.baseline_data(runs, "seeds", notes)
-    clf, mf = base["clf"], base["modelfree"]
-    assert list(clf["iteration"]) == [0, 25, 49]  # the teacher eval row is excluded
-    assert clf["mean_distance_m"].iloc[-1] == pytest.approx(3.98)
-    assert clf["se_distance_m"].iloc[-1] == pytest.approx(0.2 / math.sqrt(3))
-    assert mf["mean_distance_m"].iloc[-1] == pytest.approx(2.98)
-    assert fig.BASELINE_ERR_MULT * mf["se_distance_m"].iloc[-1] == pytest.approx(0.8)
-    pooled = fig.baseline_data(runs, "pooled", [])
-    assert pooled["modelfree"]["se_distance_m"].iloc[-1] == pytest.approx(
-        math.sqrt(2 * 0.05**2) / 2
-    )
-
-
-def test_combine_rules():
-    assert fig.combine([9.5, 10.5], [0.3, 0.4]) == pytest.approx((10.0, 0.5, 2))
-    assert fig.combine([8.0], [0.3]) == pytest.approx((8.0, 0.3, 1))
-    assert fig.combine([9.5, 10.5], [0.3, 0.4], "pooled") == pytest.approx((10.0, 0.25, 2))
-    mean, se, n = fig.combine([1.0, float("nan")], [0.1, 0.2])
+def test_combine_and_relative_rules():
+    assert agg.combine([9.5, 10.5], [0.3, 0.4]) == pytest.approx((10.0, 0.5, 2))
+    assert agg.combine([8.0], [0.3]) == pytest.approx((8.0, 0.3, 1))
+    assert agg.combine([9.5, 10.5], [0.3, 0.4], "pooled") == pytest.approx((10.0, 0.25, 2))
+    mean, se, n = agg.combine([1.0, float("nan")], [0.1, 0.2])
     assert (mean, se, n) == (1.0, 0.1, 1)
-    assert fig.format_rel(-0.12) == "-12%" and fig.format_rel(0.004) == "+0%"
-    assert fig.format_rel(float("nan")) == "n/a"
-    assert np.allclose(fig.smooth(pd.Series([0.0, 2.0, 4.0, 6.0]), 2), [0.0, 1.0, 3.0, 5.0])
+    assert agg.rel_diff(8.8, 10.0) == pytest.approx(-0.12)
+    assert agg.rel_diff(-3.0, -2.0) == pytest.approx(-0.5)  # (value - ref) / |ref|
+    assert math.isnan(agg.rel_diff(1.0, 0.0)) and math.isnan(agg.rel_diff(float("nan"), 1.0))
+    assert agg.format_rel(-0.12) == "-12%" and agg.format_rel(0.004) == "+0%"
+    assert agg.format_rel(-0.3905) == "-39%" and agg.format_rel(1.0) == "+100%"
+    assert agg.format_rel(float("nan")) == "n/a"
+    assert np.allclose(agg.smooth(pd.Series([0.0, 2.0, 4.0, 6.0]), 2), [0.0, 1.0, 3.0, 5.0])
 
 
-def test_teacher_only_run_skips_missing_figures(tmp_path):
-    run = tmp_path / "teacher_run"
-    _make_run(run, "clf", "full", 0, teacher_iters=20, student=False, final=False)
-    (run / "config.yaml").write_text(_config_yaml("clf", "full", 0, stage="teacher"))
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
-        code = fig.main([str(run), "--target-distance", "100", "--smooth", "1"])
+OLD_EVAL_HEADER = (
+    "stage,iteration,env_steps,n_rollouts,mean_distance_m,se_distance_m,mean_success_rate,"
+    "se_success_rate,mean_abs_torque_nm,se_abs_torque_nm,mean_abs_ang_jerk,se_abs_ang_jerk\n"
+)
+
+
+def test_missing_rows_are_named_never_a_crash(tmp_path):
+    # an older clf run: eval.csv without reward columns, no teacher evaluations at all
+    old = syn.make_run(tmp_path / "sweep" / "0", "clf", "full", 0, student=True)
+    (old / "eval.csv").write_text(
+        OLD_EVAL_HEADER + "student,0,0,64,1.5,0.1,0.2,0.05,9,0.2,40,1\n"
+        "student,49,49000,64,3.5,0.1,0.6,0.05,8,0.2,30,1\n"
+    )
+    summary = json.loads((old / "summary.json").read_text())
+    del summary["n_torque"], summary["n_jerk"], summary["mean_reward"], summary["se_reward"]
+    (old / "summary.json").write_text(json.dumps(summary))
+    # a stage=eval run of a teacher checkpoint: its summary is no student result
+    tev = syn.make_run(tmp_path / "sweep" / "1", "clf", "full", 1, stage="eval", student=False)
+    summary = json.loads((tev / "summary.json").read_text())
+    (tev / "summary.json").write_text(json.dumps({**summary, "stage": "teacher"}))
+    out = tmp_path / "out"
+    res = fig.analyze([tmp_path / "sweep"], out)
+    code, text = _main([str(tmp_path / "sweep"), "--out", str(out)])
+    assert code == 0
+    notes = res["notes"]
+    assert "baseline: modelfree/full has no full-student runs" in notes
+    assert any(n.startswith("skip sample_efficiency: no eval.csv teacher rows") for n in notes)
+    assert "final_metrics: sweep/1 evaluates a teacher policy; not used" in notes
+    assert any("modelfree/full has no complete runs" in n for n in notes)
+    assert "note: skip sample_efficiency" in text and "sweep/1 evaluates a teacher" in text
+    # the old file loads with the columns it has: distance and torque plotted, return named missing
+    base = res["points"].query("figure == 'baseline' and series == 'clf'")
+    assert base.query("panel == 'abs_torque_nm'").set_index("x")["y"].to_dict() == {0: 9, 49: 8}
+    assert res["axes_notes"]["baseline"]["distance_m"] == [
+        "no data: modelfree (no full-student runs)"
+    ]
+    assert res["axes_notes"]["ablation"]["reward"] == [
+        "no data: no_transformer (no clf runs)",
+        "no data: no_mdn (no clf runs)",
+        "clf: no mean_reward in eval.csv (older file?)".replace("clf", "full"),
+    ]
+    assert res["points"].query("figure == 'ablation' and panel == 'reward'").empty
+    assert not (out / "sample_efficiency.png").exists()
+    assert {"baseline.png", "ablation.png", "teacher_curves.png"} <= {p.name for p in out.iterdir()}
+    table = pd.read_csv(out / "final_metrics.csv", keep_default_na=False)
+    assert table[["reward", "variant", "relative"]].values.tolist() == [["clf", "full", ""]]
+    assert table["n_jerk"].tolist() == [""] and table["mean_reward"].tolist() == [""]
+
+
+def test_teacher_only_run(tmp_path):
+    run = syn.make_run(
+        tmp_path / "teacher_run", "clf", "full", 0, stage="teacher", student=False, final=False
+    )
+    code, text = _main([str(run), "--target-distance", "100", "--smooth", "1"])
     out = run / "figures"
     assert code == 0
     assert sorted(p.name for p in out.iterdir()) == [
+        "figure_data.csv",
         "runs.csv",
         "runs.md",
         "sample_efficiency.csv",
+        "sample_efficiency.pdf",
+        "sample_efficiency.png",
         "teacher_curves.pdf",
         "teacher_curves.png",
     ]
-    text = buf.getvalue()
     assert "note: skip ablation" in text and "note: skip final_metrics" in text
-    assert "baseline: skip clf/full (no eval.csv student rows)" in text
+    assert "note: skip baseline" in text
+    assert "note: sample_efficiency: modelfree has no runs" in text
+    assert "note: sample_efficiency: no arm reaches 100 m" in text
     assert "clf: not reached" in text
     assert "runs found: 1 (1 complete, 0 failed, 0 other incomplete)" in text
     eff = pd.read_csv(out / "sample_efficiency.csv")
@@ -373,14 +322,31 @@ def test_empty_dir_exits_2(tmp_path):
     assert err.getvalue().count("is not a directory") == 1
 
 
+def test_script_runs_from_anywhere(tmp_path):
+    """`python analysis/figures.py` as a user runs it, from another working directory."""
+    run = syn.make_run(
+        tmp_path / "r", "modelfree", "full", 0, stage="teacher", student=False, final=False
+    )
+    proc = subprocess.run(
+        [sys.executable, str(SCRIPT), str(run), "--out", str(tmp_path / "o")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "modelfree: iteration 70" in proc.stdout
+    assert (tmp_path / "o" / "sample_efficiency.png").is_file()
+
+
 def test_imports_no_simulator():
-    tree = ast.parse(SCRIPT.read_text())
     mods = set()
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
-            mods |= {a.name.split(".")[0] for a in node.names}
-        elif isinstance(node, ast.ImportFrom) and node.module:
-            mods.add(node.module.split(".")[0])
-    third_party = mods - set(sys.stdlib_module_names) - {"__future__"}
+    for path in SCRIPT.parent.glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                mods |= {a.name.split(".")[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                mods.add(node.module.split(".")[0])
+    third_party = mods - set(sys.stdlib_module_names) - {"__future__", "analysis"}
     assert third_party == {"matplotlib", "numpy", "pandas", "omegaconf"}
     assert len(mods & {"march", "mjlab", "mujoco", "torch", "warp"}) == 0

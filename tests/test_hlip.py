@@ -146,3 +146,20 @@ def test_com_state_follows_the_lip_ode_within_a_step():
         sol = solve_ivp(lambda t, x: [x[1], LAM**2 * x[0]], (0, 0.3), x0, rtol=1e-12, atol=1e-14)
         assert abs(sol.y[0, -1] + float(stance[0, ax]) - float(p1[0, ax])) < 1e-6
         assert abs(sol.y[1, -1] - float(v1[0, ax])) < 1e-6
+
+
+def test_com_state_keeps_following_the_lip_past_the_planned_duration():
+    """A late touchdown: from tau = T0 on, the reference integrates the LIP ODE onward (both
+    planes), so position and velocity stay one trajectory (issue 10: no frozen position)."""
+    stance = torch.tensor([[0.3, -0.1]], dtype=F64)
+    s0, s1 = torch.tensor([[0.4, 0.2]], dtype=F64), torch.tensor([[0.3, -0.3]], dtype=F64)
+    T0, T1 = torch.tensor([0.5], dtype=F64), torch.tensor([0.6], dtype=F64)
+    pt, vt = hlip_com_state(stance, s0, s1, T0, T1, T0, LAM)
+    late = 0.25
+    p1, v1 = hlip_com_state(stance, s0, s1, T0, T1, T0 + late, LAM)
+    for ax in range(2):
+        x0 = [float(pt[0, ax] - stance[0, ax]), float(vt[0, ax])]
+        sol = solve_ivp(lambda t, x: [x[1], LAM**2 * x[0]], (0, late), x0, rtol=1e-12, atol=1e-14)
+        assert abs(sol.y[0, -1] + float(stance[0, ax]) - float(p1[0, ax])) < 1e-6
+        assert abs(sol.y[1, -1] - float(v1[0, ax])) < 1e-6
+    assert float(p1[0, 0] - pt[0, 0]) > 0.1  # the position moves on, it does not freeze

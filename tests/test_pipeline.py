@@ -5,13 +5,18 @@ from __future__ import annotations
 import csv
 import json
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from march.cli import load
+from march.config import ConfigError
 from march.learn.checkpoint import CheckpointError, load_checkpoint
+from march.learn.provenance import apply_checkpoint_config
 from march.train import run_pipeline
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -49,11 +54,18 @@ def test_smoke_logs_every_iteration(smoke_run):
     assert all(math.isfinite(float(r["loss"])) and float(r["loss"]) > -1e6 for r in student)
     mode_w = [float(r["mode_weight_0"]) + float(r["mode_weight_1"]) for r in student]
     assert all(abs(w - 1.0) < 1e-4 for w in mode_w)  # MDN mode weights sum to one
-    evals = _rows(smoke_run / "eval.csv")
+    evals = [r for r in _rows(smoke_run / "eval.csv") if r["stage"] == "student"]
     assert [int(r["iteration"]) for r in evals] == list(range(1, cfg.distill.max_iterations + 1))
+    teacher_evals = [r for r in _rows(smoke_run / "eval.csv") if r["stage"] == "teacher"]
+    assert [int(r["iteration"]) for r in teacher_evals] == list(
+        range(1, cfg.teacher.iterations + 1)
+    )
     assert all(int(r["n_rollouts"]) == cfg.eval.num_rollouts for r in evals)
     text = (smoke_run / "stdout.txt").read_text()
     assert "scale: compute=smoke" in text and "ETA" in text and "summary (mean" in text
+    # The smoke teacher has 2 iterations: the wall-time line comes after both.
+    assert "[eta] measured " in text and " s/it over the first 2 iterations: teacher ~" in text
+    assert "over the first 2 distillation iterations: distillation ~" in text
 
 
 def test_smoke_checkpoints_load(smoke_run):
@@ -99,3 +111,90 @@ def test_same_seed_same_numbers(tmp_path):
     wa = load_checkpoint(tmp_path / "a" / "teacher" / "latest.pt", "teacher")["actor_state_dict"]
     wb = load_checkpoint(tmp_path / "b" / "teacher" / "latest.pt", "teacher")["actor_state_dict"]
     assert all(torch.equal(wa[k], wb[k]) for k in wa)
+
+
+# ------------------------------------------------------- a checkpoint defines its policy
+
+
+def test_smoke_checkpoints_define_their_policy(smoke_run):
+    """The saved config of the real smoke checkpoints (clf, full) wins over today's choices."""
+    for kind in ("teacher", "student"):
+        path = str(smoke_run / kind / "latest.pt")
+        payload = load_checkpoint(path, kind)
+        overrides = ["compute=smoke", "stage=eval", f"eval.policy={kind}", "reward=modelfree"]
+        with pytest.raises(ConfigError) as err:
+            apply_checkpoint_config(load(overrides), payload, overrides, path, kind)
+        assert f"reward=modelfree conflicts with {kind}_ckpt={path}" in str(err.value)
+        assert "reward.name=clf" in str(err.value) and "\n" not in str(err.value)
+        # Without the override the defaults give way: a modelfree default would become clf.
+        cfg = load(["compute=smoke", "reward=modelfree"])
+        new = apply_checkpoint_config(cfg, payload, ["compute=smoke"], path, kind)
+        assert new.reward.name == "clf" and new.reward.terms == load(["compute=smoke"]).reward.terms
+    payload = load_checkpoint(smoke_run / "student" / "latest.pt", "student")
+    with pytest.raises(ConfigError, match="student=no_mdn conflicts .*student.variant=full"):
+        apply_checkpoint_config(
+            load(["student=no_mdn"]), payload, ["student=no_mdn"], "s", "student"
+        )
+
+
+@pytest.fixture(scope="module")
+def modelfree_teacher(tmp_path_factory) -> Path:
+    """An untrained teacher checkpoint written by TeacherRunner in the reward=modelfree env."""
+    from march.config import LoggerCfg
+    from march.env.build import make_env
+    from march.learn.metrics import MetricsLog
+    from march.learn.teacher import TeacherRunner
+
+    run_dir = tmp_path_factory.mktemp("modelfree_teacher")
+    cfg = load(["compute=smoke", "reward=modelfree", "stage=teacher"])
+    env = make_env(cfg, "teacher", log=run_dir / "env.log")
+    try:
+        runner = TeacherRunner(env, cfg, run_dir, MetricsLog(run_dir, LoggerCfg(), "mf"))
+        runner.save()
+    finally:
+        env.close()
+    return run_dir / "teacher" / "latest.pt"
+
+
+def _train(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "march.train", *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+
+
+def test_eval_of_a_modelfree_teacher_runs_the_modelfree_env(modelfree_teacher, tmp_path):
+    payload = load_checkpoint(modelfree_teacher, "teacher")
+    common = [
+        "compute=smoke",
+        "stage=eval",
+        "eval.policy=teacher",
+        f"teacher_ckpt={modelfree_teacher}",
+    ]
+    # An explicit clf is one line naming both, before anything is built.
+    out = _train(*common, "reward=clf", f"hydra.run.dir={tmp_path / 'clf'}")
+    assert out.returncode == 2, out.stderr[-2000:]
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: reward=clf conflicts with teacher_ckpt=")
+    assert "reward.name=modelfree" in lines[0]
+    assert not (tmp_path / "clf" / "env.log").exists()
+    # No reward on the command line: the checkpoint's modelfree env and labels.
+    run = tmp_path / "mf"
+    out = _train(*common, f"hydra.run.dir={run}")
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    saved = OmegaConf.load(run / "config.yaml")
+    assert saved.reward.name == "modelfree"
+    assert dict(saved.reward.terms) == load(["reward=modelfree"]).reward.terms
+    assert "defines the policy: reward.name: clf -> modelfree" in out.stdout
+    assert "reward=modelfree" in out.stdout.split("scale:")[0]  # the banner
+    # The eval env's actor observation is the modelfree one (no reference terms): the layout
+    # the checkpoint was built on, which a clf env (checked in the smoke run) does not have.
+    env_line = next(ln for ln in out.stdout.splitlines() if ln.startswith("[env] eval:"))
+    assert f"obs actor ({payload['layout']['actor_obs_dim']},)" in env_line
+    assert (
+        json.loads((run / "summary.json").read_text())["n_rollouts"]
+        == load(["compute=smoke"]).eval.num_rollouts
+    )

@@ -1,12 +1,18 @@
 """Footstep planner: safety of the footholds, optimality against a naive plan, infeasibility,
-batching and determinism."""
+batching and determinism; progress: a planner-only walk over generated courses keeps pace."""
 
+from dataclasses import replace
+
+import numpy as np
 import pytest
 import torch
 from synthetic import grid_course, make_footholds, straight_course
 
 from march.bench_planner import synthetic_courses
-from march.planner import PlannerCfg, evaluate_plan, plan_footsteps
+from march.config import EnvCfg
+from march.footholds import Footholds
+from march.planner import PlannerCfg, evaluate_plan, locate_on_stones, plan_footsteps
+from march.terrain import CourseCfg, footholds_from_layouts, generate_course, hardware_course
 
 torch.set_num_threads(1)
 CFG = PlannerCfg()
@@ -172,3 +178,171 @@ def test_randomised_rollouts_never_lose_to_greedy(courses):
     greedy = _plan(fh, stance, left, cmd, cfg=PlannerCfg(num_rollouts=1))
     shooting = _plan(fh, stance, left, cmd)
     assert (shooting.cost <= greedy.cost + 1e-5).all()
+
+
+# ---------------------------------------------------------------- progress (issue 10)
+
+EPISODE_S = EnvCfg().episode_length_s
+"""The training episode length [s] over which a walk must keep pace."""
+LEVELS = [0.0, 0.2, 0.4, 0.6, 0.8, 1.0]
+WALK_SEEDS = (0, 1, 2)
+IN_PLACE_M = 0.05
+"""A step advancing less than this along the course counts as a step in place [m]."""
+
+
+def _walk_courses() -> tuple[Footholds, list[str]]:
+    """Generated courses at every level for several terrain seeds, plus the hardware course."""
+    ccfg = CourseCfg()
+    layouts, names = [], []
+    for seed in WALK_SEEDS:
+        rng = np.random.default_rng(seed)
+        for d in LEVELS:
+            layouts.append(generate_course(d, ccfg, rng))
+            names.append(f"difficulty {d:.1f} seed {seed}")
+    layouts.append(hardware_course(ccfg))
+    names.append("hardware")
+    origins = np.stack([lay.origin for lay in layouts]) + np.array([[0.0, 0.0, 0.0]])
+    return footholds_from_layouts(layouts, origins), names
+
+
+def _reachable_ahead(fh: Footholds, stance: torch.Tensor, left: torch.Tensor) -> torch.Tensor:
+    """(E,) bool, by brute force: some point on a stone (9 x 9 grid inside the hard margin) is a
+    legal next step for the foot that lands (``left`` = the left foot lands) and advances at
+    least IN_PLACE_M along the course."""
+    g = torch.linspace(-1.0, 1.0, 9)
+    gx, gy = torch.meshgrid(g, g, indexing="ij")
+    usable = (fh.half_size - CFG.stone_margin).clamp(min=0.0)  # (E, S, 2)
+    px = fh.center[..., 0:1] + gx.flatten() * usable[..., 0:1]  # (E, S, 81)
+    py = fh.center[..., 1:2] + gy.flatten() * usable[..., 1:2]
+    _, z0 = locate_on_stones(fh, stance)
+    sx, sy = px - stance[:, 0, None, None], py - stance[:, 1, None, None]
+    side = torch.where(left, 1.0, -1.0)[:, None, None]
+    ok = (
+        fh.valid[..., None]
+        & (sx >= IN_PLACE_M)
+        & (sx**2 + sy**2 <= CFG.max_step**2)
+        & (side * sy >= CFG.min_lateral)
+        & (side * sy <= CFG.max_lateral)
+        & ((fh.center[..., 2:3] - z0[:, None, None]).abs() <= CFG.max_step_height)
+    )
+    return ok.flatten(1).any(-1)
+
+
+def _walk(fh: Footholds, vx: float, seed: int = 0, cfg: PlannerCfg | None = None):
+    """Receding-horizon walk with the planner alone: take each plan's first step as if the foot
+    landed exactly there, replan from it, repeat (the feet alternate) until EPISODE_S is over.
+
+    Returns (kept pace or reached the goal (E,), progress at the end (E,), in-place steps taken
+    while the goal lay ahead and a stone was reachable (E,), steps taken (E,))."""
+    e = fh.num_envs
+    lat = torch.stack([-fh.direction[:, 1], fh.direction[:, 0]], dim=-1)
+    stance = fh.start_xy + 0.5 * CFG.step_width * lat  # left foot at the spawn point
+    left = torch.ones(e, dtype=torch.bool)
+    cmd = torch.tensor([[vx, 0.0, 0.0]]).expand(e, 3).contiguous()
+    t = torch.zeros(e)
+    done = torch.zeros(e, dtype=torch.bool)
+    reached = torch.zeros(e, dtype=torch.bool)
+    bad_in_place = torch.zeros(e, dtype=torch.long)
+    steps = torch.zeros(e, dtype=torch.long)
+    while not done.all():
+        plan = _plan(fh, stance, left, cmd, seed=seed + int(steps.max()), cfg=cfg or CFG)
+        land = plan.footholds[:, 0, :2]
+        done = done | (t + plan.durations[:, 0] > EPISODE_S)  # this step would end after time-out
+        ahead = fh.progress(stance) < fh.goal_distance
+        advance = ((land - stance) * fh.direction).sum(-1)
+        lands_left = plan.lands_left[:, 0]
+        stuck = (advance < IN_PLACE_M) & ahead & ~done
+        if stuck.any():
+            stuck &= _reachable_ahead(fh, stance, lands_left)
+        bad_in_place += stuck.long()
+        stance = torch.where(done[:, None], stance, land)
+        left = torch.where(done, left, lands_left)
+        t = torch.where(done, t, t + plan.durations[:, 0])
+        steps += (~done).long()
+        reached |= fh.progress(stance) >= fh.goal_distance
+    progress = fh.progress(stance)
+    kept = reached | (progress >= 0.8 * vx * EPISODE_S)
+    return kept, progress, bad_in_place, steps
+
+
+@pytest.fixture(scope="module")
+def walk_courses():
+    return _walk_courses()
+
+
+@pytest.mark.parametrize("vx", [0.3, 0.55, 0.8])
+def test_walk_keeps_pace_on_every_course(walk_courses, vx):
+    """Command extremes and middle, every level, several terrain seeds and the hardware course:
+    the planner-only walk keeps pace (>= 80% of v t in the episode) or reaches the goal, and it
+    never steps in place while the goal lies ahead and a stone ahead is reachable."""
+    fh, names = walk_courses
+    kept, progress, bad_in_place, steps = _walk(fh, vx)
+    lagging = [
+        f"{n}: {float(p):.2f} m" for n, p, k in zip(names, progress, kept, strict=True) if not k
+    ]
+    assert not lagging, f"vx={vx}: fell behind {0.8 * vx * EPISODE_S:.1f} m on {lagging}"
+    stuck = [f"{n}: {int(b)}" for n, b in zip(names, bad_in_place, strict=True) if b]
+    assert not stuck, f"vx={vx}: stepped in place before a reachable stone on {stuck}"
+    assert (steps > 5).all()
+
+
+def test_paper_cost_alone_steps_in_place_before_a_far_stone():
+    """Stance on a stone, the next stone 0.68 m ahead, v_D = 0.3 m/s. Paper cost: in place
+    (0 - 0.3)^2 = 0.09 < onto the stone (0.68/0.7 - 0.3)^2 = 0.45, so it steps in place; with the
+    progress term the in-place step pays pace_cost and the plan steps onto the stone."""
+    # Stones 0.28 m long and 0.5 m wide: both feet fit side by side without edge cost.
+    rects = [(0.0, 0.0, 0.0, 0.6, 0.6)]
+    rects += [(0.8 + 0.68 * k, 0.0, 0.0, 0.14, 0.25) for k in range(5)]
+    rects += [(0.8 + 0.68 * 4 + 0.8, 0.0, 0.0, 0.6, 0.6)]
+    fh = make_footholds([rects, rects], [(0.0, 0.0)] * 2)
+    stance = torch.tensor([[0.8, 0.125]] * 2)  # left foot on the first stone
+    left = torch.ones(2, dtype=torch.bool)
+    cmd = _forward(2, 0.3)
+    paper = _plan(fh, stance, left, cmd, cfg=replace(CFG, pace_fraction=0.0))
+    ours = _plan(fh, stance, left, cmd)
+    assert float((paper.footholds[0, 0, 0] - 0.8).abs()) < IN_PLACE_M
+    assert (ours.footholds[:, 0, 0] > 1.3).all()
+    assert ((ours.steps()[..., 0]) > IN_PLACE_M).all()
+    assert ours.feasible.all() and paper.feasible.all()
+    assert not bool(ours.stalled[0])
+
+
+def test_progress_term_hand_values():
+    """evaluate_plan on open ground: a step of v dt costs 0; a step in place costs
+    v^2 (velocity) + pace_cost (it misses all of rho v dt); a step of half of rho v dt costs
+    (v/2 rho - v)^2 + pace_cost / 2. Past the goal platform's start the term is off."""
+    fh = make_footholds([[(1.0, 0.0, 0.0, 4.0, 3.0), (6.0, 0.0, 0.0, 1.0, 1.0)]], [(-2.0, 0.0)])
+    v, t, rho = 0.4, CFG.nominal_duration, CFG.pace_fraction
+    cmd = torch.tensor([[v, 0.0, 0.0]])
+    start = torch.tensor([[0.0, 0.125]])
+
+    def cost(advance: float, x0: float = 0.0) -> float:
+        s = start + torch.tensor([[x0, 0.0]])
+        feet = torch.tensor([[[x0 + advance, -0.125]]])
+        c, ok = evaluate_plan(s, feet, torch.tensor([[t]]), torch.tensor([[False]]), cmd, fh, CFG)
+        assert bool(ok[0])
+        return float(c[0])
+
+    assert cost(v * t) == pytest.approx(0.0, abs=1e-6)
+    assert cost(0.0) == pytest.approx(v**2 + CFG.pace_cost, rel=1e-5)
+    half = 0.5 * rho * v * t
+    assert cost(half) == pytest.approx((half / t - v) ** 2 + 0.5 * CFG.pace_cost, rel=1e-5)
+    # The goal platform begins at x = 5 (goal_distance 7 m from start_xy (-2, 0)): from a stance
+    # on it (x = 5.5) a step in place pays the velocity term only.
+    assert float(fh.goal_distance[0]) == pytest.approx(7.0)
+    assert cost(0.0, x0=5.5) == pytest.approx(v**2, rel=1e-5)
+    assert cost(0.0, x0=4.5) == pytest.approx(v**2 + CFG.pace_cost, rel=1e-5)
+
+
+def test_short_of_pace_steps_as_far_as_it_can_and_flags_a_stall():
+    """The only stone in reach lies 0.2 m ahead (less than rho v dt at 0.8 m/s): the plan still
+    steps onto it rather than in place, and the stall flag is raised."""
+    rects = [(0.0, 0.0, 0.0, 0.2, 0.4), (0.4, -0.1, 0.0, 0.1, 0.15), (3.5, 0.0, 0.0, 0.6, 0.6)]
+    fh = make_footholds([rects], [(0.0, 0.0)])
+    stance = torch.tensor([[0.1, 0.05]])
+    plan = _plan(fh, stance, torch.tensor([True]), _forward(1, 0.8))
+    assert float(plan.footholds[0, 0, 0]) > 0.3
+    assert bool(plan.stalled[0])
+    open_ground = make_footholds([[(0.0, 0.0, 0.0, 3.0, 3.0)]], [(-2.0, 0.0)])
+    plan = _plan(open_ground, torch.tensor([[0.0, 0.125]]), torch.tensor([True]), _forward(1))
+    assert not bool(plan.stalled[0])

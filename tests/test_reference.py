@@ -181,3 +181,104 @@ def test_pelvis_leans_toward_stance_and_rates_are_derivatives():
     _, vel = ref.flatten()
     fd = tracking_error(pos_b, pos_a, angle_mask(0)) / (2 * h)
     torch.testing.assert_close(vel, fd, atol=2e-3, rtol=1e-3)
+
+
+# ---------------------------------------------------------------- issue 10: late touchdown, start
+
+LAM = HlipCfg().lam
+T = 0.5
+L = 0.3
+"""A straight walk: steps of L = 0.3 m along +x every T = 0.5 s, feet +/- 0.125 m across."""
+
+
+def _straight_step(ramp_from=None, e=1) -> StepState:
+    feet = torch.tensor(
+        [[0.3, -0.125, 0.0], [0.6, 0.125, 0.0], [0.9, -0.125, 0.0], [1.2, 0.125, 0.0]], dtype=F64
+    )
+    plan = Plan(
+        footholds=feet.expand(e, 4, 3).clone(),
+        durations=torch.full((e, 4), T, dtype=F64),
+        lands_left=torch.tensor([False, True, False, True]).expand(e, 4).clone(),
+        cost=torch.zeros(e, dtype=F64),
+        feasible=torch.ones(e, dtype=torch.bool),
+        start=torch.tensor([[0.0, 0.125, 0.0]], dtype=F64).expand(e, 3).clone(),
+    )
+    swing = torch.tensor([[0.0, -0.125, 0.0]], dtype=F64).expand(e, 3).clone()
+    zero = torch.zeros(e, dtype=F64)
+    return step_state_from_plan(plan, plan.start, swing, zero, zero, ramp_from=ramp_from)
+
+
+def _orbit_x(tau: float) -> tuple[float, float]:
+    """Hand-derived sagittal HLIP reference: pre-impact r* = L/2, v* = lam coth(lam T/2) L/2,
+    flowed by tau - T (x measured from the stance foot at x = 0)."""
+    r, v = 0.5 * L, LAM * 0.5 * L / math.tanh(0.5 * LAM * T)
+    d = tau - T
+    return (
+        r * math.cosh(LAM * d) + v / LAM * math.sinh(LAM * d),
+        r * LAM * math.sinh(LAM * d) + v * math.cosh(LAM * d),
+    )
+
+
+def _com(step: StepState, tau: float) -> tuple[torch.Tensor, torch.Tensor]:
+    e = step.stance_pos.shape[0]
+    ref = reference_at(step, torch.full((e,), tau, dtype=F64), num_upper=0)
+    return ref.com_pos[:, :2], ref.com_vel[:, :2]
+
+
+def test_com_reference_keeps_flowing_after_a_late_touchdown():
+    """Past the planned duration the CoM position and velocity both follow the LIP flow from the
+    pre-impact state (hand formula), and the velocity is the position's time derivative."""
+    step = _straight_step()
+    pos_t, vel_t = _com(step, T)
+    assert float(pos_t[0, 0]) == pytest.approx(0.15, abs=1e-12)  # r* = l / 2
+    for tau in (T + 0.05, T + 0.2, 1.5 * T):
+        pos, vel = _com(step, tau)
+        x, vx = _orbit_x(tau)
+        assert float(pos[0, 0]) == pytest.approx(x, abs=1e-12)
+        assert float(vel[0, 0]) == pytest.approx(vx, abs=1e-12)
+        h = 1e-6
+        fd = (_com(step, tau + h)[0] - _com(step, tau - h)[0]) / (2 * h)
+        torch.testing.assert_close(fd, vel, atol=1e-7, rtol=0)
+    # It moves on: 0.2 s late the CoM is past the pre-impact point, faster than at it.
+    pos, vel = _com(step, T + 0.2)
+    assert float(pos[0, 0]) > float(pos_t[0, 0]) + 0.1
+    assert float(vel[0, 0]) > float(vel_t[0, 0])
+
+
+def test_first_step_ramps_from_rest():
+    """Episode start: the CoM reference begins at the measured CoM with zero velocity, blends
+    with a smoothstep into the orbit and is on the orbit's pre-impact state at touchdown."""
+    p0 = torch.tensor([[0.02, 0.01]], dtype=F64)
+    ramp = _straight_step(ramp_from=p0)
+    plain = _straight_step()
+    # Without the ramp the step begins on the orbit: about 0.7 m/s from standing.
+    _, v_orbit0 = _com(plain, 0.0)
+    assert float(v_orbit0[0, 0]) == pytest.approx(_orbit_x(0.0)[1], abs=1e-12)
+    assert float(v_orbit0[0, 0]) > 0.5
+    pos, vel = _com(ramp, 0.0)
+    torch.testing.assert_close(pos, p0, atol=1e-12, rtol=0)
+    assert vel.abs().max() < 1e-12
+    # Mid-step: s = 1/2, ds/dtau = 6 * 1/4 / T = 3 / s.
+    x_orb, vx_orb = _orbit_x(0.5 * T)
+    pos, vel = _com(ramp, 0.5 * T)
+    assert float(pos[0, 0]) == pytest.approx(0.02 + 0.5 * (x_orb - 0.02), abs=1e-12)
+    assert float(vel[0, 0]) == pytest.approx(0.5 * vx_orb + 3.0 * (x_orb - 0.02), abs=1e-12)
+    # At the planned touchdown and after it: exactly the orbit reference.
+    for tau in (T, T + 0.1):
+        torch.testing.assert_close(_com(ramp, tau)[0], _com(plain, tau)[0], atol=1e-12, rtol=0)
+        torch.testing.assert_close(_com(ramp, tau)[1], _com(plain, tau)[1], atol=1e-12, rtol=0)
+    # v is the time derivative of p throughout the ramp.
+    h = 1e-6
+    for tau in (0.05, 0.2, 0.37, 0.49):
+        fd = (_com(ramp, tau + h)[0] - _com(ramp, tau - h)[0]) / (2 * h)
+        torch.testing.assert_close(fd, _com(ramp, tau)[1], atol=1e-7, rtol=0)
+
+
+def test_ramp_is_per_env():
+    """In a batch only the envs flagged ``ramp`` blend; the others keep the orbit reference."""
+    step = _straight_step(e=2)
+    step.ramp = torch.tensor([True, False])
+    step.ramp_from = torch.tensor([[0.0, 0.0], [0.0, 0.0]], dtype=F64)
+    pos, vel = _com(step, 0.0)
+    assert vel[0].abs().max() < 1e-12
+    assert float(vel[1, 0]) == pytest.approx(_orbit_x(0.0)[1], abs=1e-12)

@@ -116,11 +116,20 @@ def test_figures_from_all_sweeps_name_the_crash(sweeps):
         timeout=300,
     )
     assert out.returncode == 0, out.stderr[-3000:]
-    for name in ("baseline", "teacher_curves"):
+    for name in ("baseline", "ablation", "teacher_curves"):
         assert (out_dir / f"{name}.png").stat().st_size > 10_000
         assert (out_dir / f"{name}.pdf").is_file()
+    # the sample-efficiency figure exists exactly when some run holds teacher evaluation rows
+    teacher_evals = any(
+        line.startswith("teacher,")
+        for p in sweeps["root"].rglob("eval.csv")
+        for line in p.read_text().splitlines()
+    )
+    assert (out_dir / "sample_efficiency.png").is_file() == teacher_evals
     table = (out_dir / "final_metrics.md").read_text()
     assert "clf" in table and "modelfree" in table
+    assert "baseline clf vs modelfree ((clf - modelfree) / modelfree" in table
+    assert "clf vs modelfree: distance " in out.stdout
     listing = (out_dir / "runs.md").read_text()
     crashed = next(r for r in _runs(sweeps["crash"]) if "failed" in (r / "status.json").read_text())
     assert crashed.name in listing and "failed" in listing

@@ -278,3 +278,36 @@ def test_terrain_entity_envs_get_their_cells_footholds_after_level_changes():
         assert fh.valid.sum(1).tolist() == table.valid[lv, ty].sum(1).tolist()
         up = torch.ones(16, dtype=torch.bool)
         terrain.update_env_origins(torch.arange(16), up, ~up)
+
+
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        CFG,
+        CourseCfg(size=(6.0, 4.0)),
+        CourseCfg(size=(3.5, 4.0), start_length=1.0, goal_length=1.0),
+        CourseCfg(size=(3.0, 4.0), start_length=1.0, goal_length=1.2),  # no stone ever fits
+        CourseCfg(max_stones=2),  # the stone cap binds
+        CourseCfg(gap_easy=(0.5, 0.6), gap_hard=(0.2, 0.3)),  # the easy gaps are the larger
+    ],
+)
+def test_goal_distance_max_bounds_every_generated_course(cfg):
+    # Hand value for the default 12 m cell: goal platform from 12 - 0.25 - 1.5 = 10.25 at the
+    # latest, spawn at 0.25 + 0.75 = 1.0.
+    if cfg is CFG:
+        assert CFG.goal_distance_max == pytest.approx(9.25)
+    worst = 0.0
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        for d in DIFFICULTIES:
+            for _ in range(25):
+                lay = generate_course(float(d), cfg, rng)
+                assert lay.goal_distance <= cfg.goal_distance_max + 1e-9
+                assert lay.origin[0] == pytest.approx(cfg.spawn_x)
+                worst = max(worst, lay.goal_distance)
+    largest_gap = max(cfg.gap_easy[1], cfg.gap_hard[1])
+    if cfg.max_stones >= 20:  # tight unless the stone cap binds: within one largest gap
+        assert worst >= cfg.goal_distance_max - largest_gap - 1e-9
+    goal_x0_latest = cfg.size[0] - cfg.end_margin - cfg.goal_length
+    if goal_x0_latest >= cfg.end_margin + cfg.start_length + largest_gap:
+        assert flat_course(cfg).goal_distance == pytest.approx(cfg.goal_distance_max)

@@ -46,6 +46,9 @@ from march.env.terminations import foot_too_low, planner_infeasible
 from march.env.terrain import terrain_entity_cfg
 
 PURPOSES = ("teacher", "student", "eval")
+COURSE_HEADING = 0.0
+"""World yaw of every generated course's direction (+x, ``march.terrain``) [rad]: the heading
+the twist command's heading controller steers to."""
 
 # Warp reports every kernel module it loads (hundreds of lines per run); warnings still show.
 wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
@@ -189,9 +192,14 @@ def pelvis_too_low(env: ManagerBasedRlEnv, min_height: float) -> torch.Tensor:
     return robot.data.root_link_pos_w[:, 2] - env.scene.env_origins[:, 2] < min_height
 
 
-def _terminations(cfg: MarchConfig) -> dict[str, TerminationTermCfg]:
-    """time_out, tilt, pelvis_too_low, foot_too_low (both rewards); planner_infeasible when the
-    env runs the planner (reward=clf)."""
+EVAL_TERMINATIONS = ("time_out", "tilt", "pelvis_too_low", "foot_too_low")
+"""The evaluation protocol's terminations, the same for every arm: the time-out and the falls.
+Nothing privileged (the planner's verdict, a training-only rule) ends an evaluation rollout."""
+
+
+def _terminations(cfg: MarchConfig, purpose: str) -> dict[str, TerminationTermCfg]:
+    """Training: time_out, tilt, pelvis_too_low, foot_too_low (both rewards); planner_infeasible
+    when the env runs the planner (reward=clf). Evaluation: only ``EVAL_TERMINATIONS``."""
     terms = {
         "time_out": TerminationTermCfg(func=envs_mdp.time_out, time_out=True),
         "tilt": TerminationTermCfg(
@@ -209,6 +217,8 @@ def _terminations(cfg: MarchConfig) -> dict[str, TerminationTermCfg]:
         terms["planner_infeasible"] = TerminationTermCfg(
             func=planner_infeasible, params={"command_name": REFERENCE_COMMAND}
         )
+    if purpose == "eval":  # an allow-list: a termination added for training never leaks in
+        terms = {k: v for k, v in terms.items() if k in EVAL_TERMINATIONS}
     return terms
 
 
@@ -229,7 +239,9 @@ def _reset_events(base: dict[str, EventTermCfg]) -> dict[str, EventTermCfg]:
 
 def _terrain(cfg: MarchConfig, purpose: str) -> TerrainEntityCfg:
     """Training: curriculum rows (levels) of stone courses (flat rows first for flat_first).
-    Evaluation: the same courses, envs spread uniformly over all levels; or the hardware course."""
+    Evaluation: the stone courses of every level (whatever the training curriculum; the
+    evaluation assigns rollouts to cells, ``march.env.course.eval_cells``); or the hardware
+    course."""
     c = cfg.curriculum
     common = {"num_rows": c.num_levels, "num_cols": c.num_cols, "seed": c.terrain_seed}
     if purpose == "eval":
@@ -289,25 +301,31 @@ def build_env_cfg(
 
     twist = env_cfg.commands["twist"]
     assert isinstance(twist, UniformVelocityCommandCfg)
-    # One command per episode: the course runs ahead of the robot (forward-biased ranges).
+    # Commands in the course frame (README "The reference and the commands"): one forward speed
+    # per episode (no resampling, no standing envs); the yaw rate is mjlab's heading controller
+    # toward the course heading (every generated course runs along +x: heading 0), clipped to
+    # env.command_yaw_rate, so no command leads off the stones and the ``command`` observation
+    # is what the robot is asked to do. Both reward arms read this one command.
     twist.resampling_time_range = (1.0e9, 1.0e9)
     twist.rel_standing_envs = 0.0
-    twist.rel_heading_envs = 0.0
     twist.rel_forward_envs = 0.0
-    twist.heading_command = False
+    twist.rel_world_envs = 0.0
+    twist.init_velocity_prob = 0.0  # episodes start standing (the CoM reference ramps from rest)
+    twist.heading_command = True
+    twist.rel_heading_envs = 1.0
+    twist.heading_control_stiffness = cfg.env.command_heading_stiffness
     twist.debug_vis = False
     if purpose == "eval":
         vx = cfg.eval.command_vx
-        twist.ranges = UniformVelocityCommandCfg.Ranges(
-            lin_vel_x=(vx, vx), lin_vel_y=(0.0, 0.0), ang_vel_z=(0.0, 0.0), heading=None
-        )
+        vx_range, vy_range = (vx, vx), (0.0, 0.0)
     else:
-        twist.ranges = UniformVelocityCommandCfg.Ranges(
-            lin_vel_x=tuple(cfg.env.command_vx),
-            lin_vel_y=tuple(cfg.env.command_vy),
-            ang_vel_z=tuple(cfg.env.command_yaw_rate),
-            heading=None,
-        )
+        vx_range, vy_range = tuple(cfg.env.command_vx), tuple(cfg.env.command_vy)
+    twist.ranges = UniformVelocityCommandCfg.Ranges(
+        lin_vel_x=vx_range,
+        lin_vel_y=vy_range,
+        ang_vel_z=tuple(cfg.env.command_yaw_rate),
+        heading=(COURSE_HEADING, COURSE_HEADING),
+    )
 
     if needs_reference(cfg.reward):
         # Stage (1): planner + HLIP/Bezier reference + CLF state (march.env.reference_command).
@@ -315,7 +333,7 @@ def build_env_cfg(
 
     env_cfg.observations = _observations(cfg, purpose)
     env_cfg.rewards = reward_terms(cfg.reward)
-    env_cfg.terminations = _terminations(cfg)
+    env_cfg.terminations = _terminations(cfg, purpose)
     env_cfg.events = _reset_events(base_events)
     camera = cfg.depth.name if purpose in ("student", "eval") else None
     dr = cfg.dr if purpose != "eval" or cfg.eval.randomization else replace(cfg.dr, name="none")

@@ -61,6 +61,36 @@ class CourseRuler:
         return progress >= self.goal_distance
 
 
+def eval_cells(
+    first: int, count: int, num_rows: int, num_cols: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(level, column) of evaluation rollouts ``first .. first + count - 1``.
+
+    Rollout i runs on level ``i mod R`` and column ``(i // R + i mod R) mod C`` (R levels, C
+    columns):
+    every R consecutive rollouts visit every level once, and every R * C consecutive ones every
+    (level, column) cell once (for a fixed level, i // R runs through all C columns). So any
+    number n of rollouts puts floor(n / R) or ceil(n / R) on each level and spreads each level's
+    rollouts over its courses as evenly as it can: the plain mean over rollouts weights every
+    level (nearly) equally, whatever n and however many envs run in parallel.
+    """
+    i = torch.arange(first, first + count)
+    return i % num_rows, (i // num_rows + i % num_rows) % num_cols
+
+
+def assign_eval_cells(env: ManagerBasedRlEnv, first: int) -> None:
+    """Put env e on the course cell of rollout ``first + e`` (:func:`eval_cells`); takes effect
+    at the next reset (the reset events spawn at ``env_origins``, the reference command and the
+    ruler look the cell up from ``terrain_levels`` / ``terrain_types``)."""
+    terrain = env.scene.terrain
+    rows, cols = terrain.terrain_origins.shape[:2]
+    levels, types = eval_cells(first, env.num_envs, rows, cols)
+    dev = terrain.terrain_levels.device
+    terrain.terrain_levels[:] = levels.to(dev, terrain.terrain_levels.dtype)
+    terrain.terrain_types[:] = types.to(dev, terrain.terrain_types.dtype)
+    terrain.env_origins[:] = terrain.terrain_origins[terrain.terrain_levels, terrain.terrain_types]
+
+
 def course_levels(
     env: ManagerBasedRlEnv,
     env_ids: torch.Tensor,

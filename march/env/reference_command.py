@@ -7,11 +7,19 @@ outputs ``y_ref`` (:func:`march.reference.reference_at`) and the measured output
 the CLF value V with its derivative.
 
 Decisions (documented here once; the README repeats them)
-- **Velocity command.** mjlab's ``twist`` command stays the one velocity command (sampled once per
-  episode from ``env.command_vx/vy/yaw_rate``; the proprioceptive ``command`` observation and the
-  distillation code read it). This term reads it: its body-frame (vx, vy) is rotated into the
-  world frame with the pelvis-yaw reference before planning; the yaw rate drives the pelvis-yaw
-  reference.
+- **Velocity command, in the course frame** (issue 10). mjlab's ``twist`` command stays the one
+  velocity command of both reward arms (the proprioceptive ``command`` observation and the
+  distillation code read it): a forward speed sampled once per episode from ``env.command_vx``
+  (``eval.command_vx`` in evaluation), lateral speed ``env.command_vy`` (0 by default), and a
+  yaw rate that is mjlab's heading controller toward the course heading (march.env.build). This
+  term plans with the forward speed along the course direction (``Footholds.direction``) and
+  the lateral speed across it, whatever the robot's heading; the pelvis- and swing-yaw
+  references are the course heading (yaw rate 0). Before, (vx, vy) were rotated by a yaw
+  reference that integrated a sampled yaw rate, which led the plan and the yaw references off
+  the straight course (goal reached on 0-6% of walks at 0.1-0.2 rad/s).
+- **Start from standing.** The first step of an episode ramps its CoM reference from rest at the
+  measured CoM into the HLIP orbit (``march.reference``, ``StepState.ramp``); later steps (and
+  timeout restarts) start on the orbit as before.
 - **Initial stance (episode reset).** The foot that is further behind along the course direction
   is the stance foot; when the feet are level within ``stance_tie_m`` (the usual spawn) the left
   foot is the stance foot, so the right foot swings first. The first plan starts from that foot
@@ -156,9 +164,13 @@ class ReferenceCommand(CommandTerm):
         """(E, N) current plan: step durations [s]."""
         self.plan_feasible = torch.ones(e, dtype=torch.bool, device=dev)
         """(E,) the current plan met every planner constraint."""
+        self.plan_stalled = torch.zeros(e, dtype=torch.bool, device=dev)
+        """(E,) the current plan's stall flag (``Plan.stalled``): some step could not keep the
+        commanded pace while the goal lay ahead."""
         self.tau = torch.zeros(e, device=dev)
         """(E,) time since the current step began [s]."""
         self.yaw0 = torch.zeros(e, device=dev)
+        """(E,) pelvis-yaw reference: the course heading [rad] (set at each episode start)."""
         self.step_switched = torch.zeros(e, dtype=torch.bool, device=dev)
         """(E,) the reference switched (touchdown, restart or reset) in the last update."""
         self.touchdown_count = torch.zeros(e, dtype=torch.long, device=dev)
@@ -180,6 +192,8 @@ class ReferenceCommand(CommandTerm):
             yaw0=torch.zeros(e, device=dev),
             yaw_rate=torch.zeros(e, device=dev),
             axis=torch.tensor([[1.0, 0.0]], device=dev).repeat(e, 1),
+            ramp=torch.zeros(e, dtype=torch.bool, device=dev),
+            ramp_from=torch.zeros(e, 2, device=dev),
         )
         self.y_ref_pos = torch.zeros(e, NUM_OUTPUTS, device=dev)
         """(E, 29) reference outputs at the current tau (CLF_OUTPUT_NAMES order)."""
@@ -246,12 +260,12 @@ class ReferenceCommand(CommandTerm):
             self.stance_is_left[td] = ~self.stance_is_left[td]
             self.touchdown_count[td] += 1
             self.metrics["touchdowns"][td] += 1.0
-            self._new_step(td, advance_yaw=True)
+            self._new_step(td)
         if timeout.any():
             to = timeout.nonzero().flatten()
             self.forced_count[to] += 1
             self.metrics["timeouts"][to] += 1.0
-            self._new_step(to, advance_yaw=True)
+            self._new_step(to)
         self._refresh_outputs()
 
     # ---------------------------------------------------------------- planning
@@ -273,13 +287,13 @@ class ReferenceCommand(CommandTerm):
         found = self.sensor.data.found
         return found[:, self._contact_idx] > 0
 
-    def _world_command(self, env_ids: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
-        """(n, 3) velocity command [vx, vy, yaw_rate] with vx, vy rotated into the world frame."""
+    def _world_command(self, env_ids: torch.Tensor, footholds: Footholds) -> torch.Tensor:
+        """(n, 3) planner command [vx, vy, yaw_rate], world frame: the twist command's forward
+        speed along the course direction and its lateral speed across it (module docstring)."""
         cmd = self._env.command_manager.get_command(self.cfg.velocity_command)[env_ids]
-        c, s = torch.cos(yaw), torch.sin(yaw)
-        vx = c * cmd[:, 0] - s * cmd[:, 1]
-        vy = s * cmd[:, 0] + c * cmd[:, 1]
-        return torch.stack([vx, vy, cmd[:, 2]], dim=-1)
+        axis, lat = course_frame(footholds)
+        vxy = cmd[:, 0:1] * axis + cmd[:, 1:2] * lat
+        return torch.cat([vxy, cmd[:, 2:3]], dim=-1)
 
     def _start_episode(self, env_ids: torch.Tensor) -> None:
         feet = self.feet_pos()[env_ids]
@@ -287,29 +301,28 @@ class ReferenceCommand(CommandTerm):
         along = (feet[..., :2] * axis[:, None]).sum(-1)  # (n, 2)
         right_behind = along[:, 1] < along[:, 0] - self.cfg.stance_tie_m
         self.stance_is_left[env_ids] = ~right_behind
-        self.yaw0[env_ids] = self.robot.data.heading_w[env_ids]
+        self.yaw0[env_ids] = torch.atan2(axis[:, 1], axis[:, 0])  # the course heading
         self.tau[env_ids] = 0.0
         self._pending[env_ids] = False
-        self._new_step(env_ids, advance_yaw=False)
+        com = self._env.sim.data.subtree_com[env_ids, self._root_body, :2]
+        self._new_step(env_ids, ramp_from=com)
 
     def replan(self, env_ids: torch.Tensor) -> Plan:
         """Plan from the current stance foot of ``env_ids`` and make step 0 the current step.
 
         Used at reset, touchdown and timeout; public so tools and tests can force a replan.
         """
-        return self._new_step(env_ids, advance_yaw=False)
+        return self._new_step(env_ids)
 
-    def _new_step(self, env_ids: torch.Tensor, advance_yaw: bool) -> Plan:
-        if advance_yaw:
-            self.yaw0[env_ids] = wrap_to_pi(
-                self.yaw0[env_ids] + self.step.yaw_rate[env_ids] * self.tau[env_ids]
-            )
+    def _new_step(self, env_ids: torch.Tensor, ramp_from: torch.Tensor | None = None) -> Plan:
+        """Replan ``env_ids`` from their stance foot and start step 0 of the plan; ``ramp_from``
+        (n, 2): measured CoM of envs starting from standing (episode start)."""
         feet = self.feet_pos()[env_ids]  # (n, 2, 3)
         left = self.stance_is_left[env_ids]
         stance = torch.where(left[:, None], feet[:, 0], feet[:, 1])
         swing = torch.where(left[:, None], feet[:, 1], feet[:, 0])
         fh = self.footholds.index(env_ids)
-        cmd = self._world_command(env_ids, self.yaw0[env_ids])
+        cmd = self._world_command(env_ids, fh)
         plan = plan_footsteps(
             stance[:, :2].contiguous(), left, cmd, fh, self.cfg.planner, self.generator
         )
@@ -319,8 +332,9 @@ class ReferenceCommand(CommandTerm):
             stance_pos=plan.start,
             swing_start=swing,
             yaw0=self.yaw0[env_ids],
-            yaw_rate=cmd[:, 2],
+            yaw_rate=torch.zeros_like(cmd[:, 2]),  # the yaw reference holds the course heading
             axis=axis,
+            ramp_from=ramp_from,
         )
         for name in (
             "stance_pos",
@@ -333,12 +347,15 @@ class ReferenceCommand(CommandTerm):
             "yaw0",
             "yaw_rate",
             "axis",
+            "ramp",
+            "ramp_from",
         ):
             getattr(self.step, name)[env_ids] = getattr(st, name)
         self.stance_anchor[env_ids] = stance
         self.plan_footholds[env_ids] = plan.footholds
         self.plan_durations[env_ids] = plan.durations
         self.plan_feasible[env_ids] = plan.feasible
+        self.plan_stalled[env_ids] = plan.stalled
         self.tau[env_ids] = 0.0
         self.step_switched[env_ids] = True
         self.replan_count[env_ids] += 1

@@ -1,14 +1,28 @@
-"""Checkpoints: written atomically, carrying the config and layout they were trained with."""
+"""Checkpoints: plain data, written atomically, carrying the config and layout they were trained with.
+
+A checkpoint is a ``torch.save`` file of plain data only: tensors, numbers, strings, bytes, None,
+and lists / tuples / dicts of them. It is read with ``torch.load(weights_only=True)``, whose
+unpickler builds tensors and containers and calls no function the file names, so a crafted file
+cannot run code on the machine that loads it. :func:`load_checkpoint` is the one place in march
+that reads a checkpoint (``tests/test_checkpoint.py`` greps the package to keep it so).
+"""
 
 from __future__ import annotations
 
+import dataclasses
+import enum
 import json
 import os
+import pickle
 import re
 import tempfile
-from pathlib import Path
+import warnings
+from collections import OrderedDict
+from collections.abc import Mapping
+from pathlib import Path, PurePath
 from typing import Any
 
+import numpy as np
 import torch
 
 LATEST = "latest.pt"
@@ -45,7 +59,11 @@ def write_json_atomic(obj: Any, path: Path) -> None:
 
 
 def save_checkpoint(payload: dict[str, Any], directory: Path, iteration: int) -> Path:
-    """``model_<it>.pt`` plus ``latest.pt`` (both atomic)."""
+    """``model_<it>.pt`` plus ``latest.pt`` (both atomic); the payload must be plain data."""
+    bad = non_plain(payload)
+    if bad is not None:
+        # A programming error, not a user one: refuse to write a file that load_checkpoint refuses.
+        raise TypeError(f"checkpoint payload holds {bad}; convert it with to_plain() before saving")
     path = directory / f"model_{iteration:06d}.pt"
     save_atomic(payload, path)
     save_atomic(payload, directory / LATEST)
@@ -62,8 +80,110 @@ def latest_checkpoint(directory: Path) -> Path | None:
     return found[-1] if found else None
 
 
+#: Leaf types a checkpoint may hold, matched exactly (a subclass, e.g. an IntEnum, is a class
+#: the weights-only unpickler would have to build). ``nn.Parameter`` is a tensor it knows.
+PLAIN_LEAVES = (torch.Tensor, torch.nn.Parameter, str, bytes, int, float, bool, type(None))
+#: Containers: ``state_dict()`` returns an OrderedDict; ``torch.Size`` is a tuple.
+PLAIN_MAPS = (dict, OrderedDict)
+PLAIN_SEQS = (list, tuple, torch.Size)
+
+#: Top-level payload keys holding a torch RNG state (``torch.get_rng_state()``,
+#: ``torch.Generator.get_state()``): a 1-D uint8 CPU tensor for CPU and CUDA generators alike.
+TORCH_RNG_KEYS = ("rng", "generator")
+
+
+def non_plain(obj: Any, where: str = "payload") -> str | None:
+    """Where ``obj`` holds something other than plain data (e.g. "a Path at payload['x']"), or None."""
+    if type(obj) in PLAIN_MAPS:
+        for k, v in obj.items():
+            if type(k) not in (str, int):  # str keys; int keys in optimizer states
+                return f"a {type(k).__name__} key at {where}"
+            found = non_plain(v, f"{where}[{k!r}]")
+            if found:
+                return found
+        return None
+    if type(obj) in PLAIN_SEQS:
+        for i, v in enumerate(obj):
+            found = non_plain(v, f"{where}[{i}]")
+            if found:
+                return found
+        return None
+    return None if type(obj) in PLAIN_LEAVES else f"a {type(obj).__name__} at {where}"
+
+
+def to_plain(obj: Any) -> Any:
+    """``obj`` with numpy arrays/scalars, paths, enums, dataclasses and generators made plain data.
+
+    For re-saving an older checkpoint from a trusted source (README, "Checkpoints are plain
+    data"); anything else that is not plain raises TypeError naming its type.
+    """
+    if isinstance(obj, torch.Generator):
+        return obj.get_state()
+    if isinstance(obj, np.ndarray):
+        return torch.from_numpy(np.ascontiguousarray(obj))
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, PurePath):
+        return str(obj)
+    if isinstance(obj, enum.Enum):
+        return to_plain(obj.value)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return to_plain(dataclasses.asdict(obj))
+    if isinstance(obj, Mapping):
+        return {to_plain(k): to_plain(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [to_plain(v) for v in obj]
+    if isinstance(obj, tuple):
+        return tuple(to_plain(v) for v in obj)
+    if obj is None or type(obj) in PLAIN_LEAVES:
+        return obj
+    if isinstance(obj, torch.Tensor):  # a tensor subclass: keep the data, drop the class
+        return obj.detach().as_subclass(torch.Tensor)
+    for base in (bool, int, float, str, bytes):  # e.g. a str subclass
+        if isinstance(obj, base):
+            return base(obj)
+    raise TypeError(f"{type(obj).__module__}.{type(obj).__qualname__} is not plain data")
+
+
+def _why_refused(err: BaseException) -> tuple[bool, str]:
+    """(names code, one-line reason) from torch's multi-paragraph weights-only error."""
+    text = str(err)
+    named = re.search(r"GLOBAL ([\w.]+)", text)
+    if named:
+        return True, f"loading it would call {named.group(1)}"
+    detail = re.search(r"WeightsUnpickler error:\s*([^\n]+)", text)
+    return False, (detail.group(1).strip() if detail else "not a torch.save file")
+
+
+def _place(obj: Any, device: str, key: Any = None) -> Any:
+    """Tensors onto ``device``, except optimizer step counts, which stay on the CPU.
+
+    torch.optim keeps a non-capturable optimizer's ``step`` on the CPU (it moves it itself when
+    the optimizer is capturable or fused); on a GPU it would cost a host sync per parameter.
+    """
+    if isinstance(obj, torch.Tensor):
+        return obj if key == "step" else obj.to(device)
+    if isinstance(obj, dict):
+        placed = type(obj)((k, _place(v, device, k)) for k, v in obj.items())
+        if hasattr(obj, "_metadata"):  # a state_dict's module versions, read by load_state_dict
+            placed._metadata = obj._metadata
+        return placed
+    if isinstance(obj, list):
+        return [_place(v, device) for v in obj]
+    if isinstance(obj, tuple) and not isinstance(obj, torch.Size):
+        return tuple(_place(v, device) for v in obj)
+    return obj
+
+
 def load_checkpoint(path: str | Path, kind: str, device: str = "cpu") -> dict[str, Any]:
-    """Load a march checkpoint of ``kind`` (teacher | student) or raise CheckpointError."""
+    """Load a march checkpoint of ``kind`` (teacher | student) or raise CheckpointError.
+
+    Only plain data is read (``weights_only=True``): a file that names any Python callable is
+    refused with one line, and nothing in it runs. Model and optimizer tensors come back on
+    ``device``; torch RNG states (``rng``, ``generator``) always come back as CPU uint8 tensors,
+    the only form ``torch.set_rng_state`` and ``Generator.set_state`` accept, so a checkpoint
+    written on one device resumes on any other (CPU, ``cuda``, ``cuda:1``, ``meta``).
+    """
     p = Path(path)
     if not p.is_file():
         raise CheckpointError(
@@ -71,13 +191,51 @@ def load_checkpoint(path: str | Path, kind: str, device: str = "cpu") -> dict[st
             f"(outputs/<run>/{kind}/latest.pt)"
         )
     try:
-        payload = torch.load(p, map_location=device, weights_only=False)
+        # Read onto the CPU whatever device wrote it (a GPU run's file loads on a CPU-only
+        # machine); tensors are moved afterwards, RNG states never. torch warns about unusual
+        # pickle protocols on stderr: the outcome is reported as one line instead.
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            payload = torch.load(p, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as err:
+        names_code, why = _why_refused(err)
+        if names_code:
+            raise CheckpointError(
+                f"{kind}_ckpt={path}: refused: {why}, and a march checkpoint is plain data "
+                "(tensors, numbers, strings, lists, dicts); nothing in the file was run. Re-save "
+                "it from a trusted environment (README: Checkpoints are plain data) or retrain"
+            ) from None
+        raise CheckpointError(f"{kind}_ckpt={path}: not a readable checkpoint ({why})") from None
     except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
-        raise CheckpointError(f"{kind}_ckpt={path}: not a readable checkpoint ({err})") from err
+        # torch's messages run to several sentences; the first names the fault.
+        text = str(err).strip()
+        why = text.splitlines()[0].split(". ")[0].rstrip(".") if text else type(err).__name__
+        raise CheckpointError(
+            f"{kind}_ckpt={path}: not a readable checkpoint (truncated or corrupt: {why})"
+        ) from None
     if not isinstance(payload, dict) or payload.get("kind") != kind:
         found = payload.get("kind") if isinstance(payload, dict) else type(payload).__name__
         raise CheckpointError(f"{kind}_ckpt={path}: this is a {found!r} checkpoint, not a {kind}")
-    return payload
+    # weights_only also rebuilds types other libraries allow-listed (tensordict's TensorDict):
+    # harmless to load, but not what a march checkpoint holds.
+    bad = non_plain(payload)
+    if bad is not None:
+        raise CheckpointError(
+            f"{kind}_ckpt={path}: holds {bad}, which is not plain data; re-save it from a "
+            "trusted environment (README: Checkpoints are plain data) or retrain"
+        )
+    for key in TORCH_RNG_KEYS:
+        state = payload.get(key)
+        if key in payload and not (
+            isinstance(state, torch.Tensor) and state.dtype == torch.uint8 and state.dim() == 1
+        ):
+            raise CheckpointError(
+                f"{kind}_ckpt={path}: '{key}' is not a torch RNG state (a 1-D uint8 tensor)"
+            )
+    return {
+        k: v.to("cpu").contiguous() if k in TORCH_RNG_KEYS else _place(v, device, k)
+        for k, v in payload.items()
+    }
 
 
 def check_layout(

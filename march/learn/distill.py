@@ -3,14 +3,15 @@
 Our own runner, because rsl-rl 5.4.2's Distillation offers only MSE/Huber and mjlab 1.6.0 ships no
 distillation runner. The loss is the student's own (:meth:`StudentPolicy.distill_loss`): NLL of
 ``teacher_samples`` actions drawn from N(teacher mean, (teacher_std_scale * teacher std)^2) for
-the MDN students, Huber against the teacher mean for ``no_mdn``. Every ``gradient_length``
-consecutive steps of a rollout make one optimiser step; ``num_learning_epochs`` passes per rollout.
+the MDN students, Huber against the teacher mean for ``no_mdn``. The losses of every
+``gradient_length`` consecutive steps of a rollout are summed into one optimiser step (rsl-rl's
+convention, :func:`distill_update`); ``num_learning_epochs`` passes per rollout.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -74,6 +75,44 @@ def student_policy(
         return student.act_inference(*student_inputs(env, obs))
 
     return act
+
+
+def distill_update(
+    model: torch.nn.Module,
+    optimizer: torch.optim.Optimizer,
+    steps: Sequence[Any],
+    step_loss: Callable[[Any], tuple[torch.Tensor, dict[str, float]]],
+    num_epochs: int,
+    gradient_length: int,
+    max_grad_norm: float,
+) -> dict[str, float]:
+    """``num_epochs`` passes over a rollout's ``steps``; the losses of every ``gradient_length``
+    consecutive steps are summed into one optimiser step.
+
+    rsl-rl 5.4.2's ``Distillation.update`` exactly: the step counter runs on across epochs (a
+    group may span two), the summed loss is back-propagated when the count reaches a multiple of
+    ``gradient_length``, gradients are clipped to ``max_grad_norm``, and steps left over at the
+    very end (when ``num_epochs * len(steps)`` is not a multiple) make no optimiser step. Returns
+    the mean of each ``info`` entry over every step seen.
+    """
+    totals: dict[str, float] = {}
+    count = 0
+    loss: torch.Tensor | None = None
+    for _ in range(num_epochs):
+        for step in steps:
+            step_value, info = step_loss(step)
+            loss = step_value if loss is None else loss + step_value  # a sum, not a mean
+            for k, v in info.items():
+                totals[k] = totals.get(k, 0.0) + float(v)
+            count += 1
+            if count % gradient_length == 0:
+                optimizer.zero_grad()
+                loss.backward()
+                if max_grad_norm:
+                    torch.nn.utils.clip_grad_norm_(model.parameters(), max_grad_norm)
+                optimizer.step()
+                loss = None
+    return {k: v / max(count, 1) for k, v in totals.items()}
 
 
 class DistillRunner:
@@ -173,32 +212,29 @@ class DistillRunner:
         self.student.train()
         for proprio, command, _, _, _ in steps:
             self.student.update_normalization(proprio, command)
-        totals: dict[str, float] = {}
-        count = 0
-        for _ in range(d.num_learning_epochs):
-            for start in range(0, len(steps), d.gradient_length):
-                chunk = steps[start : start + d.gradient_length]
-                loss = torch.zeros((), device=self.device)
-                for proprio, command, depth, mean, std in chunk:
-                    step_loss, info = self.student.distill_loss(
-                        proprio,
-                        command,
-                        depth,
-                        mean,
-                        std,
-                        num_samples=d.teacher_samples,
-                        std_scale=d.teacher_std_scale,
-                        generator=self.generator,
-                    )
-                    loss = loss + step_loss / len(chunk)
-                    for k, v in info.items():
-                        totals[k] = totals.get(k, 0.0) + float(v)
-                    count += 1
-                self.optimizer.zero_grad()
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(self.student.parameters(), d.max_grad_norm)
-                self.optimizer.step()
-        return {k: v / max(count, 1) for k, v in totals.items()}
+
+        def step_loss(step: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, dict[str, float]]:
+            proprio, command, depth, mean, std = step
+            return self.student.distill_loss(
+                proprio,
+                command,
+                depth,
+                mean,
+                std,
+                num_samples=d.teacher_samples,
+                std_scale=d.teacher_std_scale,
+                generator=self.generator,
+            )
+
+        return distill_update(
+            self.student,
+            self.optimizer,
+            steps,
+            step_loss,
+            d.num_learning_epochs,
+            d.gradient_length,
+            d.max_grad_norm,
+        )
 
     def learn(self, total_iterations: int) -> Path:
         d = self.cfg.distill

@@ -32,9 +32,14 @@ METRIC_COLUMNS = (
 )
 
 EVAL_METRICS = ("distance_m", "success_rate", "abs_torque_nm", "abs_ang_jerk", "reward")
-EVAL_COLUMNS = ("stage", "iteration", "env_steps", "n_rollouts") + tuple(
-    f"{p}_{m}" for m in EVAL_METRICS for p in ("mean", "se")
+EVAL_COLUMNS = (
+    ("stage", "iteration", "env_steps", "n_rollouts")
+    + tuple(f"{p}_{m}" for m in EVAL_METRICS for p in ("mean", "se"))
+    + ("n_torque", "n_jerk")
 )
+"""eval.csv: one row per evaluation. ``stage`` is teacher (the teacher during PPO, iteration and
+env_steps of the teacher) or student (during distillation and the final evaluation);
+``n_torque`` / ``n_jerk`` count the rollouts long enough for the torque / jerk means."""
 
 
 def truncate_rows(path: Path, stage: str, after_iteration: int) -> None:
@@ -52,6 +57,17 @@ def truncate_rows(path: Path, stage: str, after_iteration: int) -> None:
         writer.writeheader()
         writer.writerows(keep)
     os.replace(tmp, path)
+
+
+def has_row(path: Path, stage: str, iteration: int) -> bool:
+    """Whether ``path`` (a CSV with stage and iteration columns) holds a row of that stage and
+    iteration."""
+    if not path.is_file():
+        return False
+    with path.open(newline="") as f:
+        return any(
+            r["stage"] == stage and int(r["iteration"]) == iteration for r in csv.DictReader(f)
+        )
 
 
 def append_row(path: Path, columns: tuple[str, ...], row: dict[str, Any]) -> None:

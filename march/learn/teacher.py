@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -28,7 +29,10 @@ from march.learn.checkpoint import (
     load_checkpoint,
     save_checkpoint,
 )
-from march.learn.metrics import MetricsLog, Progress
+from march.learn.metrics import MetricsLog, Progress, has_row, truncate_rows
+
+TeacherEval = Callable[[MLPModel, int, int], dict[str, Any]]
+"""(deterministic actor, teacher iteration, teacher env steps) -> the eval.csv row it appended."""
 
 
 def ppo_train_cfg(t: TeacherCfg) -> dict[str, Any]:
@@ -140,10 +144,24 @@ class EpisodeStats:
 
 
 class TeacherRunner:
-    """PPO on the teacher env; checkpoints in ``<run>/teacher/``; resumes by itself."""
+    """PPO on the teacher env; checkpoints in ``<run>/teacher/``; resumes by itself.
 
-    def __init__(self, env: ManagerBasedRlEnv, cfg: MarchConfig, run_dir: Path, log: MetricsLog):
+    With ``evaluate_fn`` the current teacher is evaluated every ``teacher.eval_interval``
+    iterations and at the end of the stage (``stage=teacher`` rows of eval.csv); an evaluation
+    runs before that iteration's checkpoint, so a resumed run drops and redoes exactly the rows
+    past its checkpoint.
+    """
+
+    def __init__(
+        self,
+        env: ManagerBasedRlEnv,
+        cfg: MarchConfig,
+        run_dir: Path,
+        log: MetricsLog,
+        evaluate_fn: TeacherEval | None = None,
+    ):
         self.cfg, self.run_dir, self.log = cfg, run_dir, log
+        self.evaluate_fn = evaluate_fn
         self.device = cfg.compute.device
         self.env = RslRlVecEnvWrapper(env)
         self.ruler = CourseRuler(env)
@@ -192,11 +210,22 @@ class TeacherRunner:
         torch.set_rng_state(payload["rng"])
         self.env.unwrapped.common_step_counter = payload.get("common_step_counter", 0)
         self.log.resume_from("teacher", self.iteration)
+        truncate_rows(self.run_dir / "eval.csv", "teacher", self.iteration)
         print(f"[teacher] resuming from {path} at iteration {self.iteration}")
         return True
 
     def save(self) -> Path:
         return save_checkpoint(self.payload(), self.ckpt_dir, self.iteration)
+
+    def evaluate(self) -> None:
+        """Evaluate the current deterministic actor (a ``stage=teacher`` row of eval.csv)."""
+        if self.evaluate_fn is None:
+            return
+        self.alg.eval_mode()
+        try:
+            self.evaluate_fn(self.alg.get_policy(), self.iteration, self.env_steps)
+        finally:
+            self.alg.train_mode()
 
     def learn(self, total_iterations: int) -> Path:
         t = self.cfg.teacher
@@ -250,8 +279,17 @@ class TeacherRunner:
                 ),
                 flush=True,
             )
-            if self.iteration % t.save_interval == 0 or self.iteration == total_iterations:
+            final = self.iteration == total_iterations
+            if t.eval_interval and self.iteration % t.eval_interval == 0 and not final:
+                self.evaluate()
+            if self.iteration % t.save_interval == 0 or final:
                 last = self.save()
         if last is None:
             last = self.save()
+        # The stage's last teacher is always evaluated once (also when a finished stage is
+        # resumed, or a run died during this evaluation).
+        if self.evaluate_fn is not None and not has_row(
+            self.run_dir / "eval.csv", "teacher", self.iteration
+        ):
+            self.evaluate()
         return self.ckpt_dir / "latest.pt"

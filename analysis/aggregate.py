@@ -1,0 +1,411 @@
+"""Turn runs' rows into the curves and tables the figures show.
+
+Which rows feed what:
+
+* baseline -- ``eval.csv`` rows ``stage == "student"`` of runs with student variant ``full``,
+  grouped by reward (clf vs modelfree), per distillation iteration.
+* sample efficiency -- ``eval.csv`` rows ``stage == "teacher"`` (each teacher evaluated on the fixed
+  stone evaluation set every ``teacher.eval_interval`` iterations), grouped by reward, per teacher
+  iteration.
+* ablation -- ``eval.csv`` rows ``stage == "student"`` of clf runs, grouped by student variant.
+* teacher training diagnostic -- ``metrics.csv`` rows ``stage == "teacher"`` (training rollouts,
+  each arm on its own curriculum: not a like-for-like comparison, never used for one).
+* final metrics -- ``summary.json`` of complete runs (the final evaluation of the student, the
+  same numbers as the run's last ``eval.csv`` student row).
+
+Several seeds combine per iteration with :func:`combine` (``--se-mode``). Relative differences
+follow the paper: (clf - modelfree) / modelfree for the baseline, (variant - full) / full for the
+ablation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from analysis.rundirs import Run, eval_rows, stage_rows
+
+REFERENCE_TEACHER = "clf"  # the ablation uses students of the clf teacher
+BASELINE_ARM = "clf"  # (clf - modelfree) / modelfree
+BASELINE_REFERENCE = "modelfree"
+FULL_VARIANT = "full"
+VARIANT_ORDER = ["full", "no_transformer", "no_mdn"]
+REWARD_ORDER = ["clf", "modelfree"]
+# metric key in eval.csv / summary.json (mean_<key>, se_<key>) -> short name, axis label
+METRICS = {
+    "distance_m": ("distance", "distance traveled [m]"),
+    "success_rate": ("success", "success rate"),
+    "abs_torque_nm": ("torque", "mean |joint torque| [Nm]"),
+    "abs_ang_jerk": ("jerk", "mean |angular jerk| [rad/s^3]"),
+    "reward": ("return", "episode return (teacher's full reward)"),
+}
+COUNT_KEYS = ("n_torque", "n_jerk")  # rollouts long enough for the torque / jerk means
+TEACHER_PANELS = [
+    ("mean_reward", "mean reward per step"),
+    ("mean_episode_length", "mean episode length [steps]"),
+    ("mean_distance_m", "mean distance [m]"),
+]
+
+
+@dataclass
+class Curves:
+    """Aggregated curves per series (a reward or a variant) and the series that have none."""
+
+    series: dict[str, pd.DataFrame] = field(default_factory=dict)
+    missing: dict[str, str] = field(default_factory=dict)  # series -> why it has no curve
+
+    def __bool__(self) -> bool:
+        return bool(self.series)
+
+
+# --------------------------------------------------------------------------- statistics
+
+
+def combine(means, ses=None, mode: str = "seeds") -> tuple[float, float, int]:
+    """Combine per-run (mean, se) into (mean, se, n).
+
+    ``seeds``: mean of the run means; SE across runs std(ddof=1)/sqrt(n), a single run keeps its
+    own rollout SE. ``pooled``: SE of the mean of independent run means, sqrt(sum se_i^2)/n.
+    Runs whose mean is NaN are left out.
+    """
+    m = np.asarray(means, dtype=float)
+    s = np.full_like(m, np.nan) if ses is None else np.asarray(ses, dtype=float)
+    ok = ~np.isnan(m)
+    m, s = m[ok], s[ok]
+    n = int(m.size)
+    if n == 0:
+        return math.nan, math.nan, 0
+    mean = float(m.mean())
+    if mode == "pooled":
+        se = float(np.sqrt(np.nansum(s**2)) / n) if not np.isnan(s).all() else math.nan
+    elif n >= 2:
+        se = float(m.std(ddof=1) / math.sqrt(n))
+    else:
+        se = float(s[0])
+    return mean, se, n
+
+
+def smooth(values: pd.Series, window: int) -> pd.Series:
+    """Trailing moving average over ``window`` rows (fewer at the start)."""
+    return values.rolling(max(1, int(window)), min_periods=1).mean()
+
+
+def rel_diff(value: float, reference: float) -> float:
+    """(value - reference) / |reference|; NaN when either is missing or the reference is 0."""
+    if value is None or reference is None:
+        return math.nan
+    value, reference = float(value), float(reference)
+    if math.isnan(value) or math.isnan(reference) or reference == 0:
+        return math.nan
+    return (value - reference) / abs(reference)
+
+
+def format_rel(rel: float) -> str:
+    """Relative difference as a whole percent with sign: -0.12 -> '-12%'."""
+    if rel is None or math.isnan(rel):
+        return "n/a"
+    return f"{int(round(rel * 100)):+d}%"
+
+
+def _ordered(keys, order):
+    return sorted(keys, key=lambda k: (order.index(k) if k in order else len(order), str(k)))
+
+
+# --------------------------------------------------------------------------- evaluation curves
+
+
+def aggregate_eval(frames: list[pd.DataFrame], mode: str) -> pd.DataFrame:
+    """Per iteration over several runs' eval rows: n (runs), env_steps, n_rollouts, and
+    mean_/se_/n_ of every metric in METRICS (NaN where no run has the column: older files)."""
+    cat = pd.concat(frames, ignore_index=True)
+    records = []
+    for it, rows in cat.groupby("iteration"):
+        rec = {"iteration": it, "n": len(rows)}
+        rec["env_steps"] = rows["env_steps"].mean() if "env_steps" in rows.columns else math.nan
+        if "n_rollouts" in rows.columns:
+            rec["n_rollouts"] = rows["n_rollouts"].sum()
+        for key in METRICS:
+            mcol, scol = f"mean_{key}", f"se_{key}"
+            if mcol not in rows.columns:
+                rec[mcol], rec[scol], rec[f"n_{key}"] = math.nan, math.nan, 0
+                continue
+            ses = rows[scol] if scol in rows.columns else None
+            rec[mcol], rec[scol], rec[f"n_{key}"] = combine(rows[mcol], ses, mode)
+        records.append(rec)
+    return pd.DataFrame(records).sort_values("iteration").reset_index(drop=True)
+
+
+def _eval_curves(
+    runs: list[Run], stage: str, key_of, series: list[str], mode: str, what: str
+) -> Curves:
+    """Group runs by ``key_of(run)`` and aggregate their ``stage`` eval rows per iteration."""
+    out = Curves()
+    for name in _ordered(set(series) | {key_of(r) for r in runs}, series):
+        group = [r for r in runs if key_of(r) == name]
+        frames = [f for f in (eval_rows(r, stage) for r in group) if f is not None]
+        if frames:
+            out.series[name] = aggregate_eval(frames, mode)
+        else:
+            out.missing[name] = (
+                f"no {what}runs"
+                if not group
+                else f"no eval.csv {stage} rows in {len(group)} run{'s' * (len(group) > 1)}"
+            )
+    return out
+
+
+def baseline_data(runs: list[Run], mode: str, notes: list[str]) -> Curves:
+    """reward -> eval.csv student rows of the runs with student variant ``full``."""
+    full = [r for r in runs if r.variant == FULL_VARIANT]
+    out = _eval_curves(
+        runs=full,
+        stage="student",
+        key_of=lambda r: r.reward,
+        series=REWARD_ORDER,
+        mode=mode,
+        what=f"{FULL_VARIANT}-student ",
+    )
+    for name, why in out.missing.items():
+        notes.append(f"baseline: {name}/{FULL_VARIANT} has {why}")
+    return out
+
+
+def sample_efficiency_data(runs: list[Run], mode: str, notes: list[str]) -> Curves:
+    """reward -> eval.csv teacher rows (every teacher.eval_interval teacher iterations)."""
+    out = _eval_curves(
+        runs=runs,
+        stage="teacher",
+        key_of=lambda r: r.reward,
+        series=REWARD_ORDER,
+        mode=mode,
+        what="",
+    )
+    for name, why in out.missing.items():
+        notes.append(f"sample_efficiency: {name} has {why}")
+    return out
+
+
+def ablation_data(runs: list[Run], mode: str, notes: list[str]) -> Curves:
+    """variant -> eval.csv student rows of the clf teacher's students."""
+    rewards = {r.reward for r in runs if eval_rows(r, "student") is not None}
+    cand = [r for r in runs if r.reward == REFERENCE_TEACHER]
+    if rewards - {REFERENCE_TEACHER}:
+        others = ", ".join(sorted(rewards - {REFERENCE_TEACHER}))
+        notes.append(f"ablation: clf teacher only; student rows of reward {others} not used")
+    out = _eval_curves(
+        runs=cand,
+        stage="student",
+        key_of=lambda r: r.variant,
+        series=VARIANT_ORDER,
+        mode=mode,
+        what=f"{REFERENCE_TEACHER} ",
+    )
+    for name, why in out.missing.items():
+        notes.append(f"ablation: variant {name} has {why}")
+    return out
+
+
+def first_reach(iterations, values, target: float):
+    """Index of the first value >= target, or None."""
+    hit = np.nonzero(np.asarray(values, dtype=float) >= target)[0]
+    return None if hit.size == 0 else int(hit[0])
+
+
+SE_COLUMNS = [
+    "reward",
+    "n_runs",
+    "target_distance_m",
+    "iteration",
+    "env_steps",
+    "result",
+    "vs_modelfree",
+    "per_run",
+    "source",
+]
+
+
+def sample_efficiency(
+    runs: list[Run], curves: Curves, target: float, notes: list[str]
+) -> pd.DataFrame:
+    """Per reward: first teacher iteration (and env steps) at which the seed-mean evaluation
+    distance (eval.csv teacher rows, no smoothing) reaches ``target``; per run the same."""
+    records = []
+    for reward, curve in curves.series.items():
+        idx = first_reach(curve["iteration"], curve["mean_distance_m"], target)
+        it = None if idx is None else int(curve["iteration"].iloc[idx])
+        steps = None if idx is None else float(curve["env_steps"].iloc[idx])
+        per_run = []
+        for r in runs:
+            rows = eval_rows(r, "teacher") if r.reward == reward else None
+            if rows is None or "mean_distance_m" not in rows.columns:
+                continue
+            j = first_reach(rows["iteration"], rows["mean_distance_m"], target)
+            per_run.append(f"{r.label}:{'not reached' if j is None else int(rows['iteration'][j])}")
+        records.append(
+            {
+                "reward": reward,
+                "n_runs": int(curve["n"].max()),
+                "target_distance_m": target,
+                "iteration": it,
+                "env_steps": steps,
+                "result": "reached" if it is not None else "not reached",
+                "vs_modelfree": "",
+                "per_run": " ".join(per_run),
+                "source": "eval.csv teacher rows (fixed stone evaluation set)",
+            }
+        )
+    eff = pd.DataFrame(records, columns=SE_COLUMNS)
+    by = {row["reward"]: row for _, row in eff.iterrows()}
+    arm, ref = by.get(BASELINE_ARM), by.get(BASELINE_REFERENCE)
+    if arm is not None and ref is not None:
+        if arm["result"] == ref["result"] == "reached":
+            rel_it = rel_diff(arm["iteration"], ref["iteration"])
+            rel_steps = rel_diff(arm["env_steps"], ref["env_steps"])
+            text = f"iterations {format_rel(rel_it)}, env steps {format_rel(rel_steps)}"
+        else:
+            text = "n/a (target not reached by both)"
+        eff.loc[eff["reward"] == BASELINE_ARM, "vs_modelfree"] = text
+    if not eff.empty and (eff["result"] == "not reached").all():
+        notes.append(f"sample_efficiency: no arm reaches {target:g} m (see --target-distance)")
+    return eff
+
+
+# --------------------------------------------------------------------------- training diagnostic
+
+
+def aggregate_curves(per_run: list[pd.DataFrame], column: str) -> pd.DataFrame:
+    """Per iteration: mean across runs and SE across runs (NaN where only one run)."""
+    cat = pd.concat(per_run, ignore_index=True)
+    g = cat.groupby("iteration")[column]
+    out = pd.DataFrame({"mean": g.mean(), "n": g.count()})
+    out["se"] = g.std(ddof=1) / np.sqrt(out["n"])
+    if "env_steps" in cat.columns:
+        out["env_steps"] = cat.groupby("iteration")["env_steps"].mean()
+    return out.reset_index()
+
+
+def teacher_training_data(runs: list[Run], window: int, notes: list[str]) -> dict[str, dict]:
+    """reward -> {metrics.csv column: smoothed curve, mean and SE across runs} (diagnostic)."""
+    out: dict[str, dict] = {}
+    for reward in _ordered({r.reward for r in runs}, REWARD_ORDER):
+        curves = {}
+        for col, _ in TEACHER_PANELS:
+            per_run = []
+            for r in runs:
+                rows = stage_rows(r.metrics, "teacher", col) if r.reward == reward else None
+                if rows is None:
+                    continue
+                d = {"iteration": rows["iteration"].to_numpy(), col: smooth(rows[col], window)}
+                if "env_steps" in rows.columns:
+                    d["env_steps"] = rows["env_steps"].to_numpy()
+                per_run.append(pd.DataFrame(d))
+            if per_run:
+                curves[col] = aggregate_curves(per_run, col)
+        if curves:
+            out[reward] = curves
+        else:
+            notes.append(
+                f"teacher_curves: skip {reward} (no metrics.csv teacher rows with reward, "
+                "episode length or distance: no training episode ended?)"
+            )
+    return out
+
+
+# --------------------------------------------------------------------------- final metrics
+
+
+def _final_runs(runs: list[Run], notes: list[str]) -> list[Run]:
+    """Complete runs whose summary.json is a student's final evaluation."""
+    skipped = [r for r in runs if r.summary is not None and not r.complete]
+    if skipped:
+        notes.append(
+            "final_metrics: summary.json of non-complete runs not used: "
+            + ", ".join(r.label for r in skipped)
+        )
+    out = []
+    for r in runs:
+        if not (r.complete and r.summary is not None):
+            continue
+        stage = str(r.summary.get("stage", "student"))  # older summaries carry no stage
+        if stage != "student":
+            notes.append(f"final_metrics: {r.label} evaluates a {stage} policy; not used")
+            continue
+        out.append(r)
+    return out
+
+
+def _span(values) -> str:
+    vals = sorted({int(v) for v in values if v is not None and not pd.isna(v)})
+    if not vals:
+        return ""
+    return str(vals[0]) if len(vals) == 1 else f"{vals[0]}-{vals[-1]}"
+
+
+def final_table(runs: list[Run], mode: str, notes: list[str]) -> pd.DataFrame:
+    """Per (reward, variant): the final evaluation (summary.json of complete runs) combined over
+    seeds, and the paper's relative differences: clf/full vs modelfree/full, and every other clf
+    variant vs clf/full (columns ``compared_to``, ``rel_<metric>``, ``relative``)."""
+    done = _final_runs(runs, notes)
+    groups = sorted(
+        {(r.reward, r.variant) for r in done},
+        key=lambda g: (
+            REWARD_ORDER.index(g[0]) if g[0] in REWARD_ORDER else 99,
+            VARIANT_ORDER.index(g[1]) if g[1] in VARIANT_ORDER else 99,
+            g,
+        ),
+    )
+    records = []
+    for reward, variant in groups:
+        members = [r for r in done if (r.reward, r.variant) == (reward, variant)]
+        computes = sorted({r.compute for r in members})
+        if len(computes) > 1:
+            notes.append(f"final_metrics: {reward}/{variant} mixes compute {computes}")
+        rec = {"reward": reward, "variant": variant, "n_runs": len(members)}
+        rec["n_rollouts"] = sum(int(r.summary.get("n_rollouts") or 0) for r in members)
+        rec["iteration"] = _span(r.summary.get("iteration") for r in members)
+        for count in COUNT_KEYS:  # rollouts behind torque / jerk (newer summaries only)
+            vals = [r.summary.get(count) for r in members]
+            vals = [int(v) for v in vals if v is not None and not pd.isna(v)]
+            rec[count] = sum(vals) if vals else None
+        for key in METRICS:
+            means = [r.summary.get(f"mean_{key}") for r in members]
+            ses = [r.summary.get(f"se_{key}") for r in members]
+            means = [math.nan if v is None else v for v in means]
+            ses = [math.nan if v is None else v for v in ses]
+            rec[f"mean_{key}"], rec[f"se_{key}"], _ = combine(means, ses, mode)
+        records.append(rec)
+    table = pd.DataFrame(records)
+    if table.empty:
+        return table
+    table["compared_to"] = ""
+    table["relative"] = ""
+    for key in METRICS:
+        table[f"rel_{key}"] = math.nan
+    index = {(row.reward, row.variant): i for i, row in enumerate(table.itertuples())}
+    pairs = [((BASELINE_ARM, FULL_VARIANT), (BASELINE_REFERENCE, FULL_VARIANT))]
+    pairs += [
+        ((REFERENCE_TEACHER, v), (REFERENCE_TEACHER, FULL_VARIANT))
+        for (rw, v) in index
+        if rw == REFERENCE_TEACHER and v != FULL_VARIANT
+    ]
+    for group, ref in pairs:
+        if group not in index:
+            continue
+        if ref not in index:
+            notes.append(
+                f"final_metrics: {'/'.join(ref)} has no complete runs; "
+                f"no relative differences for {'/'.join(group)}"
+            )
+            continue
+        i, j = index[group], index[ref]
+        parts = []
+        for key, (short, _) in METRICS.items():
+            rel = rel_diff(table.at[i, f"mean_{key}"], table.at[j, f"mean_{key}"])
+            table.at[i, f"rel_{key}"] = rel
+            parts.append(f"{short} {format_rel(rel)}")
+        table.at[i, "compared_to"] = "/".join(ref)
+        table.at[i, "relative"] = ", ".join(parts)
+    return table

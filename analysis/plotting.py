@@ -1,0 +1,287 @@
+"""Draw the figures from tidy point tables (one row per plotted point).
+
+Every figure is drawn from a tidy frame with the columns of ``POINT_COLUMNS``; the same frame is
+written to ``figure_data.csv``, so what a figure shows can be read back number by number. A
+series or metric without rows is named in a grey note on the axes instead of being left out
+silently.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
+
+from analysis.aggregate import METRICS, TEACHER_PANELS, Curves  # noqa: E402
+
+REWARD_COLORS = {"clf": "tab:blue", "modelfree": "tab:red"}
+VARIANT_COLORS = {"full": "tab:green", "no_transformer": "tab:blue", "no_mdn": "tab:orange"}
+FIG_EXTS = ("png", "pdf")
+POINT_COLUMNS = ["figure", "panel", "x_name", "series", "x", "y", "se", "yerr", "n"]
+X_LABELS = {
+    "student": {"iteration": "distillation iteration", "env_steps": "distillation env steps"},
+    "teacher": {"iteration": "teacher iteration", "env_steps": "teacher env steps"},
+}
+
+
+@dataclass(frozen=True)
+class FigureSpec:
+    """One evaluation figure: which metric against which x per panel, error-bar multiple."""
+
+    stem: str
+    panels: tuple[tuple[str, str], ...]  # (metric key, x column)
+    err_mult: float
+    colors: dict
+    xstage: str  # "student" or "teacher": which x labels
+    title: str
+
+
+BASELINE_ERR_MULT = 4.0  # the paper's Fig. 4 error bars
+BASELINE = FigureSpec(
+    stem="baseline",
+    panels=(
+        ("distance_m", "iteration"),
+        ("abs_torque_nm", "iteration"),
+        ("abs_ang_jerk", "iteration"),
+        ("success_rate", "iteration"),
+    ),
+    err_mult=BASELINE_ERR_MULT,
+    colors=REWARD_COLORS,
+    xstage="student",
+    title="Baseline: clf vs modelfree, student 'full' -- eval.csv student rows "
+    "(fixed evaluation set), bars = 4 x {se}",
+)
+SAMPLE_EFFICIENCY = FigureSpec(
+    stem="sample_efficiency",
+    panels=(
+        ("distance_m", "iteration"),
+        ("success_rate", "iteration"),
+        ("distance_m", "env_steps"),
+    ),
+    err_mult=1.0,
+    colors=REWARD_COLORS,
+    xstage="teacher",
+    title="Sample efficiency: teachers on the fixed stone evaluation set -- eval.csv teacher "
+    "rows, bars = 1 x {se}",
+)
+ABLATION = FigureSpec(
+    stem="ablation",
+    panels=(("reward", "iteration"), ("distance_m", "iteration"), ("success_rate", "iteration")),
+    err_mult=1.0,
+    colors=VARIANT_COLORS,
+    xstage="student",
+    title="Student ablation (clf teacher) -- eval.csv student rows (fixed evaluation set), "
+    "bars = 1 x {se}",
+)
+
+
+def se_text(mode: str) -> str:
+    return "SE across seeds" if mode == "seeds" else "pooled SE"
+
+
+def eval_points(spec: FigureSpec, curves: Curves) -> pd.DataFrame:
+    """The tidy points of an evaluation figure: per panel and series, every iteration whose
+    metric has a value; ``yerr`` = err_mult x SE (0 where the SE is unknown)."""
+    frames = []
+    for key, xcol in spec.panels:
+        for name, curve in curves.series.items():
+            if xcol not in curve.columns:
+                continue
+            rows = curve[curve[f"mean_{key}"].notna() & curve[xcol].notna()]
+            if rows.empty:
+                continue
+            se = rows[f"se_{key}"]
+            frames.append(
+                pd.DataFrame(
+                    {
+                        "figure": spec.stem,
+                        "panel": key,
+                        "x_name": xcol,
+                        "series": name,
+                        "x": rows[xcol].to_numpy(dtype=float),
+                        "y": rows[f"mean_{key}"].to_numpy(dtype=float),
+                        "se": se.to_numpy(dtype=float),
+                        "yerr": (spec.err_mult * se.fillna(0.0)).to_numpy(dtype=float),
+                        "n": rows[f"n_{key}"].to_numpy(dtype=int),
+                    }
+                )
+            )
+    if not frames:
+        return pd.DataFrame(columns=POINT_COLUMNS)
+    return pd.concat(frames, ignore_index=True)[POINT_COLUMNS]
+
+
+def _note(ax, lines: list[str]) -> None:
+    if lines:
+        ax.text(
+            0.02,
+            0.98,
+            "\n".join(lines),
+            transform=ax.transAxes,
+            va="top",
+            ha="left",
+            fontsize=7,
+            color="dimgray",
+            bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"},
+        )
+
+
+def save(fig, out: Path, stem: str, written: list[Path]) -> None:
+    for ext in FIG_EXTS:
+        p = out / f"{stem}.{ext}"
+        fig.savefig(p, dpi=150, bbox_inches="tight")
+        written.append(p)
+    plt.close(fig)
+
+
+def plot_eval_figure(
+    spec: FigureSpec,
+    points: pd.DataFrame,
+    curves: Curves,
+    mode: str,
+    out: Path,
+    written: list[Path],
+    target: float | None = None,
+    reach: pd.DataFrame | None = None,
+) -> dict[str, list[str]]:
+    """Draw ``points`` (from :func:`eval_points`) panel by panel; name what has no data.
+
+    ``target``/``reach``: a dashed target-distance line on distance panels and a dotted vertical
+    line where each series first reaches it (sample efficiency). Returns the grey notes written
+    on each panel (metric key -> lines).
+    """
+    n_panels = len(spec.panels)
+    fig, axes = plt.subplots(1, n_panels, figsize=(4.2 * n_panels, 3.8), squeeze=False)
+    names = list(curves.series) + [m for m in curves.missing if m not in curves.series]
+    panel_notes: dict[str, list[str]] = {}
+    for ax, (key, xcol) in zip(axes[0], spec.panels, strict=True):
+        notes = [f"no data: {m} ({why})" for m, why in curves.missing.items()]
+        sel = points[(points["panel"] == key) & (points["x_name"] == xcol)]
+        for name in names:
+            pts = sel[sel["series"] == name]
+            if pts.empty:
+                if name in curves.series:
+                    notes.append(f"{name}: no mean_{key} in eval.csv (older file?)")
+                continue
+            color = spec.colors.get(name)
+            ax.errorbar(
+                pts["x"],
+                pts["y"],
+                yerr=pts["yerr"],
+                marker="o",
+                ms=4,
+                capsize=3,
+                color=color,
+                label=f"{name} (n={int(pts['n'].max())})",
+            )
+            if target is not None and key == "distance_m" and reach is not None:
+                hit = reach[(reach["reward"] == name) & reach["iteration"].notna()]
+                if not hit.empty and not pd.isna(hit.iloc[0][xcol]):
+                    ax.axvline(float(hit.iloc[0][xcol]), color=color, ls=":", lw=1)
+        if target is not None and key == "distance_m":
+            ax.axhline(target, color="gray", ls="--", lw=1, label=f"target {target:g} m")
+        ax.set_xlabel(X_LABELS[spec.xstage].get(xcol, xcol))
+        if xcol == "iteration":
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.set_ylabel(METRICS[key][1])
+        ax.grid(alpha=0.3)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=8, loc="lower right")
+        _note(ax, notes)
+        panel_notes[key] = notes
+    fig.suptitle(spec.title.format(se=se_text(mode)), fontsize=10)
+    fig.tight_layout()
+    save(fig, out, spec.stem, written)
+    return panel_notes
+
+
+def teacher_points(data: dict[str, dict]) -> pd.DataFrame:
+    """Tidy points of the training diagnostic (x = env steps where every row has them)."""
+    frames = []
+    for reward, curves in data.items():
+        for col, curve in curves.items():
+            use_steps = "env_steps" in curve.columns and curve["env_steps"].notna().all()
+            xcol = "env_steps" if use_steps else "iteration"
+            frames.append(
+                pd.DataFrame(
+                    {
+                        "figure": "teacher_curves",
+                        "panel": col,
+                        "x_name": xcol,
+                        "series": reward,
+                        "x": curve[xcol].to_numpy(dtype=float),
+                        "y": curve["mean"].to_numpy(dtype=float),
+                        "se": curve["se"].to_numpy(dtype=float),
+                        "yerr": curve["se"].fillna(0.0).to_numpy(dtype=float),
+                        "n": curve["n"].to_numpy(dtype=int),
+                    }
+                )
+            )
+    if not frames:
+        return pd.DataFrame(columns=POINT_COLUMNS)
+    return pd.concat(frames, ignore_index=True)[POINT_COLUMNS]
+
+
+def _steps_per_iteration(data: dict[str, dict]) -> float | None:
+    ratios = []
+    for curves in data.values():
+        for curve in curves.values():
+            if "env_steps" in curve.columns:
+                c = curve[curve["iteration"] > 0]
+                ratios.extend((c["env_steps"] / c["iteration"]).dropna().tolist())
+    if not ratios:
+        return None
+    per_iter = float(np.median(ratios))
+    return per_iter if np.allclose(ratios, per_iter, rtol=0.01) else None
+
+
+def plot_teacher_training(
+    data: dict[str, dict],
+    points: pd.DataFrame,
+    window: int,
+    out: Path,
+    written: list[Path],
+    notes: list[str],
+) -> None:
+    """Training diagnostic from metrics.csv teacher rows; says on its face it is no comparison."""
+    fig, axes = plt.subplots(1, len(TEACHER_PANELS), figsize=(13, 3.8))
+    per_iter = _steps_per_iteration(data)
+    if per_iter is None and points["x_name"].eq("env_steps").any():
+        notes.append("teacher_curves: steps per iteration differ between runs; no iteration axis")
+    for ax, (col, label) in zip(axes, TEACHER_PANELS, strict=True):
+        sel = points[points["panel"] == col]
+        for reward in data:
+            pts = sel[sel["series"] == reward]
+            if pts.empty:
+                continue
+            color = REWARD_COLORS.get(reward)
+            ax.plot(pts["x"], pts["y"], color=color, label=f"{reward} (n={int(pts['n'].max())})")
+            ax.fill_between(
+                pts["x"], pts["y"] - pts["yerr"], pts["y"] + pts["yerr"], color=color, alpha=0.25
+            )
+        xname = sel["x_name"].iloc[0] if not sel.empty else "env_steps"
+        ax.set_xlabel("teacher env steps" if xname == "env_steps" else "teacher iteration")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+        if per_iter and xname == "env_steps":
+            top = ax.secondary_xaxis(
+                "top", functions=(lambda s: s / per_iter, lambda i: i * per_iter)
+            )
+            top.set_xlabel("teacher iteration", fontsize=8)
+            top.tick_params(labelsize=7)
+    axes[-1].legend(fontsize=8)
+    fig.suptitle(
+        f"DIAGNOSTIC, not a comparison: teacher TRAINING rollouts (metrics.csv; each arm on its "
+        f"own curriculum), moving avg {window}, band = SE across seeds",
+        y=1.04,
+        fontsize=10,
+    )
+    fig.tight_layout()
+    save(fig, out, "teacher_curves", written)

@@ -1,0 +1,193 @@
+"""Write the tables (runs, final metrics, sample efficiency, figure data) and the stdout summary."""
+
+from __future__ import annotations
+
+import io
+import math
+from pathlib import Path
+
+import pandas as pd
+
+from analysis.aggregate import (
+    BASELINE_ARM,
+    BASELINE_REFERENCE,
+    FULL_VARIANT,
+    METRICS,
+    REFERENCE_TEACHER,
+)
+
+UNITS = {"distance_m": " m", "abs_torque_nm": " Nm", "abs_ang_jerk": " rad/s^3"}
+
+
+def fmt(x) -> str:
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return "n/a"
+    return f"{x:.4g}"
+
+
+def md_table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(str(c).replace("|", "/") for c in r) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def _rule(row) -> str:
+    if row["variant"] == FULL_VARIANT:
+        return f"({BASELINE_ARM} - {BASELINE_REFERENCE}) / {BASELINE_REFERENCE}, student full"
+    return f"(variant - {FULL_VARIANT}) / {FULL_VARIANT}, {REFERENCE_TEACHER} teacher"
+
+
+def comparisons(table: pd.DataFrame) -> list[str]:
+    """One line per relative comparison in the final table, e.g.
+    'baseline clf vs modelfree ((clf - modelfree) / modelfree, student full): torque -12%, ...'."""
+    lines = []
+    if table.empty:
+        return lines
+    for _, row in table[table["compared_to"] != ""].iterrows():
+        kind = "baseline" if row["variant"] == FULL_VARIANT else "ablation"
+        who = row["reward"] if kind == "baseline" else row["variant"]
+        ref = row["compared_to"].split("/")[0 if kind == "baseline" else 1]
+        lines.append(f"{kind} {who} vs {ref} ({_rule(row)}): {row['relative']}")
+    return lines
+
+
+def _final_md(table: pd.DataFrame, mode: str) -> str:
+    header = ["reward", "variant", "n runs", "iteration"] + [METRICS[k][0] for k in METRICS]
+    header += ["compared to", "relative difference"]
+    rows = []
+    for _, row in table.iterrows():
+        cells = [row["reward"], row["variant"], str(row["n_runs"]), str(row["iteration"])]
+        cells += [f"{fmt(row[f'mean_{k}'])} ± {fmt(row[f'se_{k}'])}" for k in METRICS]
+        cells += [row["compared_to"] or "-", row["relative"] or "-"]
+        rows.append(cells)
+    se_txt = (
+        "SE across seeds (a single-run group keeps its rollout SE)"
+        if mode == "seeds"
+        else "pooled SE sqrt(sum se_i^2)/n"
+    )
+    units = ", ".join(f"{METRICS[k][0]} = {METRICS[k][1]}" for k in METRICS)
+    lines = comparisons(table)
+    rel = "\n".join(f"- {ln}" for ln in lines) if lines else "- none (a reference group is missing)"
+    return (
+        "# Final metrics (final evaluation: summary.json of complete runs)\n\n"
+        f"mean ± {se_txt}. Relative differences in the paper's convention: "
+        f"({BASELINE_ARM} - {BASELINE_REFERENCE}) / {BASELINE_REFERENCE} for the baseline "
+        f"(student {FULL_VARIANT}), (variant - {FULL_VARIANT}) / {FULL_VARIANT} for the "
+        f"ablation ({REFERENCE_TEACHER} teacher).\nUnits: {units}.\n\n"
+        + md_table(header, rows)
+        + "\n## Relative differences\n\n"
+        + rel
+        + "\n"
+    )
+
+
+def write_tables(
+    out: Path,
+    listing: pd.DataFrame,
+    table: pd.DataFrame,
+    eff: pd.DataFrame,
+    points: pd.DataFrame,
+    mode: str,
+    written: list[Path],
+) -> None:
+    listing.to_csv(out / "runs.csv", index=False)
+    (out / "runs.md").write_text(
+        "# Runs\n\n" + md_table(list(listing.columns), listing.astype(str).values.tolist())
+    )
+    written += [out / "runs.csv", out / "runs.md"]
+    if not table.empty:
+        table.to_csv(out / "final_metrics.csv", index=False)
+        (out / "final_metrics.md").write_text(_final_md(table, mode))
+        written += [out / "final_metrics.csv", out / "final_metrics.md"]
+    if not eff.empty:
+        eff.to_csv(out / "sample_efficiency.csv", index=False)
+        written.append(out / "sample_efficiency.csv")
+    if not points.empty:
+        points.to_csv(out / "figure_data.csv", index=False)
+        written.append(out / "figure_data.csv")
+
+
+def _values(row, keys) -> str:
+    parts = []
+    for k in keys:
+        v = row[f"mean_{k}"]
+        if k == "success_rate" and not pd.isna(v):
+            parts.append(f"success {100 * v:.0f}%")
+        else:
+            parts.append(f"{METRICS[k][0]} {fmt(v)}{UNITS.get(k, '')}")
+    return ", ".join(parts)
+
+
+def report(res: dict, out: Path) -> str:
+    """The short stdout summary: notes, incomplete runs, final comparisons, sample efficiency."""
+    buf = io.StringIO()
+    runs = res["runs"]
+    listing: pd.DataFrame = res["listing"]
+    n_ok = sum(r.complete for r in runs)
+    n_failed = sum(r.state == "failed" for r in runs)
+    for note in res["notes"]:
+        print(f"note: {note}", file=buf)
+    bad = listing[listing["status"] != "complete"]
+    if not bad.empty:
+        print("not complete:", file=buf)
+        for _, row in bad.iterrows():
+            extra = "; ".join(x for x in [row["error"], row["issues"]] if x)
+            print(f"  {row['run']}: {row['status']}" + (f" -- {extra}" if extra else ""), file=buf)
+    table: pd.DataFrame = res["final"]
+    if not table.empty:
+        base = table[table["variant"] == FULL_VARIANT]
+        if not base.empty:
+            print(
+                f"baseline, final evaluation (student {FULL_VARIANT}; relative = "
+                f"({BASELINE_ARM} - {BASELINE_REFERENCE}) / {BASELINE_REFERENCE}):",
+                file=buf,
+            )
+            for _, row in base.iterrows():
+                print(
+                    f"  {row['reward']} (n={row['n_runs']}, it {row['iteration']}): "
+                    + _values(row, ["distance_m", "success_rate", "abs_torque_nm", "abs_ang_jerk"]),
+                    file=buf,
+                )
+            for _, row in base[base["compared_to"] != ""].iterrows():
+                print(f"  {row['reward']} vs {BASELINE_REFERENCE}: {row['relative']}", file=buf)
+        abl = table[table["reward"] == REFERENCE_TEACHER]
+        if (abl["variant"] != FULL_VARIANT).any():
+            print(
+                f"ablation, final evaluation ({REFERENCE_TEACHER} teacher; relative = "
+                f"(variant - {FULL_VARIANT}) / {FULL_VARIANT}):",
+                file=buf,
+            )
+            for _, row in abl.iterrows():
+                own = row["variant"] != FULL_VARIANT and row["compared_to"]
+                vs = f"; vs {FULL_VARIANT}: {row['relative']}" if own else ""
+                print(
+                    f"  {row['variant']} (n={row['n_runs']}): "
+                    + _values(row, ["reward", "distance_m", "success_rate"])
+                    + vs,
+                    file=buf,
+                )
+    eff: pd.DataFrame = res["sample_efficiency"]
+    if not eff.empty:
+        print(
+            f"sample efficiency (teacher evaluation distance >= "
+            f"{eff['target_distance_m'].iloc[0]:g} m, eval.csv teacher rows):",
+            file=buf,
+        )
+        for _, row in eff.iterrows():
+            if row["result"] == "reached":
+                steps = "" if pd.isna(row["env_steps"]) else f" ({row['env_steps']:.4g} env steps)"
+                print(f"  {row['reward']}: iteration {int(row['iteration'])}{steps}", file=buf)
+            else:
+                print(f"  {row['reward']}: not reached", file=buf)
+        for _, row in eff[eff["vs_modelfree"] != ""].iterrows():
+            print(f"  {row['reward']} vs {BASELINE_REFERENCE}: {row['vs_modelfree']}", file=buf)
+    print(
+        f"runs found: {len(runs)} ({n_ok} complete, {n_failed} failed, "
+        f"{len(runs) - n_ok - n_failed} other incomplete)",
+        file=buf,
+    )
+    print(
+        f"wrote {len(res['written'])} files to {out}: " + ", ".join(p.name for p in res["written"]),
+        file=buf,
+    )
+    return buf.getvalue()

@@ -1,0 +1,267 @@
+"""Find MARCH run directories and load what they hold (config, status, CSVs, summary).
+
+A run is a directory holding ``config.yaml`` (the resolved config) or ``.hydra/config.yaml``; a
+Hydra sweep directory (``multirun.yaml`` + ``0/``, ``1/``, ...) is searched, never taken as a run.
+CSV files cut off mid-write or with malformed rows still load (the bad rows are dropped and named
+in the run's ``issues``); an ``eval.csv`` written by an older version with fewer columns loads with
+the columns it has.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pandas as pd
+from omegaconf import OmegaConf
+
+STRING_COLUMNS = {"stage"}
+
+
+@dataclass
+class Run:
+    path: Path
+    label: str = ""
+    reward: str = "?"
+    variant: str = "?"
+    curriculum: str = "?"
+    seed: object = None
+    stage: str = "?"
+    compute: str = "?"
+    state: str = "no status.json"
+    error: str | None = None
+    metrics: pd.DataFrame | None = None
+    evals: pd.DataFrame | None = None
+    summary: dict | None = None
+    issues: list[str] = field(default_factory=list)
+    csv_problem: bool = False
+
+    @property
+    def complete(self) -> bool:
+        needs_summary = self.stage != "teacher"
+        return (
+            self.state == "done"
+            and (self.summary is not None or not needs_summary)
+            and not self.csv_problem
+        )
+
+    @property
+    def status_label(self) -> str:
+        if self.complete:
+            return "complete"
+        if self.state == "done":
+            if self.stage != "teacher" and self.summary is None:
+                return "incomplete (done, no summary.json)"
+            return "incomplete (unreadable CSV)"
+        if self.state == "failed":
+            return "failed"
+        if self.state == "running":
+            return "incomplete (running)"
+        return f"incomplete ({self.state})"
+
+
+def _natural_key(name: str):
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
+
+
+def find_run_dirs(root: Path) -> list[Path]:
+    """Run dirs under ``root`` (``root`` included): dirs with config.yaml or .hydra/config.yaml.
+
+    Sweep dirs (with multirun.yaml) are searched, not taken as runs; the search does not descend
+    into a run dir, nor into hidden dirs or a ``figures`` output dir.
+    """
+    found: list[Path] = []
+    for dirpath, dirnames, filenames in os.walk(root):
+        d = Path(dirpath)
+        is_sweep = "multirun.yaml" in filenames
+        is_run = not is_sweep and (
+            "config.yaml" in filenames or (d / ".hydra" / "config.yaml").is_file()
+        )
+        if is_run:
+            found.append(d)
+            dirnames[:] = []
+            continue
+        dirnames[:] = sorted(
+            (n for n in dirnames if not n.startswith(".") and n != "figures"), key=_natural_key
+        )
+    return found
+
+
+def _cfg_get(cfg, key: str):
+    try:
+        return OmegaConf.select(cfg, key, default=None, throw_on_resolution_failure=False)
+    except Exception:  # noqa: BLE001 - a broken interpolation must not kill the analysis
+        return None
+
+
+def read_csv_tolerant(path: Path) -> tuple[pd.DataFrame | None, list[str], bool]:
+    """Read a CSV that may be cut off mid-write. Returns (frame or None, issues, problem).
+
+    The header defines the columns, so a file from an older version with fewer columns loads as
+    it is; a row whose field count differs from the header is dropped and counted.
+    """
+    name = path.name
+    if not path.is_file():
+        return None, [], False
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        return None, [f"{name} unreadable ({type(exc).__name__})"], True
+    lines = text.splitlines()
+    if not lines or not lines[0].strip():
+        return None, [f"{name} empty"], True
+    header = next(csv.reader([lines[0]]))
+    body = lines[1:]
+    issues: list[str] = []
+    problem = False
+    if body and not text.endswith("\n"):
+        body = body[:-1]
+        issues.append(f"{name}: last line cut off (dropped)")
+        problem = True
+    rows = [r for r in csv.reader(body) if r]
+    good = [r for r in rows if len(r) == len(header)]
+    if len(good) != len(rows):
+        issues.append(f"{name}: {len(rows) - len(good)} malformed row(s) dropped")
+        problem = True
+    df = pd.DataFrame(good, columns=header)
+    for col in df.columns:
+        if col in STRING_COLUMNS:
+            continue
+        conv = pd.to_numeric(df[col], errors="coerce")
+        if conv.notna().sum() >= (df[col] != "").sum():
+            df[col] = conv
+    if "iteration" in df.columns:
+        bad = df["iteration"].isna()
+        if bad.any():
+            issues.append(f"{name}: {int(bad.sum())} row(s) without iteration dropped")
+            problem = True
+            df = df[~bad]
+    if "stage" in df.columns:
+        df["stage"] = df["stage"].astype(str).str.strip()
+    return df.reset_index(drop=True), issues, problem
+
+
+def load_run(path: Path) -> Run:
+    run = Run(path=path)
+    cfg_path = path / "config.yaml"
+    if not cfg_path.is_file():
+        cfg_path = path / ".hydra" / "config.yaml"
+    try:
+        cfg = OmegaConf.load(cfg_path)
+    except Exception as exc:  # noqa: BLE001
+        cfg = OmegaConf.create({})
+        run.issues.append(f"{cfg_path.name} unreadable ({type(exc).__name__})")
+    for attr, key in [
+        ("reward", "reward.name"),
+        ("variant", "student.variant"),
+        ("curriculum", "curriculum.name"),
+        ("stage", "stage"),
+        ("compute", "compute.name"),
+    ]:
+        val = _cfg_get(cfg, key)
+        if val is not None:
+            setattr(run, attr, str(val))
+    run.seed = _cfg_get(cfg, "seed")
+
+    status_path = path / "status.json"
+    if status_path.is_file():
+        try:
+            status = json.loads(status_path.read_text())
+            run.state = str(status.get("state", "unknown"))
+            run.error = status.get("error")
+        except (OSError, ValueError) as exc:
+            run.state = "unreadable status.json"
+            run.issues.append(f"status.json unreadable ({type(exc).__name__})")
+
+    for attr, fname in [("metrics", "metrics.csv"), ("evals", "eval.csv")]:
+        df, issues, problem = read_csv_tolerant(path / fname)
+        setattr(run, attr, df)
+        run.issues.extend(issues)
+        run.csv_problem |= problem
+    if run.metrics is None and not (path / "metrics.csv").is_file():
+        run.issues.append("metrics.csv missing")
+
+    summary_path = path / "summary.json"
+    if summary_path.is_file():
+        try:
+            run.summary = json.loads(summary_path.read_text())
+        except (OSError, ValueError) as exc:
+            run.issues.append(f"summary.json unreadable ({type(exc).__name__})")
+    return run
+
+
+def discover(dirs: list[Path]) -> list[Run]:
+    seen: set[Path] = set()
+    runs: list[Run] = []
+    for root in dirs:
+        for d in find_run_dirs(root):
+            key = d.resolve()
+            if key in seen:
+                continue
+            seen.add(key)
+            run = load_run(d)
+            rel = d.resolve().relative_to(root.resolve().parent)
+            run.label = str(rel)
+            runs.append(run)
+    return runs
+
+
+def stage_rows(df: pd.DataFrame | None, stage: str, column: str | None = None):
+    """Rows of ``stage`` (one per iteration, the last written wins), sorted by iteration.
+
+    With ``column``: only rows where that column has a value. None when there are no such rows.
+    A resumed run re-does rows past its checkpoint, hence "last written wins".
+    """
+    if df is None or "stage" not in df.columns or "iteration" not in df.columns:
+        return None
+    rows = df[df["stage"] == stage]
+    if column is not None:
+        if column not in df.columns:
+            return None
+        rows = rows[rows[column].notna()]
+    if rows.empty:
+        return None
+    rows = rows.drop_duplicates("iteration", keep="last")
+    return rows.sort_values("iteration", kind="stable").reset_index(drop=True)
+
+
+def eval_rows(run: Run, stage: str) -> pd.DataFrame | None:
+    """``eval.csv`` rows of ``stage`` ("teacher" or "student") of one run, or None."""
+    return stage_rows(run.evals, stage)
+
+
+def _count(df: pd.DataFrame | None, stage: str) -> int:
+    if df is None or "stage" not in df.columns:
+        return 0
+    return int((df["stage"] == stage).sum())
+
+
+def runs_frame(runs: list[Run]) -> pd.DataFrame:
+    """One row per run: config keys, state, how many rows of each kind it holds, problems."""
+    records = []
+    for r in runs:
+        records.append(
+            {
+                "run": r.label,
+                "status": r.status_label,
+                "state": r.state,
+                "reward": r.reward,
+                "variant": r.variant,
+                "curriculum": r.curriculum,
+                "seed": r.seed,
+                "stage": r.stage,
+                "compute": r.compute,
+                "teacher_rows": _count(r.metrics, "teacher"),
+                "student_rows": _count(r.metrics, "student"),
+                "teacher_eval_rows": _count(r.evals, "teacher"),
+                "student_eval_rows": _count(r.evals, "student"),
+                "summary": r.summary is not None,
+                "error": r.error or "",
+                "issues": "; ".join(r.issues),
+            }
+        )
+    return pd.DataFrame(records)

@@ -1,0 +1,545 @@
+"""``python -m march.sim2sim onnx=<student.onnx>``: the exported student in plain MuJoCo.
+
+    python -m march.sim2sim onnx=outputs/<run>/student/student.onnx
+    python -m march.sim2sim onnx=<bundle>/student.onnx course=stones difficulty=0.5 seed=3
+    python -m march.sim2sim onnx=<bundle>/student.onnx seconds=10 out=rollout.mp4
+
+A sim-to-sim check of the deployment bundle that ``python -m march.export`` writes beside the
+ONNX (``<stem>.deploy.json`` and one compiled scene per course, ``<stem>.<course>.mjb.gz``).
+Nothing of the training stack runs here: MuJoCo's C library (CPU), onnxruntime and numpy only -
+no torch, warp, mjlab, Hydra or march module that imports them (tests/test_sim2sim.py checks
+``sys.modules``). The loop does what the robot's computer does, at the rates of training:
+
+- every control step (50 Hz): proprioception (IMU gyro, projected gravity, joint positions
+  relative to the default pose, joint velocities, the previous action, the command) pushed into a
+  ``history_len`` history (oldest first, back-filled at reset), a 32x24 planar depth image from
+  the training camera by MuJoCo's own ray casting (``mj_multiRay``, same pose, fovy, geom
+  groups, clipping and normalisation; no corruption), one onnxruntime call on one CPU thread;
+- between them (physics rate): the position targets ``offset + scale * action`` on the G1's
+  MuJoCo position actuators (kp, kv and effort limits compiled into the scene), ``mj_step``.
+
+Arguments (``key=value`` words, as every march tool; parsed here without Hydra):
+
+- ``onnx``: the exported student (required); its bundle must lie beside it.
+- ``course``: ``hardware`` (start platform, 4 stones, goal) or ``stones`` (the evaluation grid).
+- ``difficulty``: stones only - the grid level whose difficulty is nearest (0..1).
+- ``seed``: stones: which course of that level (seed mod columns); both: the spawn pose noise
+  (the evaluation's reset ranges; seed < 0 spawns exactly at the start point).
+- ``seconds``: episode length [s] (ends earlier on a fall).
+- ``out``: optional video file (.mp4/.gif) from the scene's tracking camera; needs OpenGL
+  (``MUJOCO_GL=egl`` or ``osmesa``) - refused with one line where there is none.
+- ``threads``: onnxruntime intra-op threads (1, as on the robot).
+
+Prints ONE JSON object: ``distance_m``, ``success``, ``fell``, ``abs_torque_nm``,
+``abs_ang_jerk`` (march.evaluate's definitions, repeated in the bundle), ``steps``,
+``ms_per_policy_call`` (median), ``ms_per_policy_call_p95``, ``ms_per_depth_image``, the course
+cell and the arguments. Bad input is one line on stderr and exit status 2, before simulating.
+
+Why reading the bundle is safe: ``deploy.json`` is parsed with ``json`` (data only, no code);
+the scene is MuJoCo's binary model format, read by MuJoCo's own loader, which checks the file's
+header, version and every size before use (a file of another MuJoCo version is refused); the
+ONNX file is a protobuf graph of tensor operators that onnxruntime executes (no Python, no
+pickle). The JSON records the SHA-256 of the ONNX file and the scenes, checked before use.
+"""
+
+from __future__ import annotations
+
+import gzip
+import hashlib
+import json
+import math
+import sys
+import time
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import numpy as np
+import onnxruntime as ort
+
+USAGE = (
+    "usage: python -m march.sim2sim onnx=<student.onnx> [course=hardware|stones] "
+    "[difficulty=0.5] [seed=0] [seconds=20] [out=rollout.mp4] [threads=1]"
+)
+BUNDLE_FORMAT = 1
+"""The ``deploy.json`` layout this loop reads (march.export.BUNDLE_FORMAT)."""
+INPUTS = ("proprio_hist", "command", "depth")
+OUTPUT = "actions"
+
+
+class UsageError(ValueError):
+    """Bad arguments or an unusable bundle: one line for the user."""
+
+
+@dataclass
+class Args:
+    """The command line, typed."""
+
+    onnx: str = ""
+    course: str = "hardware"
+    difficulty: float = 0.5
+    seed: int = 0
+    seconds: float = 20.0
+    out: str = ""
+    threads: int = 1
+
+
+def parse_args(argv: Sequence[str]) -> Args:
+    """``key=value`` words into :class:`Args` (Hydra-style, without Hydra)."""
+    args = Args()
+    types = {k: type(v) for k, v in vars(args).items()}
+    for word in argv:
+        key, eq, value = word.partition("=")
+        if not eq:
+            raise UsageError(f"expected key=value, got {word!r}. {USAGE}")
+        key = key.lstrip("+")
+        if key not in types:
+            raise UsageError(f"unknown key {key!r}; keys: {', '.join(types)}. {USAGE}")
+        try:
+            setattr(args, key, types[key](value))
+        except ValueError:
+            raise UsageError(f"{key}={value}: not a {types[key].__name__}") from None
+    if not args.onnx:
+        raise UsageError(f"give onnx=<student.onnx> (written by python -m march.export). {USAGE}")
+    if args.course not in ("hardware", "stones"):
+        raise UsageError(f"course={args.course}: choose hardware or stones")
+    if not 0.0 <= args.difficulty <= 1.0:
+        raise UsageError(f"difficulty={args.difficulty}: must be in [0, 1]")
+    if not args.seconds > 0.0:
+        raise UsageError(f"seconds={args.seconds}: must be > 0")
+    if args.threads < 1:
+        raise UsageError(f"threads={args.threads}: must be >= 1")
+    if args.out and Path(args.out).suffix.lower() not in (".mp4", ".gif"):
+        raise UsageError(f"out={args.out}: the video must end in .mp4 or .gif")
+    return args
+
+
+# ---------------------------------------------------------------------------------------------
+# The bundle.
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+@dataclass
+class Bundle:
+    """``<stem>.deploy.json`` beside an ONNX file, checked."""
+
+    onnx_path: Path
+    spec: dict[str, Any]
+
+    @classmethod
+    def load(cls, onnx_path: str | Path) -> Bundle:
+        onnx_path = Path(onnx_path)
+        if not onnx_path.is_file():
+            raise UsageError(f"onnx={onnx_path}: no such file (python -m march.export writes it)")
+        path = onnx_path.with_suffix(".deploy.json")
+        if not path.is_file():
+            raise UsageError(
+                f"onnx={onnx_path}: no deployment bundle beside it ({path.name}); export it "
+                "with python -m march.export student_ckpt=<file> out=<folder>"
+            )
+        try:
+            spec = json.loads(path.read_text())
+        except (OSError, ValueError) as err:
+            raise UsageError(f"{path}: not readable JSON ({err})") from None
+        if not isinstance(spec, dict) or spec.get("format") != BUNDLE_FORMAT:
+            found = spec.get("format") if isinstance(spec, dict) else None
+            raise UsageError(f"{path}: bundle format {found!r}, this loop reads {BUNDLE_FORMAT}")
+        if spec.get("mujoco_version") != mujoco.__version__:
+            raise UsageError(
+                f"{path}: the scenes were compiled with MuJoCo {spec.get('mujoco_version')}, "
+                f"this is MuJoCo {mujoco.__version__} (MJB files are version-bound)"
+            )
+        want = spec["onnx"]["sha256"]
+        if _sha256(onnx_path.read_bytes()) != want:
+            raise UsageError(f"onnx={onnx_path}: its SHA-256 differs from the bundle's record")
+        return cls(onnx_path, spec)
+
+    def scene(self, course: str) -> mujoco.MjModel:
+        """The compiled scene of ``course`` (gzipped MJB, loaded from memory)."""
+        entry = self.spec["courses"][course]
+        path = self.onnx_path.parent / entry["scene"]
+        if not path.is_file():
+            raise UsageError(f"{path}: the bundle's {course} scene is missing")
+        packed = path.read_bytes()
+        if _sha256(packed) != entry["sha256"]:
+            raise UsageError(f"{path}: its SHA-256 differs from the bundle's record")
+        return mujoco.MjModel.from_binary_path("scene.mjb", {"scene.mjb": gzip.decompress(packed)})
+
+    def cell(self, course: str, difficulty: float, seed: int) -> dict[str, Any]:
+        """The course cell: hardware's only one; stones: nearest level, column seed mod C."""
+        grid = self.spec["courses"][course]["cells"]
+        if course == "hardware":
+            return grid[0][0]
+        row = min(range(len(grid)), key=lambda r: abs(grid[r][0]["difficulty"] - difficulty))
+        return grid[row][seed % len(grid[row])]
+
+
+# ---------------------------------------------------------------------------------------------
+# Sensors: proprioception and depth.
+
+
+def camera_rays(width: int, height: int, fovy_deg: float) -> np.ndarray:
+    """(H*W, 3) unit ray directions in the camera frame, row-major from the top-left pixel.
+
+    MuJoCo cameras look along -z with +y up; pixel (i, j) is the ray through the centre of that
+    pixel of a pinhole with vertical field of view ``fovy_deg`` (mujoco_warp's ``compute_ray``).
+    """
+    t = math.tan(0.5 * math.radians(fovy_deg))
+    aspect = width / height
+    jj, ii = np.meshgrid(np.arange(width), np.arange(height))
+    x = (2.0 * (jj + 0.5) / width - 1.0) * t * aspect
+    y = (1.0 - 2.0 * (ii + 0.5) / height) * t
+    d = np.stack([x, y, -np.ones_like(x)], axis=-1).reshape(-1, 3)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def normalize_depth(depth: np.ndarray, min_range: float, max_range: float) -> np.ndarray:
+    """Invalid (<= 0, non-finite) -> max_range, clip, map to [0, 1] (march.env.depth.normalize)."""
+    d = np.where(np.isfinite(depth) & (depth > 0.0), depth, max_range)
+    return (np.clip(d, min_range, max_range) - min_range) / (max_range - min_range)
+
+
+class DepthCamera:
+    """The student's depth camera by ray casting against the scene's enabled geom groups."""
+
+    def __init__(self, model: mujoco.MjModel, spec: dict[str, Any]) -> None:
+        self.cam = model.camera(spec["camera"]).id
+        self.h, self.w = int(spec["height"]), int(spec["width"])
+        self.lo, self.hi = float(spec["min_range_m"]), float(spec["max_range_m"])
+        fovy = float(model.cam_fovy[self.cam])
+        if abs(fovy - float(spec["fovy_deg"])) > 1e-6:
+            raise UsageError(f"scene camera fovy {fovy} != bundle's {spec['fovy_deg']}")
+        self.rays = camera_rays(self.w, self.h, fovy)
+        self.cos = -self.rays[:, 2]  # planar depth = distance x cos(angle to the optical axis)
+        self.groups = np.zeros(6, dtype=np.uint8)
+        self.groups[list(spec["geom_groups"])] = 1
+        # Past the max range every pixel reads 1 whether it hits or not: stop looking there.
+        self.cutoff = self.hi / float(self.cos.min()) + 1e-3
+        self.n = self.rays.shape[0]
+        self._geom = np.zeros(self.n, dtype=np.int32)
+        self._dist = np.zeros(self.n, dtype=np.float64)
+
+    def planar(self, model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
+        """(H, W) planar depth [m] from the current kinematics; 0 where a ray hits nothing."""
+        origin = data.cam_xpos[self.cam].copy()
+        world = self.rays @ data.cam_xmat[self.cam].reshape(3, 3).T
+        mujoco.mj_multiRay(
+            model,
+            data,
+            origin,
+            world.reshape(-1),
+            self.groups,
+            1,  # static geoms (the terrain) count
+            -1,
+            self._geom,
+            self._dist,
+            None,
+            self.n,
+            self.cutoff,
+        )
+        depth = np.where(self._geom >= 0, self._dist * self.cos, 0.0)
+        return depth.reshape(self.h, self.w)
+
+    def image(self, model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
+        """(1, 1, H, W) float32 normalised depth, the ONNX ``depth`` input."""
+        d = normalize_depth(self.planar(model, data), self.lo, self.hi)
+        return d.astype(np.float32)[None, None]
+
+
+@dataclass
+class History:
+    """The last ``length`` proprioception vectors, oldest first; back-filled on the first push."""
+
+    length: int
+    frames: list[np.ndarray] = field(default_factory=list)
+
+    def push(self, x: np.ndarray) -> None:
+        if not self.frames:
+            self.frames = [x.copy() for _ in range(self.length)]
+        else:
+            self.frames = self.frames[1:] + [x.copy()]
+
+    def array(self) -> np.ndarray:
+        return np.stack(self.frames)[None].astype(np.float32)
+
+
+# ---------------------------------------------------------------------------------------------
+# The robot-side loop.
+
+
+class Sim2Sim:
+    """One G1 in a bundle's scene, driven by the exported student."""
+
+    def __init__(self, bundle: Bundle, course: str, threads: int = 1) -> None:
+        spec = bundle.spec
+        self.spec = spec
+        self.model = bundle.scene(course)
+        self.data = mujoco.MjData(self.model)
+        m = self.model
+        robot, act, obs = spec["robot"], spec["action"], spec["observation"]
+        rates = spec["rates"]
+        if abs(m.opt.timestep - rates["physics_dt_s"]) > 1e-12:
+            raise UsageError("the scene's timestep differs from the bundle's physics_dt_s")
+        self.decimation = int(rates["decimation"])
+        self.control_dt = float(rates["control_dt_s"])
+        root = m.joint(robot["root_joint"])
+        self.root_q = int(m.jnt_qposadr[root.id])
+        self.root_v = int(m.jnt_dofadr[root.id])
+        self.root_body = m.body(robot["root_body"]).id
+        names = robot["joint_names"]
+        self.qadr = np.array([m.jnt_qposadr[m.joint(n).id] for n in names])
+        self.vadr = np.array([m.jnt_dofadr[m.joint(n).id] for n in names])
+        self.default = np.asarray(robot["default_joint_pos"], dtype=np.float64)
+        self.act_q = np.array([m.jnt_qposadr[m.joint(n).id] for n in act["joint_names"]])
+        self.act_ids = np.array([m.actuator(n).id for n in act["actuator_names"]])
+        for a, n in zip(self.act_ids, act["joint_names"], strict=True):
+            if m.actuator_trnid[a, 0] != m.joint(n).id:
+                raise UsageError(f"actuator {m.actuator(a).name} does not drive joint {n}")
+        self.scale = np.asarray(act["scale"], dtype=np.float64)
+        self.offset = np.asarray(act["offset"], dtype=np.float64)
+        gyro = m.sensor(obs["base_ang_vel_sensor"])
+        self.gyro = slice(int(m.sensor_adr[gyro.id]), int(m.sensor_adr[gyro.id]) + 3)
+        self.feet = np.array([m.site(s).id for s in robot["foot_sites"]])
+        self.terms = [(t["name"], int(t["dim"])) for t in obs["proprio_terms"]]
+        self.command = np.asarray(obs["command"], dtype=np.float64)
+        self.history = History(int(obs["history_len"]))
+        self.camera = DepthCamera(m, spec["depth"])
+        self.num_actions = len(self.act_ids)
+        self.last_action = np.zeros(self.num_actions)
+        self.session = policy_session(bundle.onnx_path, threads)
+
+    # -- state -------------------------------------------------------------------------------
+
+    def reset(self, cell: dict[str, Any], seed: int) -> None:
+        """Spawn as the evaluation env does: init pose at the cell's start point, with the
+        reset's pose noise drawn from ``seed`` (none for seed < 0); joints at default, at rest."""
+        m, d = self.model, self.data
+        robot = self.spec["robot"]
+        mujoco.mj_resetData(m, d)
+        noise = dict.fromkeys(("x", "y", "z", "roll", "pitch", "yaw"), 0.0)
+        if seed >= 0:
+            rng = np.random.default_rng(seed)
+            for k, (lo, hi) in robot["reset_pose_range"].items():
+                noise[k] = float(rng.uniform(lo, hi))
+        pos = np.asarray(cell["origin"]) + np.asarray(robot["init_root_pos"])
+        pos += [noise["x"], noise["y"], noise["z"]]
+        turn = np.zeros(4)
+        mujoco.mju_euler2Quat(turn, np.array([noise["roll"], noise["pitch"], noise["yaw"]]), "XYZ")
+        quat = np.zeros(4)
+        mujoco.mju_mulQuat(quat, np.asarray(robot["init_root_quat_wxyz"], dtype=np.float64), turn)
+        d.qpos[self.root_q : self.root_q + 3] = pos
+        d.qpos[self.root_q + 3 : self.root_q + 7] = quat
+        d.qpos[self.qadr] = self.default
+        d.qvel[:] = 0.0
+        self.start(cell)
+
+    def start(self, cell: dict[str, Any]) -> None:
+        """Begin an episode from the state in ``data`` (qpos, qvel set by the caller)."""
+        self.cell = cell
+        self.origin = np.asarray(cell["origin"], dtype=np.float64)
+        self.last_action = np.zeros(self.num_actions)
+        self.history = History(self.history.length)
+        self.data.ctrl[self.act_ids] = self.offset + self.scale * self.last_action
+        mujoco.mj_forward(self.model, self.data)
+        self.history.push(self.proprio())
+
+    def projected_gravity(self) -> np.ndarray:
+        return self.data.xmat[self.root_body].reshape(3, 3).T @ np.array([0.0, 0.0, -1.0])
+
+    def proprio(self) -> np.ndarray:
+        """One proprioception vector in the bundle's term order."""
+        d = self.data
+        values = {
+            "base_ang_vel": d.sensordata[self.gyro],
+            "projected_gravity": self.projected_gravity(),
+            "joint_pos": d.qpos[self.qadr] - self.default,
+            "joint_vel": d.qvel[self.vadr],
+            "actions": self.last_action,
+            "command": self.command,
+        }
+        parts = []
+        for name, dim in self.terms:
+            if name not in values or values[name].shape != (dim,):
+                raise UsageError(f"proprioception term {name}({dim}) is not one this loop builds")
+            parts.append(values[name])
+        return np.concatenate(parts)
+
+    def inputs(self) -> dict[str, np.ndarray]:
+        """The ONNX feeds from the current state (the history already holds this step)."""
+        return {
+            "proprio_hist": self.history.array(),
+            "command": self.command.astype(np.float32)[None],
+            "depth": self.camera.image(self.model, self.data),
+        }
+
+    def act(self, feeds: dict[str, np.ndarray]) -> tuple[np.ndarray, float]:
+        t0 = time.perf_counter()
+        out = self.session.run([OUTPUT], feeds)[0]
+        return out[0].astype(np.float64), (time.perf_counter() - t0) * 1e3
+
+    def step(self, action: np.ndarray) -> None:
+        """One control step: targets held for ``decimation`` physics steps, then mj_forward
+        (derived quantities and sensors of the new state, as mjlab before its observations)."""
+        m, d = self.model, self.data
+        self.last_action = action
+        target = self.offset + self.scale * action
+        for _ in range(self.decimation):
+            d.ctrl[self.act_ids] = target
+            mujoco.mj_step(m, d)
+        mujoco.mj_forward(m, d)
+        self.history.push(self.proprio())
+
+    # -- course ------------------------------------------------------------------------------
+
+    def progress(self) -> float:
+        along = self.data.qpos[self.root_q] - self.origin[0]
+        return float(min(max(along, 0.0), self.cell["course_length"]))
+
+    def fell(self) -> bool:
+        t = self.spec["terminations"]
+        tilt = math.acos(float(np.clip(-self.projected_gravity()[2], -1.0, 1.0)))
+        low = self.data.qpos[self.root_q + 2] - self.origin[2] < t["min_base_height_m"]
+        feet = self.data.site_xpos[self.feet, 2] < self.origin[2] - t["max_foot_drop_m"]
+        return bool(tilt > t["tilt_limit_rad"] or low or feet.any())
+
+
+def policy_session(path: Path, threads: int = 1) -> ort.InferenceSession:
+    """onnxruntime on the CPU with ``threads`` threads, every graph optimisation on."""
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    try:
+        sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    except Exception as err:  # noqa: BLE001 - any unloadable graph is the same user error
+        raise UsageError(f"onnx={path}: onnxruntime cannot load it ({err})") from None
+    names = [i.name for i in sess.get_inputs()]
+    if names != list(INPUTS):
+        raise UsageError(f"onnx={path}: inputs {names}, expected {list(INPUTS)}")
+    return sess
+
+
+class Video:
+    """Offscreen frames from the scene's tracking camera (needs an OpenGL context)."""
+
+    def __init__(self, model: mujoco.MjModel, path: str, fps: float) -> None:
+        try:
+            with warnings.catch_warnings():  # GLFW's own warnings say the same, twice
+                warnings.simplefilter("ignore")
+                self.renderer = mujoco.Renderer(model, 360, 480)
+        except Exception as err:  # noqa: BLE001 - no GL backend: refuse in one line
+            raise UsageError(
+                f"out={path}: no OpenGL context for offscreen video here ({type(err).__name__}); "
+                "set MUJOCO_GL=egl (GPU) or MUJOCO_GL=osmesa, or drop out="
+            ) from None
+        cams = [model.camera(i).name for i in range(model.ncam)]
+        self.camera = "robot/tracking" if "robot/tracking" in cams else -1
+        self.path, self.fps, self.frames = path, fps, []
+
+    def grab(self, data: mujoco.MjData) -> None:
+        self.renderer.update_scene(data, camera=self.camera)
+        self.frames.append(self.renderer.render().copy())
+
+    def write(self) -> None:
+        import imageio.v2 as imageio  # lazy: only for a video
+
+        Path(self.path).parent.mkdir(parents=True, exist_ok=True)
+        imageio.mimsave(self.path, self.frames, fps=self.fps)
+
+
+def rollout(
+    sim: Sim2Sim, seconds: float, video: Video | None = None, max_steps: int | None = None
+) -> dict[str, Any]:
+    """Run one episode from the current state; the metrics of march.evaluate.rollout_metrics.
+
+    As there, the step that ends the episode (fall or time-out) adds no torque or jerk, and the
+    distance is the progress before that step.
+    """
+    horizon = math.ceil(seconds / sim.control_dt - 1e-9)
+    if max_steps is not None:
+        horizon = min(horizon, max_steps)
+    cell = sim.cell
+    torque = jerk = 0.0
+    live_steps = jerk_steps = 0
+    w1 = w2 = None
+    policy_ms, depth_ms = [], []
+    fell = False
+    before = sim.progress()
+    for t in range(1, horizon + 1):
+        before = sim.progress()
+        t0 = time.perf_counter()
+        feeds = sim.inputs()
+        depth_ms.append((time.perf_counter() - t0) * 1e3)
+        action, ms = sim.act(feeds)
+        policy_ms.append(ms)
+        sim.step(action)
+        if video is not None:
+            video.grab(sim.data)
+        fell = sim.fell()
+        if fell or t >= horizon:
+            break
+        live_steps += 1
+        torque += float(np.abs(sim.data.actuator_force[sim.act_ids]).mean())
+        w = sim.data.qvel[sim.root_v + 3 : sim.root_v + 6].copy()
+        if w2 is not None and live_steps >= 3:
+            jerk += float((np.abs(w - 2.0 * w1 + w2) / sim.control_dt**2).mean())
+            jerk_steps += 1
+        w2, w1 = w1, w
+    return {
+        "distance_m": before,
+        "success": bool(before >= cell["goal_distance"] and not fell),
+        "fell": fell,
+        "abs_torque_nm": torque / max(live_steps, 1),
+        "abs_ang_jerk": jerk / max(jerk_steps, 1),
+        "steps": len(policy_ms),
+        "seconds_simulated": len(policy_ms) * sim.control_dt,
+        "ms_per_policy_call": float(np.median(policy_ms)),
+        "ms_per_policy_call_p95": float(np.percentile(policy_ms, 95)),
+        "ms_per_depth_image": float(np.median(depth_ms)),
+    }
+
+
+def run(args: Args) -> dict[str, Any]:
+    """Load, check, simulate; the JSON row (also printed by :func:`main`)."""
+    bundle = Bundle.load(args.onnx)
+    sim = Sim2Sim(bundle, args.course, args.threads)
+    cell = bundle.cell(args.course, args.difficulty, args.seed)
+    video = Video(sim.model, args.out, 1.0 / sim.control_dt) if args.out else None
+    sim.reset(cell, args.seed)
+    t0 = time.perf_counter()
+    row = rollout(sim, args.seconds, video)
+    wall = time.perf_counter() - t0
+    if video is not None:
+        video.write()
+    return {
+        "course": args.course,
+        "cell": [cell["row"], cell["col"]],
+        "difficulty": cell["difficulty"],
+        "goal_distance_m": cell["goal_distance"],
+        "seed": args.seed,
+        **row,
+        "realtime_factor": row["seconds_simulated"] / wall if wall > 0 else None,
+        "video": args.out or None,
+        "onnx": str(args.onnx),
+    }
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    try:
+        args = parse_args(list(sys.argv[1:] if argv is None else argv))
+        row = run(args)
+    except UsageError as err:
+        print(f"error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+    print(json.dumps(row))
+
+
+if __name__ == "__main__":
+    main()

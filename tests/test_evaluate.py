@@ -1,0 +1,369 @@
+"""The evaluation protocol: rollout metrics on hand-made trajectories, the stratified course
+assignment, one set of terminations / courses / commands for every arm, success reachable at every
+compute preset, and teacher-stage rows in eval.csv (resumed without duplicates)."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from march.cli import load
+from march.env.course import eval_cells
+from march.evaluate import episode_metrics, summarise
+from march.learn.metrics import EVAL_COLUMNS, EVAL_METRICS, append_row, has_row, truncate_rows
+from march.terrain import CourseCfg, generate_course
+
+DT = 0.02
+PRESETS = ("smoke", "cpu", "gpu", "auto")
+
+
+def _traj(t_len: int, e: int = 1):
+    """Zero trajectories of T steps for E envs (everything a test does not set is 0 / False)."""
+    return {
+        "torque": torch.zeros(t_len, e),
+        "ang_vel": torch.zeros(t_len, e, 3),
+        "reward": torch.zeros(t_len, e),
+        "terminated": torch.zeros(t_len, e, dtype=torch.bool),
+        "truncated": torch.zeros(t_len, e, dtype=torch.bool),
+        "progress": torch.zeros(t_len, e),
+        "goal_distance": torch.zeros(e),
+        "dt": DT,
+    }
+
+
+# ------------------------------------------------------------------ per-rollout arithmetic
+
+
+def test_jerk_and_torque_leave_the_reset_out():
+    """Episode of 4 live steps ending (fall) at step 4; steps 4.. carry the next episode's
+    post-reset state (a huge jump) that must not enter jerk or torque."""
+    tr = _traj(7)
+    wx = [0.0, 1.0, 4.0, 9.0, 100.0, -50.0, 3.0]
+    tr["ang_vel"][:, 0, 0] = torch.tensor(wx)
+    tr["torque"][:, 0] = torch.tensor([10.0, 20.0, 30.0, 40.0, 999.0, 999.0, 999.0])
+    tr["terminated"][4, 0] = True
+    m = episode_metrics(**tr)
+    # Live steps 0..3; jerk samples at t = 2, 3: second differences 4-2+0 = 2 and 9-8+1 = 2 on
+    # the x axis only, so |.| averaged over 3 axes is 2/3, over dt^2.
+    assert m["abs_ang_jerk"].item() == pytest.approx((2.0 / 3.0) / DT**2)
+    assert m["abs_torque_nm"].item() == pytest.approx(25.0)
+
+
+def test_jerk_hand_values_on_all_axes():
+    tr = _traj(5)
+    w = torch.tensor([[0, 0, 0], [1, -1, 2], [3, 1, 2], [2, 2, 2], [7, 7, 7.0]])
+    tr["ang_vel"][:, 0] = w
+    tr["truncated"][4, 0] = True
+    m = episode_metrics(**tr)
+    # t=2: (3-2+0, 1+2+0, 2-4+0) = (1, 3, -2) -> mean |.| 2; t=3: (2-6+1, 2-2-1, 2-4+2) =
+    # (-3, -1, 0) -> 4/3. Mean (2 + 4/3) / 2 = 5/3.
+    assert m["abs_ang_jerk"].item() == pytest.approx((5.0 / 3.0) / DT**2)
+
+
+@pytest.mark.parametrize(
+    ("reached", "terminated", "truncated", "success"),
+    [
+        (True, False, True, 1.0),  # goal reached, time-out: success
+        (True, True, False, 0.0),  # goal reached, then fell: failure
+        (True, True, True, 0.0),  # a fall at the time-out step is still a fall
+        (False, False, True, 0.0),  # time-out short of the goal
+        (False, True, False, 0.0),
+    ],
+)
+def test_success_rule(reached, terminated, truncated, success):
+    tr = _traj(6)
+    tr["goal_distance"][:] = 3.0
+    # Pre-step progress; the episode ends at step 3, so its distance is progress[3].
+    tr["progress"][:, 0] = torch.tensor([0.0, 1.0, 2.0, 3.5 if reached else 2.9, 0.0, 0.0])
+    tr["terminated"][3, 0] = terminated
+    tr["truncated"][3, 0] = truncated
+    m = episode_metrics(**tr)
+    assert m["success_rate"].item() == success
+    assert m["distance_m"].item() == pytest.approx(3.5 if reached else 2.9)
+
+
+def test_return_counts_the_final_step_not_the_next_episode():
+    tr = _traj(5)
+    tr["reward"][:, 0] = torch.tensor([1.0, 2.0, 4.0, 8.0, 16.0])
+    tr["terminated"][2, 0] = True
+    assert episode_metrics(**tr)["reward"].item() == pytest.approx(7.0)
+
+
+def test_short_rollouts_are_left_out_and_counted():
+    """Envs ending at step 0 (no live step), 2 (2 live steps: torque only), 3 (3: one jerk
+    sample) and never (treated as timed out at the last step)."""
+    tr = _traj(6, e=4)
+    tr["torque"][:] = torch.arange(1.0, 7.0)[:, None]
+    tr["ang_vel"][:, :, 1] = torch.tensor([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])[:, None]
+    tr["terminated"][0, 0] = True
+    tr["terminated"][2, 1] = True
+    tr["truncated"][3, 2] = True
+    tr["progress"][:, 3] = torch.linspace(0.0, 5.0, 6)
+    tr["goal_distance"][:] = 4.0
+    m = episode_metrics(**tr)
+    assert math.isnan(m["abs_torque_nm"][0]) and math.isnan(m["abs_ang_jerk"][0])
+    assert m["abs_torque_nm"][1].item() == pytest.approx(1.5)  # steps 0, 1
+    assert math.isnan(m["abs_ang_jerk"][1])
+    assert m["abs_torque_nm"][2].item() == pytest.approx(2.0)  # steps 0, 1, 2
+    assert m["abs_ang_jerk"][2].item() == pytest.approx((1.0 / 3.0) / DT**2)  # t=2: 1-0+0
+    # Never ended: live steps 0..4, the last step is its time-out, success by distance 5 >= 4.
+    assert m["abs_torque_nm"][3].item() == pytest.approx(3.0)
+    assert m["success_rate"][3].item() == 1.0 and m["distance_m"][3].item() == 5.0
+    s = summarise(m)
+    assert (s["n_torque"], s["n_jerk"]) == (3, 3 - 1)
+    assert s["mean_abs_torque_nm"] == pytest.approx((1.5 + 2.0 + 3.0) / 3)
+    assert s["mean_success_rate"] == pytest.approx(0.25)  # success counts every rollout
+
+
+def test_standard_errors_against_hand_values():
+    per = {name: torch.tensor([1.0, 2.0, 3.0, 4.0]) for name in EVAL_METRICS}
+    per["abs_ang_jerk"] = torch.tensor([2.0, float("nan"), 4.0, float("nan")])
+    per["success_rate"] = torch.tensor([1.0, 0.0, 0.0, 0.0])
+    s = summarise(per)
+    # Sample std of 1..4 = sqrt(5/3); SE = sqrt(5/3) / 2.
+    assert s["mean_distance_m"] == pytest.approx(2.5)
+    assert s["se_distance_m"] == pytest.approx(math.sqrt(5.0 / 3.0) / 2.0)
+    # Two defined jerks 2, 4: std sqrt(2), SE sqrt(2)/sqrt(2) = 1.
+    assert s["mean_abs_ang_jerk"] == pytest.approx(3.0) and s["se_abs_ang_jerk"] == pytest.approx(1)
+    # Success 1/4: SE = sqrt(p(1-p) n/(n-1)) / sqrt(n) = sqrt(0.25 * 0.75 / 3) = 0.25.
+    assert s["se_success_rate"] == pytest.approx(0.25)
+    assert s["n_jerk"] == 2 and s["n_torque"] == 4
+    one = summarise({name: torch.tensor([2.0]) for name in EVAL_METRICS})
+    assert one["mean_reward"] == 2.0 and math.isnan(one["se_reward"])
+
+
+def _naive(tr) -> dict[str, list[float]]:
+    """The metric definitions of march/evaluate.py written as a plain per-env loop."""
+    t_len, e = tr["reward"].shape
+    out: dict[str, list[float]] = {k: [] for k in EVAL_METRICS}
+    for i in range(e):
+        done = [bool(tr["terminated"][t, i] or tr["truncated"][t, i]) for t in range(t_len)]
+        end = done.index(True) if any(done) else t_len - 1
+        fell = bool(tr["terminated"][end, i]) and any(done)
+        tq = [float(tr["torque"][t, i]) for t in range(end)]
+        w = tr["ang_vel"][:, i].double()
+        jk = [
+            float((w[t] - 2 * w[t - 1] + w[t - 2]).abs().mean() / tr["dt"] ** 2)
+            for t in range(2, end)
+        ]
+        dist = float(tr["progress"][end, i])
+        out["distance_m"].append(dist)
+        out["success_rate"].append(float(dist >= float(tr["goal_distance"][i]) and not fell))
+        out["abs_torque_nm"].append(sum(tq) / len(tq) if tq else math.nan)
+        out["abs_ang_jerk"].append(sum(jk) / len(jk) if jk else math.nan)
+        out["reward"].append(float(tr["reward"][: end + 1, i].double().sum()))
+    return out
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_matches_a_plain_loop_on_random_trajectories(seed):
+    g = torch.Generator().manual_seed(seed)
+    t_len = int(torch.randint(1, 40, (1,), generator=g))
+    e = 9
+    tr = _traj(t_len, e)
+    tr["torque"] = torch.rand(t_len, e, generator=g) * 50
+    tr["ang_vel"] = torch.randn(t_len, e, 3, generator=g)
+    tr["reward"] = torch.randn(t_len, e, generator=g)
+    tr["terminated"] = torch.rand(t_len, e, generator=g) < 0.05
+    tr["truncated"] = torch.rand(t_len, e, generator=g) < 0.05
+    tr["progress"] = torch.rand(t_len, e, generator=g) * 6
+    tr["goal_distance"] = torch.rand(e, generator=g) * 6
+    got = episode_metrics(**tr)
+    want = _naive(tr)
+    for k in EVAL_METRICS:
+        np.testing.assert_allclose(got[k].numpy(), np.array(want[k]), rtol=1e-9, atol=1e-9)
+
+
+def test_shape_mismatch_is_one_clear_error():
+    tr = _traj(4, e=2)
+    tr["ang_vel"] = torch.zeros(4, 2)
+    with pytest.raises(ValueError, match="ang_vel"):
+        episode_metrics(**tr)
+
+
+# ------------------------------------------------------------------ which courses
+
+
+@pytest.mark.parametrize(("rows", "cols"), [(10, 8), (4, 3), (3, 5), (1, 1), (6, 6)])
+def test_eval_cells_cover_every_cell_and_balance_levels(rows, cols):
+    for first in (0, 7, 31):
+        lv, col = eval_cells(first, rows * cols, rows, cols)
+        cells = set(zip(lv.tolist(), col.tolist(), strict=True))
+        assert len(cells) == rows * cols  # every (level, column) exactly once
+    for n in range(1, 3 * rows * cols):
+        lv, col = eval_cells(0, n, rows, cols)
+        per_level = torch.bincount(lv, minlength=rows)
+        assert per_level.max() - per_level.min() <= 1
+        for r in range(rows):  # each level's rollouts spread over its courses
+            per_col = torch.bincount(col[lv == r], minlength=cols)
+            assert per_col.max() - per_col.min() <= 1
+
+
+# ------------------------------------------------------------------ one protocol for every arm
+
+
+def _eval_cfg(reward: str, curriculum: str):
+    from march.env.build import build_env_cfg
+
+    cfg = load(["compute=smoke", f"reward={reward}", f"curriculum={curriculum}"])
+    return cfg, build_env_cfg(cfg, "eval")
+
+
+def _events(env_cfg) -> dict:
+    return {k: (v.func, v.mode, repr(v.params)) for k, v in env_cfg.events.items()}
+
+
+def test_eval_env_is_the_same_for_every_arm():
+    from march.env.build import EVAL_TERMINATIONS, build_env_cfg
+
+    arms = {(r, c): _eval_cfg(r, c) for r in ("clf", "modelfree") for c in ("stones", "flat_first")}
+    ref_cfg, ref = arms[("modelfree", "stones")]
+    vx = ref_cfg.eval.command_vx
+    for (reward, curriculum), (cfg, env_cfg) in arms.items():
+        what = f"reward={reward} curriculum={curriculum}"
+        assert tuple(env_cfg.terminations) == EVAL_TERMINATIONS, what
+        assert env_cfg.terminations["time_out"].time_out
+        assert not any(t.time_out for k, t in env_cfg.terminations.items() if k != "time_out")
+        # The same stone courses over every level, whatever the training curriculum.
+        gen = env_cfg.scene.terrain.terrain_generator
+        assert gen == ref.scene.terrain.terrain_generator, what
+        assert env_cfg.scene.terrain.max_init_terrain_level is None
+        assert gen.num_rows == cfg.curriculum.num_levels and gen.curriculum
+        assert all(s.flat_below == 0.0 for s in gen.sub_terrains.values()), what
+        assert env_cfg.curriculum == {}
+        # DR as in training, depth corruption as in training, one command, one episode length.
+        assert _events(env_cfg) == _events(ref), what
+        assert _events(env_cfg) == _events(build_env_cfg(cfg, "student")), what
+        assert env_cfg.observations["depth"] == ref.observations["depth"]
+        assert env_cfg.observations["depth"].terms["depth"].params["dropout"] > 0
+        twist = env_cfg.commands["twist"]
+        assert twist.ranges == ref.commands["twist"].ranges, what
+        assert twist.ranges.lin_vel_x == (vx, vx)
+        assert env_cfg.episode_length_s == cfg.eval.episode_length_s
+    # Training keeps the planner's verdict for clf: only evaluation drops it.
+    clf_cfg = arms[("clf", "stones")][0]
+    assert "planner_infeasible" in build_env_cfg(clf_cfg, "teacher").terminations
+
+
+# ------------------------------------------------------------------ success is reachable
+
+
+def _generated_goal_max(course: CourseCfg, seeds: int = 6) -> float:
+    """Largest goal distance over courses drawn at 11 difficulties x ``seeds`` x 10 draws."""
+    worst = 0.0
+    for seed in range(seeds):
+        rng = np.random.default_rng(seed)
+        for d in np.linspace(0.0, 1.0, 11):
+            for _ in range(10):
+                worst = max(worst, generate_course(float(d), course, rng).goal_distance)
+    return worst
+
+
+@pytest.mark.parametrize("preset", PRESETS)
+def test_goal_reachable_with_a_quarter_of_the_episode_to_spare(preset):
+    from march.env.terrain import foothold_table, terrain_generator_cfg
+
+    cfg = load([f"compute={preset}"])
+    course, c = cfg.terrain, cfg.curriculum
+    goal_max = course.goal_distance_max
+    # The bound is the generator's worst case: no generated course exceeds it, the flat layout
+    # (flat_first) sits on it, and drawn courses come within one gap of it.
+    assert _generated_goal_max(course) <= goal_max + 1e-9
+    assert _generated_goal_max(course) >= goal_max - course.gap_hard[1]
+    for kind in ("stones", "flat_first"):
+        table = foothold_table(
+            terrain_generator_cfg(
+                kind, course, num_rows=c.num_levels, num_cols=c.num_cols, seed=c.terrain_seed
+            )
+        )
+        assert float(table.goal_distance.max()) <= goal_max + 1e-5, kind
+    # Evaluation: walking at the evaluation command, the farthest goal is reached with at least
+    # 25% of the episode to spare.
+    t_goal = goal_max / cfg.eval.command_vx
+    assert t_goal <= 0.75 * cfg.eval.episode_length_s, (preset, t_goal)
+    # Training: promotion (progress >= promote_fraction x goal distance within an episode) is
+    # possible on the farthest course at the middle of the training forward-command range.
+    v_mid = 0.5 * (cfg.env.command_vx[0] + cfg.env.command_vx[1])
+    t_promote = c.promote_fraction * goal_max / v_mid
+    assert t_promote <= cfg.env.episode_length_s, (preset, t_promote)
+    lo, hi = cfg.env.command_vx
+    assert lo <= cfg.eval.command_vx <= hi
+
+
+def test_eval_command_outside_the_training_range_is_one_clear_error():
+    from march.config import ConfigError
+
+    with pytest.raises(ConfigError, match="eval.command_vx=0.9"):
+        load(["compute=smoke", "eval.command_vx=0.9"])
+
+
+# ------------------------------------------------------------------ eval.csv rows and resume
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_eval_columns_keep_the_names_figures_read():
+    for col in ("stage", "iteration", "env_steps", "n_rollouts"):
+        assert col in EVAL_COLUMNS
+    for m in ("distance_m", "success_rate", "abs_torque_nm", "abs_ang_jerk", "reward"):
+        assert f"mean_{m}" in EVAL_COLUMNS and f"se_{m}" in EVAL_COLUMNS
+    assert EVAL_COLUMNS[-2:] == ("n_torque", "n_jerk")
+
+
+def test_resume_truncation_keeps_other_stages(tmp_path):
+    path = tmp_path / "eval.csv"
+    for stage, it in [("teacher", 1), ("teacher", 2), ("teacher", 3), ("student", 1)]:
+        append_row(path, EVAL_COLUMNS, {"stage": stage, "iteration": it, "n_torque": 4})
+    truncate_rows(path, "teacher", 2)
+    assert [(r["stage"], r["iteration"]) for r in _rows(path)] == [
+        ("teacher", "1"),
+        ("teacher", "2"),
+        ("student", "1"),
+    ]
+    assert has_row(path, "teacher", 2) and not has_row(path, "teacher", 3)
+    assert not has_row(tmp_path / "missing.csv", "teacher", 1)
+
+
+@pytest.mark.sim
+def test_teacher_rows_during_training_and_resume_without_duplicates(tmp_path):
+    """stage=teacher on the real env: eval rows at every teacher.eval_interval iteration and at
+    the end; a second run in the same directory resumes without repeating a row."""
+    from march.train import run_pipeline
+
+    def run(iterations: int) -> list[dict[str, str]]:
+        cfg = load(
+            [
+                "compute=smoke",
+                "stage=teacher",
+                f"teacher.max_iterations={iterations}",
+                "teacher.eval_interval=2",
+                "eval.num_rollouts=6",  # more rollouts than the 4 eval envs: two waves
+            ]
+        )
+        run_pipeline(cfg, tmp_path)
+        return _rows(tmp_path / "eval.csv")
+
+    first = run(1)
+    assert [(r["stage"], r["iteration"]) for r in first] == [("teacher", "1")]
+    rows = run(3)
+    assert [(r["stage"], int(r["iteration"])) for r in rows] == [
+        ("teacher", 1),
+        ("teacher", 2),
+        ("teacher", 3),
+    ]
+    metrics = [r for r in _rows(tmp_path / "metrics.csv") if r["stage"] == "teacher"]
+    steps = {int(r["iteration"]): r["env_steps"] for r in metrics}
+    for r in rows:
+        assert r["env_steps"] == steps[int(r["iteration"])]
+        assert int(r["n_rollouts"]) == 6
+        assert 0 <= int(r["n_jerk"]) <= int(r["n_torque"]) <= 6
+        assert 0.0 <= float(r["mean_success_rate"]) <= 1.0
+        assert float(r["mean_distance_m"]) >= 0.0
