@@ -278,6 +278,40 @@ def _layout_problem(layout: dict[str, Any], cfg: MarchConfig, num_joints: int) -
     return None
 
 
+def _command_spec(env_cfg: Any) -> dict[str, Any]:
+    """The evaluation's velocity command: fixed v_x, v_y; the yaw rate either fixed or mjlab's
+    heading controller (recomputed every control step from the root's heading)."""
+    twist = env_cfg.commands["twist"]
+    r = twist.ranges
+    for name in ("lin_vel_x", "lin_vel_y"):
+        lo, hi = getattr(r, name)
+        if lo != hi:
+            raise ValueError(f"the evaluation command's {name} is a range {lo, hi}, not one value")
+    spec: dict[str, Any] = {
+        "lin_vel_x": float(r.lin_vel_x[0]),
+        "lin_vel_y": float(r.lin_vel_y[0]),
+        "heading_control": bool(twist.heading_command and twist.rel_heading_envs >= 1.0),
+    }
+    if spec["heading_control"]:
+        lo, hi = r.heading
+        if lo != hi:
+            raise ValueError(f"the evaluation's heading target is a range {lo, hi}, not one value")
+        spec.update(
+            heading_target_rad=float(lo),
+            heading_stiffness=float(twist.heading_control_stiffness),
+            ang_vel_z_range=[float(v) for v in r.ang_vel_z],
+            meaning="yaw rate = clip(heading_stiffness * wrap_to_pi(heading_target - heading), "
+            "ang_vel_z_range), heading = atan2 of the root's x axis in the world (x-y); "
+            "recomputed every control step after mj_forward, before the observation",
+        )
+    else:
+        lo, hi = r.ang_vel_z
+        if lo != hi:
+            raise ValueError(f"the evaluation command's ang_vel_z is a range {lo, hi}")
+        spec["ang_vel_z"] = float(lo)
+    return spec
+
+
 def deployment_spec(
     cfg: MarchConfig, payload: dict[str, Any], model: Any, env_cfg: Any, scene: Any
 ) -> dict[str, Any]:
@@ -359,10 +393,10 @@ def deployment_spec(
             "joint_pos": "qpos - default_joint_pos, joints in joint_names order",
             "joint_vel": "qvel, joints in joint_names order",
             "actions": "the previous raw policy output (0 at reset)",
-            "command": [float(cfg.eval.command_vx), 0.0, 0.0],
-            "command_meaning": "v_x [m/s], v_y [m/s], yaw rate [rad/s]; the evaluation command",
+            "command": "the command section's (v_x, v_y, yaw rate) of this step",
             "when": "after the control step's last physics step and mj_forward (as mjlab)",
         },
+        "command": _command_spec(env_cfg),
         "depth": {
             "camera": d.name,
             "parent_body": model.body(int(model.cam_bodyid[cam.id])).name,

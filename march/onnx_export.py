@@ -80,7 +80,7 @@ class DeployGraph(nn.Module):
         att = layer.self_attn
         d, h = att.embed_dim, att.num_heads
         dh = d // h
-        n = y.shape[1]
+        n = self.policy.num_tokens  # a constant: no shape arithmetic in the graph
         w, b = att.in_proj_weight, att.in_proj_bias
         yq = y if q_rows is None else y[:, :q_rows]
         nq = n if q_rows is None else q_rows
@@ -110,11 +110,11 @@ class DeployGraph(nn.Module):
             return p.act_inference(proprio_hist, command, depth)
         pn = p.proprio_normalizer(proprio_hist)
         c = p.command_normalizer(command)
-        fmap = p.cnn(depth)
-        img = p.image_proj(fmap.flatten(2).transpose(1, 2))
+        fmap = p.cnn(depth).reshape(-1, p.cnn_out_channels, p.num_image_tokens)
+        img = p.image_proj(fmap.transpose(1, 2))
         hist = p.proprio_proj(pn)
         cmd = p.command_proj(c).unsqueeze(1)
-        cls = p.cls_token.expand(img.shape[0], -1, -1)
+        cls = cmd * 0.0 + p.cls_token  # (B, 1, d) by broadcasting, no Shape/Expand
         x = torch.cat([cls, cmd, hist, img], dim=1) + p.pos_embed
         layers = list(p.transformer.layers)
         for i, layer in enumerate(layers):
@@ -122,10 +122,11 @@ class DeployGraph(nn.Module):
         z = p.head_mlp(p.out_norm(x[:, 0]))
         if not p.is_mdn:
             return p.action_out(z)
-        logits = p.mdn.logits(z)
-        means = p.mdn.means(z).reshape(-1, p.mdn.num_modes, p.num_actions)
-        idx = torch.argmax(logits, dim=-1).reshape(-1, 1, 1).expand(-1, 1, p.num_actions)
-        return torch.gather(means, 1, idx).squeeze(1)
+        # top_mode_mean: the argmax mode's block of the flat (B, K * A) means
+        a = p.num_actions
+        idx = torch.argmax(p.mdn.logits(z), dim=-1, keepdim=True)  # (B, 1)
+        cols = idx * a + torch.arange(a, device=z.device)  # (B, A)
+        return torch.gather(p.mdn.means(z), 1, cols)
 
 
 def example_inputs(

@@ -48,7 +48,8 @@ met every constraint.
 Frames: positions and the velocity command are in the world frame. Longitudinal/lateral limits and
 the nominal width use the course frame given by ``Footholds.direction`` (+x for generated courses).
 The yaw-rate command is ignored for foothold placement (the course is straight and the planner
-works in the course frame); the pelvis-yaw reference tracks it (march.reference).
+works in the course frame); the env's command term passes the forward command along the course
+direction (march.env.reference_command, "Velocity command, in the course frame").
 
 Randomness: every random draw has a shape independent of the number of envs and is shared by all
 envs, so a batched plan equals a per-env loop and a seeded ``torch.Generator`` fixes the plan.

@@ -307,7 +307,8 @@ class Sim2Sim:
         self.gyro = slice(int(m.sensor_adr[gyro.id]), int(m.sensor_adr[gyro.id]) + 3)
         self.feet = np.array([m.site(s).id for s in robot["foot_sites"]])
         self.terms = [(t["name"], int(t["dim"])) for t in obs["proprio_terms"]]
-        self.command = np.asarray(obs["command"], dtype=np.float64)
+        self.command_spec = spec["command"]
+        self.command = np.zeros(3)
         self.history = History(int(obs["history_len"]))
         self.camera = DepthCamera(m, spec["depth"])
         self.num_actions = len(self.act_ids)
@@ -347,7 +348,22 @@ class Sim2Sim:
         self.history = History(self.history.length)
         self.data.ctrl[self.act_ids] = self.offset + self.scale * self.last_action
         mujoco.mj_forward(self.model, self.data)
+        self.update_command()
         self.history.push(self.proprio())
+
+    def update_command(self) -> None:
+        """The velocity command of this step (mjlab's UniformVelocityCommand in evaluation):
+        fixed v_x, v_y; the yaw rate steers the root's heading back to the course heading."""
+        c = self.command_spec
+        self.command[0], self.command[1] = c["lin_vel_x"], c["lin_vel_y"]
+        if not c["heading_control"]:
+            self.command[2] = c["ang_vel_z"]
+            return
+        x_axis = self.data.xmat[self.root_body].reshape(3, 3)[:, 0]
+        heading = math.atan2(x_axis[1], x_axis[0])
+        err = (c["heading_target_rad"] - heading + math.pi) % (2.0 * math.pi) - math.pi
+        lo, hi = c["ang_vel_z_range"]
+        self.command[2] = min(max(c["heading_stiffness"] * err, lo), hi)
 
     def projected_gravity(self) -> np.ndarray:
         return self.data.xmat[self.root_body].reshape(3, 3).T @ np.array([0.0, 0.0, -1.0])
@@ -393,6 +409,7 @@ class Sim2Sim:
             d.ctrl[self.act_ids] = target
             mujoco.mj_step(m, d)
         mujoco.mj_forward(m, d)
+        self.update_command()
         self.history.push(self.proprio())
 
     # -- course ------------------------------------------------------------------------------

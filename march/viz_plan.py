@@ -39,7 +39,14 @@ def draw_plans(
     z = fh.center[..., 2][fh.valid]
     norm = Normalize(float(z.min()) - 1e-3, float(z.max()) + 1e-3)
     cmap = plt.get_cmap("viridis")
-    fig, axes = plt.subplots(e, 1, figsize=(12, 2.0 * e + 0.6), squeeze=False, layout="constrained")
+    # Panel width from the courses' aspect ratio (equal axes), so a panel fills its row.
+    lo = (fh.center[..., :2] - fh.half_size)[fh.valid]
+    hi = (fh.center[..., :2] + fh.half_size)[fh.valid]
+    span = (hi.max(0).values - lo.min(0).values).clamp(min=0.5)
+    width = min(18.0, 2.0 * float(span[0] / span[1]) + 2.5)
+    fig, axes = plt.subplots(
+        e, 1, figsize=(width, 2.0 * e + 0.6), squeeze=False, layout="constrained"
+    )
     for i, ax in enumerate(axes[:, 0]):
         for s in torch.nonzero(fh.valid[i])[:, 0].tolist():
             (cx, cy, cz), (hx, hy) = fh.center[i, s].tolist(), fh.half_size[i, s].tolist()
@@ -137,7 +144,10 @@ def walk_course(
         if swing is None:
             swing = plan.start.clone()
             swing[:, :2] -= planner.step_width * lat
-        step = step_state_from_plan(plan, plan.start, swing, zero, command[:, 2], axis)
+        # The first step starts from standing: its CoM reference ramps from rest at the feet's
+        # midpoint (march.reference), as the env's first step does from the measured CoM.
+        ramp_from = 0.5 * (plan.start[:, :2] + swing[:, :2]) if k == 0 else None
+        step = step_state_from_plan(plan, plan.start, swing, zero, zero, axis, ramp_from=ramp_from)
         for j in range(samples_per_step):
             tau = plan.durations[:, 0] * j / (samples_per_step - 1)
             ref = reference_at(step, tau, ReferenceCfg(), hlip, num_upper=0)

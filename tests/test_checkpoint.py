@@ -288,7 +288,7 @@ def test_tensors_go_to_the_device_rng_states_stay_on_cpu(tmp_path, device):
         torch.rand(4, generator=g), torch.rand(4, generator=torch.Generator().manual_seed(7))
     )
     if device == "cpu":
-        assert_same(back, {**payload})
+        assert_same(back, payload)
 
 
 # ---------------------------------------------------------------------------------------------

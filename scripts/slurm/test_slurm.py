@@ -1,0 +1,238 @@
+"""End-to-end check of march on a real Slurm cluster (``make test-slurm``; slow, not in CI).
+
+Needs the single-node cluster of ``scripts/slurm/start.sh`` (SLURM_CONF set). Through it:
+
+1. a two-run smoke sweep (``+arm=clf,modelfree``) with ``hydra/launcher=march_slurm``, sized for
+   a CPU node (no GPU, one CPU per job), every job an array task of one sbatch submission;
+2. job 0 (clf) is requeued with ``scontrol requeue`` once its first teacher checkpoint exists and
+   while it is still running: Slurm kills it and starts it again, submitit re-runs the same Hydra
+   job in the same run directory, and march.train resumes from the checkpoint by itself;
+3. both runs must end ``done`` with a summary, the requeued one with ``Restarts=1`` in Slurm and a
+   "resuming from" line in its log; no (stage, iteration) row of metrics.csv or eval.csv may be
+   duplicated or missing, and every stage's final checkpoint must load;
+4. ``analysis/figures.py`` reads the sweep directory and lists both runs as done.
+
+Prints one PASS/FAIL line per check and exits 0 only when all pass.
+
+    python scripts/slurm/test_slurm.py [--out DIR] [--timeout-min 60]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+ROOT = Path(__file__).resolve().parents[2]
+PY = sys.executable
+
+# The smoke preset with a few more teacher iterations, so that the requeue lands mid-run (after
+# the first checkpoint, before the end) with room to spare; one torch thread per job.
+SWEEP_ARGS = [
+    "+arm=clf,modelfree",
+    "seed=0",
+    "compute=smoke",
+    "compute.torch_threads=1",
+    "teacher.max_iterations=4",
+    "hydra/launcher=march_slurm",
+    # A CPU node: no GPU, one CPU and 2 GB per job, both jobs at once on the node's 2 CPUs.
+    "hydra.launcher.gpus_per_node=null",
+    "hydra.launcher.cpus_per_task=1",
+    "hydra.launcher.mem_gb=2",
+    "hydra.launcher.timeout_min=60",
+]
+
+
+class Checks:
+    def __init__(self) -> None:
+        self.results: list[tuple[bool, str]] = []
+
+    def check(self, ok: bool, what: str) -> bool:
+        self.results.append((bool(ok), what))
+        print(f"[test-slurm] {'PASS' if ok else 'FAIL'}: {what}", flush=True)
+        return bool(ok)
+
+    def summary(self) -> int:
+        passed = sum(ok for ok, _ in self.results)
+        total = len(self.results)
+        verdict = "PASSED" if passed == total and total else "FAILED"
+        print(f"[test-slurm] {verdict}: {passed}/{total} checks passed", flush=True)
+        for ok, what in self.results:
+            if not ok:
+                print(f"[test-slurm]   failed: {what}", flush=True)
+        return 0 if verdict == "PASSED" else 1
+
+
+def say(msg: str) -> None:
+    print(f"[test-slurm] {msg}", flush=True)
+
+
+def sh(*cmd: str) -> str:
+    return subprocess.run(cmd, check=True, capture_output=True, text=True, timeout=60).stdout
+
+
+def squeue_jobs() -> dict[str, str]:
+    """Job id (``<array>_<task>``) -> state of this user's jobs in Slurm's queue."""
+    out = sh("squeue", "-h", "-o", "%i %T")
+    return dict(line.split() for line in out.splitlines() if line.strip())
+
+
+def job_field(job_id: str, key: str) -> str | None:
+    out = sh("scontrol", "show", "job", job_id)
+    m = re.search(rf"\b{key}=(\S+)", out)
+    return m.group(1) if m else None
+
+
+def read_rows(path: Path) -> list[dict[str, str]]:
+    if not path.is_file():
+        return []
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def check_rows(checks: Checks, run: Path, name: str, expected: dict[str, int]) -> None:
+    """Each stage's rows in ``name`` are exactly iterations 0..n-1 (or 1..n): none lost, none
+    duplicated."""
+    rows = read_rows(run / name)
+    keys = [(r["stage"], int(r["iteration"])) for r in rows]
+    dup = sorted(k for k, n in Counter(keys).items() if n > 1)
+    checks.check(not dup, f"{run.name}/{name}: no duplicated (stage, iteration) rows {dup or ''}")
+    for stage, n in expected.items():
+        its = sorted(i for s, i in keys if s == stage)
+        first = its[0] if its else 0
+        want = list(range(first, first + n))
+        checks.check(
+            its == want,
+            f"{run.name}/{name}: {stage} iterations {its} are {n} consecutive ones (none lost)",
+        )
+
+
+def check_checkpoints(checks: Checks, run: Path) -> None:
+    code = (
+        "import sys; from march.learn.checkpoint import load_checkpoint\n"
+        "for kind in ('teacher', 'student'):\n"
+        "    p = load_checkpoint(sys.argv[1] + f'/{kind}/latest.pt', kind, 'cpu')\n"
+        "    print(kind, int(p['iteration']))\n"
+    )
+    res = subprocess.run([PY, "-c", code, str(run)], capture_output=True, text=True)
+    checks.check(
+        res.returncode == 0,
+        f"{run.name}: final teacher and student checkpoints load "
+        f"({' '.join(res.stdout.split()) or res.stderr.strip().splitlines()[-1:]})",
+    )
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=None, help="sweep directory (default: new)")
+    ap.add_argument("--timeout-min", type=float, default=60.0, help="give up after [min]")
+    args = ap.parse_args()
+    if not os.environ.get("SLURM_CONF") and not Path("/etc/slurm/slurm.conf").is_file():
+        say("error: no cluster: run scripts/slurm/start.sh and export the SLURM_CONF it prints")
+        return 2
+    stamp = time.strftime("%Y-%m-%d_%H-%M-%S")
+    sweep = (args.out or ROOT / "outputs" / "slurm-test" / stamp).resolve()
+    sweep.parent.mkdir(parents=True, exist_ok=True)
+    checks = Checks()
+    deadline = time.time() + 60 * args.timeout_min
+
+    cmd = [PY, "-m", "march.train", "-m", *SWEEP_ARGS, f"hydra.sweep.dir={sweep}"]
+    say("sweep: " + " ".join(cmd[1:]))
+    launcher_log = sweep.parent / f"{sweep.name}.launcher.log"
+    with launcher_log.open("w") as log:
+        launcher = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+
+    # Job 0 (clf): requeue once its first teacher checkpoint exists, while it still runs.
+    requeued: str | None = None
+    run0_state = ""
+    while time.time() < deadline and launcher.poll() is None:
+        time.sleep(2)
+        runs = sorted(sweep.glob("0_*"))
+        if not runs:
+            continue
+        run0 = runs[0]
+        status = run0 / "status.json"
+        try:
+            run0_state = json.loads(status.read_text())["state"] if status.is_file() else ""
+        except (json.JSONDecodeError, KeyError):
+            continue  # being written
+        if (run0 / "teacher" / "latest.pt").is_file() and run0_state == "running":
+            jobs = {j: s for j, s in squeue_jobs().items() if j.endswith("_0")}
+            if len(jobs) != 1 or next(iter(jobs.values())) != "RUNNING":
+                continue
+            requeued = next(iter(jobs))
+            ckpts = sorted(p.name for p in (run0 / "teacher").glob("model_*.pt"))
+            say(f"requeueing job {requeued} (run {run0.name}, checkpoints {ckpts})")
+            sh("scontrol", "requeue", requeued)
+            break
+    checks.check(
+        requeued is not None,
+        f"job 0 requeued with scontrol requeue mid-run (run state was {run0_state or 'none'})",
+    )
+
+    while time.time() < deadline and launcher.poll() is None:
+        time.sleep(5)
+    if launcher.poll() is None:
+        say(f"timeout after {args.timeout_min} min: cancelling the sweep")
+        subprocess.run(["scancel", "--user", os.environ.get("USER", "root")], check=False)
+        launcher.terminate()
+        launcher.wait(30)
+    checks.check(launcher.returncode == 0, f"sweep launcher exit code {launcher.returncode}")
+    if launcher.returncode != 0:
+        say(f"launcher log: {launcher_log}")
+        print("".join(launcher_log.read_text().splitlines(keepends=True)[-15:]), flush=True)
+
+    runs = sorted(p for p in sweep.iterdir() if p.is_dir() and re.match(r"\d+_", p.name))
+    checks.check(len(runs) == 2, f"two run directories in {sweep}: {[r.name for r in runs]}")
+    for run in runs:
+        status = (
+            json.loads((run / "status.json").read_text()) if (run / "status.json").is_file() else {}
+        )
+        checks.check(status.get("state") == "done", f"{run.name}: status {status.get('state')}")
+        checks.check((run / "summary.json").is_file(), f"{run.name}: summary.json written")
+        cfg = OmegaConf.load(run / "config.yaml") if (run / "config.yaml").is_file() else None
+        t = cfg.teacher if cfg is not None else None
+        teacher_its = max(1, round(t.max_iterations * t.budget_scale)) if t is not None else -1
+        distill_its = int(cfg.distill.max_iterations) if cfg is not None else -1
+        check_rows(checks, run, "metrics.csv", {"teacher": teacher_its, "student": distill_its})
+        check_rows(checks, run, "eval.csv", {})
+        check_checkpoints(checks, run)
+
+    if requeued is not None and runs:
+        restarts = job_field(requeued, "Restarts")
+        checks.check(restarts == "1", f"Slurm reports job {requeued} Restarts={restarts}")
+        logs = sorted((sweep / ".submitit").glob(f"{requeued}/*_log.out"))
+        text = "".join(p.read_text(errors="replace") for p in logs)
+        resumed = re.findall(r"\[(teacher|student)\] resuming from .* at iteration (\d+)", text)
+        checks.check(
+            bool(resumed), f"job {requeued} log: resumed from its checkpoint {resumed or ''}"
+        )
+
+    fig = subprocess.run(
+        [PY, "analysis/figures.py", str(sweep), "--out", str(sweep / "figures")],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+    )
+    checks.check(fig.returncode == 0, f"analysis/figures.py exit code {fig.returncode}")
+    if fig.returncode != 0:
+        print(fig.stderr[-2000:], flush=True)
+    table = read_rows(sweep / "figures" / "runs.csv")
+    checks.check(
+        len(table) == 2, f"analysis/figures.py lists {len(table)} runs of the sweep in runs.csv"
+    )
+    say(f"sweep directory: {sweep}")
+    return checks.summary()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
