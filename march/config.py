@@ -11,9 +11,11 @@ Pure data: no simulator import.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, fields
+from functools import cache
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args, get_origin, get_type_hints
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
@@ -46,6 +48,98 @@ def _positive(section: str, key: str, value: float) -> None:
         raise ConfigError(f"{section}.{key}={value} must be > 0")
 
 
+SEED_MAX = 2**31 - 1
+"""Largest seed every RNG of a run accepts: numpy takes 0..2**32-1, but warp's ``wp.rand_init``
+(mjlab's ``seed_rng``) takes an int32 and silently wraps anything larger."""
+
+ACTIVATIONS = ("elu", "relu", "gelu", "silu", "tanh")
+"""Activations of march's own networks (march.policies.student._activation)."""
+RSL_ACTIVATIONS = ("elu", "selu", "relu", "crelu", "lrelu", "tanh", "sigmoid", "softplus")
+RSL_ACTIVATIONS += ("gelu", "swish", "mish", "identity")
+"""Activations rsl-rl's actor-critic MLP takes (rsl_rl.utils.resolve_nn_activation)."""
+MJ_GEOM_GROUPS = 6
+"""MuJoCo's number of geom groups (mjNGROUP): valid groups are 0..5."""
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_fmt(v) for v in value) + "]"
+    return str(value)
+
+
+def _need(section: str, key: str, value: Any, ok: bool, allowed: str) -> None:
+    """Raise ``<section>.<key>=<value> must be <allowed>`` unless ``ok``."""
+    if not ok:
+        name = f"{section}.{key}" if section else key
+        raise ConfigError(f"{name}={_fmt(value)} must be {allowed}")
+
+
+def _at_least(section: str, key: str, value: float, lo: float) -> None:
+    _need(section, key, value, value >= lo, f">= {lo}")
+
+
+def _interval(
+    section: str, key: str, value: float, lo: float, hi: float, *, lo_open=False, hi_open=False
+) -> None:
+    ok = (value > lo if lo_open else value >= lo) and (value < hi if hi_open else value <= hi)
+    text = f"in {'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
+    _need(section, key, value, ok, text)
+
+
+def _bounds(
+    section: str, key: str, pair: Any, lo: float | None = None, *, lo_open: bool = False
+) -> None:
+    """A range [a, b]: a <= b, and a >= lo (a > lo with ``lo_open``)."""
+    a, b = pair
+    _need(section, key, pair, a <= b, "[lo, hi] with lo <= hi")
+    if lo is not None:
+        ok = a > lo if lo_open else a >= lo
+        _need(section, key, pair, ok, f"[lo, hi] with lo {'>' if lo_open else '>='} {lo}")
+
+
+def _each(section: str, key: str, values: Any, lo: float, *, nonempty: bool = False) -> None:
+    """Every entry >= lo (and at least one entry with ``nonempty``)."""
+    if nonempty:
+        _need(section, key, values, len(values) > 0, "a non-empty list")
+    _need(section, key, values, all(v >= lo for v in values), f"a list of values >= {lo}")
+
+
+@cache
+def _hints(cls: type) -> dict[str, Any]:
+    return get_type_hints(cls)
+
+
+def _check_shapes(section: str, obj: Any) -> None:
+    """Every number finite and every fixed-size tuple of its declared length.
+
+    OmegaConf accepts ``nan``/``inf`` for floats and a list of any length for a ``tuple[float,
+    float]``; both would fail far from the command line."""
+    hints = _hints(type(obj))
+    for f in fields(obj):
+        value, hint = getattr(obj, f.name), hints[f.name]
+        items = list(value.values()) if isinstance(value, dict) else value
+        if isinstance(items, (list, tuple)):
+            args = get_args(hint)
+            if get_origin(hint) is tuple and args and Ellipsis not in args:
+                _need(
+                    section, f.name, value, len(items) == len(args), f"a list of {len(args)} values"
+                )
+            nums = [v for v in items if isinstance(v, float)]
+        else:
+            nums = [items] if isinstance(items, float) else []
+        _need(section, f.name, value, all(math.isfinite(v) for v in nums), "finite")
+
+
+def cnn_output_hw(hw: tuple[int, int], kernels: Any, strides: Any) -> tuple[int, int]:
+    """The student CNN's feature-map size for an image of ``hw`` (height, width) pixels: conv
+    layers with same padding (kernel // 2), as march.policies.student builds them."""
+    h, w = hw
+    for k, s in zip(kernels, strides, strict=True):
+        h = (h + 2 * (k // 2) - k) // s + 1
+        w = (w + 2 * (k // 2) - k) // s + 1
+    return h, w
+
+
 @dataclass
 class ComputeCfg:
     """Where and how big: presets in ``conf/compute/`` also size teacher, distill and eval."""
@@ -62,11 +156,20 @@ class ComputeCfg:
     """torch.set_num_threads on CPU; 0 keeps torch's default."""
 
     def __post_init__(self) -> None:
+        _check_shapes("compute", self)
         _one_of("compute", "name", self.name, COMPUTES)
-        if not (self.device == "cpu" or self.device.startswith("cuda")):
+        dev = self.device
+        if not (dev in ("cpu", "cuda") or (dev.startswith("cuda:") and dev[5:].isdigit())):
             raise ConfigError(f"compute.device={self.device!r}: use cpu, cuda or cuda:N")
         _positive("compute", "num_envs", self.num_envs)
         _positive("compute", "eval_num_envs", self.eval_num_envs)
+        _need(
+            "compute",
+            "torch_threads",
+            self.torch_threads,
+            self.torch_threads >= 0,
+            ">= 0 (0 = torch's default)",
+        )
 
 
 @dataclass
@@ -95,10 +198,19 @@ class EnvCfg:
     """Gain of that heading controller [1/s] (mjlab's velocity task uses 0.5)."""
 
     def __post_init__(self) -> None:
+        _check_shapes("env", self)
         _positive("env", "episode_length_s", self.episode_length_s)
         _positive("env", "sim_dt", self.sim_dt)
         _positive("env", "decimation", self.decimation)
         _positive("env", "history_length", self.history_length)
+        step = self.sim_dt * self.decimation
+        _need(
+            "env",
+            "episode_length_s",
+            self.episode_length_s,
+            self.episode_length_s >= step,
+            f">= one control step (sim_dt * decimation = {step:g} s)",
+        )
         for key in ("command_vx", "command_vy", "command_yaw_rate"):
             lo, hi = getattr(self, key)
             if lo > hi:
@@ -148,7 +260,22 @@ class DepthCfg:
     """Per-env delay [control steps], drawn uniformly from [lo, hi] at reset (1 step = 20 ms)."""
 
     def __post_init__(self) -> None:
+        _check_shapes("depth", self)
+        _need("depth", "name", self.name, bool(self.name), "a non-empty sensor name")
+        _at_least("depth", "width", self.width, 1)
+        _at_least("depth", "height", self.height, 1)
+        _interval("depth", "fovy", self.fovy, 0, 180, lo_open=True, hi_open=True)
         _positive("depth", "max_range", self.max_range)
+        _interval("depth", "min_range", self.min_range, 0, self.max_range, hi_open=True)
+        _interval("depth", "pitch_deg", self.pitch_deg, -90, 90)
+        _need(
+            "depth",
+            "geom_groups",
+            self.geom_groups,
+            len(self.geom_groups) > 0 and all(0 <= g < MJ_GEOM_GROUPS for g in self.geom_groups),
+            f"a non-empty list of MuJoCo geom groups 0..{MJ_GEOM_GROUPS - 1}",
+        )
+        _at_least("depth", "noise_scale", self.noise_scale, 0)
         if not 0.0 <= self.dropout < 1.0:
             raise ConfigError(f"depth.dropout={self.dropout} must be in [0, 1)")
         if self.delay_steps[0] > self.delay_steps[1] or self.delay_steps[0] < 0:
@@ -173,7 +300,11 @@ class RewardCfg:
     stone; stone tops vary by at most terrain.height_hard = 0.10 m)."""
 
     def __post_init__(self) -> None:
+        _check_shapes("reward", self)
         _one_of("reward", "name", self.name, REWARDS)
+        _interval("reward", "tilt_limit_deg", self.tilt_limit_deg, 0, 180, lo_open=True)
+        _at_least("reward", "min_base_height_m", self.min_base_height_m, 0)
+        _positive("reward", "max_foot_drop_m", self.max_foot_drop_m)
 
 
 @dataclass
@@ -199,8 +330,22 @@ class CurriculumCfg:
 
     def __post_init__(self) -> None:
         _one_of("curriculum", "name", self.name, CURRICULA)
+        _check_shapes("curriculum", self)
         _positive("curriculum", "num_levels", self.num_levels)
         _positive("curriculum", "num_cols", self.num_cols)
+        _interval("curriculum", "max_init_level", self.max_init_level, 0, self.num_levels - 1)
+        _interval("curriculum", "flat_levels", self.flat_levels, 0, self.num_levels - 1)
+        _interval("curriculum", "terrain_seed", self.terrain_seed, 0, SEED_MAX)
+        # Progress is measured against the goal distance: 1 = the goal platform was reached.
+        _interval("curriculum", "promote_fraction", self.promote_fraction, 0, 1, lo_open=True)
+        _interval(
+            "curriculum",
+            "demote_fraction",
+            self.demote_fraction,
+            0,
+            self.promote_fraction,
+            hi_open=True,
+        )
         if self.name == "flat_first" and not 0 < self.flat_levels < self.num_levels:
             raise ConfigError(
                 f"curriculum.flat_levels={self.flat_levels}: flat_first needs 1..num_levels-1"
@@ -251,15 +396,36 @@ class StudentCfg:
     """eps added to the running std of the observation normalisers (rsl-rl default)."""
 
     def __post_init__(self) -> None:
+        _check_shapes("student", self)
         _one_of("student", "variant", self.variant, STUDENTS)
+        _each("student", "cnn_channels", self.cnn_channels, 1, nonempty=True)
+        _each("student", "cnn_kernels", self.cnn_kernels, 1)
+        _each("student", "cnn_strides", self.cnn_strides, 1)
+        for key in ("d_model", "n_heads", "n_layers", "dim_feedforward", "num_modes"):
+            _at_least("student", key, getattr(self, key), 1)
+        _each("student", "fusion_mlp", self.fusion_mlp, 1)
+        _each("student", "head_hidden", self.head_hidden, 1)
+        _positive("student", "min_std", self.min_std)
+        _one_of("student", "activation", self.activation, ACTIVATIONS)
+        _positive("student", "huber_delta", self.huber_delta)
+        _positive("student", "normalizer_eps", self.normalizer_eps)
         if not len(self.cnn_channels) == len(self.cnn_kernels) == len(self.cnn_strides):
             raise ConfigError(
-                "student.cnn_channels, cnn_kernels and cnn_strides must have equal length"
+                f"student.cnn_channels={_fmt(self.cnn_channels)}, student.cnn_kernels="
+                f"{_fmt(self.cnn_kernels)} and student.cnn_strides={_fmt(self.cnn_strides)} "
+                "must have equal length (one entry per conv layer)"
             )
         if self.d_model % self.n_heads:
-            raise ConfigError(f"student.d_model={self.d_model} must be divisible by n_heads")
+            raise ConfigError(
+                f"student.d_model={self.d_model} must be divisible by student.n_heads="
+                f"{self.n_heads}"
+            )
         if self.log_std_min >= self.log_std_max:
-            raise ConfigError("student.log_std_min must be < student.log_std_max")
+            raise ConfigError(
+                f"student.log_std_min={self.log_std_min} must be < student.log_std_max="
+                f"{self.log_std_max}"
+            )
+        _interval("student", "init_log_std", self.init_log_std, self.log_std_min, self.log_std_max)
 
 
 @dataclass
@@ -312,14 +478,29 @@ class TeacherCfg:
         return max(1, round(self.max_iterations * self.budget_scale))
 
     def __post_init__(self) -> None:
+        _check_shapes("teacher", self)
         _positive("teacher", "max_iterations", self.max_iterations)
         _positive("teacher", "budget_scale", self.budget_scale)
         _positive("teacher", "num_steps_per_env", self.num_steps_per_env)
+        _each("teacher", "hidden_dims", self.hidden_dims, 1, nonempty=True)
+        _one_of("teacher", "activation", self.activation, RSL_ACTIVATIONS)
+        _positive("teacher", "init_std", self.init_std)
         _positive("teacher", "learning_rate", self.learning_rate)
         _positive("teacher", "save_interval", self.save_interval)
         _one_of("teacher", "schedule", self.schedule, ("adaptive", "fixed"))
+        _at_least("teacher", "num_learning_epochs", self.num_learning_epochs, 1)
+        _at_least("teacher", "num_mini_batches", self.num_mini_batches, 1)
+        _positive("teacher", "clip_param", self.clip_param)
+        _at_least("teacher", "value_loss_coef", self.value_loss_coef, 0)
+        _at_least("teacher", "entropy_coef", self.entropy_coef, 0)
+        _interval("teacher", "gamma", self.gamma, 0, 1)
+        _interval("teacher", "lam", self.lam, 0, 1)
+        _positive("teacher", "desired_kl", self.desired_kl)
+        _positive("teacher", "max_grad_norm", self.max_grad_norm)
         if self.eval_interval < 0:
-            raise ConfigError("teacher.eval_interval must be >= 0 (0 = only at the end)")
+            raise ConfigError(
+                f"teacher.eval_interval={self.eval_interval} must be >= 0 (0 = only at the end)"
+            )
 
 
 @dataclass
@@ -348,6 +529,10 @@ class DistillCfg:
     """Checkpoint every this many iterations."""
 
     def __post_init__(self) -> None:
+        _check_shapes("distill", self)
+        _positive("distill", "learning_rate", self.learning_rate)
+        _positive("distill", "max_grad_norm", self.max_grad_norm)
+        _at_least("distill", "teacher_std_scale", self.teacher_std_scale, 0)
         _positive("distill", "max_iterations", self.max_iterations)
         _positive("distill", "num_steps_per_env", self.num_steps_per_env)
         _positive("distill", "num_learning_epochs", self.num_learning_epochs)
@@ -355,7 +540,9 @@ class DistillCfg:
         _positive("distill", "teacher_samples", self.teacher_samples)
         _positive("distill", "save_interval", self.save_interval)
         if self.eval_interval < 0:
-            raise ConfigError("distill.eval_interval must be >= 0")
+            raise ConfigError(
+                f"distill.eval_interval={self.eval_interval} must be >= 0 (0 = only at the end)"
+            )
 
 
 @dataclass
@@ -381,6 +568,7 @@ class EvalCfg:
     """Which policy to evaluate in stage=eval: student or teacher."""
 
     def __post_init__(self) -> None:
+        _check_shapes("eval", self)
         _positive("eval", "num_rollouts", self.num_rollouts)
         _positive("eval", "episode_length_s", self.episode_length_s)
         _one_of("eval", "course", self.course, COURSES)
@@ -398,7 +586,9 @@ class LoggerCfg:
     """wandb project."""
 
     def __post_init__(self) -> None:
+        _check_shapes("logger", self)
         _one_of("logger", "name", self.name, LOGGERS)
+        _need("logger", "project", self.project, bool(self.project), "a non-empty project name")
 
 
 @dataclass
@@ -439,7 +629,23 @@ class DrCfg:
     """Camera FOV half-range [deg]."""
 
     def __post_init__(self) -> None:
+        _check_shapes("dr", self)
         _one_of("dr", "name", self.name, DRS)
+        _bounds("dr", "friction", self.friction, 0)
+        _bounds("dr", "link_mass_scale", self.link_mass_scale, 0, lo_open=True)
+        _bounds("dr", "base_added_mass_kg", self.base_added_mass_kg)
+        _bounds("dr", "encoder_bias_rad", self.encoder_bias_rad)
+        _each("dr", "base_com_offset_m", self.base_com_offset_m, 0)
+        _bounds("dr", "effort_limit_scale", self.effort_limit_scale, 0, lo_open=True)
+        _bounds("dr", "joint_damping_scale", self.joint_damping_scale, 0)
+        _bounds("dr", "joint_friction", self.joint_friction, 0)
+        _bounds("dr", "push_interval_s", self.push_interval_s, 0, lo_open=True)
+        _at_least("dr", "push_lin_vel", self.push_lin_vel, 0)
+        _at_least("dr", "push_ang_vel", self.push_ang_vel, 0)
+        _bounds("dr", "control_delay_ms", self.control_delay_ms, 0)
+        _at_least("dr", "camera_pos_m", self.camera_pos_m, 0)
+        _each("dr", "camera_rot_deg", self.camera_rot_deg, 0)
+        _at_least("dr", "camera_fov_deg", self.camera_fov_deg, 0)
 
 
 @dataclass
@@ -475,6 +681,46 @@ class MarchConfig:
         if self.stage not in STAGES:
             raise ConfigError(
                 f"stage={self.stage!r} is not valid; choose one of {', '.join(STAGES)}"
+            )
+        _interval("", "seed", self.seed, 0, SEED_MAX)
+        for key in ("teacher_ckpt", "student_ckpt", "resume", "out"):
+            _need("", key, getattr(self, key), getattr(self, key) != "", "a path (or left unset)")
+        hw = cnn_output_hw(
+            (self.depth.height, self.depth.width),
+            self.student.cnn_kernels,
+            self.student.cnn_strides,
+        )
+        if min(hw) < 1:
+            raise ConfigError(
+                f"depth.height x depth.width={self.depth.height}x{self.depth.width} must be at "
+                f"least what the student CNN (kernels {_fmt(self.student.cnn_kernels)}, strides "
+                f"{_fmt(self.student.cnn_strides)}) reduces to 1x1; it gives {hw[0]}x{hw[1]}"
+            )
+        batch = self.compute.num_envs * self.teacher.num_steps_per_env
+        _need(
+            "teacher",
+            "num_mini_batches",
+            self.teacher.num_mini_batches,
+            self.teacher.num_mini_batches <= batch,
+            f"<= compute.num_envs x teacher.num_steps_per_env = {batch} (one sample per mini-batch at least)",
+        )
+        _need(
+            "dr",
+            "camera_fov_deg",
+            self.dr.camera_fov_deg,
+            self.dr.camera_fov_deg < self.depth.fovy,
+            f"< depth.fovy={self.depth.fovy} (the randomized field of view stays > 0)",
+        )
+        if self.eval.course == "hardware":
+            t = self.terrain
+            length = t.end_margin + t.start_length + sum(t.hardware_gaps) + t.goal_length
+            length += len(t.hardware_lateral) * t.hardware_stone_size[0]
+            _need(
+                "terrain",
+                "size",
+                t.size,
+                t.size[0] >= length,
+                f"[x, y] with x >= {length:.3g}: the hardware course (eval.course=hardware) is that long",
             )
         lo, hi = self.env.command_vx
         if not lo <= self.eval.command_vx <= hi:

@@ -162,13 +162,16 @@ def _wave(env: ManagerBasedRlEnv, policy: Policy, ruler: CourseRuler) -> dict[st
         obs, reward, terminated, truncated, _ = env.step(policy(obs))
         rec["torque"].append(robot.data.actuator_force.abs().mean(-1))
         rec["ang_vel"].append(robot.data.root_link_ang_vel_b.clone())
-        rec["reward"].append(reward)
-        rec["terminated"].append(terminated)
-        rec["truncated"].append(truncated)
+        # mjlab returns its own reward / termination buffers, rewritten in place every step.
+        rec["reward"].append(reward.clone())
+        rec["terminated"].append(terminated.clone())
+        rec["truncated"].append(truncated.clone())
         finished |= terminated | truncated
         if finished.all():
             break
     s = {k: torch.stack(v) for k, v in rec.items()}
+    if not torch.equal((s["terminated"] | s["truncated"]).any(0), finished):
+        raise RuntimeError("evaluation: the recorded done flags lost an episode end")
     return episode_metrics(
         s["torque"],
         s["ang_vel"],

@@ -27,7 +27,8 @@ Arguments (``key=value`` words, as every march tool; parsed here without Hydra):
   (the evaluation's reset ranges; seed < 0 spawns exactly at the start point).
 - ``seconds``: episode length [s] (ends earlier on a fall).
 - ``out``: optional video file (.mp4/.gif) from the scene's tracking camera; needs OpenGL
-  (``MUJOCO_GL=egl`` or ``osmesa``) - refused with one line where there is none.
+  offscreen (``MUJOCO_GL=egl``, the default here as in mjlab, or ``osmesa``) - refused with one
+  line, before simulating, where there is none.
 - ``threads``: onnxruntime intra-op threads (1, as on the robot).
 
 Prints ONE JSON object: ``distance_m``, ``success``, ``fell``, ``abs_torque_nm``,
@@ -48,6 +49,7 @@ import gzip
 import hashlib
 import json
 import math
+import os
 import sys
 import time
 import warnings
@@ -56,9 +58,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import mujoco
-import numpy as np
-import onnxruntime as ort
+# As mjlab (and so march.play) does: offscreen video through EGL on Linux (Mesa's software EGL
+# needs no GPU). mujoco reads MUJOCO_GL once, when it is imported.
+if sys.platform.startswith("linux"):
+    os.environ.setdefault("MUJOCO_GL", "egl")
+
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+import onnxruntime as ort  # noqa: E402
 
 USAGE = (
     "usage: python -m march.sim2sim onnx=<student.onnx> [course=hardware|stones] "
@@ -452,9 +459,11 @@ class Video:
                 warnings.simplefilter("ignore")
                 self.renderer = mujoco.Renderer(model, 360, 480)
         except Exception as err:  # noqa: BLE001 - no GL backend: refuse in one line
+            backend = os.environ.get("MUJOCO_GL", "default")
             raise UsageError(
-                f"out={path}: no OpenGL context for offscreen video here ({type(err).__name__}); "
-                "set MUJOCO_GL=egl (GPU) or MUJOCO_GL=osmesa, or drop out="
+                f"out={path}: no OpenGL context for offscreen video here with MUJOCO_GL={backend} "
+                f"({type(err).__name__}); on Debian/Ubuntu install libegl1 libgl1-mesa-dri (EGL), "
+                "or libosmesa6 and set MUJOCO_GL=osmesa; or drop out="
             ) from None
         cams = [model.camera(i).name for i in range(model.ncam)]
         self.camera = "robot/tracking" if "robot/tracking" in cams else -1

@@ -95,6 +95,69 @@ class CourseCfg:
     """Hardware course: lateral offset of the 4 stones from the course axis, alternating
     left (+y) / right (-y) [m]."""
 
+    def __post_init__(self) -> None:
+        problem = self._problem()
+        if problem is not None:
+            # Imported here: march.config imports this module (the schema embeds CourseCfg).
+            from march.config import ConfigError
+
+            raise ConfigError(f"terrain.{problem}")
+
+    def _problem(self) -> str | None:
+        """The first value outside its domain, as ``key=value must be ...``, or None."""
+        import math
+
+        def fmt(v: object) -> str:
+            return f"[{', '.join(str(x) for x in v)}]" if isinstance(v, (list, tuple)) else str(v)
+
+        pairs = ("size", "stone_size_easy", "stone_size_hard", "gap_easy", "gap_hard")
+        pairs += ("lateral_easy", "lateral_hard", "pair_gap", "hardware_stone_size")
+        for key, value in vars(self).items():
+            values = list(value) if isinstance(value, (list, tuple)) else [value]
+            if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
+                return f"{key}={fmt(value)} must hold finite numbers"
+            if key in pairs and len(values) != 2:
+                return f"{key}={fmt(value)} must have 2 values"
+        for key in ("end_margin", "height_easy", "height_hard"):
+            if getattr(self, key) < 0:
+                return f"{key}={getattr(self, key)} must be >= 0"
+        for key in ("start_length", "goal_length", "platform_width", "pit_depth"):
+            if not getattr(self, key) > 0:
+                return f"{key}={getattr(self, key)} must be > 0"
+        if self.max_stones < 1:
+            return f"max_stones={self.max_stones} must be >= 1"
+        if not 0.0 <= self.pair_prob <= 1.0:
+            return f"pair_prob={self.pair_prob} must be a probability in [0, 1]"
+        # Ranges [lo, hi] with lo <= hi; sizes strictly positive, gaps and amplitudes >= 0.
+        for key in pairs:
+            lo, hi = getattr(self, key)
+            positive = key in ("size", "stone_size_easy", "stone_size_hard", "hardware_stone_size")
+            if key not in ("size", "hardware_stone_size") and lo > hi:
+                return f"{key}={fmt((lo, hi))} must be [lo, hi] with lo <= hi"
+            if (positive and not min(lo, hi) > 0) or (not positive and min(lo, hi) < 0):
+                return f"{key}={fmt((lo, hi))} must be {'> 0' if positive else '>= 0'}"
+        if any(g < 0 for g in self.hardware_gaps):
+            return f"hardware_gaps={fmt(self.hardware_gaps)} must be >= 0"
+        if len(self.hardware_gaps) != len(self.hardware_lateral) + 1:
+            return (
+                f"hardware_gaps={fmt(self.hardware_gaps)} and terrain.hardware_lateral="
+                f"{fmt(self.hardware_lateral)}: hardware_gaps must have one entry more (a gap "
+                "before each stone and one before the goal)"
+            )
+        if self.size[1] < self.platform_width:
+            return (
+                f"platform_width={self.platform_width} must be <= the sub-terrain's width, "
+                f"size[1] of terrain.size={fmt(self.size)}"
+            )
+        # The goal platform needs some length even when not one stone fits.
+        need = 2 * self.end_margin + self.start_length + max(self.gap_easy[1], self.gap_hard[1])
+        if not self.size[0] > need:
+            return (
+                f"size={fmt(self.size)}: the length size[0] must be > {need:.3g} (2 end_margin"
+                " + start_length + the largest gap, so the goal platform has room)"
+            )
+        return None
+
     @property
     def spawn_x(self) -> float:
         """x of the spawn point (start platform centre) in the sub-terrain frame [m]."""

@@ -291,6 +291,16 @@ def _check_inputs(cfg: MarchConfig) -> None:
             raise ConfigError(f"{key}={path}: no such file")
     if cfg.resume and not Path(cfg.resume).is_dir():
         raise ConfigError(f"resume={cfg.resume}: no such run directory")
+    if cfg.resume and not (
+        (Path(cfg.resume) / "config.yaml").is_file()
+        or any(Path(cfg.resume).glob("*/model_*.pt"))
+        or any(Path(cfg.resume).glob("*/latest.pt"))
+    ):
+        # An empty or unrelated directory would otherwise silently start a new run there.
+        raise ConfigError(
+            f"resume={cfg.resume}: not a march run directory (no config.yaml, no checkpoints); "
+            "give the directory of a run (outputs/<date>/<time>_...)"
+        )
     if cfg.compute.device.startswith("cuda"):
         import torch
 

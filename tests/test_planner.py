@@ -310,7 +310,7 @@ def test_paper_cost_alone_steps_in_place_before_a_far_stone():
 def test_progress_term_hand_values():
     """evaluate_plan on open ground: a step of v dt costs 0; a step in place costs
     v^2 (velocity) + pace_cost (it misses all of rho v dt); a step of half of rho v dt costs
-    (v/2 rho - v)^2 + pace_cost / 2. Past the goal platform's start the term is off."""
+    (rho v / 2 - v)^2 + pace_cost / 2. Past the goal platform's start the term is off."""
     fh = make_footholds([[(1.0, 0.0, 0.0, 4.0, 3.0), (6.0, 0.0, 0.0, 1.0, 1.0)]], [(-2.0, 0.0)])
     v, t, rho = 0.4, CFG.nominal_duration, CFG.pace_fraction
     cmd = torch.tensor([[v, 0.0, 0.0]])
@@ -335,8 +335,9 @@ def test_progress_term_hand_values():
 
 
 def test_short_of_pace_steps_as_far_as_it_can_and_flags_a_stall():
-    """The only stone in reach lies 0.2 m ahead (less than rho v dt at 0.8 m/s): the plan still
-    steps onto it rather than in place, and the stall flag is raised."""
+    """One stone 0.2-0.4 m ahead, then nothing within a step before the goal 3 m on: the plan
+    steps onto the stone rather than in place, and raises the stall flag (its later steps cannot
+    keep pace). On open ground nothing stalls."""
     rects = [(0.0, 0.0, 0.0, 0.2, 0.4), (0.4, -0.1, 0.0, 0.1, 0.15), (3.5, 0.0, 0.0, 0.6, 0.6)]
     fh = make_footholds([rects], [(0.0, 0.0)])
     stance = torch.tensor([[0.1, 0.05]])

@@ -96,3 +96,19 @@ def test_play_writes_a_moving_video_of_a_student(tmp_path):
     assert frames.shape[1:3] == (play.HEIGHT, play.WIDTH)
     assert any(not (frames[i] == frames[0]).all() for i in range(1, len(frames)))
     assert result.distance_m >= 0.0
+
+
+def test_checkpoint_policy_conflict_is_one_line_before_any_env(tmp_path, capsys):
+    """A modelfree student checkpoint played with reward=clf: one line naming both values."""
+    from march.cli import load
+
+    ckpt = tmp_path / "student.pt"
+    torch.save({"kind": "student", "config": asdict(load(["reward=modelfree"]))}, ckpt)
+    with pytest.raises(SystemExit) as exc:
+        play.main([f"student_ckpt={ckpt}", "reward=clf", f"out={tmp_path / 'x.mp4'}"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert err.startswith(f"error: reward=clf conflicts with student_ckpt={ckpt}")
+    assert "reward.name=modelfree" in err
+    assert not (tmp_path / "x.env.log").exists()  # no env was built

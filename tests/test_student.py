@@ -371,3 +371,62 @@ def test_onnx_matches_torch(variant, tmp_path):
     assert got.shape == (40, A)
     assert np.max(np.abs(got - ref)) < 1e-4
     assert pol.training is False and next(pol.parameters()).device.type == "cpu"
+
+
+def deep_policy(variant: str, n_layers: int) -> StudentPolicy:
+    from dataclasses import replace
+
+    torch.manual_seed(0)
+    return StudentPolicy(replace(small_cfg(variant), n_layers=n_layers), P, HIST, CMD, HW, A)
+
+
+@pytest.mark.parametrize("variant", ["full", "no_mdn", "no_transformer"])
+@pytest.mark.parametrize("n_layers", [1, 3])
+def test_deploy_graph_is_act_inference(variant, n_layers):
+    """The export's fast graph (last layer CLS-only, attention written out) computes the same
+    actions as the policy, mode choice included, for any depth of encoder."""
+    from march.onnx_export import DeployGraph
+
+    pol = deep_policy(variant, n_layers).train()
+    pol.update_normalization(1.0 + 2.0 * torch.randn(64, HIST, P), torch.randn(64, CMD))
+    pol.eval()
+    x = inputs(64, seed=5)
+    if pol.is_mdn:  # spread the logits and centre them so rows pick different top modes
+        with torch.no_grad():
+            pol.mdn.logits.weight.normal_(0.0, 3.0)
+            diff = pol.mdn(pol.features(*x)).logits.diff(dim=-1)
+            pol.mdn.logits.bias[1] -= diff.median()
+    graph = DeployGraph(pol).eval()
+    with torch.no_grad():
+        want = pol.act_inference(*x)
+        got = graph(*x)
+        keep = torch.ones(64, dtype=torch.bool)
+        if pol.is_mdn:
+            logits = pol(*x).logits
+            top = logits.argmax(-1)
+            assert 0 < top.sum().item() < 64  # both modes are chosen by some rows
+            # a near-tie may flip with float rounding (as between torch and onnxruntime)
+            keep = (logits[:, 0] - logits[:, 1]).abs() > 1e-3
+            assert keep.sum() >= 60
+    assert got.shape == want.shape == (64, A)
+    torch.testing.assert_close(got[keep], want[keep], rtol=0, atol=2e-5)
+
+
+def test_deploy_graph_exports_without_shape_arithmetic(tmp_path):
+    """The deploy ONNX has no Shape/If/Expand nodes (the traced graph's per-layer shape
+    arithmetic); both graphs match the policy."""
+    import onnx
+
+    from march.onnx_export import export_student_onnx, read_onnx_metadata
+
+    pol = deep_policy("full", 2).eval()
+    ops = {}
+    for graph in ("deploy", "trace"):
+        res = export_student_onnx(pol, tmp_path / f"{graph}.onnx", {}, graph=graph, latency_calls=5)
+        assert res["max_abs_diff"] < 1e-4 and res["graph"] == graph
+        ops[graph] = [n.op_type for n in onnx.load(res["path"]).graph.node]
+        assert read_onnx_metadata(res["path"])["export_graph"] == graph
+    assert not {"Shape", "If", "Expand"} & set(ops["deploy"])
+    assert {"Shape"} & set(ops["trace"])
+    with pytest.raises(ValueError, match="graph="):
+        export_student_onnx(pol, tmp_path / "x.onnx", {}, graph="fast")

@@ -9,7 +9,8 @@ student and evaluation always see the same world:
   for where a student needs it).
 - ``student``: ``actor`` (the frozen teacher labels from it), ``student`` (proprioception
   history, shape (E, H, P)) and ``depth`` (E, 1, 24, 32), with the chest depth camera.
-- ``eval``: as ``student`` plus ``critic``, with the evaluation protocol's episode length.
+- ``eval``: as ``student`` plus ``critic``, with the evaluation protocol's episode length,
+  command and terminations (time-out and falls only, the same for every arm).
 """
 
 from __future__ import annotations
