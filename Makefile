@@ -14,7 +14,7 @@ else
 CONSTRAINTS :=
 endif
 
-.PHONY: install train smoke test test-all lint figures
+.PHONY: install train smoke test test-all lint figures gpu-check test-slurm
 
 $(VENV)/.installed: pyproject.toml constraints-cpu.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -39,3 +39,14 @@ test-all: $(VENV)/.installed  ## including tests marked slow
 lint: $(VENV)/.installed
 	$(VENV)/bin/ruff check march tests analysis
 	$(VENV)/bin/ruff format --check march tests analysis
+
+OUT ?= outputs/gpu_check
+gpu-check: $(VENV)/.installed  ## the prepared GPU check into $(OUT) (ARGS=--cpu: tiny, on CPU)
+	$(PY) scripts/gpu_check.py $(OUT) $(ARGS)
+
+# A real single-node Slurm cluster on this machine (root; apt-installs slurm-wlm and munge if
+# missing): a two-run smoke sweep through hydra/launcher=march_slurm, one job requeued mid-run
+# with scontrol requeue (it must resume from its checkpoint), analysis/figures.py on the sweep.
+# Slow (~5-10 min on 2 CPUs) and not in CI. Prints PASSED/FAILED with one line per check.
+test-slurm: $(VENV)/.installed
+	scripts/slurm/test.sh $(ARGS)

@@ -265,6 +265,7 @@ class StepProfiler:
         self.calls: dict[str, int] = {}
         self._stack: list[list[Any]] = []
         self._undo: list[tuple[Any, str, Any, bool]] = []
+        self.planner_patched = False
 
     def _sync(self) -> None:
         if self.cuda:
@@ -314,6 +315,7 @@ class StepProfiler:
     def attach(self, env: Any) -> None:
         """Wrap the env's parts (module docstring of :mod:`march.bench` lists the sections)."""
         import march.env.reference_command as rc
+        from march.env.rewards import REFERENCE_COMMAND
 
         p = self.patch
         p(env, "step", "other")
@@ -353,8 +355,9 @@ class StepProfiler:
         p(cm, "reset", "commands/reset")
         for name, term in getattr(cm, "_terms", {}).items():
             p(term, "compute", f"commands/{name}")
-        if hasattr(rc, "plan_footsteps"):
+        if REFERENCE_COMMAND in getattr(cm, "_terms", {}) and hasattr(rc, "plan_footsteps"):
             p(rc, "plan_footsteps", "commands/planner")
+            self.planner_patched = True
         p(env.curriculum_manager, "compute", "curriculum")
         p(env.metrics_manager, "compute", "other/metrics")
         p(env.metrics_manager, "compute_substep", "other/metrics")
@@ -374,7 +377,7 @@ class StepProfiler:
             cats[cat] = cats.get(cat, 0.0) + v
         total = sum(cats.values())
         order = sorted(cats, key=lambda c: -cats[c])
-        planner_ms = ms.get("commands/planner")
+        planner_ms = ms.get("commands/planner", 0.0) if self.planner_patched else None
         planner_calls = self.calls.get("commands/planner", 0)
         return {
             "profiled_ms_per_step": total,
@@ -451,6 +454,9 @@ def run_workload(
             name: profile_env(env, workload, opts["profile_steps"], warmup, seed)
             for name, env in envs.items()
         }
+        for name, prof in out["profile"].items():
+            top = ", ".join(f"{c} {v:.1f}" for c, v in prof["categories_ms"].items())
+            print(f"[bench] {workload} profile {name} (ms/step): {top}", flush=True)
         march = out["profile"]["march_teacher"]
         if march["planner_ms_per_step"] is not None:
             march["planner_share"] = march["planner_ms_per_step"] / march["profiled_ms_per_step"]

@@ -84,8 +84,8 @@ def episode_metrics(
 
     Rollout e is its env's first episode: steps 0..end_e, end_e the first step with terminated or
     truncated (a rollout still running at step T-1 counts as timed out there). Its live steps are
-    t < end_e. Returns (E,) tensors keyed by ``EVAL_METRICS``; torque is NaN with no live step,
-    jerk with fewer than 3.
+    t < end_e. Returns (E,) tensors keyed by ``EVAL_METRICS`` (torque NaN with no live step,
+    jerk with fewer than 3) and ``episode_steps`` (end_e + 1, the control steps of the episode).
     """
     t_len, e = reward.shape
     if torque.shape != (t_len, e) or ang_vel.shape != (t_len, e, 3):
@@ -128,6 +128,7 @@ def episode_metrics(
         "abs_torque_nm": abs_torque,
         "abs_ang_jerk": abs_jerk,
         "reward": ret,
+        "episode_steps": (end + 1).double(),
     }
 
 

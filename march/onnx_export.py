@@ -263,3 +263,40 @@ def export_student_onnx(
 def read_onnx_metadata(path: str | Path) -> dict[str, str]:
     """The ``metadata_props`` of an ONNX file as a dict."""
     return {e.key: e.value for e in onnx.load(str(path)).metadata_props}
+
+
+def compare_graphs(
+    policy: StudentPolicy, directory: str | Path, calls: int = 2000, seed: int = 0
+) -> dict[str, dict[str, float]]:
+    """Export ``policy`` as both graphs into ``directory`` and time them on one CPU thread.
+
+    The two sessions run interleaved (call by call, same inputs, after 50 warm-up calls each),
+    so load from other processes falls on both alike. Per graph: ``median_ms``, ``p10_ms``,
+    ``p95_ms``, ``min_ms`` (batch 1) and ``max_abs_diff`` against the policy.
+    """
+    directory = Path(directory)
+    out: dict[str, dict[str, float]] = {}
+    sessions = {}
+    for graph in GRAPHS:
+        res = export_student_onnx(policy, directory / f"{graph}.onnx", {}, graph=graph, seed=seed)
+        out[graph] = {"max_abs_diff": res["max_abs_diff"]}
+        sessions[graph] = _session(Path(res["path"]), threads=1)
+    gen = torch.Generator().manual_seed(seed + 1)
+    feeds = _feeds(example_inputs(copy.deepcopy(policy).cpu().float(), 1, gen))
+    for sess in sessions.values():
+        for _ in range(50):
+            sess.run([OUTPUT_NAME], feeds)
+    times = {g: np.empty(calls) for g in sessions}
+    for i in range(calls):
+        for graph, sess in sessions.items():
+            t0 = time.perf_counter()
+            sess.run([OUTPUT_NAME], feeds)
+            times[graph][i] = (time.perf_counter() - t0) * 1e3
+    for graph, t in times.items():
+        out[graph].update(
+            median_ms=float(np.median(t)),
+            p10_ms=float(np.percentile(t, 10)),
+            p95_ms=float(np.percentile(t, 95)),
+            min_ms=float(np.min(t)),
+        )
+    return out

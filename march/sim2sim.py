@@ -457,7 +457,7 @@ class Video:
         try:
             with warnings.catch_warnings():  # GLFW's own warnings say the same, twice
                 warnings.simplefilter("ignore")
-                self.renderer = mujoco.Renderer(model, 360, 480)
+                self.renderer = mujoco.Renderer(model, 240, 320)  # sides divisible by 16
         except Exception as err:  # noqa: BLE001 - no GL backend: refuse in one line
             backend = os.environ.get("MUJOCO_GL", "default")
             raise UsageError(

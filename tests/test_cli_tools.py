@@ -214,19 +214,6 @@ def test_viz_unknown_job_names_the_valid_ones():
         assert job in lines[0]
 
 
-def test_bench_options_are_popped_and_checked():
-    from march.bench import pop_bench_options
-
-    rest, opts = pop_bench_options(["compute.num_envs=8", "bench.steps=7", "seed=2"])
-    assert rest == ["compute.num_envs=8", "seed=2"]
-    assert opts == {"steps": 7, "warmup": 10}
-    with pytest.raises(SystemExit) as exc:
-        pop_bench_options(["bench.steps=0"])
-    assert exc.value.code == 2
-    with pytest.raises(SystemExit):
-        pop_bench_options(["bench.bogus=1"])
-
-
 # ---------------------------------------------------------------------------------------------
 # Slow: these build real mjlab envs (left out of the default run; pytest -m slow)
 
@@ -242,37 +229,7 @@ def test_viz_depth_writes_png(tmp_path):
     assert levels == [0, 3, 6, 9]
 
 
-@pytest.mark.slow
-def test_bench_env_prints_one_json_object():
-    res = run_module(
-        "march.bench", "env", "compute=cpu", "compute.num_envs=2", "bench.steps=3", "bench.warmup=1"
-    )
-    assert res.returncode == 0, res.stderr[-2000:]
-    result = json.loads(res.stdout)  # stdout is the JSON object and nothing else
-    assert result["num_envs"] == 2 and result["steps"] == 3
-    for key in ("march_teacher_steps_per_s", "bare_rough_steps_per_s", "bare_flat_steps_per_s"):
-        assert result[key] > 0
-    assert result["ratio_march_vs_rough"] == pytest.approx(
-        result["march_teacher_steps_per_s"] / result["bare_rough_steps_per_s"]
-    )
-    assert set(result["build_s"]) == {"march_teacher", "bare_rough", "bare_flat"}
-    assert 0.0 <= result["march_teacher_planner_share"] < 1.0
-
-
-@pytest.mark.slow
-def test_bench_planner_prints_one_json_object():
-    res = run_module(
-        "march.bench", "planner", "compute=cpu", "compute.num_envs=2", "bench.steps=30"
-    )
-    assert res.returncode == 0, res.stderr[-2000:]
-    result = json.loads(res.stdout)
-    assert result["num_envs"] == 2 and result["feasible_fraction"] == 1.0
-    assert 0.0 < result["ms_per_replan_mean"] and 0.0 < result["ms_per_env_step"]
-    assert result["planner_share_of_env_step"] == pytest.approx(
-        result["ms_per_replan_mean"] / result["ms_per_env_step"]
-    )
-    assert 0.0 <= result["in_env_planner_share"] < 1.0  # reward=clf: the env runs the planner
-    assert 0.0 < result["walk_touchdown_rate_per_env_step"] < 0.1  # steps of 0.45-0.7 s at 50 Hz
+# march.bench's tests: tests/test_bench.py
 
 
 # ------------------------------------------------------------- what a run will cost (march.train)

@@ -52,6 +52,7 @@ def test_jerk_and_torque_leave_the_reset_out():
     # the x axis only, so |.| averaged over 3 axes is 2/3, over dt^2.
     assert m["abs_ang_jerk"].item() == pytest.approx((2.0 / 3.0) / DT**2)
     assert m["abs_torque_nm"].item() == pytest.approx(25.0)
+    assert m["episode_steps"].item() == 5
 
 
 def test_jerk_hand_values_on_all_axes():
@@ -367,3 +368,39 @@ def test_teacher_rows_during_training_and_resume_without_duplicates(tmp_path):
         assert 0 <= int(r["n_jerk"]) <= int(r["n_torque"]) <= 6
         assert 0.0 <= float(r["mean_success_rate"]) <= 1.0
         assert float(r["mean_distance_m"]) >= 0.0
+
+
+@pytest.mark.sim
+def test_real_env_rollouts_standing_still_time_out_and_repeat_exactly():
+    """The smoke eval env with zero actions (the G1 holds its default pose): every rollout lasts
+    the whole episode, so all enter torque and jerk; waves take the next course cells; two
+    evaluations give the same numbers and leave the caller's random state alone."""
+    from march.env.build import make_env
+    from march.evaluate import rollout_metrics
+
+    cfg = load(["compute=smoke"])
+    env = make_env(cfg, "eval")
+    try:
+        n_act = env.action_manager.total_action_dim
+
+        def still(obs):
+            return torch.zeros(env.num_envs, n_act)
+
+        torch.manual_seed(123)
+        state = torch.get_rng_state()
+        a = rollout_metrics(env, still, 6)  # 4 envs: two waves, the second keeps 2
+        assert torch.equal(torch.get_rng_state(), state)
+        b = rollout_metrics(env, still, 6)
+        terrain = env.scene.terrain
+        lv, col = eval_cells(4, 4, *terrain.terrain_origins.shape[:2])
+        assert terrain.terrain_levels.tolist() == lv.tolist()
+        assert terrain.terrain_types.tolist() == col.tolist()
+    finally:
+        env.close()
+    for k in EVAL_METRICS:
+        assert a[k].shape == (6,)
+        assert torch.equal(a[k], b[k]), k
+    assert torch.isfinite(a["abs_torque_nm"]).all() and torch.isfinite(a["abs_ang_jerk"]).all()
+    assert (a["abs_torque_nm"] > 0).all()  # holding itself up
+    assert (a["distance_m"] < 0.3).all() and (a["success_rate"] == 0).all()
+    assert (a["episode_steps"] == int(env.max_episode_length)).all()  # ended by the time-out

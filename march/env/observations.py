@@ -12,6 +12,7 @@ from mjlab.envs import ManagerBasedRlEnv
 
 from march.env.course import CourseRuler
 from march.env.reference_command import reference_term
+from march.env.step_cache import shared
 
 NUM_STONES = 5
 """K: stones observed ahead of the robot."""
@@ -26,8 +27,13 @@ def stones_ahead(env: ManagerBasedRlEnv, num_stones: int = NUM_STONES) -> torch.
     the robot stands on is included); stones are ordered by the progress of their centres (the
     two stones of a side-by-side pair both count). Near the goal, missing entries repeat the
     goal platform. Per stone: dx, dy (yaw-aligned base frame), dz (stone top minus pelvis
-    height), half size along the course, half size across it.
+    height), half size along the course, half size across it. Computed once per observation
+    compute and shared by the actor and critic groups (:func:`march.env.step_cache.shared`).
     """
+    return shared(env, ("stones_ahead", num_stones), lambda: _stones_ahead(env, num_stones))
+
+
+def _stones_ahead(env: ManagerBasedRlEnv, num_stones: int) -> torch.Tensor:
     fh = CourseRuler(env).footholds()
     robot = env.scene["robot"]
     base = robot.data.root_link_pos_w
@@ -56,5 +62,7 @@ def stones_ahead(env: ManagerBasedRlEnv, num_stones: int = NUM_STONES) -> torch.
 
 def reference_obs(env: ManagerBasedRlEnv, command_name: str = "reference") -> torch.Tensor:
     """(E, 2*29 + 3N + 2) the CLF reference relative to the base
-    (:meth:`march.env.reference_command.ReferenceCommand.observation`)."""
-    return reference_term(env, command_name).observation()
+    (:meth:`march.env.reference_command.ReferenceCommand.observation`); once per observation
+    compute, shared by the actor and critic groups."""
+    term = reference_term(env, command_name)
+    return shared(env, ("reference_obs", command_name), term.observation)

@@ -80,6 +80,7 @@ from mjlab.managers.event_manager import EventTermCfg, RecomputeLevel, requires_
 from mjlab.managers.scene_entity_config import SceneEntityCfg
 
 from march.config import DepthCfg, DrCfg
+from march.env.step_cache import constant
 
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv, ManagerBasedRlEnvCfg
@@ -206,6 +207,38 @@ def _joint_local_ids(env: ManagerBasedRlEnv, asset_cfg: SceneEntityCfg) -> torch
     return torch.as_tensor(asset_cfg.joint_ids, device=env.device, dtype=torch.long)
 
 
+def _damping_plan(
+    env: ManagerBasedRlEnv, asset_cfg: SceneEntityCfg
+) -> tuple[torch.Tensor, torch.Tensor, list[tuple[torch.Tensor, torch.Tensor]]]:
+    """(local joint ids, their dof addresses, [(global ctrl ids, columns of the draw)] per
+    actuator group that drives some of these joints): index tensors fixed once the env is built,
+    made on first use and kept on the env (no per-reset look-ups or host syncs)."""
+    asset = env.scene[asset_cfg.name]
+    local = _joint_local_ids(env, asset_cfg)
+    dof = asset.indexing.joint_v_adr[local].to(env.device, dtype=torch.long)
+    column = {int(j): c for c, j in enumerate(local.tolist())}  # joint -> column of the draw
+    groups = []
+    for act in asset.actuators:
+        position = isinstance(act, BuiltinPositionActuator) or (
+            isinstance(act, XmlActuator) and act.command_field == "position"
+        )
+        if not position or act.transmission_type != TransmissionType.JOINT:
+            raise TypeError(
+                f"scale_joint_damping handles joint position actuators; got {type(act).__name__}"
+            )
+        targets = act.target_ids.tolist()
+        ctrl_all = act.global_ctrl_ids.tolist()
+        chosen = [i for i, j in enumerate(targets) if int(j) in column]
+        if not chosen:
+            continue
+        ctrl = torch.tensor([ctrl_all[i] for i in chosen], dtype=torch.long, device=env.device)
+        cols = torch.tensor(
+            [column[int(targets[i])] for i in chosen], dtype=torch.long, device=env.device
+        )
+        groups.append((ctrl, cols))
+    return local, dof, groups
+
+
 @requires_model_fields("dof_damping", "actuator_biasprm")
 def scale_joint_damping(
     env: ManagerBasedRlEnv,
@@ -215,33 +248,17 @@ def scale_joint_damping(
 ) -> None:
     """Joint damping x U(scale_range), one draw per joint: the passive ``dof_damping`` and the
     position actuator's derivative gain kd (``actuator_biasprm[..., 2] = -kd``) of that joint."""
-    asset = env.scene[asset_cfg.name]
     ids = _env_ids(env, env_ids)
-    local = _joint_local_ids(env, asset_cfg)
+    local, dof, groups = constant(
+        env, ("damping_plan", id(asset_cfg)), lambda: _damping_plan(env, asset_cfg)
+    )
     model = env.sim.model
     s = _uniform(scale_range[0], scale_range[1], (ids.numel(), local.numel()), env.device)
-
-    dof = asset.indexing.joint_v_adr[local].to(env.device, dtype=torch.long)
     eg, dg = torch.meshgrid(ids, dof, indexing="ij")
     model.dof_damping[eg, dg] = _defaults(env, "dof_damping", ids, dof) * s
-
-    per_joint = torch.full((ids.numel(), asset.num_joints), math.nan, device=env.device)
-    per_joint[:, local] = s
-    for act in asset.actuators:
-        position = isinstance(act, BuiltinPositionActuator) or (
-            isinstance(act, XmlActuator) and act.command_field == "position"
-        )
-        if not position or act.transmission_type != TransmissionType.JOINT:
-            raise TypeError(
-                f"scale_joint_damping handles joint position actuators; got {type(act).__name__}"
-            )
-        k = per_joint[:, act.target_ids.to(env.device, dtype=torch.long)]
-        chosen = ~torch.isnan(k[0])
-        if not bool(chosen.any()):
-            continue
-        ctrl = act.global_ctrl_ids.to(env.device, dtype=torch.long)[chosen]
+    for ctrl, cols in groups:
         kd_def = _defaults(env, "actuator_biasprm", ids, ctrl)[..., 2]
-        model.actuator_biasprm[ids[:, None], ctrl[None, :], 2] = kd_def * k[:, chosen]
+        model.actuator_biasprm[ids[:, None], ctrl[None, :], 2] = kd_def * s[:, cols]
 
 
 def sample_control_delay(
@@ -263,14 +280,16 @@ def sample_control_delay(
             "march.env.randomization.install_control_delay(env_cfg, dr) before building the env"
         )
     dt_ms = env.physics_dt * 1000.0
+    max_lag = min(a.cfg.delay_max_lag for a in delayed)
+    # The largest lag a draw can give is known on the host: checked without reading the draw.
+    if round(delay_ms[1] / dt_ms) > max_lag:
+        raise RuntimeError(
+            f"{T_DELAY}: delays up to {delay_ms[1]} ms need lag {round(delay_ms[1] / dt_ms)} > "
+            f"buffer max_lag {max_lag}; install_control_delay was called with a different dr "
+            "or physics dt"
+        )
     t = _uniform(delay_ms[0], delay_ms[1], (ids.numel(),), env.device)
     lags = torch.round(t / dt_ms).long()
-    max_lag = min(a.cfg.delay_max_lag for a in delayed)
-    if int(lags.max()) > max_lag:
-        raise RuntimeError(
-            f"{T_DELAY}: sampled lag {int(lags.max())} > buffer max_lag {max_lag}; "
-            "install_control_delay was called with a different dr or physics dt"
-        )
     for act in delayed:  # builtin actuators share one fused buffer; setting each is idempotent
         act.set_lags(lags, ids)
     data = asset.data

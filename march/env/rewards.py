@@ -22,6 +22,7 @@ from mjlab.tasks.velocity import mdp as vel_mdp
 from march.config import ConfigError, RewardCfg
 from march.env.course import CourseRuler
 from march.env.reference_command import reference_term
+from march.env.step_cache import constant, shared, site_ids
 from march.planner import locate_on_stones
 
 FOOT_SITES = ("left_foot", "right_foot")
@@ -44,8 +45,9 @@ def _penalty(func: Callable[..., torch.Tensor]) -> Callable[..., torch.Tensor]:
 
 
 def alive(env: ManagerBasedRlEnv) -> torch.Tensor:
-    """1 per control step while the episode runs."""
-    return torch.ones(env.num_envs, device=env.device)
+    """1 per control step while the episode runs (one kept tensor: the reward manager only
+    reads it)."""
+    return constant(env, "ones", lambda: torch.ones(env.num_envs, device=env.device))
 
 
 def forward_progress(env: ManagerBasedRlEnv, command_name: str) -> torch.Tensor:
@@ -84,7 +86,7 @@ def holonomic_pos(
     """exp(-||p - p_td||^2 / sigma^2) in (0, 1]: stance foot site displacement from where it
     touched down (author's sigma^2 = 0.05 m^2; position only, no orientation part)."""
     term = reference_term(env, command_name)
-    pos, _, _ = term.stance_foot()
+    pos, _, _ = shared(env, ("stance_foot", command_name), term.stance_foot)
     d2 = (pos - term.stance_anchor).square().sum(-1)
     return torch.exp(-d2 / sigma**2)
 
@@ -95,7 +97,7 @@ def holonomic_vel(
     """exp(-(||v||^2 + w_z^2) / sigma^2) in (0, 1]: stance foot site linear velocity and yaw
     rate should be zero (author's sigma^2 = 0.1)."""
     term = reference_term(env, command_name)
-    _, vel, omega = term.stance_foot()
+    _, vel, omega = shared(env, ("stance_foot", command_name), term.stance_foot)
     e2 = vel.square().sum(-1) + omega[:, 2].square()
     return torch.exp(-e2 / sigma**2)
 
@@ -108,8 +110,7 @@ def feet_edge_distance(
     the stone under it (negative off every stone, which scores -1 or less, clipped at -1).
     0 while every foot in contact stands at least ``clearance`` inside a stone."""
     robot = env.scene["robot"]
-    site_ids, _ = robot.find_sites(FOOT_SITES, preserve_order=True)
-    feet = robot.data.site_pos_w[:, site_ids, :2]  # (E, 2, 2)
+    feet = robot.data.site_pos_w[:, site_ids(env, FOOT_SITES), :2]  # (E, 2, 2)
     fh = CourseRuler(env).footholds()
     d_edge, _ = locate_on_stones(fh, feet)
     contact = env.scene[sensor_name].data.found > 0  # (E, 2): primaries left, right

@@ -116,30 +116,40 @@ class EpisodeStats:
     """Return, length [control steps] and course progress of finished episodes.
 
     Reported as means over the last ``window`` finished episodes (rsl-rl's convention), so an
-    iteration in which no episode ended still has a value once any episode has ended.
+    iteration in which no episode ended still has a value once any episode has ended. The
+    per-step bookkeeping never synchronises with the device (no ``nonzero()`` / ``len()`` of
+    data-dependent size): finished episodes go into a ring buffer of ``window`` rows in env order
+    (slot = episodes so far + rank among this step's, mod window); when more than ``window`` end
+    in one step only the last ``window`` are kept, the others are written to a spare row.
     """
 
     def __init__(self, num_envs: int, device: str, window: int = 100) -> None:
         self.ret = torch.zeros(num_envs, device=device)
         self.len = torch.zeros(num_envs, device=device)
         self.window = window
-        self.recent = torch.empty(0, 3, device=device)  # (return, length, distance)
+        self.buffer = torch.zeros(window + 1, 3, device=device)  # (return, length, distance)
+        self.total = torch.zeros((), dtype=torch.long, device=device)  # episodes ended so far
 
     def step(self, reward: torch.Tensor, done: torch.Tensor, progress: torch.Tensor) -> None:
         self.ret += reward
         self.len += 1
-        ids = done.nonzero(as_tuple=False).squeeze(-1)
-        if len(ids):
-            ended = torch.stack([self.ret[ids], self.len[ids], progress[ids]], dim=-1)
-            self.recent = torch.cat([self.recent, ended])[-self.window :]
-            self.ret[ids] = 0
-            self.len[ids] = 0
+        d = done.long()
+        rank = torch.cumsum(d, 0) - d  # order of each finished episode within this step
+        n = d.sum()
+        keep = done & (rank >= n - self.window)
+        slot = torch.where(keep, (self.total + rank) % self.window, self.window)
+        ended = torch.stack([self.ret, self.len, progress.to(self.ret.dtype)], dim=-1)
+        self.buffer.index_copy_(0, slot, ended)
+        self.total += n
+        self.ret.masked_fill_(done, 0.0)
+        self.len.masked_fill_(done, 0.0)
 
     def pop(self) -> dict[str, float]:
-        if not len(self.recent):
+        count = int(self.total.clamp(max=self.window))  # once per iteration: a sync is fine
+        if count == 0:
             nan = float("nan")
             return {"mean_reward": nan, "mean_episode_length": nan, "mean_distance_m": nan}
-        ret, length, dist = self.recent.mean(0).tolist()
+        ret, length, dist = self.buffer[:count].mean(0).tolist()
         return {"mean_reward": ret, "mean_episode_length": length, "mean_distance_m": dist}
 
 

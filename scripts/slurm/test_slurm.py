@@ -99,20 +99,23 @@ def read_rows(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
+def label(run: Path) -> str:
+    """``0_+arm-clf_compute...`` -> ``run 0 (+arm-clf)``."""
+    num, _, rest = run.name.partition("_")
+    return f"run {num} ({rest.split('_')[0]})"
+
+
 def check_rows(checks: Checks, run: Path, name: str, expected: dict[str, int]) -> None:
-    """Each stage's rows in ``name`` are exactly iterations 0..n-1 (or 1..n): none lost, none
-    duplicated."""
+    """Each stage's rows in ``name`` are exactly iterations 1..n: none lost, none duplicated."""
     rows = read_rows(run / name)
     keys = [(r["stage"], int(r["iteration"])) for r in rows]
     dup = sorted(k for k, n in Counter(keys).items() if n > 1)
-    checks.check(not dup, f"{run.name}/{name}: no duplicated (stage, iteration) rows {dup or ''}")
+    checks.check(not dup, f"{label(run)} {name}: no (stage, iteration) row twice {dup or ''}")
     for stage, n in expected.items():
         its = sorted(i for s, i in keys if s == stage)
-        first = its[0] if its else 0
-        want = list(range(first, first + n))
         checks.check(
-            its == want,
-            f"{run.name}/{name}: {stage} iterations {its} are {n} consecutive ones (none lost)",
+            its == list(range(1, n + 1)),
+            f"{label(run)} {name}: {stage} iterations {its} = 1..{n} (none lost)",
         )
 
 
@@ -126,7 +129,7 @@ def check_checkpoints(checks: Checks, run: Path) -> None:
     res = subprocess.run([PY, "-c", code, str(run)], capture_output=True, text=True)
     checks.check(
         res.returncode == 0,
-        f"{run.name}: final teacher and student checkpoints load "
+        f"{label(run)}: final teacher and student checkpoints load "
         f"({' '.join(res.stdout.split()) or res.stderr.strip().splitlines()[-1:]})",
     )
 
@@ -197,14 +200,17 @@ def main() -> int:
         status = (
             json.loads((run / "status.json").read_text()) if (run / "status.json").is_file() else {}
         )
-        checks.check(status.get("state") == "done", f"{run.name}: status {status.get('state')}")
-        checks.check((run / "summary.json").is_file(), f"{run.name}: summary.json written")
+        checks.check(status.get("state") == "done", f"{label(run)}: status {status.get('state')}")
+        checks.check((run / "summary.json").is_file(), f"{label(run)}: summary.json written")
         cfg = OmegaConf.load(run / "config.yaml") if (run / "config.yaml").is_file() else None
         t = cfg.teacher if cfg is not None else None
         teacher_its = max(1, round(t.max_iterations * t.budget_scale)) if t is not None else -1
         distill_its = int(cfg.distill.max_iterations) if cfg is not None else -1
         check_rows(checks, run, "metrics.csv", {"teacher": teacher_its, "student": distill_its})
-        check_rows(checks, run, "eval.csv", {})
+        # With eval_interval 1 (smoke) every iteration of both stages has one evaluation row.
+        every = cfg is not None and cfg.teacher.eval_interval == cfg.distill.eval_interval == 1
+        expected = {"teacher": teacher_its, "student": distill_its} if every else {}
+        check_rows(checks, run, "eval.csv", expected)
         check_checkpoints(checks, run)
 
     if requeued is not None and runs:
@@ -227,9 +233,15 @@ def main() -> int:
     if fig.returncode != 0:
         print(fig.stderr[-2000:], flush=True)
     table = read_rows(sweep / "figures" / "runs.csv")
+    found = sorted((r.get("reward", ""), r.get("state", "")) for r in table)
     checks.check(
-        len(table) == 2, f"analysis/figures.py lists {len(table)} runs of the sweep in runs.csv"
+        found == [("clf", "done"), ("modelfree", "done")],
+        f"analysis/figures.py runs.csv lists the sweep's runs as (reward, state) {found}",
     )
+    figs = [
+        n for n in ("baseline.png", "sample_efficiency.png") if (sweep / "figures" / n).is_file()
+    ]
+    checks.check(len(figs) == 2, f"analysis/figures.py drew {figs} from the sweep")
     say(f"sweep directory: {sweep}")
     return checks.summary()
 

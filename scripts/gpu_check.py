@@ -1,0 +1,357 @@
+"""The prepared GPU check (issue 11): one command, one folder of JSON and CSV results.
+
+    python scripts/gpu_check.py OUT            # on a GPU machine (compute=gpu), ~9 minutes
+    python scripts/gpu_check.py OUT --cpu      # the same phases at tiny sizes on CPU (tests)
+    make gpu-check [OUT=folder] [ARGS=--cpu]
+
+Phases, each a subprocess with its own time limit (a failed or timed-out phase is recorded and
+the check goes on with the phases that do not need its output):
+
+1. ``bench``: ``python -m march.bench env`` at ``--bench-envs`` (4096) envs: the march teacher
+   env against bare mjlab rough and flat, both workloads, with the profile -> ``bench_env.json``.
+2. ``teacher_clf``, ``teacher_modelfree``: ``march.train stage=teacher`` of each arm, stopped
+   once its training time (the ``wall_s`` of ``metrics.csv``, which leaves out the env build and
+   warp's kernel compilation) passes ``--teacher-seconds``; a checkpoint every iteration, so
+   the last completed one is kept -> ``teacher_<arm>_curve.csv`` (the learning curve: one row
+   per iteration) and ``teacher_<arm>.json`` (iterations, env steps, env steps per second).
+3. ``student``: ``march.train stage=student`` from the clf teacher, ``distill.max_iterations=2``,
+   which ends with the evaluation protocol on ``--eval-rollouts`` rollouts -> ``student_curve.csv``,
+   ``eval.csv``, ``summary.json``.
+4. ``export``: ``python -m march.export`` of that student -> ``student.onnx``, ``export.txt``.
+
+``gpu_check.json`` holds every phase's command, return code, seconds and result files, the
+machine (GPU name, torch/CUDA versions) and the date; ``gpu_check.csv`` one row per phase. Exit
+status 0 only if every phase succeeded. Dependencies on a machine without a package index:
+``../shared/gpu/README.md`` (source the bundles' ``gpu.sh`` first).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime as dt
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+
+GPU = {
+    "compute": ["compute=gpu"],
+    "bench": ["compute.num_envs={bench_envs}", "bench.steps=40", "bench.warmup=5"]
+    + ["bench.profile_steps=10", "bench.rounds=2"],
+    "teacher": ["compute.num_envs={train_envs}", "compute.eval_num_envs=64"],
+    "student": [
+        "compute.num_envs={distill_envs}",
+        "compute.eval_num_envs={eval_rollouts}",
+        "eval.num_rollouts={eval_rollouts}",
+    ],
+}
+"""Overrides per phase on a GPU (``{...}``: the command-line sizes)."""
+CPU = {
+    "compute": ["compute=smoke"],
+    "bench": ["compute.num_envs=2", "bench.steps=1", "bench.warmup=0"]
+    + ["bench.profile_steps=1", "bench.rounds=1"],
+    "teacher": ["compute.num_envs=4", "compute.eval_num_envs=2", "teacher.num_steps_per_env=4"],
+    "student": [
+        "compute.num_envs=2",
+        "compute.eval_num_envs=2",
+        "eval.num_rollouts=2",
+        "eval.episode_length_s=1.0",
+        "distill.num_steps_per_env=4",
+    ],
+}
+"""The same phases at tiny sizes on CPU (``--cpu``): proves the script, measures nothing."""
+
+
+def parse(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("out", nargs="?", default=os.environ.get("OUT", "outputs/gpu_check"), type=Path)
+    p.add_argument("--cpu", action="store_true", help="tiny sizes on CPU (compute=smoke)")
+    p.add_argument("--bench-envs", type=int, default=4096, help="envs of the env benchmark")
+    p.add_argument("--train-envs", type=int, default=4096, help="envs of each teacher run")
+    p.add_argument("--teacher-seconds", type=float, default=45.0, help="training time per arm [s]")
+    p.add_argument("--distill-envs", type=int, default=1024, help="envs of the distillation")
+    p.add_argument("--eval-rollouts", type=int, default=128, help="rollouts of the evaluation")
+    p.add_argument("--phase-timeout", type=float, default=240.0, help="limit per phase [s]")
+    p.add_argument(
+        "--deadline",
+        type=float,
+        default=540.0,
+        help="whole check [s]: later phases get what is left",
+    )
+    p.add_argument("--skip", nargs="*", default=[], help="phases to leave out")
+    return p.parse_args(argv)
+
+
+def sizes(args: argparse.Namespace) -> dict[str, list[str]]:
+    table = CPU if args.cpu else GPU
+    fmt = {
+        "bench_envs": args.bench_envs,
+        "train_envs": args.train_envs,
+        "distill_envs": args.distill_envs,
+        "eval_rollouts": args.eval_rollouts,
+    }
+    return {k: [v.format(**fmt) for v in vals] for k, vals in table.items()}
+
+
+def machine() -> dict[str, Any]:
+    import torch
+
+    info: dict[str, Any] = {
+        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "python": sys.version.split()[0],
+        "torch": torch.__version__,
+        "cuda": torch.version.cuda,
+        "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+    }
+    try:
+        from importlib.metadata import version
+
+        info["mjlab"] = version("mjlab")
+        info["mujoco_warp"] = version("mujoco-warp")
+    except Exception:  # noqa: BLE001 - a missing version is not a failed check
+        pass
+    return info
+
+
+class Phase:
+    """One subprocess phase: command, log, return code, seconds."""
+
+    def __init__(self, name: str, cmd: list[str], out: Path) -> None:
+        self.name, self.cmd, self.out = name, cmd, out
+        self.log = out / f"{name}.log"
+        self.rc: int | None = None
+        self.seconds = 0.0
+        self.note = ""
+        self.files: list[str] = []
+
+    def run(self, timeout: float, stop_when: Any = None, stdout_file: Path | None = None) -> bool:
+        if timeout <= 0:
+            self.note = "skipped: no time left before the deadline"
+            self.rc = -1
+            print(f"[gpu_check] {self.name}: {self.note}", flush=True)
+            return False
+        """Run to the end, to ``timeout`` seconds or until ``stop_when()`` is true (then SIGINT,
+        as a user's Ctrl-C: checkpoints are written atomically, so the last one is whole)."""
+        print(f"[gpu_check] {self.name}: {' '.join(self.cmd)}", flush=True)
+        t0 = time.time()
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        with self.log.open("w") as log:
+            out = stdout_file.open("w") if stdout_file else log
+            try:
+                proc = subprocess.Popen(self.cmd, cwd=ROOT, stdout=out, stderr=log, env=env)
+                stopped = ""
+                while proc.poll() is None:
+                    time.sleep(0.5)
+                    if time.time() - t0 > timeout:
+                        stopped = f"timed out after {timeout:.0f} s"
+                    elif stop_when is not None and stop_when():
+                        stopped = "stopped at its budget"
+                    if stopped:
+                        proc.send_signal(signal.SIGINT)
+                        try:
+                            proc.wait(30)
+                        except subprocess.TimeoutExpired:
+                            proc.kill()
+                            proc.wait()
+                        break
+            finally:
+                if stdout_file:
+                    out.close()
+        self.seconds = time.time() - t0
+        self.rc = proc.returncode
+        self.note = stopped
+        ok = self.rc == 0 or stopped == "stopped at its budget"
+        print(f"[gpu_check] {self.name}: rc={self.rc} {stopped} ({self.seconds:.0f} s)", flush=True)
+        return ok
+
+    def record(self) -> dict[str, Any]:
+        return {
+            "phase": self.name,
+            "command": " ".join(self.cmd),
+            "rc": self.rc,
+            "seconds": round(self.seconds, 1),
+            "note": self.note,
+            "log": self.log.name,
+            "files": self.files,
+        }
+
+
+def read_rows(path: Path, stage: str) -> list[dict[str, str]]:
+    if not path.is_file():
+        return []
+    with path.open() as f:
+        return [r for r in csv.DictReader(f) if r.get("stage") == stage]
+
+
+def write_rows(rows: list[dict[str, str]], path: Path) -> None:
+    if not rows:
+        return
+    keys = list(rows[0])
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+
+
+def teacher_budget_reached(metrics: Path, seconds: float) -> Any:
+    def reached() -> bool:
+        rows = read_rows(metrics, "teacher")
+        return bool(rows) and float(rows[-1]["wall_s"]) >= seconds
+
+    return reached
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse(argv)
+    out: Path = args.out.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    s = sizes(args)
+    py = sys.executable
+    common = s["compute"] + ["logger=csv"]
+    phases: list[Phase] = []
+    results: dict[str, Any] = {}
+    t_start = time.time()
+
+    def limit() -> float:
+        """This phase's time limit: the per-phase limit, or what is left before the deadline."""
+        return min(args.phase_timeout, args.deadline - (time.time() - t_start))
+
+    if "bench" not in args.skip:
+        ph = Phase("bench", [py, "-m", "march.bench", "env", *common[:1], *s["bench"]], out)
+        phases.append(ph)
+        if ph.run(limit(), stdout_file=out / "bench_env.json"):
+            try:
+                bench = json.loads((out / "bench_env.json").read_text())
+                results["bench"] = {
+                    k: bench.get(k)
+                    for k in ("num_envs", "ratio_march_vs_rough_by_workload", "build_s")
+                }
+                results["bench"]["steps_per_s"] = {
+                    w: v["steps_per_s"] for w, v in bench["workloads"].items()
+                }
+                ph.files.append("bench_env.json")
+            except (json.JSONDecodeError, KeyError) as err:
+                ph.note = f"unreadable JSON: {err}"
+
+    teacher_ckpt: dict[str, Path] = {}
+    for arm in ("clf", "modelfree"):
+        name = f"teacher_{arm}"
+        if name in args.skip:
+            continue
+        run = out / "runs" / name
+        shutil.rmtree(run, ignore_errors=True)
+        cmd = [
+            py,
+            "-m",
+            "march.train",
+            "stage=teacher",
+            f"reward={arm}",
+            *common,
+            *s["teacher"],
+            "teacher.max_iterations=1000000",
+            "teacher.save_interval=1",
+            "teacher.eval_interval=0",
+            f"hydra.run.dir={run}",
+        ]
+        ph = Phase(name, cmd, out)
+        phases.append(ph)
+        ph.run(limit(), stop_when=teacher_budget_reached(run / "metrics.csv", args.teacher_seconds))
+        rows = read_rows(run / "metrics.csv", "teacher")
+        write_rows(rows, out / f"{name}_curve.csv")
+        ckpt = run / "teacher" / "latest.pt"
+        if rows and ckpt.is_file():
+            teacher_ckpt[arm] = ckpt
+            last = rows[-1]
+            wall = float(last["wall_s"])
+            results[name] = {
+                "iterations": int(last["iteration"]),
+                "env_steps": int(last["env_steps"]),
+                "train_wall_s": wall,
+                "env_steps_per_s": int(last["env_steps"]) / wall if wall > 0 else None,
+                "first_mean_reward": float(rows[0]["mean_reward"]),
+                "last_mean_reward": float(last["mean_reward"]),
+                "checkpoint": str(ckpt.relative_to(out)),
+            }
+            ph.files += [f"{name}_curve.csv"]
+            ph.rc = 0 if ph.note == "stopped at its budget" else ph.rc
+        else:
+            ph.note = (ph.note + "; no completed iteration").strip("; ")
+            ph.rc = ph.rc if ph.rc not in (0, None) else 1
+
+    student_ckpt: Path | None = None
+    if "student" not in args.skip and "clf" in teacher_ckpt:
+        run = out / "runs" / "student"
+        shutil.rmtree(run, ignore_errors=True)
+        cmd = [
+            py,
+            "-m",
+            "march.train",
+            "stage=student",
+            f"teacher_ckpt={teacher_ckpt['clf']}",
+            *common,
+            *s["student"],
+            "distill.max_iterations=2",
+            "distill.eval_interval=0",
+            "distill.save_interval=1",
+            f"hydra.run.dir={run}",
+        ]
+        ph = Phase("student", cmd, out)
+        phases.append(ph)
+        if ph.run(limit()):
+            write_rows(read_rows(run / "metrics.csv", "student"), out / "student_curve.csv")
+            for name in ("eval.csv", "summary.json"):
+                if (run / name).is_file():
+                    shutil.copy(run / name, out / name)
+            ph.files += [
+                f for f in ("student_curve.csv", "eval.csv", "summary.json") if (out / f).is_file()
+            ]
+            if (run / "summary.json").is_file():
+                results["eval"] = json.loads((run / "summary.json").read_text())
+            if (run / "student" / "latest.pt").is_file():
+                student_ckpt = run / "student" / "latest.pt"
+
+    if "export" not in args.skip and student_ckpt is not None:
+        onnx = out / "student.onnx"
+        cmd = [py, "-m", "march.export", f"student_ckpt={student_ckpt}", f"out={onnx}"]
+        ph = Phase("export", cmd, out)
+        phases.append(ph)
+        if ph.run(limit(), stdout_file=out / "export.txt") and onnx.is_file():
+            ph.files += ["student.onnx", "export.txt"]
+            results["export"] = {"onnx_bytes": onnx.stat().st_size}
+
+    records = [ph.record() for ph in phases]
+    ok = bool(records) and all(r["rc"] == 0 for r in records)
+    report = {
+        "ok": ok,
+        "mode": "cpu" if args.cpu else "gpu",
+        "seconds": round(time.time() - t_start, 1),
+        "machine": machine(),
+        "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+        "phases": records,
+        "results": results,
+    }
+    (out / "gpu_check.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
+    with (out / "gpu_check.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["phase", "rc", "seconds", "note", "files", "command"])
+        w.writeheader()
+        for r in records:
+            w.writerow(
+                {
+                    **{k: r[k] for k in ("phase", "rc", "seconds", "note", "command")},
+                    "files": " ".join(r["files"]),
+                }
+            )
+    print(f"[gpu_check] {'ok' if ok else 'FAILED'} in {report['seconds']:.0f} s: {out}", flush=True)
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

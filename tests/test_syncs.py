@@ -1,0 +1,239 @@
+"""No host synchronisation in march's per-step code (issue 11).
+
+A host sync is a tensor operation that makes the CPU wait for the device: reading a value
+(``.item()``, ``int()`` / ``float()`` / ``bool()`` of a tensor, e.g. ``if mask.any():``), moving
+data to the host (``.cpu()``, ``.tolist()``, ``.numpy()``) or producing a tensor whose size depends
+on the data (``.nonzero()``, single-argument ``torch.where``, boolean-mask indexing and assignment,
+``masked_select``, ``unique``). On CPU they cost nothing, on a GPU each one stalls the stream, so
+they are counted here on CPU, where the suite runs: :class:`SyncCounter` (a
+``torch.overrides.TorchFunctionMode``) sees every torch call and records those issued from a file
+under ``march/`` (the first frame outside torch's own package decides; mjlab's own syncs, e.g.
+its ``len(reset_env_ids)``, are not march's to remove). ``len()`` of a tensor is not counted: the
+shape is known on the host; the ``nonzero()`` that made a data-dependent shape is.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from torch.overrides import TorchFunctionMode
+
+ROOT = Path(__file__).resolve().parent.parent
+MARCH_DIR = str(ROOT / "march") + "/"
+TORCH_DIR = str(Path(torch.__file__).resolve().parent) + "/"
+
+ALWAYS_SYNC = {
+    "item",
+    "__bool__",
+    "__int__",
+    "__float__",
+    "__index__",
+    "nonzero",
+    "argwhere",
+    "cpu",
+    "tolist",
+    "numpy",
+    "masked_select",
+    "unique",
+    "unique_consecutive",
+    "repeat_interleave",
+}
+"""Torch functions / tensor methods that always wait for the device's result."""
+
+
+def _has_bool_index(index: object) -> bool:
+    items = index if isinstance(index, tuple) else (index,)
+    return any(isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in items)
+
+
+def sync_kind(func: object, args: tuple) -> str | None:
+    """The kind of host sync ``func(*args)`` causes, or None."""
+    name = getattr(func, "__name__", "")
+    if name in ALWAYS_SYNC:
+        if name == "repeat_interleave" and not any(isinstance(a, torch.Tensor) for a in args[1:2]):
+            return None  # an int repeat count has a host-known size
+        return name
+    if name == "where" and len(args) == 1:
+        return "where(cond)"
+    if name in ("__getitem__", "__setitem__") and len(args) >= 2 and _has_bool_index(args[1]):
+        return f"{name}[bool mask]"
+    return None
+
+
+class SyncCounter(TorchFunctionMode):
+    """Records ``(kind, file:line)`` of every host sync issued from march's own modules."""
+
+    def __init__(self, root: str = MARCH_DIR) -> None:
+        super().__init__()
+        self.root = root
+        self.hits: list[tuple[str, str]] = []
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kind = sync_kind(func, args)
+        if kind is not None:
+            frame = sys._getframe(1)
+            while frame is not None and frame.f_code.co_filename.startswith(TORCH_DIR):
+                frame = frame.f_back
+            if frame is not None and frame.f_code.co_filename.startswith(self.root):
+                where = f"{frame.f_code.co_filename[len(str(ROOT)) + 1 :]}:{frame.f_lineno}"
+                self.hits.append((kind, where))
+        return func(*args, **(kwargs or {}))
+
+
+SYNCING_SNIPPET = """
+x = torch.arange(6.0)
+m = x > 2.0
+x.sum().item()
+bool(m.any())
+if m.all():
+    pass
+int(x.max())
+float(x.mean())
+m.nonzero()
+torch.where(m)
+x.cpu()
+x.tolist()
+x[m]
+x[m] = 0.0
+x.unique()
+"""
+SYNCING_KINDS = [
+    "item",
+    "__bool__",
+    "__bool__",
+    "__int__",
+    "__float__",
+    "nonzero",
+    "where(cond)",
+    "cpu",
+    "tolist",
+    "__getitem__[bool mask]",
+    "__setitem__[bool mask]",
+    "unique",
+]
+
+SYNC_FREE_SNIPPET = """
+x = torch.arange(6.0)
+m = x > 2.0
+ids = torch.arange(3)
+y = torch.where(m, x, torch.zeros_like(x))
+y = x.masked_fill(~m, 0.0)
+y = x[ids]
+x[ids] = 1.0
+x.index_copy_(0, ids, torch.ones(3))
+n = len(x)
+s = x.sum() * m.any()
+"""
+
+
+def _run(snippet: str, filename: str) -> list[tuple[str, str]]:
+    code = compile(snippet, filename, "exec")
+    with SyncCounter() as counter:
+        exec(code, {"torch": torch})
+    return counter.hits
+
+
+def test_counter_sees_every_sync_kind_issued_from_march():
+    hits = _run(SYNCING_SNIPPET, MARCH_DIR + "example.py")
+    assert [k for k, _ in hits] == SYNCING_KINDS
+    assert all(where.startswith("march/example.py:") for _, where in hits)
+
+
+def test_counter_ignores_other_files_and_sync_free_ops():
+    assert _run(SYNCING_SNIPPET, str(ROOT / "tests" / "example.py")) == []
+    assert _run(SYNC_FREE_SNIPPET, MARCH_DIR + "example.py") == []
+
+
+def test_episode_stats_step_has_no_sync_and_keeps_the_last_window():
+    from march.learn.teacher import EpisodeStats
+
+    stats = EpisodeStats(num_envs=4, device="cpu", window=3)
+    reward = torch.tensor([1.0, 2.0, 3.0, 4.0])
+    progress = torch.tensor([0.5, 1.0, 1.5, 2.0])
+    none = torch.zeros(4, dtype=torch.bool)
+    with SyncCounter() as counter:
+        stats.step(reward, none, progress)  # nothing ends
+        stats.step(reward, torch.tensor([True, False, False, True]), progress)
+        # env 0 and 3 ended after 2 steps: returns 2, 8; lengths 2, 2; distances 0.5, 2.0
+        stats.step(reward, torch.tensor([True, True, True, False]), progress)
+        # env 0 (1 step: 1), env 1 (3 steps: 6), env 2 (3 steps: 9); window 3 keeps the last 3
+        # episodes in env order: env 0 (1), env 1 (6), env 2 (9)
+    assert counter.hits == []
+    out = stats.pop()
+    assert out["mean_reward"] == pytest.approx((1.0 + 6.0 + 9.0) / 3)
+    assert out["mean_episode_length"] == pytest.approx((1 + 3 + 3) / 3)
+    assert out["mean_distance_m"] == pytest.approx((0.5 + 1.0 + 1.5) / 3)
+
+
+def test_episode_stats_window_over_many_random_steps():
+    """Against a plain Python list of finished episodes (env order within a step)."""
+    from march.learn.teacher import EpisodeStats
+
+    gen = torch.Generator().manual_seed(3)
+    for window in (1, 5, 40):
+        stats = EpisodeStats(num_envs=16, device="cpu", window=window)
+        ret, length, ended = [0.0] * 16, [0] * 16, []
+        for _ in range(60):
+            reward = torch.rand(16, generator=gen)
+            done = torch.rand(16, generator=gen) < 0.3
+            progress = torch.rand(16, generator=gen)
+            stats.step(reward, done, progress)
+            for e in range(16):
+                ret[e] += float(reward[e])
+                length[e] += 1
+                if done[e]:
+                    ended.append((ret[e], length[e], float(progress[e])))
+                    ret[e], length[e] = 0.0, 0
+        last = ended[-window:]
+        out = stats.pop()
+        assert out["mean_reward"] == pytest.approx(sum(r for r, _, _ in last) / len(last), rel=1e-5)
+        assert out["mean_episode_length"] == pytest.approx(sum(n for _, n, _ in last) / len(last))
+        assert out["mean_distance_m"] == pytest.approx(sum(d for _, _, d in last) / len(last))
+    empty = EpisodeStats(num_envs=2, device="cpu").pop()
+    assert all(v != v for v in empty.values())  # NaN until an episode ends
+
+
+# ---------------------------------------------------------------------------------- real env
+
+
+def _steps_without_sync(reward: str, steps: int) -> dict[str, object]:
+    from march.cli import load
+    from march.env.build import make_env
+
+    cfg = load(["compute=smoke", f"reward={reward}", "dr=paper", "compute.num_envs=8"])
+    env = make_env(cfg, "teacher")
+    try:
+        gen = torch.Generator().manual_seed(0)
+        shape = (env.num_envs, env.action_manager.total_action_dim)
+        env.reset()
+        resets = 0
+        with torch.no_grad(), SyncCounter() as counter:
+            for i in range(steps):
+                # random actions (falls, resets, replans), then zeros (standing, touchdowns)
+                a = (
+                    2 * torch.rand(shape, generator=gen) - 1
+                    if i < steps // 2
+                    else torch.zeros(shape)
+                )
+                _, _, terminated, truncated, _ = env.step(a)
+                resets += int((terminated | truncated).sum())  # counted only under march/
+        replans = None
+        if reward == "clf":
+            replans = int(env.command_manager.get_term("reference").replan_count.sum())
+        return {"hits": counter.hits, "resets": resets, "replans": replans}
+    finally:
+        env.close()
+
+
+@pytest.mark.sim
+@pytest.mark.parametrize("reward", ["clf", "modelfree"])
+def test_env_steps_issue_no_host_sync_from_march(reward):
+    out = _steps_without_sync(reward, steps=60)
+    assert out["resets"] > 0  # the reset path (curriculum, DR events, replans) ran
+    if reward == "clf":
+        assert out["replans"] > 8  # more plans than the initial ones: resets, touchdowns
+    hits = out["hits"]
+    assert hits == [], f"{len(hits)} host syncs from march: {sorted(set(hits))[:20]}"
