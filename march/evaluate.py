@@ -9,8 +9,9 @@ Sampling: rollout i runs on course cell (level i mod L, column (i // L + i mod L
 (:func:`march.env.course.eval_cells`), in waves of ``env.num_envs``; each env contributes the
 first episode of its wave. Every level gets floor(n/L) or ceil(n/L) of the n rollouts, so the plain
 mean over rollouts weights the levels (nearly) equally. The torch random state is forked and
-seeded with the env's seed for every evaluation: each evaluation draws the same randomization
-sequence, whatever training did before it, and does not disturb training's random stream.
+seeded with the env's seed for every evaluation: its randomization starts from the same seed
+whatever training drew before it, and training's random stream is left untouched (a run with
+more or fewer evaluations trains the same way).
 
 Per rollout (one episode of ``eval.episode_length_s``, or until a fall), computed from per-step
 tensors by :func:`episode_metrics`:

@@ -1,16 +1,29 @@
-"""``python -m march.export student_ckpt=<file> [out=student.onnx]``: a student as one ONNX file.
+"""``python -m march.export student_ckpt=<file> [out=<folder> | out=<file>.onnx]``: a student as
+an ONNX file plus the deployment bundle a robot-side loop needs.
 
     python -m march.export student_ckpt=outputs/<run>/student/latest.pt
+    python -m march.export student_ckpt=outputs/<run>/student/latest.pt out=/tmp/g1_deploy
     python -m march.export student_ckpt=outputs/<run>/student/latest.pt out=/tmp/g1_student.onnx
 
-The checkpoint alone decides the network: its saved config's ``student`` section and its
-``layout`` (proprio size, history length, image size, action count) rebuild the
-:class:`~march.policies.student.StudentPolicy` - no env is built, and the command-line config does
-not change the architecture. :func:`march.onnx_export.export_student_onnx` writes the graph of the
-deterministic ``act_inference`` (observation normalisers baked in), checks it against torch with
-onnxruntime and times it on one CPU thread. Default ``out``: ``student.onnx`` next to the
-checkpoint. Prints the parity (max |onnx - torch|), the latency (median / p95 ms, batch 1, one
-thread) and the file written.
+The checkpoint decides the policy (:func:`march.learn.provenance.apply_checkpoint_config`): its
+saved config's ``student`` section and its ``layout`` (proprio size, history length, image size,
+action count) rebuild the :class:`~march.policies.student.StudentPolicy`, and its camera and
+observation settings describe what deployment feeds; the command line does not change them.
+:func:`march.onnx_export.export_student_onnx` writes the fast deployment graph of the
+deterministic ``act_inference`` (observation normalisers baked in;
+:class:`~march.onnx_export.DeployGraph`), checks
+it against the policy with onnxruntime and times it on one CPU thread. ``out``: a file ending in
+``.onnx``, or a folder that receives ``student.onnx``; default ``student.onnx`` next to the
+checkpoint.
+
+Beside ``<stem>.onnx`` it writes the deployment bundle (:func:`write_bundle`) that
+``python -m march.sim2sim`` runs with MuJoCo and onnxruntime alone: ``<stem>.deploy.json``
+(rates, robot joints and default pose, actions, proprioception order and history, command, depth
+camera, terminations, metric definitions, each course's cells with their footholds, SHA-256 of
+every file) and ``<stem>.hardware.mjb.gz`` / ``<stem>.stones.mjb.gz``: the evaluation env's
+compiled MuJoCo model of each course (the G1 with its actuators, gains, effort limits, the depth
+camera), DR and corruption off. A checkpoint whose layout is not the G1 env's (a test's toy
+network) gets the ONNX file alone and a line saying why.
 
 The file's ``metadata_props`` describe what deployment must feed (JSON where structured):
 
@@ -25,7 +38,8 @@ The file's ``metadata_props`` describe what deployment must feed (JSON where str
 - ``actions`` (1, A): joint position offsets as mjlab's G1 ``JointPositionAction``: target =
   default_joint_pos + action_scale * action, joints in ``action_joint_names`` order.
 
-Plus ``variant``, ``teacher_ckpt``, ``iteration``, ``env_steps`` and ``march_layout``.
+Plus ``variant``, ``teacher_ckpt``, ``iteration``, ``env_steps``, ``march_layout`` and
+``deployment`` (the bundle's JSON file name, beside the ONNX).
 A missing or wrong checkpoint is one line on stderr and exit status 2.
 """
 
@@ -445,6 +459,15 @@ def write_bundle(
     import mujoco
 
     files = bundle_files(onnx_path)
+    from mjlab.asset_zoo.robots.unitree_g1 import g1_constants as g1
+
+    free = mujoco.mjtJoint.mjJNT_FREE
+    g1_spec = g1.get_spec()  # a cheap look before any scene is built
+    problem = _layout_problem(
+        payload["layout"], cfg, sum(1 for j in g1_spec.joints if j.type != free)
+    )
+    if problem is not None:
+        return problem
     spec: dict[str, Any] | None = None
     courses: dict[str, Any] = {}
     for course in COURSES:
@@ -453,7 +476,6 @@ def write_bundle(
         except ValueError as err:  # e.g. a terrain.size too short for the hardware course
             fail(f"cannot build the {course} course: {_one_line(err)}")
         if spec is None:
-            free = mujoco.mjtJoint.mjJNT_FREE
             n_joints = sum(1 for j in range(model.njnt) if model.jnt_type[j] != free)
             problem = _layout_problem(payload["layout"], cfg, n_joints)
             if problem is not None:

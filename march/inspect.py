@@ -142,7 +142,7 @@ def terrain_summary(cfg: MarchConfig, table: Any) -> dict[str, Any]:
 def inspect(cfg: MarchConfig) -> dict[str, Any]:
     from dataclasses import asdict
 
-    from march.env.build import PLACEHOLDERS, make_env
+    from march.env.build import PLACEHOLDERS, build_env_cfg, make_env
     from march.env.course import foothold_table
     from march.env.randomization import describe_dr
 
@@ -167,6 +167,13 @@ def inspect(cfg: MarchConfig) -> dict[str, Any]:
         "domain_randomization": _jsonable(describe_dr(cfg.dr, cfg.depth.name, cfg.depth)),
         "terrain": terrain_summary(cfg, table),
     }
+    # The built env is the eval env (it has every observation group); training ends episodes
+    # on more terms than evaluation (time-out and falls only), so list both.
+    report["eval_terminations"] = report["terminations"]
+    report["terminations"] = [
+        {"name": n, "time_out": t.time_out, "params": _jsonable(t.params)}
+        for n, t in build_env_cfg(cfg, "teacher").terminations.items()
+    ]
     env.close()
     return report
 

@@ -8,6 +8,12 @@ constants), so deployment feeds raw observations. ``metadata_props`` carry the c
 
 Exporter: torch 2.13 defaults to the dynamo exporter; we use the TorchScript-based exporter
 (``dynamo=False``), which handles ``nn.TransformerEncoder`` and writes one self-contained file.
+
+Two graphs of the same maths (``graph=``): ``deploy`` (default), :class:`DeployGraph`, the fast
+batch-1 CPU graph (the last encoder layer computes only the CLS row the policy reads; attention
+without shape arithmetic), and ``trace``, the traced ``act_inference`` as training runs it. Parity
+is always measured against the policy's own ``act_inference``; :func:`compare_graphs` times both
+(README, "Deploy: sim-to-sim").
 """
 
 from __future__ import annotations

@@ -43,7 +43,7 @@ def draw_plans(
     lo = (fh.center[..., :2] - fh.half_size)[fh.valid]
     hi = (fh.center[..., :2] + fh.half_size)[fh.valid]
     span = (hi.max(0).values - lo.min(0).values).clamp(min=0.5)
-    width = min(18.0, 2.0 * float(span[0] / span[1]) + 2.5)
+    width = min(18.0, max(8.0, 2.0 * float(span[0] / span[1]) + 1.0))  # titles fit
     fig, axes = plt.subplots(
         e, 1, figsize=(width, 2.0 * e + 0.6), squeeze=False, layout="constrained"
     )
@@ -98,7 +98,9 @@ def draw_plans(
         plt.cm.ScalarMappable(norm=norm, cmap=cmap),
         ax=axes[:, 0].tolist(),
         label="stone top z [m]",
-        shrink=0.8,
+        location="bottom",  # below the panels: clear of the long panel titles
+        shrink=0.5,
+        aspect=40,
     )
     fig.savefig(path, dpi=110)
     plt.close(fig)

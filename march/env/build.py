@@ -39,7 +39,7 @@ from mjlab.utils.noise import UniformNoiseCfg as Unoise
 from march.config import MarchConfig
 from march.env.course import course_levels
 from march.env.depth import corrupt, depth_camera_cfg, normalize
-from march.env.observations import reference_obs, stones_ahead
+from march.env.observations import reference_obs, stones_ahead, terrain_height_scan
 from march.env.randomization import apply_dr
 from march.env.reference_command import ReferenceCommandCfg
 from march.env.rewards import REFERENCE_COMMAND, needs_reference, reward_terms
@@ -117,9 +117,9 @@ PROPRIO_TERMS = tuple(_proprio_terms(noisy=False))
 
 
 def _privileged_terrain_term() -> ObservationTermCfg:
-    return ObservationTermCfg(
-        func=envs_mdp.height_scan, params={"sensor_name": "terrain_scan"}, scale=1 / 5.0
-    )
+    # The G1 task's terrain_scan (17 x 11 points, 5 m range) computed from the course boxes:
+    # the same numbers without ray casting through the scene every step (issue 11).
+    return ObservationTermCfg(func=terrain_height_scan, scale=1 / 5.0)
 
 
 def _privileged_teacher_terms(cfg: MarchConfig) -> dict[str, ObservationTermCfg]:
@@ -295,7 +295,9 @@ def build_env_cfg(
         else {}
     )
 
-    sensors = tuple(s for s in (env_cfg.scene.sensors or ()) if s.name not in ("foot_height_scan",))
+    # terrain_scan: the height scan is computed from the course boxes (_privileged_terrain_term).
+    dropped = ("foot_height_scan", "terrain_scan")
+    sensors = tuple(s for s in (env_cfg.scene.sensors or ()) if s.name not in dropped)
     if purpose in ("student", "eval"):
         sensors = sensors + (depth_camera_cfg(cfg.depth),)
     env_cfg.scene.sensors = sensors

@@ -10,14 +10,85 @@ from __future__ import annotations
 import torch
 from mjlab.envs import ManagerBasedRlEnv
 
-from march.env.course import CourseRuler
+from march.env.course import CourseRuler, foothold_table
 from march.env.reference_command import reference_term
-from march.env.step_cache import shared
+from march.env.step_cache import constant, shared
+from march.env.terrain import terrain_boxes
 
 NUM_STONES = 5
 """K: stones observed ahead of the robot."""
 STONE_FEATURES = 5
 """Per stone: dx, dy, dz (top-face centre from the pelvis) and half sizes along x, y."""
+SCAN_SIZE = (1.6, 1.0)
+"""Height-scan grid extent (along, across the heading) [m]: mjlab's G1 ``terrain_scan``."""
+SCAN_RESOLUTION = 0.1
+"""Height-scan grid spacing [m] (17 x 11 = 187 points)."""
+SCAN_MAX_DISTANCE = 5.0
+"""Height-scan range [m]: a point with nothing within this below the pelvis reads this."""
+
+
+def scan_offsets(
+    size: tuple[float, float] = SCAN_SIZE, resolution: float = SCAN_RESOLUTION, device: str = "cpu"
+) -> torch.Tensor:
+    """(N, 2) the scan points in the yaw-aligned pelvis frame, in the order of mjlab's
+    ``GridPatternCfg`` (its own code makes them)."""
+    from mjlab.sensor import GridPatternCfg
+
+    offsets, _ = GridPatternCfg(size=size, resolution=resolution).generate_rays(None, device)
+    return offsets[:, :2].contiguous()
+
+
+def terrain_height_scan(
+    env: ManagerBasedRlEnv,
+    size: tuple[float, float] = SCAN_SIZE,
+    resolution: float = SCAN_RESOLUTION,
+    max_distance: float = SCAN_MAX_DISTANCE,
+) -> torch.Tensor:
+    """(E, N) height of the pelvis above the terrain at the points of a yaw-aligned grid around
+    it: what mjlab's ``terrain_scan`` ray-cast sensor + ``height_scan`` observation give
+    (vertical rays from pelvis height, first terrain surface below, ``max_distance`` for a
+    miss), computed from the terrain's boxes (:func:`march.env.terrain.terrain_boxes`: every
+    terrain geom is an axis-aligned box whose top is its only upward face) instead of casting
+    rays through the scene. The robot's own geoms are not terrain (geom groups 2 and 3; the
+    sensor scans group 0 only), so the two agree; a box whose top lies above the pelvis is
+    skipped (the pelvis inside a stone is not a state a rollout reaches). Shared by the actor
+    and critic groups within one observation compute.
+    """
+    return shared(
+        env,
+        ("terrain_height_scan", size, resolution, max_distance),
+        lambda: _terrain_height_scan(env, size, resolution, max_distance),
+    )
+
+
+def _terrain_height_scan(
+    env: ManagerBasedRlEnv, size: tuple[float, float], resolution: float, max_distance: float
+) -> torch.Tensor:
+    top_center, half, valid = constant(
+        env, "terrain_boxes", lambda: terrain_boxes(foothold_table(env))
+    )
+    offsets = constant(
+        env, ("scan_offsets", size, resolution), lambda: scan_offsets(size, resolution, env.device)
+    )
+    terrain = env.scene.terrain
+    cell = (terrain.terrain_levels, terrain.terrain_types)
+    box_c, box_h, box_v = top_center[cell], half[cell], valid[cell]  # (E, K, ...)
+    data = env.scene["robot"].data
+    base = data.root_link_pos_w
+    yaw = data.heading_w
+    c, s = torch.cos(yaw)[:, None], torch.sin(yaw)[:, None]
+    ox, oy = offsets[:, 0], offsets[:, 1]
+    px = base[:, 0:1] + c * ox - s * oy  # (E, N)
+    py = base[:, 1:2] + s * ox + c * oy
+    z0 = base[:, 2:3]
+    reachable = box_v & (box_c[..., 2] <= z0)  # (E, K)
+    inside = ((px[..., None] - box_c[:, None, :, 0]).abs() <= box_h[:, None, :, 0]) & (
+        (py[..., None] - box_c[:, None, :, 1]).abs() <= box_h[:, None, :, 1]
+    )  # (E, N, K)
+    top = box_c[..., 2].masked_fill(~reachable, -float("inf"))
+    hit = torch.where(inside, top[:, None, :], -float("inf")).amax(-1)  # (E, N)
+    height = z0 - hit
+    return torch.where(height <= max_distance, height, torch.full_like(height, max_distance))
 
 
 def stones_ahead(env: ManagerBasedRlEnv, num_stones: int = NUM_STONES) -> torch.Tensor:

@@ -388,3 +388,43 @@ def max_model_mismatch(table: FootholdTable, model: mujoco.MjModel) -> float:
     names = [model.geom(i).name for i in range(model.ngeom)]
     found = sum(1 for n in names if n.startswith("course") and not n.endswith("_pit"))
     return worst if found == expected else float("inf")
+
+
+def terrain_boxes(table: FootholdTable, neighbours: int = 1) -> tuple[torch.Tensor, ...]:
+    """Every terrain box a ray from cell (r, c) can hit, for an analytic height scan.
+
+    Returns ``(top_center, half_size, valid)``, shapes (R, C, K, 3), (R, C, K, 2), (R, C, K):
+    world top-face centres and half extents of the boxes of cell (r, c) and of the cells
+    ``neighbours`` rows before and after it in the same column (rows are laid end to end along
+    x, so a robot at either end of its course sees the next / previous level's platform), each
+    cell's stones and platforms (the foothold table) plus its pit floor (a box over the whole
+    cell whose top is ``layout.bottom``; flat cells have none). Padding and cells beyond the
+    grid are ``valid = False``. Cells beside (other columns) are 4 m apart and out of reach of
+    a scan around a robot on its course's platforms or stones.
+    """
+    rows, cols, s = table.shape
+    pit_center = np.zeros((rows, cols, 1, 3))
+    pit_half = np.zeros((rows, cols, 1, 2))
+    pit_valid = np.zeros((rows, cols, 1), dtype=bool)
+    for r, row in enumerate(table.layouts):
+        for c, lay in enumerate(row):
+            if lay.kind == "flat":
+                continue
+            sx, sy = lay.size
+            pit_center[r, c, 0] = (0.5 * sx, 0.5 * sy, lay.bottom) - lay.origin
+            pit_half[r, c, 0] = (0.5 * sx, 0.5 * sy)
+            pit_valid[r, c, 0] = True
+    dev = table.center.device
+    center = torch.cat([table.center, torch.as_tensor(pit_center, dtype=torch.float32).to(dev)], 2)
+    center = center + table.origins[:, :, None, :]
+    half = torch.cat([table.half_size, torch.as_tensor(pit_half, dtype=torch.float32).to(dev)], 2)
+    valid = torch.cat([table.valid, torch.as_tensor(pit_valid).to(dev)], 2)
+    parts_c, parts_h, parts_v = [], [], []
+    for dr in range(-neighbours, neighbours + 1):
+        src = torch.arange(rows, device=dev) + dr
+        inside = (src >= 0) & (src < rows)
+        src = src.clamp(0, rows - 1)
+        parts_c.append(center[src])
+        parts_h.append(half[src])
+        parts_v.append(valid[src] & inside[:, None, None])
+    return torch.cat(parts_c, 2), torch.cat(parts_h, 2), torch.cat(parts_v, 2)

@@ -71,7 +71,21 @@ def has_row(path: Path, stage: str, iteration: int) -> bool:
 
 
 def append_row(path: Path, columns: tuple[str, ...], row: dict[str, Any]) -> None:
+    """Append ``row`` under ``columns``; a file written with other columns (an older run being
+    resumed) is first rewritten under the current ones, its missing values left empty."""
     new = not path.is_file()
+    if not new:
+        with path.open(newline="") as f:
+            header = next(csv.reader(f), None)
+        if header is not None and header != list(columns):
+            with path.open(newline="") as f:
+                old_rows = list(csv.DictReader(f))
+            tmp = path.with_suffix(".tmp")
+            with tmp.open("w", newline="") as f:
+                writer = csv.DictWriter(f, fieldnames=list(columns), extrasaction="ignore")
+                writer.writeheader()
+                writer.writerows(old_rows)
+            os.replace(tmp, path)
     with path.open("a", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(columns), extrasaction="ignore")
         if new:

@@ -1,0 +1,98 @@
+"""The lean step's equivalences (issue 11): what the step computes more cheaply is what it
+computed before.
+
+- The height scan from the course boxes (``march.env.observations.terrain_height_scan``) equals
+  mjlab's ``terrain_scan`` ray-cast sensor + ``height_scan`` observation, ray by ray, in a real
+  env stepped with random actions on every curriculum level.
+- A term shared within one observation compute (``march.env.step_cache.shared``) gives the
+  value a direct call gives; outside a manager's compute nothing is cached.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from march.cli import load
+from march.env.observations import (
+    SCAN_MAX_DISTANCE,
+    scan_offsets,
+    stones_ahead,
+    terrain_height_scan,
+)
+
+
+def test_scan_offsets_are_mjlabs_g1_grid():
+    off = scan_offsets()
+    assert off.shape == (17 * 11, 2)
+    # GridPatternCfg: x runs fastest ("xy" meshgrid), from -0.8 to 0.8 and -0.5 to 0.5
+    assert off[0].tolist() == pytest.approx([-0.8, -0.5])
+    assert off[1].tolist() == pytest.approx([-0.7, -0.5])
+    assert off[-1].tolist() == pytest.approx([0.8, 0.5])
+
+
+@pytest.fixture(scope="module")
+def scan_env():
+    from mjlab.envs import ManagerBasedRlEnv
+    from mjlab.tasks.velocity.config.g1.env_cfgs import unitree_g1_rough_env_cfg
+
+    from march.env.build import build_env_cfg
+
+    cfg = load(
+        ["compute=smoke", "reward=modelfree", "compute.num_envs=16", "curriculum.max_init_level=9"]
+    )
+    env_cfg = build_env_cfg(cfg, "teacher")
+    assert all(s.name != "terrain_scan" for s in env_cfg.scene.sensors)  # not ray cast any more
+    sensor = next(s for s in unitree_g1_rough_env_cfg().scene.sensors if s.name == "terrain_scan")
+    env_cfg.scene.sensors = tuple(env_cfg.scene.sensors) + (sensor,)
+    env = ManagerBasedRlEnv(cfg=env_cfg, device="cpu")
+    yield env
+    env.close()
+
+
+@pytest.mark.sim
+def test_height_scan_from_boxes_equals_the_ray_cast_sensor(scan_env):
+    from mjlab.envs import mdp as envs_mdp
+
+    env = scan_env
+    gen = torch.Generator().manual_seed(1)
+    shape = (env.num_envs, env.action_manager.total_action_dim)
+    env.reset()
+    levels = set(env.scene.terrain.terrain_levels.tolist())
+    assert len(levels) >= 4  # several difficulties (stone heights) in the comparison
+    worst, rays, misses, pit = 0.0, 0, 0, 0
+    with torch.no_grad():
+        for _ in range(60):
+            env.step(2 * torch.rand(shape, generator=gen) - 1)
+            ours = terrain_height_scan(env)
+            ray = envs_mdp.height_scan(env, "terrain_scan")
+            assert ours.shape == ray.shape
+            worst = max(worst, float((ours - ray).abs().max()))
+            rays += ray.numel()
+            misses += int((ray == SCAN_MAX_DISTANCE).sum())
+            pit += int((ray > 0.9).sum())  # the pit lies 0.25 m below the platform top
+    assert rays == 60 * env.num_envs * 187
+    assert pit > 0  # some points saw the pit floor between stones
+    assert worst < 1e-4, f"largest |analytic - ray cast| = {worst:.3g} m"
+
+
+@pytest.mark.sim
+def test_shared_terms_equal_direct_calls(scan_env, monkeypatch):
+    import march.env.observations as O
+
+    env = scan_env
+    env.reset()
+    calls = []
+    inner = O._stones_ahead
+    monkeypatch.setattr(O, "_stones_ahead", lambda e, k: calls.append(k) or inner(e, k))
+    obs = env.observation_manager.compute(update_history=True)
+    # the actor and the critic group both observe the stones: one computation
+    assert len(calls) == 1
+    k = O.NUM_STONES * O.STONE_FEATURES
+    actor, critic = obs["actor"], obs["critic"]
+    direct = stones_ahead(env)
+    assert len(calls) == 2  # outside a manager's compute: computed afresh
+    assert torch.equal(actor[:, -k:], direct) or any(
+        torch.equal(actor[:, i : i + k], direct) for i in range(actor.shape[1] - k + 1)
+    )
+    assert any(torch.equal(critic[:, i : i + k], direct) for i in range(critic.shape[1] - k + 1))
