@@ -472,6 +472,9 @@ class TeacherCfg:
     """Evaluate the current teacher (deterministic actor) on the fixed stone evaluation set
     every this many iterations (a ``stage=teacher`` row in eval.csv, same protocol for every
     arm); 0 = only at the end of the teacher stage, which is always evaluated."""
+    max_nonfinite_updates: int = 3
+    """PPO updates in a row with a non-finite loss or parameter (each undone and counted in
+    metrics.csv) that stop the run with one line; its last checkpoint is the last good one."""
 
     @property
     def iterations(self) -> int:
@@ -487,6 +490,7 @@ class TeacherCfg:
         _positive("teacher", "init_std", self.init_std)
         _positive("teacher", "learning_rate", self.learning_rate)
         _positive("teacher", "save_interval", self.save_interval)
+        _at_least("teacher", "max_nonfinite_updates", self.max_nonfinite_updates, 1)
         _one_of("teacher", "schedule", self.schedule, ("adaptive", "fixed"))
         _at_least("teacher", "num_learning_epochs", self.num_learning_epochs, 1)
         _at_least("teacher", "num_mini_batches", self.num_mini_batches, 1)
@@ -527,6 +531,9 @@ class DistillCfg:
     """Evaluate the student every this many iterations (a row in eval.csv); 0 = only at the end."""
     save_interval: int = 50
     """Checkpoint every this many iterations."""
+    max_nonfinite_updates: int = 3
+    """Student updates in a row with a non-finite loss or parameter (each undone and counted in
+    metrics.csv) that stop the run with one line; its last checkpoint is the last good one."""
 
     def __post_init__(self) -> None:
         _check_shapes("distill", self)
@@ -539,6 +546,7 @@ class DistillCfg:
         _positive("distill", "gradient_length", self.gradient_length)
         _positive("distill", "teacher_samples", self.teacher_samples)
         _positive("distill", "save_interval", self.save_interval)
+        _at_least("distill", "max_nonfinite_updates", self.max_nonfinite_updates, 1)
         if self.eval_interval < 0:
             raise ConfigError(
                 f"distill.eval_interval={self.eval_interval} must be >= 0 (0 = only at the end)"

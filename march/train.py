@@ -30,6 +30,7 @@ from omegaconf import DictConfig, OmegaConf
 from march.cli import fail, resolve_compute
 from march.config import ConfigError, MarchConfig, to_march_config
 from march.learn.checkpoint import CheckpointError, write_json_atomic
+from march.learn.faults import NumericalFault
 from march.learn.metrics import MetricsLog
 
 
@@ -485,14 +486,17 @@ def main(dcfg: DictConfig) -> None:
     run_dir = Path(cfg.resume) if cfg.resume else Path(hc.runtime.output_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     if cfg.resume and (run_dir / "config.yaml").is_file():
-        # Continue with the run's own config (its sizes and seed), not today's defaults.
-        saved = to_march_config(
-            OmegaConf.merge(
-                OmegaConf.structured(MarchConfig), OmegaConf.load(run_dir / "config.yaml")
-            )
-        )
-        saved.resume = cfg.resume
-        cfg = saved
+        # Continue with the run's own config (its sizes and seed), not today's defaults; an
+        # override safe on resume applies (and goes into config.yaml), any other is refused.
+        from march.resume import resume_config
+
+        try:
+            cfg, resumed = resume_config(run_dir, cfg, overrides)
+        except ConfigError as err:
+            if hc.mode == RunMode.MULTIRUN:
+                raise
+            fail(str(err))
+        notes += resumed
     OmegaConf.save(OmegaConf.structured(cfg), run_dir / "config.yaml")
     os.environ.setdefault("WANDB_MODE", "offline")
     _write_status(run_dir, "running", stage=cfg.stage, pid=os.getpid())
@@ -502,7 +506,9 @@ def main(dcfg: DictConfig) -> None:
         _write_status(run_dir, "failed", stage=cfg.stage, error=f"{type(err).__name__}: {err}")
         # A single run ends with one clear line; in a sweep the error is raised so that Hydra
         # records this job as failed and goes on with the others.
-        if hc.mode == RunMode.RUN and isinstance(err, (ConfigError, CheckpointError)):
+        if hc.mode == RunMode.RUN and isinstance(
+            err, (ConfigError, CheckpointError, NumericalFault)
+        ):
             fail(str(err))
         raise
     _write_status(run_dir, "done", stage=cfg.stage)

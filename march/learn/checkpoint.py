@@ -9,6 +9,7 @@ that reads a checkpoint (``tests/test_checkpoint.py`` greps the package to keep 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import enum
 import json
@@ -35,20 +36,40 @@ class CheckpointError(RuntimeError):
 def save_atomic(payload: dict[str, Any], path: Path) -> None:
     """Write to a temporary file in the same directory, fsync, then rename over ``path``.
 
-    A run killed mid-write leaves the previous checkpoint intact, never a truncated one.
+    A run killed mid-write leaves the previous checkpoint intact, never a truncated one. A write
+    that fails (a full disk, a quota, an I/O error) removes its temporary file and raises
+    :class:`CheckpointError`: one line, and the previous checkpoint is left as it was.
     """
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as err:
+        raise _write_error(path, err) from None
     try:
         with os.fdopen(fd, "wb") as f:
             torch.save(payload, f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
+    except BaseException as err:
+        with contextlib.suppress(OSError):
             os.unlink(tmp)
+        # torch.save reports a failed write as a RuntimeError wrapping the OS error.
+        cause = err if isinstance(err, OSError) else err.__cause__ or err.__context__
+        if isinstance(cause, OSError) or (
+            isinstance(err, RuntimeError) and "write" in str(err).lower()
+        ):
+            raise _write_error(path, cause if isinstance(cause, OSError) else err) from None
         raise
+
+
+def _write_error(path: Path, err: BaseException) -> CheckpointError:
+    why = os.strerror(err.errno) if isinstance(err, OSError) and err.errno else str(err)
+    why = why.strip().splitlines()[0] if why.strip() else type(err).__name__
+    return CheckpointError(
+        f"could not write checkpoint {path} ({why}); the previous checkpoint in {path.parent} is "
+        "intact: free space (or fix the file system), then continue with resume=<run dir>"
+    )
 
 
 def write_json_atomic(obj: Any, path: Path) -> None:

@@ -23,6 +23,7 @@ from tensordict import TensorDict
 from march.config import MarchConfig
 from march.env.course import CourseRuler
 from march.learn.checkpoint import check_layout, latest_checkpoint, load_checkpoint, save_checkpoint
+from march.learn.faults import EnvFaults, UpdateGuard
 from march.learn.metrics import MetricsLog, Progress, truncate_rows
 from march.learn.teacher import EpisodeStats, build_teacher_actor, teacher_obs
 from march.policies.student import StudentPolicy
@@ -148,6 +149,18 @@ class DistillRunner:
         self.iteration = 0
         self.env_steps = 0
         self.wall_s = 0.0
+        self.faults = EnvFaults(env)
+        self.guard = UpdateGuard(
+            "distill",
+            d.max_nonfinite_updates,
+            lambda: {"student": self.student.state_dict(), "opt": self.optimizer.state_dict()},
+            self._restore,
+            self.student.parameters,
+        )
+
+    def _restore(self, saved: dict[str, Any]) -> None:
+        self.student.load_state_dict(saved["student"])
+        self.optimizer.load_state_dict(saved["opt"])
 
     def _teacher_obs(self, obs: dict[str, Any]) -> TensorDict:
         return teacher_obs(obs, self.env.num_envs)
@@ -171,6 +184,9 @@ class DistillRunner:
     def try_resume(self) -> bool:
         path = latest_checkpoint(self.ckpt_dir)
         if path is None:
+            # Killed before its first checkpoint: the stage starts over, and so do its rows.
+            self.log.resume_from("student", 0)
+            truncate_rows(self.run_dir / "eval.csv", "student", 0)
             return False
         payload = load_checkpoint(path, "student", self.device)
         check_layout(payload["layout"], self.layout, "student", path)
@@ -201,8 +217,13 @@ class DistillRunner:
             actions = self.student.act_inference(*inputs)
             steps.append(tuple(x.clone() for x in inputs) + (teacher_mean, teacher_std))
             before = self.ruler.progress()
+            bad_actions = self.faults.actions(actions)
             obs, reward, terminated, truncated, _ = self.env.step(actions)
-            stats.step(reward, terminated | truncated, before)
+            done = terminated | truncated
+            bad = self.faults.after_step(obs, reward, bad_actions)
+            if bad is not None:
+                done = done | bad  # reset for a NaN or inf: that episode ends here
+            stats.step(reward, done, before)
             reward_sum += reward.mean().item()
         self.obs = obs
         return steps, reward_sum / len(steps)
@@ -243,7 +264,10 @@ class DistillRunner:
         for it in range(self.iteration, total_iterations):
             t0 = time.time()
             steps, teacher_reward = self._rollout(stats)
+            self.guard.before()
             info = self._update(steps)
+            # A non-finite update is undone; too many in a row stop before this checkpoint.
+            self.guard.after(info, it + 1, latest_checkpoint(self.ckpt_dir))
             self.iteration = it + 1
             self.env_steps += d.num_steps_per_env * self.env.num_envs
             self.wall_s += time.time() - t0
@@ -258,6 +282,8 @@ class DistillRunner:
                 "teacher_reward": teacher_reward,
                 "mode_weight_0": info.get("mode_weight_0", float("nan")),
                 "mode_weight_1": info.get("mode_weight_1", float("nan")),
+                "nonfinite_resets": self.faults.pop(),
+                "nonfinite_updates": self.guard.pop(),
             }
             self.log.log(row)
             print(

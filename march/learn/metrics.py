@@ -29,6 +29,8 @@ METRIC_COLUMNS = (
     "teacher_reward",
     "mode_weight_0",
     "mode_weight_1",
+    "nonfinite_resets",  # envs reset for a NaN or inf in their state, observation, action or reward
+    "nonfinite_updates",  # updates undone for a non-finite loss or parameter (march.learn.faults)
 )
 
 EVAL_METRICS = ("distance_m", "success_rate", "abs_torque_nm", "abs_ang_jerk", "reward")

@@ -29,6 +29,7 @@ from march.learn.checkpoint import (
     load_checkpoint,
     save_checkpoint,
 )
+from march.learn.faults import EnvFaults, UpdateGuard
 from march.learn.metrics import MetricsLog, Progress, has_row, truncate_rows
 
 TeacherEval = Callable[[MLPModel, int, int], dict[str, Any]]
@@ -187,6 +188,14 @@ class TeacherRunner:
         self.iteration = 0  # iterations completed
         self.env_steps = 0
         self.wall_s = 0.0
+        self.faults = EnvFaults(env)
+        self.guard = UpdateGuard(
+            "teacher",
+            cfg.teacher.max_nonfinite_updates,
+            self.alg.save,
+            lambda saved: self.alg.load(saved, None, strict=True),
+            lambda: [*self.alg.actor.parameters(), *self.alg.critic.parameters()],
+        )
 
     def payload(self) -> dict[str, Any]:
         return {
@@ -207,6 +216,10 @@ class TeacherRunner:
         """Continue from ``<run>/teacher/latest.pt`` if it exists (killed run, Slurm requeue)."""
         path = latest_checkpoint(self.ckpt_dir)
         if path is None:
+            # Killed before its first checkpoint: the stage starts over, so the rows it logged
+            # (metrics.csv, eval.csv) go too, or they would appear twice.
+            self.log.resume_from("teacher", 0)
+            truncate_rows(self.run_dir / "eval.csv", "teacher", 0)
             return False
         payload = load_checkpoint(path, "teacher", self.device)
         check_layout(payload["layout"], self.layout, "teacher", path)
@@ -250,7 +263,17 @@ class TeacherRunner:
                 for _ in range(t.num_steps_per_env):
                     before = self.ruler.progress()
                     actions = self.alg.act(obs)
+                    bad_actions = self.faults.actions(actions)  # the stored copy too
                     obs, rewards, dones, extras = self.env.step(actions.to(self.env.device))
+                    bad = self.faults.after_step(obs, rewards, bad_actions)
+                    if bad is not None:
+                        # A reset env's episode ends here: no bootstrap from its faulty state,
+                        # and the stored log-probability is that of the action actually taken.
+                        dones = torch.where(bad, torch.ones_like(dones), dones)
+                        if "time_outs" in extras:
+                            extras["time_outs"] = extras["time_outs"] & ~bad
+                        tr = self.alg.transition
+                        tr.actions_log_prob = self.alg.actor.get_output_log_prob(tr.actions)
                     obs, rewards, dones = (
                         obs.to(self.device),
                         rewards.to(self.device),
@@ -260,7 +283,10 @@ class TeacherRunner:
                     # The env auto-resets: a finished episode's distance is its last pre-reset one.
                     stats.step(rewards, dones.bool(), before)
                 self.alg.compute_returns(obs)
+            self.guard.before()
             losses = self.alg.update()
+            # A non-finite update is undone; too many in a row stop before this checkpoint.
+            self.guard.after(losses, it + 1, last)
             self.iteration = it + 1
             self.env_steps += t.num_steps_per_env * self.env.num_envs
             self.wall_s += time.time() - t0
@@ -275,6 +301,8 @@ class TeacherRunner:
                 "entropy": losses.get("entropy", float("nan")),
                 "learning_rate": self.alg.learning_rate,
                 "action_std": self.alg.get_policy().output_std.mean().item(),
+                "nonfinite_resets": self.faults.pop(),
+                "nonfinite_updates": self.guard.pop(),
             }
             self.log.log(row)
             print(

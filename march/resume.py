@@ -1,0 +1,157 @@
+"""``resume=<run dir>`` with other overrides: the safe ones apply, the others are refused.
+
+A resumed run continues with its own ``config.yaml`` (its sizes, seed and policy), not with
+today's defaults. An override given along with ``resume=`` is
+
+- ignored when it sets the value the run already has (the same command line run again);
+- applied, and written into the run's config.yaml, when it is in :data:`RESUME_SAFE`: values
+  that change how long the run goes on, how often it saves and evaluates, and where it logs,
+  not what it learns or how it is measured;
+- otherwise refused, with one line naming every such override, before any simulation.
+
+Nothing is dropped silently. ``hydra.*`` overrides configure Hydra itself and pass through.
+
+Pure data: no simulator import.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
+
+from march.config import ConfigError, MarchConfig, to_march_config
+
+RESUME_SAFE = (
+    "teacher.max_iterations",  # more iterations (never fewer than the run was started with)
+    "distill.max_iterations",
+    "teacher.save_interval",
+    "teacher.eval_interval",
+    "distill.save_interval",
+    "distill.eval_interval",
+    "teacher.max_nonfinite_updates",
+    "distill.max_nonfinite_updates",
+    "compute.torch_threads",  # speed only
+    "logger",  # every logger.* field and the logger=<choice> group
+)
+"""Config paths (a section: every field in it) an override may change on resume."""
+
+GROUP_FIELDS = {
+    # A config-group choice (conf/<group>/*.yaml) names the run by these fields: the same choice
+    # as the run's is a no-op, another one is refused (it would change more than its name).
+    "compute": ("compute.name",),
+    "reward": ("reward.name",),
+    "student": ("student.variant",),
+    "curriculum": ("curriculum.name",),
+    "dr": ("dr.name",),
+    "arm": ("reward.name", "curriculum.name"),
+}
+GROWING = ("teacher.max_iterations", "distill.max_iterations")
+"""Safe only upwards: a run cannot un-train the iterations its checkpoints hold."""
+
+
+def _get(obj: Any, path: str) -> Any:
+    for part in path.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _safe(path: str) -> bool:
+    return any(path == s or path.startswith(s + ".") for s in RESUME_SAFE)
+
+
+def load_saved_config(run_dir: Path) -> MarchConfig:
+    """The run's config.yaml, validated; a file with ``${...}`` (march never writes one) is
+    refused rather than resolved."""
+    path = run_dir / "config.yaml"
+    text = path.read_text()
+    if "${" in text:
+        raise ConfigError(
+            f"resume={run_dir}: {path} holds a '${{...}}' interpolation, which march never "
+            "writes; refusing to resolve a modified config (restore the file or start a new run)"
+        )
+    try:
+        return to_march_config(OmegaConf.merge(OmegaConf.structured(MarchConfig), OmegaConf.load(path)))
+    except ConfigError as err:
+        raise ConfigError(f"resume={run_dir}: its config.yaml is not valid: {err}") from None
+    except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise ConfigError(f"resume={run_dir}: its config.yaml cannot be read ({first})") from None
+
+
+def _parse(overrides: Sequence[str]) -> list[tuple[str, str]]:
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    return [
+        (ov.key_or_group, ov.input_line or ov.key_or_group)
+        for ov in OverridesParser.create().parse_overrides(list(overrides))
+    ]
+
+
+def resume_config(
+    run_dir: Path, composed: MarchConfig, overrides: Sequence[str]
+) -> tuple[MarchConfig, list[str]]:
+    """The config a resumed run continues with, and one line per override it applied.
+
+    ``composed``: the config Hydra composed from the command line (``overrides``, as typed:
+    ``HydraConfig.get().overrides.task``). Raises :class:`ConfigError` naming every override
+    that cannot change on resume.
+    """
+    saved = load_saved_config(run_dir)
+    changes: dict[str, Any] = {}
+    refused: list[str] = []
+    for key, text in _parse(overrides):
+        key = key.lstrip("+~")
+        if key == "resume" or key.startswith("hydra"):
+            continue
+        if key == "logger" or key.startswith("logger."):
+            changes["logger"] = composed.logger
+            continue
+        paths = GROUP_FIELDS.get(key, (key,))
+        try:
+            same = all(_get(composed, p) == _get(saved, p) for p in paths)
+        except AttributeError:
+            refused.append(text)  # e.g. +sweep=...: not a value of the run
+            continue
+        if same:
+            continue
+        if len(paths) == 1 and _safe(paths[0]):
+            changes[paths[0]] = _get(composed, paths[0])
+        else:
+            refused.append(text)
+    if refused:
+        raise ConfigError(
+            f"resume={run_dir}: {', '.join(refused)} cannot change on resume (the run goes on "
+            f"with its config.yaml); only {', '.join(RESUME_SAFE)} can. Drop "
+            f"{'it' if len(refused) == 1 else 'them'}, or start a new run"
+        )
+    notes = []
+    for path in GROWING:
+        if path in changes and changes[path] < _get(saved, path):
+            raise ConfigError(
+                f"resume={run_dir}: {path}={changes[path]} is below the run's "
+                f"{_get(saved, path)}; on resume iterations can only be added"
+            )
+    if "teacher.max_iterations" in changes and any((run_dir / "student").glob("*.pt")):
+        raise ConfigError(
+            f"resume={run_dir}: teacher.max_iterations cannot change once the distillation has "
+            "started (student/ holds checkpoints of a student of the current teacher)"
+        )
+    sections: dict[str, dict[str, Any]] = {}
+    for path, value in changes.items():
+        section, _, name = path.partition(".")
+        if name:
+            sections.setdefault(section, {})[name] = value
+            notes.append(f"[resume] {path}: {_get(saved, path)} -> {value}")
+        elif value != _get(saved, section):
+            sections[section] = value
+            notes.append(f"[resume] {section}: {_get(saved, section)} -> {value}")
+    new = {
+        s: v if not isinstance(v, dict) else replace(getattr(saved, s), **v)
+        for s, v in sections.items()
+    }
+    cfg = replace(saved, resume=composed.resume, **new)
+    return cfg, notes

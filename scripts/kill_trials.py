@@ -1,0 +1,327 @@
+"""Kill-and-resume trials: SIGKILL ``python -m march.train`` at seeded random moments, resume it.
+
+    python scripts/kill_trials.py                 # 10 trials (make kill-trials)
+    python scripts/kill_trials.py --trials 3 --seed 1 --out /tmp/kt
+
+Each trial starts a small ``compute=smoke`` run, kills its process group with SIGKILL at a moment
+of one of the phases below (the teacher before its first checkpoint, during a checkpoint write,
+at a random moment or during an evaluation; the same for the distillation; the final
+evaluation), then runs ``python -m march.train resume=<run dir>`` to completion and checks:
+
+- the resumed run ends with status ``done`` (exit 0);
+- it starts from the newest checkpoint present at the kill (no iteration lost beyond it);
+- metrics.csv holds every teacher and student iteration exactly once, eval.csv every expected
+  evaluation (teacher every eval_interval and at the end, student likewise) exactly once;
+- the final teacher and student checkpoints load with ``load_checkpoint`` at the last iteration.
+
+It prints one line per trial and the tally (trials, killed, resumed, rows lost, rows
+duplicated); the exit status is 0 only when every trial passed. A trial whose run finished
+before its moment came counts as not killed (a failure). Run it on an otherwise idle machine
+when the timings matter: on 2 loaded CPU cores a trial takes 3-5 minutes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import random
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+T_ITERS, D_ITERS = 4, 3  # teacher and distillation iterations of a trial run
+T_SAVE, D_SAVE = 2, 2  # save intervals: iteration 1 is logged before the first checkpoint
+T_EVAL, D_EVAL = 2, 2  # evaluation intervals: one evaluation in each stage before its last
+SIZES = (
+    "compute=smoke",
+    f"teacher.max_iterations={T_ITERS}",
+    f"teacher.save_interval={T_SAVE}",
+    f"teacher.eval_interval={T_EVAL}",
+    f"distill.max_iterations={D_ITERS}",
+    f"distill.save_interval={D_SAVE}",
+    f"distill.eval_interval={D_EVAL}",
+    # 1 s evaluation episodes (3 s in compute=smoke): the checks are about rows, not walking.
+    "eval.episode_length_s=1.0",
+)
+POLL_S = 0.002  # a checkpoint write lasts tens of milliseconds: poll often enough to land in it
+
+PHASES = (
+    "teacher: before the first checkpoint",
+    "teacher: during a checkpoint write",
+    "teacher: at a random moment",
+    "teacher: during an evaluation",
+    "distillation: before the first checkpoint",
+    "distillation: during a checkpoint write",
+    "distillation: at a random moment",
+    "final evaluation",
+    "teacher: during a checkpoint write",
+    "final evaluation",
+)
+
+
+def expected_evals(total: int, interval: int) -> set[int]:
+    """Iterations evaluated in a stage: every ``interval`` before the last, and the last."""
+    its = set(range(interval, total, interval)) if interval else set()
+    return its | {total}
+
+
+def rows(path: Path) -> list[tuple[str, int]]:
+    """(stage, iteration) of each complete row of a CSV being written by another process."""
+    if not path.is_file():
+        return []
+    out = []
+    with path.open(newline="") as f:
+        for r in csv.DictReader(f):
+            try:
+                out.append((r["stage"], int(r["iteration"])))
+            except (KeyError, TypeError, ValueError):
+                continue  # a row half written at this instant
+    return out
+
+
+def tmp_files(directory: Path) -> list[str]:
+    try:
+        return [e.name for e in os.scandir(directory) if e.name.endswith(".tmp")]
+    except FileNotFoundError:
+        return []
+
+
+@dataclass
+class Trigger:
+    """When to kill: a condition on the run directory, then a delay [s]."""
+
+    phase: str
+    rng: random.Random
+    delay: float = 0.0
+    armed_at: float | None = None
+    seen_tmp: set[str] = field(default_factory=set)
+    nth_tmp: int = 1
+    tmp_prefix: str = ""
+
+    def __post_init__(self) -> None:
+        r = self.rng
+        if "checkpoint write" in self.phase:
+            # Each save writes model_<it>.pt then latest.pt: pick one of them, of some save.
+            self.tmp_prefix = r.choice([".latest.pt.", ".model_"])
+            self.nth_tmp = r.randint(1, 2)
+        elif "before the first checkpoint" in self.phase:
+            self.delay = r.uniform(0.0, 2.0)
+        elif "random moment" in self.phase:
+            self.delay = r.uniform(0.0, 40.0 if self.phase.startswith("teacher") else 30.0)
+        elif "evaluation" in self.phase:
+            self.delay = r.uniform(0.5, 6.0)
+
+    def condition(self, run: Path) -> bool:
+        m = rows(run / "metrics.csv")
+        if self.phase == "teacher: before the first checkpoint":
+            return ("teacher", 1) in m
+        if self.phase == "teacher: at a random moment":
+            return (run / "metrics.csv").is_file()
+        if self.phase == "teacher: during an evaluation":
+            return ("teacher", T_EVAL) in m
+        if self.phase == "distillation: before the first checkpoint":
+            return ("student", 1) in m
+        if self.phase == "distillation: at a random moment":
+            return ("teacher", T_ITERS) in rows(run / "eval.csv")
+        if self.phase == "final evaluation":
+            return (run / "student" / f"model_{D_ITERS:06d}.pt").is_file()
+        raise ValueError(self.phase)
+
+    def fire(self, run: Path) -> bool:
+        if "checkpoint write" in self.phase:
+            stage = "teacher" if self.phase.startswith("teacher") else "student"
+            for name in tmp_files(run / stage):
+                if name.startswith(self.tmp_prefix):
+                    self.seen_tmp.add(name)
+            return len(self.seen_tmp) >= self.nth_tmp
+        if self.armed_at is None:
+            if self.condition(run):
+                self.armed_at = time.monotonic()
+            return False
+        return time.monotonic() - self.armed_at >= self.delay
+
+    def describe(self) -> str:
+        if "checkpoint write" in self.phase:
+            return f"on {self.tmp_prefix}*.tmp #{self.nth_tmp}"
+        return f"{self.delay:.1f} s after its mark"
+
+
+def ckpt_iteration(path: Path, kind: str) -> int:
+    """Iteration of the checkpoint a resume would read (0: none)."""
+    from march.learn.checkpoint import latest_checkpoint, load_checkpoint
+
+    found = latest_checkpoint(path.parent) if path.parent.is_dir() else None
+    return int(load_checkpoint(found, kind)["iteration"]) if found else 0
+
+
+def resumed_at(text: str, stage: str) -> int:
+    """The iteration a resume said it continued from (0: it started the stage over)."""
+    m = re.search(rf"\[{stage}\] resuming from \S+ at iteration (\d+)", text)
+    return int(m.group(1)) if m else 0
+
+
+def train_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.setdefault("WARP_CACHE_PATH", str(ROOT / ".warp_cache"))
+    env.setdefault("WANDB_MODE", "offline")
+    return env
+
+
+def run_trial(i: int, phase: str, rng: random.Random, out: Path) -> dict:
+    from march.learn.checkpoint import CheckpointError, load_checkpoint
+
+    run = out / f"trial_{i:02d}"
+    trig = Trigger(phase, rng)
+    log = (out / f"trial_{i:02d}.killed.log").open("w")
+    cmd = [sys.executable, "-m", "march.train", *SIZES, f"hydra.run.dir={run}"]
+    proc = subprocess.Popen(
+        cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, env=train_env(), start_new_session=True
+    )
+    t0 = time.monotonic()
+    killed = False
+    while proc.poll() is None:
+        if trig.fire(run):
+            os.killpg(proc.pid, signal.SIGKILL)
+            killed = True
+            break
+        time.sleep(POLL_S)
+    proc.wait()
+    log.close()
+    kill_s = time.monotonic() - t0
+    tmp_left = tmp_files(run / "teacher") + tmp_files(run / "student")
+    t_ck = ckpt_iteration(run / "teacher" / "latest.pt", "teacher")
+    s_ck = ckpt_iteration(run / "student" / "latest.pt", "student")
+    where = (
+        "teacher"
+        if t_ck < T_ITERS or ("teacher", T_ITERS) not in rows(run / "eval.csv")
+        else "distillation"
+        if s_ck < D_ITERS
+        else "final evaluation"
+    )
+    res = subprocess.run(
+        [sys.executable, "-m", "march.train", f"resume={run}"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        env=train_env(),
+    )
+    (out / f"trial_{i:02d}.resume.log").write_text(res.stdout + res.stderr)
+    problems = []
+    status = ""
+    if (run / "status.json").is_file():
+        import json
+
+        status = json.loads((run / "status.json").read_text()).get("state", "")
+    if res.returncode != 0 or status != "done":
+        problems.append(f"resume exit {res.returncode}, status {status!r}")
+    # No iteration lost beyond the last checkpoint: the resume starts where it stands.
+    lost_its = 0
+    for stage, ck in (("teacher", t_ck), ("student", s_ck)):
+        at = resumed_at(res.stdout, stage)
+        if at != ck:
+            lost_its += max(0, ck - at)
+            problems.append(f"{stage} resumed at {at}, newest checkpoint {ck}")
+    # Every row exactly once.
+    expected = {
+        "metrics.csv": [("teacher", k) for k in range(1, T_ITERS + 1)]
+        + [("student", k) for k in range(1, D_ITERS + 1)],
+        "eval.csv": [("teacher", k) for k in sorted(expected_evals(T_ITERS, T_EVAL))]
+        + [("student", k) for k in sorted(expected_evals(D_ITERS, D_EVAL))],
+    }
+    lost = dup = 0
+    for name, want in expected.items():
+        got = Counter(rows(run / name))
+        miss = [w for w in want if got[w] == 0]
+        extra = {k: c - 1 for k, c in got.items() if c > 1}
+        unexpected = [k for k in got if k not in want]
+        lost += len(miss)
+        dup += sum(extra.values())
+        if miss or extra or unexpected:
+            problems.append(f"{name}: missing {miss}, duplicated {extra}, unexpected {unexpected}")
+    loadable = True
+    for kind, want_it in (("teacher", T_ITERS), ("student", D_ITERS)):
+        try:
+            it = int(load_checkpoint(run / kind / "latest.pt", kind)["iteration"])
+        except CheckpointError as err:
+            loadable = False
+            problems.append(str(err))
+            continue
+        if it != want_it:
+            loadable = False
+            problems.append(f"final {kind} checkpoint at iteration {it}, expected {want_it}")
+    if not (run / "summary.json").is_file():
+        problems.append("no summary.json")
+    if not killed:
+        problems.append("the run finished before its kill moment")
+    return {
+        "trial": i,
+        "phase": phase,
+        "killed_in": where if killed else "-",
+        "trigger": trig.describe(),
+        "kill_s": kill_s,
+        "ckpts": (t_ck, s_ck),
+        "tmp_left": tmp_left,
+        "killed": killed,
+        "resumed": res.returncode == 0 and status == "done" and lost_its == 0,
+        "lost": lost + lost_its,
+        "dup": dup,
+        "loadable": loadable,
+        "problems": problems,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--trials", type=int, default=10, help="number of trials (default 10)")
+    ap.add_argument("--seed", type=int, default=0, help="seeds the kill moments (default 0)")
+    ap.add_argument("--first", type=int, default=0, help="start at this trial of the schedule")
+    ap.add_argument("--out", type=Path, default=ROOT / "outputs" / "kill_trials")
+    args = ap.parse_args(argv)
+    out = args.out.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    print(f"kill trials: {args.trials}, seed {args.seed}, runs in {out}", flush=True)
+    print(f"each run: {' '.join(SIZES)}", flush=True)
+    results = []
+    for i in range(args.first, args.first + args.trials):
+        rng = random.Random(args.seed * 1000 + i)
+        phase = PHASES[i % len(PHASES)]
+        t0 = time.monotonic()
+        r = run_trial(i, phase, rng, out)
+        results.append(r)
+        ok = "ok" if not r["problems"] else "FAILED: " + "; ".join(r["problems"])
+        print(
+            f"trial {i:2d} [{phase}] killed after {r['kill_s']:.1f} s ({r['trigger']}) in "
+            f"{r['killed_in']}; checkpoints teacher {r['ckpts'][0]} student {r['ckpts'][1]}"
+            f"{'; temp files left ' + ','.join(r['tmp_left']) if r['tmp_left'] else ''}; "
+            f"{time.monotonic() - t0:.0f} s: {ok}",
+            flush=True,
+        )
+    n = len(results)
+    killed = sum(r["killed"] for r in results)
+    resumed = sum(r["resumed"] for r in results)
+    lost = sum(r["lost"] for r in results)
+    dup = sum(r["dup"] for r in results)
+    loadable = sum(r["loadable"] for r in results)
+    phases = Counter(r["killed_in"] for r in results)
+    print(
+        f"tally: trials {n}, killed {killed}/{n} "
+        f"({', '.join(f'{k} {v}' for k, v in sorted(phases.items()))}), resumed {resumed}/{n}, "
+        f"rows lost {lost}, rows duplicated {dup}, final checkpoints loadable {loadable}/{n}",
+        flush=True,
+    )
+    passed = all(not r["problems"] for r in results)
+    print("PASSED" if passed else "FAILED", flush=True)
+    return 0 if passed else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
