@@ -14,7 +14,7 @@ else
 CONSTRAINTS :=
 endif
 
-.PHONY: install train smoke test test-all lint figures gpu-check test-slurm
+.PHONY: install train smoke test test-all lint figures gpu-check test-slurm kill-trials
 
 $(VENV)/.installed: pyproject.toml constraints-cpu.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -50,3 +50,9 @@ gpu-check: $(VENV)/.installed  ## the prepared GPU check into $(OUT) (ARGS=--cpu
 # Slow (~5-10 min on 2 CPUs) and not in CI. Prints PASSED/FAILED with one line per check.
 test-slurm: $(VENV)/.installed
 	scripts/slurm/test.sh $(ARGS)
+
+# Kill-and-resume trials: SIGKILL a small smoke run at seeded random moments (teacher, checkpoint
+# writes, distillation, final evaluation), resume it, check every row and checkpoint. Prints the
+# tally; ~3-5 min per trial on 2 CPUs. ARGS="--trials 3 --seed 1" for fewer or other moments.
+kill-trials: $(VENV)/.installed
+	$(PY) scripts/kill_trials.py $(ARGS)

@@ -26,9 +26,10 @@ runs the footstep planner), (b) mjlab's bare ``Mjlab-Velocity-Rough-Unitree-G1``
 
 Per workload: every env is reset and stepped ``warmup`` steps; then the ``steps`` timed steps run
 in ``rounds`` interleaved chunks (march, rough, flat, march, ...), so the ratios of one run share
-the machine's load. No instrumentation is active while these are timed. Then a separate pass of
-``profile_steps`` steps per env wraps the env's parts with timers (``StepProfiler``; on CUDA each
-timer synchronises) and reports where the step goes, as exclusive milliseconds per control step:
+the machine's load. No instrumentation is active while these are timed. Then a separate pass
+(reset, ``warmup`` steps, ``profile_steps`` steps per env, interleaved the same way) wraps the
+env's parts with timers (``StepProfiler``; on CUDA each timer synchronises) and reports where the
+step goes, as exclusive milliseconds per control step:
 ``physics`` (mujoco-warp step, forward, sensors, scene read/write), ``actions``, ``commands``
 (``commands/planner``: the footstep planner), ``rewards``, ``observations``, ``terminations``,
 ``events`` (interval pushes and the reset-time DR terms), ``resets`` (the rest of mjlab's
@@ -394,24 +395,38 @@ class StepProfiler:
         }
 
 
-def profile_env(env: Any, workload: str, steps: int, warmup: int, seed: int) -> dict[str, Any]:
-    """:class:`StepProfiler` report of ``steps`` steps of ``workload`` after a reset and
-    ``warmup`` unprofiled steps."""
+def profile_envs(
+    envs: dict[str, Any], workload: str, opts: dict[str, int], seed: int
+) -> dict[str, dict[str, Any]]:
+    """:class:`StepProfiler` reports of ``profile_steps`` steps of ``workload`` per env, after a
+    reset and ``warmup`` unprofiled steps, in the same interleaved rounds as the timed steps (so
+    the profiles of one run share the machine's load and compare across envs)."""
     import torch
 
-    prof = StepProfiler(str(env.device))
-    act = Actions(env, workload, seed)
+    steps, rounds = opts["profile_steps"], min(opts["rounds"], opts["profile_steps"])
+    acts = {name: Actions(env, workload, seed) for name, env in envs.items()}
+    profs = {name: StepProfiler(str(env.device)) for name, env in envs.items()}
     with torch.no_grad():
-        env.reset()
-        for _ in range(warmup):
-            env.step(act())
-        prof.attach(env)
+        for name, env in envs.items():
+            env.reset()
+            for _ in range(opts["warmup"]):
+                env.step(acts[name]())
         try:
-            for _ in range(steps):
-                env.step(act())
+            for name, env in envs.items():
+                profs[name].attach(env)
+            for chunk in _chunks(steps, rounds):
+                for name, env in envs.items():
+                    for _ in range(chunk):
+                        env.step(acts[name]())
         finally:
-            prof.restore()
-    return prof.report(steps)
+            for prof in profs.values():
+                prof.restore()
+    return {name: prof.report(steps) for name, prof in profs.items()}
+
+
+def _chunks(steps: int, rounds: int) -> list[int]:
+    """``steps`` split into ``rounds`` near-equal chunks."""
+    return [steps // rounds + (1 if r < steps % rounds else 0) for r in range(rounds)]
 
 
 def run_workload(
@@ -429,8 +444,7 @@ def run_workload(
             env.reset()
             for _ in range(warmup):
                 env.step(acts[name]())
-        chunks = [steps // rounds + (1 if r < steps % rounds else 0) for r in range(rounds)]
-        for chunk in chunks:
+        for chunk in _chunks(steps, rounds):
             for name, env in envs.items():
                 _sync(device)
                 t0 = time.perf_counter()
@@ -450,10 +464,7 @@ def run_workload(
         "ratio_march_vs_flat": sps["march_teacher"] / sps["bare_flat"],
     }
     if opts["profile_steps"] > 0:
-        out["profile"] = {
-            name: profile_env(env, workload, opts["profile_steps"], warmup, seed)
-            for name, env in envs.items()
-        }
+        out["profile"] = profile_envs(envs, workload, opts, seed)
         for name, prof in out["profile"].items():
             top = ", ".join(f"{c} {v:.1f}" for c, v in prof["categories_ms"].items())
             print(f"[bench] {workload} profile {name} (ms/step): {top}", flush=True)

@@ -65,7 +65,8 @@ class DeployGraph(nn.Module):
       and values still come from every token. This drops ~40% of the matrix products;
     - **attention written out** with constant head reshapes (``reshape(-1, n, heads, d_head)``)
       instead of ``nn.MultiheadAttention``'s traced graph, whose shape arithmetic
-      (Shape/Gather/Unsqueeze/Concat per layer) was ~15% of a call;
+      (Shape/Gather/Unsqueeze/Concat per layer) was ~15% of a call; tokens travel as 2-D rows
+      (B * N, d), so every projection is one Gemm with its bias fused;
     - the MDN's log-std head (unused by the top-mode mean) is left out.
 
     Variants without a transformer (``no_transformer``) keep the policy's own path.
@@ -80,33 +81,30 @@ class DeployGraph(nn.Module):
                 if not layer.norm_first or layer.self_attn.batch_first is not True:
                     raise ValueError("DeployGraph expects pre-LN, batch-first encoder layers")
 
-    def _attend(self, layer: nn.Module, y: torch.Tensor, q_rows: int | None) -> torch.Tensor:
-        """Multi-head self-attention of ``y`` (B, N, d); queries from the first ``q_rows`` rows
-        (all when None). Returns (B, Nq, d) after the output projection."""
-        att = layer.self_attn
-        d, h = att.embed_dim, att.num_heads
-        dh = d // h
-        n = self.policy.num_tokens  # a constant: no shape arithmetic in the graph
-        w, b = att.in_proj_weight, att.in_proj_bias
-        yq = y if q_rows is None else y[:, :q_rows]
-        nq = n if q_rows is None else q_rows
-        q = torch.nn.functional.linear(yq, w[:d], b[:d])
-        kv = torch.nn.functional.linear(y, w[d:], b[d:])
-        k, v = kv[..., :d], kv[..., d:]
-        q = q.reshape(-1, nq, h, dh).transpose(1, 2) * (dh**-0.5)
-        k = k.reshape(-1, n, h, dh).permute(0, 2, 3, 1)
-        v = v.reshape(-1, n, h, dh).transpose(1, 2)
-        a = torch.softmax(q @ k, dim=-1) @ v  # (B, h, Nq, dh)
-        return att.out_proj(a.transpose(1, 2).reshape(-1, nq, d))
+    def _heads(self, t: torch.Tensor, rows: int) -> torch.Tensor:
+        """(B * rows, d) -> (B, heads, rows, d_head)."""
+        h = self.policy.cfg.n_heads
+        return t.reshape(-1, rows, h, self.policy.cfg.d_model // h).transpose(1, 2)
 
     def _layer(self, layer: nn.Module, x: torch.Tensor, cls_only: bool) -> torch.Tensor:
+        """One pre-LN encoder layer on token rows ``x`` (B * N, d): 2-D products, so that
+        onnxruntime runs each projection as one Gemm with its bias fused. ``cls_only``: queries,
+        attention output and feed-forward for the CLS row alone; returns (B, d) then."""
+        att = layer.self_attn
+        d, n = att.embed_dim, self.policy.num_tokens
+        w, b = att.in_proj_weight, att.in_proj_bias
+        lin = torch.nn.functional.linear
         y = layer.norm1(x)
+        k = self._heads(lin(y, w[d : 2 * d], b[d : 2 * d]), n)
+        v = self._heads(lin(y, w[2 * d :], b[2 * d :]), n)
         if cls_only:
-            x = x[:, :1] + self._attend(layer, y, 1)
-        else:
-            x = x + self._attend(layer, y, None)
-        ff = layer.linear2(layer.activation(layer.linear1(layer.norm2(x))))
-        return x + ff
+            x = x.reshape(-1, n, d)[:, 0]  # (B, d): the CLS row of every batch element
+            y = y.reshape(-1, n, d)[:, 0]
+        rows = 1 if cls_only else n
+        q = self._heads(lin(y, w[:d], b[:d]), rows) * (d // att.num_heads) ** -0.5
+        a = torch.softmax(q @ k.transpose(2, 3), dim=-1) @ v  # (B, heads, rows, d_head)
+        x = x + att.out_proj(a.transpose(1, 2).reshape(-1, d))
+        return x + layer.linear2(layer.activation(layer.linear1(layer.norm2(x))))
 
     def forward(
         self, proprio_hist: torch.Tensor, command: torch.Tensor, depth: torch.Tensor
@@ -114,18 +112,28 @@ class DeployGraph(nn.Module):
         p = self.policy
         if not self.has_transformer:
             return p.act_inference(proprio_hist, command, depth)
+        d = p.cfg.d_model
         pn = p.proprio_normalizer(proprio_hist)
         c = p.command_normalizer(command)
         fmap = p.cnn(depth).reshape(-1, p.cnn_out_channels, p.num_image_tokens)
-        img = p.image_proj(fmap.transpose(1, 2))
-        hist = p.proprio_proj(pn)
-        cmd = p.command_proj(c).unsqueeze(1)
-        cls = cmd * 0.0 + p.cls_token  # (B, 1, d) by broadcasting, no Shape/Expand
-        x = torch.cat([cls, cmd, hist, img], dim=1) + p.pos_embed
+        img = p.image_proj(fmap.transpose(1, 2).reshape(-1, p.cnn_out_channels))
+        hist = p.proprio_proj(pn.reshape(-1, p.proprio_dim))
+        cmd = p.command_proj(c)
+        cls = cmd * 0.0 + p.cls_token[0]  # (B, d) by broadcasting, no Shape/Expand
+        x = torch.cat(
+            [
+                cls.unsqueeze(1),
+                cmd.unsqueeze(1),
+                hist.reshape(-1, p.history_len, d),
+                img.reshape(-1, p.num_image_tokens, d),
+            ],
+            dim=1,
+        )
+        x = (x + p.pos_embed).reshape(-1, d)  # token rows (B * N, d)
         layers = list(p.transformer.layers)
         for i, layer in enumerate(layers):
             x = self._layer(layer, x, cls_only=i == len(layers) - 1)
-        z = p.head_mlp(p.out_norm(x[:, 0]))
+        z = p.head_mlp(p.out_norm(x))  # the CLS rows (B, d)
         if not p.is_mdn:
             return p.action_out(z)
         # top_mode_mean: the argmax mode's block of the flat (B, K * A) means

@@ -66,9 +66,11 @@ def banner(
     ]
     first = {"all": "teacher", "teacher": "teacher", "student": "distillation"}.get(cfg.stage)
     if first:
+        n = t.iterations if first == "teacher" else d.max_iterations
+        k = ETA_ITERATIONS + 1 if n > ETA_ITERATIONS else n  # + the unmeasured warm-up one
         lines.append(
-            f"wall time: an [eta] line after the first {ETA_ITERATIONS} {first} iterations "
-            "gives the expected duration of this scale"
+            f"wall time: an [eta] line after the first {k} {first} iterations gives the "
+            "expected duration of this scale, from the measured speed"
         )
     if placeholders:
         lines.append("placeholders (not yet the paper's method):")
@@ -200,38 +202,52 @@ class EtaWatch:
 
     Fed the rows ``metrics.csv`` receives (their ``wall_s`` is the stage's own training time, so
     evaluations in between do not distort the speed); :meth:`start` tells it where a resumed
-    stage begins.
+    stage begins. The first iteration of a process carries one-off costs (kernel compilation,
+    lazy initialisation, CUDA graph capture): it is left out of the measurement when the stage
+    has more than ``n`` iterations, so the speed is that of the following ``n``.
     """
 
     def __init__(self, cfg: MarchConfig, n: int = ETA_ITERATIONS, echo: bool = True) -> None:
         self.cfg, self.n, self.echo = cfg, n, echo
-        self.begin: dict[str, tuple[int, float]] = {}
+        self.origin: dict[str, tuple[int, float]] = {}  # where the stage began in this process
+        self.mark: dict[str, tuple[int, float]] = {}  # where the measurement begins
         self.done: set[str] = set()
         self.teacher_s_per_it: float | None = None
         self.lines: list[str] = []
 
     def start(self, stage: str, iteration: int, wall_s: float) -> None:
-        self.begin[stage] = (int(iteration), float(wall_s))
+        self.origin[stage] = self.mark[stage] = (int(iteration), float(wall_s))
 
     def observe(self, row: dict[str, Any]) -> str | None:
         stage = row.get("stage")
         if stage not in ("teacher", "student") or stage in self.done:
             return None
-        it0, wall0 = self.begin.setdefault(stage, (0, 0.0))
+        it0, _ = self.origin.setdefault(stage, (0, 0.0))
         total = (
             self.cfg.teacher.iterations if stage == "teacher" else self.cfg.distill.max_iterations
         )
-        done = int(row["iteration"]) - it0
-        if done < min(self.n, max(1, total - it0)):
+        left = max(1, total - it0)
+        it, wall = int(row["iteration"]), float(row["wall_s"])
+        if left > self.n and it == it0 + 1:  # the warm-up iteration: measure from its end
+            self.mark[stage] = (it, wall)
+            return None
+        mark_it, mark_wall = self.mark.setdefault(stage, (it0, 0.0))
+        done = it - mark_it
+        if done < min(self.n, left):
             return None
         self.done.add(stage)
-        s_per_it = (float(row["wall_s"]) - wall0) / done
+        s_per_it = (wall - mark_wall) / done
         plural = "s" if done > 1 else ""
+        kind = "" if stage == "teacher" else "distillation "
+        if mark_it == it0:
+            over = f"the first {done} {kind}iteration{plural}"
+        else:
+            over = f"{kind}iterations {mark_it + 1}-{it}"
         if stage == "teacher":
             self.teacher_s_per_it = s_per_it
             est = estimate_wall_s(self.cfg, teacher_s_per_it=s_per_it, teacher_from=it0)
             line = (
-                f"[eta] measured {s_per_it:.3g} s/it over the first {done} iteration{plural}: "
+                f"[eta] measured {s_per_it:.3g} s/it over {over}: "
                 f"teacher ~{format_duration(est['teacher'])}, whole run "
                 f"~{format_duration(est['total'])}"
             )
@@ -249,11 +265,10 @@ class EtaWatch:
                 teacher_from=self.cfg.teacher.iterations,
                 distill_from=it0,
             )
-            rest = est["distill"] + est["eval"]
             line = (
-                f"[eta] measured {s_per_it:.3g} s/it over the first {done} distillation "
-                f"iteration{plural}: distillation ~{format_duration(est['distill'])}, rest of the "
-                f"run ~{format_duration(rest)}"
+                f"[eta] measured {s_per_it:.3g} s/it over {over}: distillation "
+                f"~{format_duration(est['distill'])}, with its evaluations "
+                f"~{format_duration(est['distill'] + est['eval'])}"
             )
         self.lines.append(line)
         if self.echo:

@@ -33,7 +33,6 @@ import datetime as dt
 import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -138,8 +137,8 @@ class Phase:
             self.rc = -1
             print(f"[gpu_check] {self.name}: {self.note}", flush=True)
             return False
-        """Run to the end, to ``timeout`` seconds or until ``stop_when()`` is true (then SIGINT,
-        as a user's Ctrl-C: checkpoints are written atomically, so the last one is whole)."""
+        """Run to the end, to ``timeout`` seconds or until ``stop_when()`` is true (then SIGTERM,
+        as a Slurm preemption: checkpoints are written atomically, so the last one is whole)."""
         print(f"[gpu_check] {self.name}: {' '.join(self.cmd)}", flush=True)
         t0 = time.time()
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -155,9 +154,9 @@ class Phase:
                     elif stop_when is not None and stop_when():
                         stopped = "stopped at its budget"
                     if stopped:
-                        proc.send_signal(signal.SIGINT)
+                        proc.terminate()
                         try:
-                            proc.wait(30)
+                            proc.wait(15)
                         except subprocess.TimeoutExpired:
                             proc.kill()
                             proc.wait()
@@ -201,10 +200,23 @@ def write_rows(rows: list[dict[str, str]], path: Path) -> None:
         w.writerows(rows)
 
 
-def teacher_budget_reached(metrics: Path, seconds: float) -> Any:
+def number(text: str | None) -> float | None:
+    """A CSV cell as a float; None for an empty cell (no episode ended yet: NaN in the log)."""
+    try:
+        return float(text) if text not in (None, "") else None
+    except ValueError:
+        return None
+
+
+def teacher_budget_reached(run: Path, seconds: float) -> Any:
+    """True once the teacher's training time (``wall_s`` of ``metrics.csv``) passed ``seconds``
+    and the checkpoint of that iteration is on disk (the row is logged before the save)."""
+
     def reached() -> bool:
-        rows = read_rows(metrics, "teacher")
-        return bool(rows) and float(rows[-1]["wall_s"]) >= seconds
+        rows = read_rows(run / "metrics.csv", "teacher")
+        if not rows or float(rows[-1]["wall_s"]) < seconds:
+            return False
+        return (run / "teacher" / f"model_{int(rows[-1]['iteration']):06d}.pt").is_file()
 
     return reached
 
@@ -263,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
         ]
         ph = Phase(name, cmd, out)
         phases.append(ph)
-        ph.run(limit(), stop_when=teacher_budget_reached(run / "metrics.csv", args.teacher_seconds))
+        ph.run(limit(), stop_when=teacher_budget_reached(run, args.teacher_seconds))
         rows = read_rows(run / "metrics.csv", "teacher")
         write_rows(rows, out / f"{name}_curve.csv")
         ckpt = run / "teacher" / "latest.pt"
@@ -276,8 +288,8 @@ def main(argv: list[str] | None = None) -> int:
                 "env_steps": int(last["env_steps"]),
                 "train_wall_s": wall,
                 "env_steps_per_s": int(last["env_steps"]) / wall if wall > 0 else None,
-                "first_mean_reward": float(rows[0]["mean_reward"]),
-                "last_mean_reward": float(last["mean_reward"]),
+                "first_mean_reward": number(rows[0].get("mean_reward")),
+                "last_mean_reward": number(last.get("mean_reward")),
                 "checkpoint": str(ckpt.relative_to(out)),
             }
             ph.files += [f"{name}_curve.csv"]

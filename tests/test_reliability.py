@@ -454,7 +454,7 @@ def test_teacher_resets_nonfinite_envs_and_undoes_nonfinite_updates(teacher_setu
     monkeypatch.setattr(runner.alg, "update", update)
     with pytest.raises(NumericalFault, match="2 updates in a row") as err:
         runner.learn(4)
-    assert "\n" not in str(err.value) and "teacher/latest.pt" in str(err.value)
+    assert "\n" not in str(err.value) and "teacher/model_000003.pt" in str(err.value)
     row = _metric_rows(run, "teacher")[-1]
     assert row["iteration"] == "3" and int(row["nonfinite_updates"]) == 1
     assert runner.iteration == 3

@@ -13,7 +13,7 @@ from mjlab.envs import ManagerBasedRlEnv
 from march.env.course import CourseRuler, foothold_table
 from march.env.reference_command import reference_term
 from march.env.step_cache import constant, shared
-from march.env.terrain import terrain_boxes
+from march.env.terrain import max_boxes_in_reach, terrain_boxes
 
 NUM_STONES = 5
 """K: stones observed ahead of the robot."""
@@ -70,11 +70,29 @@ def _terrain_height_scan(
     offsets = constant(
         env, ("scan_offsets", size, resolution), lambda: scan_offsets(size, resolution, env.device)
     )
+    k_near = constant(
+        env,
+        ("scan_k", size, resolution),
+        # farthest scan point from the pelvis (+1 mm): a box beyond it cannot be hit
+        lambda: max_boxes_in_reach(
+            top_center, half, valid, float(offsets.norm(dim=-1).max()) + 1e-3
+        ),
+    )
     terrain = env.scene.terrain
     cell = (terrain.terrain_levels, terrain.terrain_types)
     box_c, box_h, box_v = top_center[cell], half[cell], valid[cell]  # (E, K, ...)
     data = env.scene["robot"].data
     base = data.root_link_pos_w
+    if k_near < box_v.shape[1]:
+        # Only boxes whose x-extent comes within reach of the pelvis can be hit; at most k_near
+        # of them exist anywhere on the terrain, so the k_near nearest along x include them all.
+        gap = ((box_c[..., 0] - base[:, 0:1]).abs() - box_h[..., 0]).masked_fill(
+            ~box_v, float("inf")
+        )
+        near = gap.topk(k_near, dim=1, largest=False).indices
+        box_c = box_c.gather(1, near[..., None].expand(-1, -1, 3))
+        box_h = box_h.gather(1, near[..., None].expand(-1, -1, 2))
+        box_v = box_v.gather(1, near)
     yaw = data.heading_w
     c, s = torch.cos(yaw)[:, None], torch.sin(yaw)[:, None]
     ox, oy = offsets[:, 0], offsets[:, 1]

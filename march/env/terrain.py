@@ -428,3 +428,20 @@ def terrain_boxes(table: FootholdTable, neighbours: int = 1) -> tuple[torch.Tens
         parts_h.append(half[src])
         parts_v.append(valid[src] & inside[:, None, None])
     return torch.cat(parts_c, 2), torch.cat(parts_h, 2), torch.cat(parts_v, 2)
+
+
+def max_boxes_in_reach(
+    top_center: torch.Tensor, half: torch.Tensor, valid: torch.Tensor, reach: float
+) -> int:
+    """The most boxes of one cell's :func:`terrain_boxes` whose x-extent comes within ``reach``
+    [m] of one point, over all points and cells: a box [lo, hi] is within reach of x iff x lies
+    in [lo - reach, hi + reach], and the largest overlap of those widened intervals is attained
+    at one of their left ends. Computed once per env on the host."""
+    lo = (top_center[..., 0] - half[..., 0] - reach).reshape(-1, valid.shape[-1])
+    hi = (top_center[..., 0] + half[..., 0] + reach).reshape(-1, valid.shape[-1])
+    v = valid.reshape(-1, valid.shape[-1])
+    lo = lo.masked_fill(~v, float("inf")).cpu()
+    hi = hi.masked_fill(~v, -float("inf")).cpu()
+    at = lo[:, :, None]  # candidate points (cells, K, 1)
+    count = ((lo[:, None, :] <= at) & (at <= hi[:, None, :])).sum(-1)  # (cells, K)
+    return max(1, int(count.max()))

@@ -193,9 +193,17 @@ class TeacherRunner:
             "teacher",
             cfg.teacher.max_nonfinite_updates,
             self.alg.save,
-            lambda saved: self.alg.load(saved, None, strict=True),
+            self._restore,
             lambda: [*self.alg.actor.parameters(), *self.alg.critic.parameters()],
         )
+
+    def _restore(self, saved: dict[str, Any]) -> None:
+        """Put back the networks and optimizer of :meth:`UpdateGuard.before` (an undone update)."""
+        # The normalizers' buffers were last written under inference mode (the rollout), and
+        # only there can they be written again; the optimizer state is loaded outside it.
+        with torch.inference_mode():
+            self.alg.load(saved, {"actor": True, "critic": True}, strict=True)
+        self.alg.load(saved, {"optimizer": True}, strict=True)
 
     def payload(self) -> dict[str, Any]:
         return {
