@@ -258,6 +258,9 @@ def run_trial(i: int, phase: str, rng: random.Random, out: Path) -> dict:
         if it != want_it:
             loadable = False
             problems.append(f"final {kind} checkpoint at iteration {it}, expected {want_it}")
+    left = tmp_files(run / "teacher") + tmp_files(run / "student")
+    if left:
+        problems.append(f"temporary files left after the resume: {left}")
     if not (run / "summary.json").is_file():
         problems.append("no summary.json")
     if not killed:

@@ -88,11 +88,11 @@ def _hand_sgd(w, samples, lr, epochs, gradient_length):
     for _ in range(epochs):
         for x, y in samples:
             # Gradients of a group are taken at the weights the group started with.
-            err = sum(wi * xi for wi, xi in zip(w, x)) - y
-            grad = [g + 2.0 * err * xi for g, xi in zip(grad, x)]
+            err = sum(wi * xi for wi, xi in zip(w, x, strict=True)) - y
+            grad = [g + 2.0 * err * xi for g, xi in zip(grad, x, strict=True)]
             count += 1
             if count % gradient_length == 0:
-                w = [wi - lr * g for wi, g in zip(w, grad)]
+                w = [wi - lr * g for wi, g in zip(w, grad, strict=True)]
                 grad, updates = [0.0] * len(w), updates + 1
     return w, updates
 

@@ -20,7 +20,7 @@ import torch
 from omegaconf import OmegaConf
 
 from march.cli import load
-from march.config import ConfigError, MarchConfig
+from march.config import ConfigError
 from march.learn.checkpoint import (
     CheckpointError,
     load_checkpoint,

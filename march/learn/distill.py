@@ -182,6 +182,8 @@ class DistillRunner:
         }
 
     def try_resume(self) -> bool:
+        for tmp in self.ckpt_dir.glob(".*.tmp"):  # a write that a kill cut short
+            tmp.unlink(missing_ok=True)
         path = latest_checkpoint(self.ckpt_dir)
         if path is None:
             # Killed before its first checkpoint: the stage starts over, and so do its rows.

@@ -222,6 +222,8 @@ class TeacherRunner:
 
     def try_resume(self) -> bool:
         """Continue from ``<run>/teacher/latest.pt`` if it exists (killed run, Slurm requeue)."""
+        for tmp in self.ckpt_dir.glob(".*.tmp"):  # a write that a kill cut short
+            tmp.unlink(missing_ok=True)
         path = latest_checkpoint(self.ckpt_dir)
         if path is None:
             # Killed before its first checkpoint: the stage starts over, so the rows it logged
