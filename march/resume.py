@@ -74,7 +74,9 @@ def load_saved_config(run_dir: Path) -> MarchConfig:
             "writes; refusing to resolve a modified config (restore the file or start a new run)"
         )
     try:
-        return to_march_config(OmegaConf.merge(OmegaConf.structured(MarchConfig), OmegaConf.load(path)))
+        return to_march_config(
+            OmegaConf.merge(OmegaConf.structured(MarchConfig), OmegaConf.load(path))
+        )
     except ConfigError as err:
         raise ConfigError(f"resume={run_dir}: its config.yaml is not valid: {err}") from None
     except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error

@@ -351,9 +351,7 @@ def test_bad_checkpoints_get_one_line_before_simulation(ckpts, args, needles):
 
 def test_resume_without_a_run_gets_one_line(tmp_path):
     (tmp_path / "empty").mkdir()
-    _one_line_before_simulation(
-        _train(f"resume={tmp_path / 'empty'}"), "not a march run directory"
-    )
+    _one_line_before_simulation(_train(f"resume={tmp_path / 'empty'}"), "not a march run directory")
     _one_line_before_simulation(_train(f"resume={tmp_path / 'nope'}"), "no such run directory")
 
 
