@@ -512,6 +512,7 @@ def main(dcfg: DictConfig) -> None:
                 raise
             fail(str(err))
         notes += resumed
+        auto = False  # the run's own compute preset, whatever compute= composed to today
     OmegaConf.save(OmegaConf.structured(cfg), run_dir / "config.yaml")
     os.environ.setdefault("WANDB_MODE", "offline")
     _write_status(run_dir, "running", stage=cfg.stage, pid=os.getpid())

@@ -100,3 +100,25 @@ def test_shared_terms_equal_direct_calls(scan_env, monkeypatch):
         torch.equal(actor[:, i : i + k], direct) for i in range(actor.shape[1] - k + 1)
     )
     assert any(torch.equal(critic[:, i : i + k], direct) for i in range(critic.shape[1] - k + 1))
+
+
+@pytest.mark.sim
+def test_site_state_equals_mjlabs_site_properties(scan_env):
+    from march.env.step_cache import site_pos, site_state
+
+    env = scan_env
+    gen = torch.Generator().manual_seed(2)
+    shape = (env.num_envs, env.action_manager.total_action_dim)
+    robot = env.scene["robot"]
+    names = ("left_foot", "right_foot")
+    local, _ = robot.find_sites(names, preserve_order=True)
+    with torch.no_grad():
+        for _ in range(5):
+            env.step(2 * torch.rand(shape, generator=gen) - 1)
+            pos, lin, ang = site_state(env, names)
+            d = robot.data
+            assert torch.allclose(pos, d.site_pos_w[:, local], atol=1e-6)
+            assert torch.allclose(site_pos(env, names), d.site_pos_w[:, local], atol=1e-6)
+            assert torch.allclose(lin, d.site_lin_vel_w[:, local], atol=1e-5)
+            assert torch.allclose(ang, d.site_ang_vel_w[:, local], atol=1e-6)
+            assert float(lin.abs().max()) > 0.0  # the robot moves: a real comparison

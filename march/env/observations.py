@@ -61,50 +61,59 @@ def terrain_height_scan(
     )
 
 
+def _scan_table(env: ManagerBasedRlEnv, reach: float) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """Per cell (flattened row-major), kept on the env: the boxes' x-extents (R*C, K, 2) (lo, hi;
+    padding +inf, -inf), the boxes packed (R*C*K, 6) as (x, y, top, half x, half y, valid) and
+    the most boxes any scan can reach (:func:`march.env.terrain.max_boxes_in_reach`)."""
+    top_center, half, valid = terrain_boxes(foothold_table(env))
+    r, c, k = valid.shape
+    lo = (top_center[..., 0] - half[..., 0]).masked_fill(~valid, float("inf"))
+    hi = (top_center[..., 0] + half[..., 0]).masked_fill(~valid, -float("inf"))
+    extent = torch.stack([lo, hi], dim=-1).reshape(r * c, k, 2)
+    packed = torch.cat([top_center, half, valid[..., None].float()], dim=-1).reshape(r * c * k, 6)
+    return extent, packed, min(k, max_boxes_in_reach(top_center, half, valid, reach))
+
+
 def _terrain_height_scan(
     env: ManagerBasedRlEnv, size: tuple[float, float], resolution: float, max_distance: float
 ) -> torch.Tensor:
-    top_center, half, valid = constant(
-        env, "terrain_boxes", lambda: terrain_boxes(foothold_table(env))
-    )
     offsets = constant(
         env, ("scan_offsets", size, resolution), lambda: scan_offsets(size, resolution, env.device)
     )
-    k_near = constant(
+    extent, packed, k_near = constant(
         env,
-        ("scan_k", size, resolution),
-        # farthest scan point from the pelvis (+1 mm): a box beyond it cannot be hit
-        lambda: max_boxes_in_reach(
-            top_center, half, valid, float(offsets.norm(dim=-1).max()) + 1e-3
-        ),
+        ("scan_table", size, resolution),
+        # reach: the farthest scan point from the pelvis (+1 mm); a box beyond it is never hit
+        lambda: _scan_table(env, float(offsets.norm(dim=-1).max()) + 1e-3),
     )
     terrain = env.scene.terrain
-    cell = (terrain.terrain_levels, terrain.terrain_types)
-    box_c, box_h, box_v = top_center[cell], half[cell], valid[cell]  # (E, K, ...)
+    num_cols = terrain.terrain_origins.shape[1]
+    cell = terrain.terrain_levels.long() * num_cols + terrain.terrain_types.long()  # (E,)
     data = env.scene["robot"].data
     base = data.root_link_pos_w
-    if k_near < box_v.shape[1]:
-        # Only boxes whose x-extent comes within reach of the pelvis can be hit; at most k_near
-        # of them exist anywhere on the terrain, so the k_near nearest along x include them all.
-        gap = ((box_c[..., 0] - base[:, 0:1]).abs() - box_h[..., 0]).masked_fill(
-            ~box_v, float("inf")
-        )
-        near = gap.topk(k_near, dim=1, largest=False).indices
-        box_c = box_c.gather(1, near[..., None].expand(-1, -1, 3))
-        box_h = box_h.gather(1, near[..., None].expand(-1, -1, 2))
-        box_v = box_v.gather(1, near)
+    # Only boxes whose x-extent comes within reach of the pelvis can be hit, and no scan reaches
+    # more than k_near boxes: the k_near nearest along x include every box that can be hit.
+    ext = extent.index_select(0, cell)  # (E, K, 2)
+    bx = base[:, 0:1]
+    gap = torch.maximum(ext[..., 0] - bx, bx - ext[..., 1])  # < 0 inside the x-extent
+    near = gap.topk(k_near, dim=1, largest=False).indices  # (E, k_near)
+    k_all = extent.shape[1]
+    boxes = packed.index_select(0, (cell[:, None] * k_all + near).flatten())
+    boxes = boxes.view(base.shape[0], k_near, 6)
     yaw = data.heading_w
     c, s = torch.cos(yaw)[:, None], torch.sin(yaw)[:, None]
     ox, oy = offsets[:, 0], offsets[:, 1]
-    px = base[:, 0:1] + c * ox - s * oy  # (E, N)
+    px = base[:, 0:1] + c * ox - s * oy  # (E, N) scan points, world
     py = base[:, 1:2] + s * ox + c * oy
     z0 = base[:, 2:3]
-    reachable = box_v & (box_c[..., 2] <= z0)  # (E, K)
-    inside = ((px[..., None] - box_c[:, None, :, 0]).abs() <= box_h[:, None, :, 0]) & (
-        (py[..., None] - box_c[:, None, :, 1]).abs() <= box_h[:, None, :, 1]
-    )  # (E, N, K)
-    top = box_c[..., 2].masked_fill(~reachable, -float("inf"))
-    hit = torch.where(inside, top[:, None, :], -float("inf")).amax(-1)  # (E, N)
+    # A box whose top lies above the pelvis, or padding, is never hit.
+    top = boxes[..., 2].masked_fill((boxes[..., 5] < 0.5) | (boxes[..., 2] > z0), -float("inf"))
+    hit = torch.full_like(px, -float("inf"))
+    # One (E, N) pass per box (k_near is small): no (E, N, K) temporaries.
+    for k in range(k_near):
+        b = boxes[:, k]
+        inside = ((px - b[:, 0:1]).abs() <= b[:, 3:4]) & ((py - b[:, 1:2]).abs() <= b[:, 4:5])
+        hit = torch.maximum(hit, torch.where(inside, top[:, k : k + 1], -float("inf")))
     height = z0 - hit
     return torch.where(height <= max_distance, height, torch.full_like(height, max_distance))
 

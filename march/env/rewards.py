@@ -22,7 +22,7 @@ from mjlab.tasks.velocity import mdp as vel_mdp
 from march.config import ConfigError, RewardCfg
 from march.env.course import CourseRuler
 from march.env.reference_command import reference_term
-from march.env.step_cache import constant, shared, site_ids
+from march.env.step_cache import constant, shared, site_pos, site_state
 from march.planner import locate_on_stones
 
 FOOT_SITES = ("left_foot", "right_foot")
@@ -80,13 +80,29 @@ def dclf(env: ManagerBasedRlEnv, command_name: str = REFERENCE_COMMAND) -> torch
     return term.clf.dclf_reward(v, vdot, valid)
 
 
+def stance_foot(
+    env: ManagerBasedRlEnv, command_name: str = REFERENCE_COMMAND
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Stance foot site position, linear and angular velocity, each (E, 3), world frame: the
+    values of ``ReferenceCommand.stance_foot`` from the two foot sites only (not the pose and
+    velocity of every robot site), once per reward compute for both holonomic terms."""
+
+    def make() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        term = reference_term(env, command_name)
+        pos, lin, ang = site_state(env, tuple(term.cfg.foot_sites), term.cfg.entity_name)
+        left = term.stance_is_left[:, None]
+        return tuple(torch.where(left, x[:, 0], x[:, 1]) for x in (pos, lin, ang))  # type: ignore[return-value]
+
+    return shared(env, ("stance_foot", command_name), make)
+
+
 def holonomic_pos(
     env: ManagerBasedRlEnv, sigma: float = math.sqrt(0.05), command_name: str = REFERENCE_COMMAND
 ) -> torch.Tensor:
     """exp(-||p - p_td||^2 / sigma^2) in (0, 1]: stance foot site displacement from where it
     touched down (author's sigma^2 = 0.05 m^2; position only, no orientation part)."""
     term = reference_term(env, command_name)
-    pos, _, _ = shared(env, ("stance_foot", command_name), term.stance_foot)
+    pos, _, _ = stance_foot(env, command_name)
     d2 = (pos - term.stance_anchor).square().sum(-1)
     return torch.exp(-d2 / sigma**2)
 
@@ -96,8 +112,7 @@ def holonomic_vel(
 ) -> torch.Tensor:
     """exp(-(||v||^2 + w_z^2) / sigma^2) in (0, 1]: stance foot site linear velocity and yaw
     rate should be zero (author's sigma^2 = 0.1)."""
-    term = reference_term(env, command_name)
-    _, vel, omega = shared(env, ("stance_foot", command_name), term.stance_foot)
+    _, vel, omega = stance_foot(env, command_name)
     e2 = vel.square().sum(-1) + omega[:, 2].square()
     return torch.exp(-e2 / sigma**2)
 
@@ -109,8 +124,7 @@ def feet_edge_distance(
     -(1 - min(d_edge / clearance, 1)), d_edge = distance of the foot site to the nearest edge of
     the stone under it (negative off every stone, which scores -1 or less, clipped at -1).
     0 while every foot in contact stands at least ``clearance`` inside a stone."""
-    robot = env.scene["robot"]
-    feet = robot.data.site_pos_w[:, site_ids(env, FOOT_SITES), :2]  # (E, 2, 2)
+    feet = site_pos(env, FOOT_SITES)[..., :2]  # (E, 2, 2)
     fh = CourseRuler(env).footholds()
     d_edge, _ = locate_on_stones(fh, feet)
     contact = env.scene[sensor_name].data.found > 0  # (E, 2): primaries left, right

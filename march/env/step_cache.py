@@ -69,13 +69,40 @@ def shared(env: Any, key: Hashable, make: Callable[[], T]) -> T:
     return cache[key]
 
 
-def site_ids(env: Any, names: tuple[str, ...], entity: str = "robot") -> Any:
-    """(len(names),) long tensor of the sites ``names`` of ``entity``, in the given order, on the
-    env's device (``find_sites`` runs once)."""
+def _site_frames(env: Any, names: tuple[str, ...], entity: str) -> tuple[Any, Any, int]:
+    """(global site ids, their bodies' ids, the entity's root body id), kept."""
     import torch
 
-    def make() -> torch.Tensor:
-        ids, _ = env.scene[entity].find_sites(names, preserve_order=True)
-        return torch.tensor(ids, dtype=torch.long, device=env.device)
+    def make() -> tuple[torch.Tensor, torch.Tensor, int]:
+        ent = env.scene[entity]
+        local, _ = ent.find_sites(names, preserve_order=True)
+        idx = torch.as_tensor(local, dtype=torch.long, device=ent.indexing.site_ids.device)
+        gid = ent.indexing.site_ids[idx].to(env.device, torch.long)
+        body = ent.data.model.site_bodyid[gid].to(env.device, torch.long)
+        return gid, body, int(ent.indexing.root_body_id)
 
-    return constant(env, ("site_ids", entity, tuple(names)), make)
+    return constant(env, ("site_frames", entity, tuple(names)), make)
+
+
+def site_pos(env: Any, names: tuple[str, ...], entity: str = "robot") -> Any:
+    """(E, n, 3) world positions of the sites ``names`` of ``entity``: mjlab's
+    ``data.site_pos_w[:, ids]`` without its pose of every site (a matrix-to-quaternion
+    conversion of all of them per call)."""
+    gid, _, _ = _site_frames(env, names, entity)
+    return env.scene[entity].data.data.site_xpos[:, gid]
+
+
+def site_state(env: Any, names: tuple[str, ...], entity: str = "robot") -> tuple[Any, Any, Any]:
+    """World position, linear and angular velocity, each (E, n, 3), of the sites ``names``:
+    mjlab's ``site_pos_w`` / ``site_lin_vel_w`` / ``site_ang_vel_w`` (velocity from the body's
+    ``cvel`` about the root subtree CoM) for these sites only."""
+    import torch
+
+    gid, body, root = _site_frames(env, names, entity)
+    data = env.scene[entity].data.data
+    pos = data.site_xpos[:, gid]
+    cvel = data.cvel[:, body]
+    ang = cvel[..., 0:3]
+    offset = data.subtree_com[:, root].unsqueeze(1) - pos
+    lin = cvel[..., 3:6] - torch.cross(ang, offset, dim=-1)
+    return pos, lin, ang

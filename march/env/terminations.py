@@ -6,7 +6,7 @@ import torch
 from mjlab.envs import ManagerBasedRlEnv
 
 from march.env.reference_command import reference_term
-from march.env.step_cache import site_ids
+from march.env.step_cache import site_pos
 
 FOOT_SITES = ("left_foot", "right_foot")
 
@@ -15,8 +15,7 @@ def foot_too_low(env: ManagerBasedRlEnv, max_drop: float) -> torch.Tensor:
     """A foot site is more than ``max_drop`` below the env's start-platform top (its terrain
     origin z): the foot fell off a stone into the pit. Stone tops vary by at most
     ``terrain.height_hard`` (0.10 m) around the platform, so a 0.15 m drop is off every stone."""
-    robot = env.scene["robot"]
-    z = robot.data.site_pos_w[:, site_ids(env, FOOT_SITES), 2]  # ids found once, then kept
+    z = site_pos(env, FOOT_SITES)[..., 2]  # the two sites only, ids found once
     return (z < env.scene.env_origins[:, 2:3] - max_drop).any(-1)
 
 
