@@ -42,6 +42,7 @@ METRICS = {
     "abs_ang_jerk": ("jerk", "mean |angular jerk| [rad/s^3]"),
     "reward": ("return", "episode return (teacher's full reward)"),
 }
+OWN_REWARD_METRICS = ("reward",)  # measured under each arm's own reward set
 COUNT_KEYS = ("n_torque", "n_jerk")  # rollouts long enough for the torque / jerk means
 TEACHER_PANELS = [
     ("mean_reward", "mean reward per step"),
@@ -403,6 +404,11 @@ def final_table(runs: list[Run], mode: str, notes: list[str]) -> pd.DataFrame:
         i, j = index[group], index[ref]
         parts = []
         for key, (short, _) in METRICS.items():
+            if key in OWN_REWARD_METRICS and group[0] != ref[0]:
+                # Each arm's return is under its own teacher's reward set: clf and modelfree
+                # returns are different functions, so their ratio means nothing.
+                parts.append(f"{short} n/a (different reward sets)")
+                continue
             rel = rel_diff(table.at[i, f"mean_{key}"], table.at[j, f"mean_{key}"])
             table.at[i, f"rel_{key}"] = rel
             parts.append(f"{short} {format_rel(rel)}")

@@ -1,7 +1,7 @@
 """``python -m march.bench <job>``: how fast march's env and planner are, as one JSON object.
 
-    python -m march.bench env [compute.num_envs=64] [bench.steps=40] [bench.warmup=5]
-                              [bench.profile_steps=20] [bench.rounds=4]
+    python -m march.bench env [compute.num_envs=64] [bench.steps=40] [bench.warmup=30]
+                              [bench.profile_steps=20] [bench.rounds=8]
     python -m march.bench planner [compute.num_envs=64] [bench.steps=100]
 
 Both jobs compose the same config as ``march.train`` (Hydra ``key=value`` overrides). The
@@ -68,12 +68,13 @@ USAGE = (
     "[bench.steps=N] [bench.warmup=N] [bench.profile_steps=N] [bench.rounds=N] [key=value ...]"
 )
 JOB_DEFAULTS: dict[str, dict[str, int]] = {
-    "env": {"steps": 40, "warmup": 5, "profile_steps": 20, "rounds": 4},
+    "env": {"steps": 40, "warmup": 30, "profile_steps": 20, "rounds": 8},
     "planner": {"steps": 100, "warmup": 10, "profile_steps": 0, "rounds": 1},
 }
 """Per job: timed steps (env: per env and workload), untimed warm-up steps after each reset,
 steps of the instrumented profile pass (env only; 0 = none) and interleaved chunks. Sized for a
-loaded 2-core machine at 64 envs (a few minutes); raise them on a GPU."""
+loaded 2-core machine at 64 envs (about 10 minutes); the 30 warm-up steps (0.6 s) let the
+random workload's robots start falling, so its timed steps include resets."""
 BENCH_MINIMUM = {"steps": 1, "warmup": 0, "profile_steps": 0, "rounds": 1}
 ROUGH_TASK = "Mjlab-Velocity-Rough-Unitree-G1"
 FLAT_TASK = "Mjlab-Velocity-Flat-Unitree-G1"

@@ -110,13 +110,14 @@ class Trigger:
     def __post_init__(self) -> None:
         r = self.rng
         if "checkpoint write" in self.phase:
-            # Each save writes model_<it>.pt then latest.pt: pick one of them, of some save.
-            self.tmp_prefix = r.choice([".latest.pt.", ".model_"])
+            # Each save writes model_<it>.pt, then swaps latest.pt to it (a hard link, renamed
+            # into place: microseconds, which a poll rarely sees): kill in the n-th write.
+            self.tmp_prefix = ".model_"
             self.nth_tmp = r.randint(1, 2)
         elif "before the first checkpoint" in self.phase:
             self.delay = r.uniform(0.0, 2.0)
         elif "random moment" in self.phase:
-            self.delay = r.uniform(0.0, 40.0 if self.phase.startswith("teacher") else 30.0)
+            self.delay = r.uniform(0.0, 25.0)
         elif "evaluation" in self.phase:
             self.delay = r.uniform(0.5, 6.0)
 
@@ -156,11 +157,13 @@ class Trigger:
 
 
 def ckpt_iteration(path: Path, kind: str) -> int:
-    """Iteration of the checkpoint a resume would read (0: none)."""
-    from march.learn.checkpoint import latest_checkpoint, load_checkpoint
+    """Iteration of the newest complete checkpoint on disk, latest.pt or any model_<it>.pt
+    (0: none): what a resume must start from, so that no checkpointed iteration is lost."""
+    from march.learn.checkpoint import load_checkpoint
 
-    found = latest_checkpoint(path.parent) if path.parent.is_dir() else None
-    return int(load_checkpoint(found, kind)["iteration"]) if found else 0
+    files = [*path.parent.glob("model_*.pt"), path] if path.parent.is_dir() else []
+    its = [int(load_checkpoint(p, kind)["iteration"]) for p in files if p.is_file()]
+    return max(its, default=0)
 
 
 def resumed_at(text: str, stage: str) -> int:

@@ -100,7 +100,12 @@ def test_final_table_relative_differences_in_the_papers_convention(tree):
     assert clf.rel_abs_torque_nm == pytest.approx((8.8 - 10.0) / 10.0)
     assert clf.rel_abs_ang_jerk == pytest.approx((30.5 - 50.0) / 50.0)
     assert clf.rel_distance_m == pytest.approx((4.0 - 3.2) / 3.2)
-    assert clf.relative == "distance +25%, success +100%, torque -12%, jerk -39%, return +25%"
+    # returns of different reward sets are not compared
+    assert math.isnan(clf.rel_reward)
+    assert (
+        clf.relative
+        == "distance +25%, success +100%, torque -12%, jerk -39%, return n/a (different reward sets)"
+    )
     assert mf.compared_to == "" and mf.relative == ""
     # (variant - full) / full, clf teacher
     nt, nm = by[("clf", "no_transformer")], by[("clf", "no_mdn")]
@@ -114,7 +119,8 @@ def test_final_table_relative_differences_in_the_papers_convention(tree):
     assert "| 10 ± 0.5 |" in mf_line
     assert (
         "- baseline clf vs modelfree ((clf - modelfree) / modelfree, student full): "
-        "distance +25%, success +100%, torque -12%, jerk -39%, return +25%" in md
+        "distance +25%, success +100%, torque -12%, jerk -39%, return n/a (different reward sets)"
+        in md
     )
     assert "- ablation no_mdn vs full ((variant - full) / full, clf teacher): distance -25%" in md
     out = tree["stdout"]

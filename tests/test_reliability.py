@@ -24,6 +24,7 @@ from march.config import ConfigError
 from march.learn.checkpoint import (
     CheckpointError,
     load_checkpoint,
+    point_latest,
     save_atomic,
     save_checkpoint,
 )
@@ -140,10 +141,11 @@ def _no_tmp(directory: Path) -> bool:
 
 
 def test_a_failed_checkpoint_write_keeps_the_previous_one(tmp_path, monkeypatch):
-    """A full disk as os.fsync reports it (ENOSPC), at the model_ and at the latest.pt write."""
+    """A full disk as os.fsync reports it (ENOSPC): at the model_<it>.pt write, and at the copy
+    to latest.pt made where the file system has no hard links."""
     save_checkpoint(_payload(4000, 1), tmp_path, 1)
     real = os.fsync
-    for fail_at in (1, 2):  # model_000002.pt, then latest.pt
+    for fail_at, links in ((1, True), (2, False)):
         calls = []
 
         def fsync(fd, calls=calls, fail_at=fail_at):
@@ -152,14 +154,43 @@ def test_a_failed_checkpoint_write_keeps_the_previous_one(tmp_path, monkeypatch)
                 raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
             return real(fd)
 
+        def no_link(src, dst):
+            raise OSError(errno.EPERM, os.strerror(errno.EPERM))
+
         monkeypatch.setattr(os, "fsync", fsync)
+        if not links:
+            monkeypatch.setattr(os, "link", no_link)
         with pytest.raises(CheckpointError) as err:
             save_checkpoint(_payload(4000, 2), tmp_path, 2)
-        monkeypatch.setattr(os, "fsync", real)
+        monkeypatch.undo()
         msg = str(err.value)
         assert "\n" not in msg and "No space left on device" in msg and "intact" in msg
+        assert len(calls) == fail_at
         assert load_checkpoint(tmp_path / "latest.pt", "teacher")["iteration"] == 1
         assert _no_tmp(tmp_path)
+        (tmp_path / "model_000002.pt").unlink(missing_ok=True)
+
+
+def test_latest_is_the_newest_complete_checkpoint_whenever_a_kill_lands(tmp_path):
+    """latest.pt is a hard link to its model file; a kill after model_<it>.pt was written but
+    before latest.pt was swapped to it leaves the newer model file the one to resume from."""
+    from march.learn.checkpoint import latest_checkpoint
+
+    assert latest_checkpoint(tmp_path) is None
+    save_checkpoint(_payload(400, 2), tmp_path, 2)
+    assert os.path.samefile(tmp_path / "latest.pt", tmp_path / "model_000002.pt")
+    assert latest_checkpoint(tmp_path) == tmp_path / "latest.pt"
+    save_atomic(_payload(400, 4), tmp_path / "model_000004.pt")  # killed right here
+    found = latest_checkpoint(tmp_path)
+    assert found == tmp_path / "model_000004.pt"
+    point_latest(found, load_checkpoint(found, "teacher"))  # what a resume does first
+    assert os.path.samefile(tmp_path / "latest.pt", found)
+    save_checkpoint(_payload(400, 4), tmp_path, 4)  # the resumed run saves again
+    assert latest_checkpoint(tmp_path) == tmp_path / "latest.pt"
+    assert _no_tmp(tmp_path)
+    # An older run's latest.pt is a copy, no model file's link: it is taken as it is.
+    save_atomic(_payload(400, 6), tmp_path / "latest.pt")
+    assert load_checkpoint(latest_checkpoint(tmp_path), "teacher")["iteration"] == 6
 
 
 def _mount_tmpfs(path: Path, size: str) -> bool:
@@ -178,9 +209,9 @@ def test_a_full_file_system_keeps_the_previous_checkpoint(tmp_path):
     if not _mount_tmpfs(mnt, "1m"):
         pytest.skip("mounting a tmpfs needs root")
     try:
-        save_checkpoint(_payload(200_000, 1), mnt, 1)  # two copies: ~400 kB of 1 MiB
+        save_checkpoint(_payload(200_000, 1), mnt, 1)  # 200 kB (latest.pt is a hard link)
         with pytest.raises(CheckpointError) as err:
-            save_checkpoint(_payload(700_000, 2), mnt, 2)
+            save_checkpoint(_payload(900_000, 2), mnt, 2)
         assert "No space left on device" in str(err.value) and "\n" not in str(err.value)
         assert load_checkpoint(mnt / "latest.pt", "teacher")["iteration"] == 1
         assert _no_tmp(mnt)

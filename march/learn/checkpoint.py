@@ -87,17 +87,55 @@ def save_checkpoint(payload: dict[str, Any], directory: Path, iteration: int) ->
         raise TypeError(f"checkpoint payload holds {bad}; convert it with to_plain() before saving")
     path = directory / f"model_{iteration:06d}.pt"
     save_atomic(payload, path)
-    save_atomic(payload, directory / LATEST)
+    point_latest(path, payload)
     return path
 
 
+def point_latest(path: Path, payload: dict[str, Any]) -> None:
+    """Make ``latest.pt`` the file ``path`` is: a hard link swapped in with one rename, so that
+    :func:`latest_checkpoint` can tell which ``model_<it>.pt`` it is (and nothing is written
+    twice). Where the file system has no hard links, a second atomic copy."""
+    latest = path.parent / LATEST
+    tmp = path.parent / f".{LATEST}.{os.getpid()}.link.tmp"
+    try:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        os.link(path, tmp)
+        os.replace(tmp, latest)
+    except OSError:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        save_atomic(payload, latest)
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
 def latest_checkpoint(directory: Path) -> Path | None:
-    """The newest checkpoint in ``directory`` (``latest.pt`` if present), or None."""
-    if (directory / LATEST).is_file():
-        return directory / LATEST
+    """The newest checkpoint in ``directory`` (normally ``latest.pt``), or None.
+
+    ``latest.pt`` is a hard link to the ``model_<it>.pt`` it was made from. A run killed after
+    writing ``model_<it>.pt`` but before pointing ``latest.pt`` at it leaves ``latest.pt`` one
+    save behind: the newer (complete: only whole files are renamed into place) model file is then
+    the newest checkpoint. A ``latest.pt`` that is no model file's link (an older run, a copy)
+    is taken as it is.
+    """
     found = sorted(
         p for p in directory.glob("model_*.pt") if re.fullmatch(r"model_\d+\.pt", p.name)
     )
+    latest = directory / LATEST
+    if latest.is_file():
+        if (
+            found
+            and not _same_file(latest, found[-1])
+            and any(_same_file(latest, p) for p in found)
+        ):
+            return found[-1]
+        return latest
     return found[-1] if found else None
 
 

@@ -22,7 +22,13 @@ from tensordict import TensorDict
 
 from march.config import MarchConfig
 from march.env.course import CourseRuler
-from march.learn.checkpoint import check_layout, latest_checkpoint, load_checkpoint, save_checkpoint
+from march.learn.checkpoint import (
+    check_layout,
+    latest_checkpoint,
+    load_checkpoint,
+    point_latest,
+    save_checkpoint,
+)
 from march.learn.faults import EnvFaults, UpdateGuard
 from march.learn.metrics import MetricsLog, Progress, truncate_rows
 from march.learn.teacher import EpisodeStats, build_teacher_actor, teacher_obs
@@ -191,6 +197,8 @@ class DistillRunner:
             truncate_rows(self.run_dir / "eval.csv", "student", 0)
             return False
         payload = load_checkpoint(path, "student", self.device)
+        if path.name != "latest.pt":  # killed before latest.pt was pointed at this newer file
+            point_latest(path, payload)
         check_layout(payload["layout"], self.layout, "student", path)
         self.student.load_state_dict(payload["student_state_dict"])
         self.optimizer.load_state_dict(payload["optimizer_state_dict"])
