@@ -1,13 +1,15 @@
 """``python -m march.bench <job>``: how fast march's env and planner are, as one JSON object.
 
-    python -m march.bench env [compute.num_envs=64] [bench.steps=40] [bench.warmup=30]
+    python -m march.bench env [compute.num_envs=64] [bench.steps=40] [bench.warmup_random=30]
+                              [bench.warmup_standing=5]
                               [bench.profile_steps=20] [bench.rounds=8]
     python -m march.bench planner [compute.num_envs=64] [bench.steps=100]
 
 Both jobs compose the same config as ``march.train`` (Hydra ``key=value`` overrides). The
 benchmark's own options are not part of the config schema and are taken off the command line
 before the config is composed: ``bench.steps`` (timed steps per env and workload),
-``bench.warmup`` (untimed steps after each reset), ``bench.profile_steps`` (steps of the separate
+``bench.warmup_random`` / ``bench.warmup_standing`` (untimed steps after each reset;
+``bench.warmup`` sets both), ``bench.profile_steps`` (steps of the separate
 instrumented pass, 0 = none) and ``bench.rounds`` (how many interleaved chunks the timed steps are
 split into). Everything mjlab and warp print while building and compiling goes to stderr, so
 stdout is the JSON object alone (``... | jq`` works).
@@ -24,10 +26,12 @@ runs the footstep planner), (b) mjlab's bare ``Mjlab-Velocity-Rough-Unitree-G1``
 - ``standing``: zero actions (the default pose as position target) from the spawn pose: few
   resets; the per-step cost of a robot that stays up.
 
-Per workload: every env is reset and stepped ``warmup`` steps; then the ``steps`` timed steps run
+Per workload: every env is reset and stepped ``warmup_<workload>`` steps (random: 30, i.e. 0.6 s,
+so that robots have begun to fall; standing: 5, the zero-action G1 tilts over after 1.1-2 s, so
+its timed steps end before the first falls); then the ``steps`` timed steps run
 in ``rounds`` interleaved chunks (march, rough, flat, march, ...), so the ratios of one run share
 the machine's load. No instrumentation is active while these are timed. Then a separate pass
-(reset, ``warmup`` steps, ``profile_steps`` steps per env, interleaved the same way) wraps the
+(reset, the same warm-up, ``profile_steps`` steps per env, interleaved the same way) wraps the
 env's parts with timers (``StepProfiler``; on CUDA each timer synchronises) and reports where the
 step goes, as exclusive milliseconds per control step:
 ``physics`` (mujoco-warp step, forward, sensors, scene read/write), ``actions``, ``commands``
@@ -65,17 +69,31 @@ from march.config import MarchConfig
 
 USAGE = (
     "usage: python -m march.bench env|planner [compute.num_envs=64] [compute.device=...] "
-    "[bench.steps=N] [bench.warmup=N] [bench.profile_steps=N] [bench.rounds=N] [key=value ...]"
+    "[bench.steps=N] [bench.warmup=N] [bench.warmup_random=N] [bench.warmup_standing=N] "
+    "[bench.profile_steps=N] [bench.rounds=N] [key=value ...]"
 )
 JOB_DEFAULTS: dict[str, dict[str, int]] = {
-    "env": {"steps": 40, "warmup": 30, "profile_steps": 20, "rounds": 8},
+    "env": {
+        "steps": 40,
+        "warmup_random": 30,
+        "warmup_standing": 5,
+        "profile_steps": 20,
+        "rounds": 8,
+    },
     "planner": {"steps": 100, "warmup": 10, "profile_steps": 0, "rounds": 1},
 }
 """Per job: timed steps (env: per env and workload), untimed warm-up steps after each reset,
 steps of the instrumented profile pass (env only; 0 = none) and interleaved chunks. Sized for a
-loaded 2-core machine at 64 envs (about 10 minutes); the 30 warm-up steps (0.6 s) let the
-random workload's robots start falling, so its timed steps include resets."""
-BENCH_MINIMUM = {"steps": 1, "warmup": 0, "profile_steps": 0, "rounds": 1}
+loaded 2-core machine at 64 envs (about 10 minutes)."""
+BENCH_MINIMUM = {
+    "steps": 1,
+    "warmup": 0,
+    "warmup_random": 0,
+    "warmup_standing": 0,
+    "profile_steps": 0,
+    "rounds": 1,
+}
+"""Smallest value of each option; ``bench.warmup=N`` sets both workloads' warm-up."""
 ROUGH_TASK = "Mjlab-Velocity-Rough-Unitree-G1"
 FLAT_TASK = "Mjlab-Velocity-Flat-Unitree-G1"
 ENV_NAMES = ("march_teacher", "bare_rough", "bare_flat")
@@ -107,8 +125,13 @@ def pop_bench_options(argv: Sequence[str]) -> tuple[list[str], dict[str, int]]:
 
 
 def job_options(job: str, given: dict[str, int]) -> dict[str, int]:
-    """The job's defaults with the given options over them."""
-    return {**JOB_DEFAULTS.get(job, JOB_DEFAULTS["env"]), **given}
+    """The job's defaults with the given options over them (``bench.warmup=N``: the warm-up of
+    both env workloads, unless one is given by itself)."""
+    opts = {**JOB_DEFAULTS.get(job, JOB_DEFAULTS["env"]), **given}
+    if "warmup" in given:
+        for w in WORKLOADS:
+            opts[f"warmup_{w}"] = given.get(f"warmup_{w}", given["warmup"])
+    return opts
 
 
 @contextlib.contextmanager
@@ -410,7 +433,7 @@ def profile_envs(
     with torch.no_grad():
         for name, env in envs.items():
             env.reset()
-            for _ in range(opts["warmup"]):
+            for _ in range(opts[f"warmup_{workload}"]):
                 env.step(acts[name]())
         try:
             for name, env in envs.items():
@@ -436,7 +459,8 @@ def run_workload(
     """Headline speed (interleaved rounds, no instrumentation) and profile of one workload."""
     import torch
 
-    steps, warmup, rounds = opts["steps"], opts["warmup"], min(opts["rounds"], opts["steps"])
+    steps, rounds = opts["steps"], min(opts["rounds"], opts["steps"])
+    warmup = opts[f"warmup_{workload}"]
     acts = {name: Actions(env, workload, seed) for name, env in envs.items()}
     resets = {name: torch.zeros((), device=device) for name in envs}
     elapsed = dict.fromkeys(envs, 0.0)
@@ -516,7 +540,7 @@ def bench_env(cfg: MarchConfig, opts: dict[str, int]) -> dict[str, Any]:
         "device": device,
         "num_envs": cfg.compute.num_envs,
         "steps": opts["steps"],
-        "warmup": opts["warmup"],
+        "warmup": {w: opts[f"warmup_{w}"] for w in WORKLOADS},
         "profile_steps": opts["profile_steps"],
         "rounds": opts["rounds"],
         "torch_threads": _threads(),

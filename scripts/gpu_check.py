@@ -43,7 +43,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 GPU = {
     "compute": ["compute=gpu"],
-    "bench": ["compute.num_envs={bench_envs}", "bench.steps=40", "bench.warmup=5"]
+    "bench": ["compute.num_envs={bench_envs}", "bench.steps=40"]
     + ["bench.profile_steps=10", "bench.rounds=2"],
     "teacher": ["compute.num_envs={train_envs}", "compute.eval_num_envs=64"],
     "student": [

@@ -110,9 +110,8 @@ class Trigger:
     def __post_init__(self) -> None:
         r = self.rng
         if "checkpoint write" in self.phase:
-            # Each save writes model_<it>.pt, then swaps latest.pt to it (a hard link, renamed
-            # into place: microseconds, which a poll rarely sees): kill in the n-th write.
-            self.tmp_prefix = ".model_"
+            # Each save writes latest.pt, then model_<it>.pt: pick one of them, of some save.
+            self.tmp_prefix = r.choice([".latest.pt.", ".model_"])
             self.nth_tmp = r.randint(1, 2)
         elif "before the first checkpoint" in self.phase:
             self.delay = r.uniform(0.0, 2.0)
@@ -261,6 +260,13 @@ def run_trial(i: int, phase: str, rng: random.Random, out: Path) -> dict:
         if it != want_it:
             loadable = False
             problems.append(f"final {kind} checkpoint at iteration {it}, expected {want_it}")
+    for kind, its in (
+        ("teacher", expected_evals(T_ITERS, T_SAVE)),
+        ("student", expected_evals(D_ITERS, D_SAVE)),
+    ):
+        gaps = [k for k in sorted(its) if not (run / kind / f"model_{k:06d}.pt").is_file()]
+        if gaps:
+            problems.append(f"{kind}/: no model file for save points {gaps}")
     left = tmp_files(run / "teacher") + tmp_files(run / "student")
     if left:
         problems.append(f"temporary files left after the resume: {left}")

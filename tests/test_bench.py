@@ -32,6 +32,11 @@ def test_bench_options_are_popped_and_checked():
     assert job_options("planner", {})["steps"] == 100
     _, given = pop_bench_options(["bench.profile_steps=0", "bench.rounds=3", "bench.warmup=0"])
     assert given == {"profile_steps": 0, "rounds": 3, "warmup": 0}
+    opts = job_options("env", given)  # bench.warmup sets both workloads' warm-up ...
+    assert opts["warmup_random"] == opts["warmup_standing"] == 0
+    opts = job_options("env", {"warmup": 2, "warmup_random": 9})  # ... unless one is given
+    assert (opts["warmup_random"], opts["warmup_standing"]) == (9, 2)
+    assert JOB_DEFAULTS["env"]["warmup_random"] > JOB_DEFAULTS["env"]["warmup_standing"]
     for bad in ("bench.steps=0", "bench.bogus=1", "bench.rounds=0", "bench.steps=x"):
         with pytest.raises(SystemExit) as exc:
             pop_bench_options([bad])

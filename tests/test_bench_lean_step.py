@@ -104,7 +104,9 @@ def test_shared_terms_equal_direct_calls(scan_env, monkeypatch):
 
 @pytest.mark.sim
 def test_site_state_equals_mjlabs_site_properties(scan_env):
-    from march.env.step_cache import site_pos, site_state
+    from mjlab.utils.lab_api.math import quat_from_matrix
+
+    from march.env.step_cache import site_pos, site_state, site_xmat
 
     env = scan_env
     gen = torch.Generator().manual_seed(2)
@@ -121,4 +123,6 @@ def test_site_state_equals_mjlabs_site_properties(scan_env):
             assert torch.allclose(site_pos(env, names), d.site_pos_w[:, local], atol=1e-6)
             assert torch.allclose(lin, d.site_lin_vel_w[:, local], atol=1e-5)
             assert torch.allclose(ang, d.site_ang_vel_w[:, local], atol=1e-6)
+            quat = quat_from_matrix(site_xmat(env, names))
+            assert torch.allclose(quat, d.site_quat_w[:, local], atol=1e-6)
             assert float(lin.abs().max()) > 0.0  # the robot moves: a real comparison

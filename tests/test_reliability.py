@@ -23,8 +23,8 @@ from march.cli import load
 from march.config import ConfigError
 from march.learn.checkpoint import (
     CheckpointError,
+    ensure_model_file,
     load_checkpoint,
-    point_latest,
     save_atomic,
     save_checkpoint,
 )
@@ -141,11 +141,11 @@ def _no_tmp(directory: Path) -> bool:
 
 
 def test_a_failed_checkpoint_write_keeps_the_previous_one(tmp_path, monkeypatch):
-    """A full disk as os.fsync reports it (ENOSPC): at the model_<it>.pt write, and at the copy
-    to latest.pt made where the file system has no hard links."""
+    """A full disk as os.fsync reports it (ENOSPC): at the latest.pt write (the previous one
+    stays), and at the model_<it>.pt write that follows (latest.pt is then the new one, whole)."""
     save_checkpoint(_payload(4000, 1), tmp_path, 1)
     real = os.fsync
-    for fail_at, links in ((1, True), (2, False)):
+    for fail_at, latest_it in ((1, 1), (2, 2)):
         calls = []
 
         def fsync(fd, calls=calls, fail_at=fail_at):
@@ -154,43 +154,37 @@ def test_a_failed_checkpoint_write_keeps_the_previous_one(tmp_path, monkeypatch)
                 raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
             return real(fd)
 
-        def no_link(src, dst):
-            raise OSError(errno.EPERM, os.strerror(errno.EPERM))
-
         monkeypatch.setattr(os, "fsync", fsync)
-        if not links:
-            monkeypatch.setattr(os, "link", no_link)
         with pytest.raises(CheckpointError) as err:
             save_checkpoint(_payload(4000, 2), tmp_path, 2)
         monkeypatch.undo()
         msg = str(err.value)
         assert "\n" not in msg and "No space left on device" in msg and "intact" in msg
         assert len(calls) == fail_at
-        assert load_checkpoint(tmp_path / "latest.pt", "teacher")["iteration"] == 1
+        assert load_checkpoint(tmp_path / "latest.pt", "teacher")["iteration"] == latest_it
+        assert load_checkpoint(tmp_path / "model_000001.pt", "teacher")["iteration"] == 1
+        assert not (tmp_path / "model_000002.pt").exists()
         assert _no_tmp(tmp_path)
-        (tmp_path / "model_000002.pt").unlink(missing_ok=True)
 
 
 def test_latest_is_the_newest_complete_checkpoint_whenever_a_kill_lands(tmp_path):
-    """latest.pt is a hard link to its model file; a kill after model_<it>.pt was written but
-    before latest.pt was swapped to it leaves the newer model file the one to resume from."""
+    """latest.pt is written before model_<it>.pt: a kill between the two leaves latest.pt the
+    newest checkpoint, and the resume writes the model file the kill cut short."""
     from march.learn.checkpoint import latest_checkpoint
 
     assert latest_checkpoint(tmp_path) is None
     save_checkpoint(_payload(400, 2), tmp_path, 2)
-    assert os.path.samefile(tmp_path / "latest.pt", tmp_path / "model_000002.pt")
     assert latest_checkpoint(tmp_path) == tmp_path / "latest.pt"
-    save_atomic(_payload(400, 4), tmp_path / "model_000004.pt")  # killed right here
+    save_atomic(_payload(400, 4), tmp_path / "latest.pt")  # killed right after this
     found = latest_checkpoint(tmp_path)
-    assert found == tmp_path / "model_000004.pt"
-    point_latest(found, load_checkpoint(found, "teacher"))  # what a resume does first
-    assert os.path.samefile(tmp_path / "latest.pt", found)
-    save_checkpoint(_payload(400, 4), tmp_path, 4)  # the resumed run saves again
-    assert latest_checkpoint(tmp_path) == tmp_path / "latest.pt"
+    assert load_checkpoint(found, "teacher")["iteration"] == 4
+    ensure_model_file(load_checkpoint(found, "teacher"), tmp_path)  # what a resume does first
+    assert load_checkpoint(tmp_path / "model_000004.pt", "teacher")["iteration"] == 4
+    assert load_checkpoint(tmp_path / "model_000002.pt", "teacher")["iteration"] == 2
     assert _no_tmp(tmp_path)
-    # An older run's latest.pt is a copy, no model file's link: it is taken as it is.
-    save_atomic(_payload(400, 6), tmp_path / "latest.pt")
-    assert load_checkpoint(latest_checkpoint(tmp_path), "teacher")["iteration"] == 6
+    # Without latest.pt (deleted by hand), the newest model file.
+    (tmp_path / "latest.pt").unlink()
+    assert latest_checkpoint(tmp_path) == tmp_path / "model_000004.pt"
 
 
 def _mount_tmpfs(path: Path, size: str) -> bool:
@@ -209,13 +203,38 @@ def test_a_full_file_system_keeps_the_previous_checkpoint(tmp_path):
     if not _mount_tmpfs(mnt, "1m"):
         pytest.skip("mounting a tmpfs needs root")
     try:
-        save_checkpoint(_payload(200_000, 1), mnt, 1)  # 200 kB (latest.pt is a hard link)
+        save_checkpoint(_payload(200_000, 1), mnt, 1)  # two copies: 400 kB of 1 MiB
         with pytest.raises(CheckpointError) as err:
             save_checkpoint(_payload(900_000, 2), mnt, 2)
         assert "No space left on device" in str(err.value) and "\n" not in str(err.value)
         assert load_checkpoint(mnt / "latest.pt", "teacher")["iteration"] == 1
         assert _no_tmp(mnt)
         save_atomic(_payload(100, 3), mnt / "after.pt")  # the space the failed write took is back
+    finally:
+        subprocess.run(["umount", str(mnt)], check=False)
+
+
+def test_a_run_on_a_full_disk_stops_with_one_line_and_keeps_its_checkpoint(tmp_path):
+    """march.train on a 32 MiB tmpfs: the first teacher checkpoint (2 x 13.5 MB) fits, the
+    second does not; the run stops with one line, latest.pt still the first (root only)."""
+    mnt = tmp_path / "small"
+    if not _mount_tmpfs(mnt, "32m"):
+        pytest.skip("mounting a tmpfs needs root")
+    try:
+        out = _train(
+            "compute=smoke",
+            "stage=teacher",
+            "teacher.max_iterations=3",
+            "teacher.eval_interval=0",
+            f"hydra.run.dir={mnt}",
+        )
+        err = out.stderr.strip().splitlines()
+        assert out.returncode == 2, out.stdout[-2000:] + out.stderr[-2000:]
+        assert err[-1].startswith("error: could not write checkpoint "), err[-1]
+        assert "(No space left on device)" in err[-1] and "Traceback" not in out.stderr
+        assert load_checkpoint(mnt / "teacher" / "latest.pt", "teacher")["iteration"] == 1
+        assert _no_tmp(mnt / "teacher")
+        assert '"failed"' in (mnt / "status.json").read_text()
     finally:
         subprocess.run(["umount", str(mnt)], check=False)
 

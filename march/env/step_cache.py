@@ -106,3 +106,10 @@ def site_state(env: Any, names: tuple[str, ...], entity: str = "robot") -> tuple
     offset = data.subtree_com[:, root].unsqueeze(1) - pos
     lin = cvel[..., 3:6] - torch.cross(ang, offset, dim=-1)
     return pos, lin, ang
+
+
+def site_xmat(env: Any, names: tuple[str, ...], entity: str = "robot") -> Any:
+    """(E, n, 3, 3) world rotation matrices of the sites ``names`` (MuJoCo's ``site_xmat``)."""
+    gid, _, _ = _site_frames(env, names, entity)
+    xmat = env.scene[entity].data.data.site_xmat[:, gid]
+    return xmat.reshape(xmat.shape[0], gid.shape[0], 3, 3)

@@ -67,7 +67,7 @@ def _write_error(path: Path, err: BaseException) -> CheckpointError:
     why = os.strerror(err.errno) if isinstance(err, OSError) and err.errno else str(err)
     why = why.strip().splitlines()[0] if why.strip() else type(err).__name__
     return CheckpointError(
-        f"could not write checkpoint {path} ({why}); the previous checkpoint in {path.parent} is "
+        f"could not write checkpoint {path} ({why}); the checkpoints already in {path.parent} are "
         "intact: free space (or fix the file system), then continue with resume=<run dir>"
     )
 
@@ -86,56 +86,30 @@ def save_checkpoint(payload: dict[str, Any], directory: Path, iteration: int) ->
         # A programming error, not a user one: refuse to write a file that load_checkpoint refuses.
         raise TypeError(f"checkpoint payload holds {bad}; convert it with to_plain() before saving")
     path = directory / f"model_{iteration:06d}.pt"
+    # latest.pt first: it is then always the newest complete checkpoint. A kill during its write
+    # leaves the previous one (no iteration of this save was checkpointed yet); a kill during
+    # model_<it>.pt's leaves that copy to be written on resume (ensure_model_file).
+    save_atomic(payload, directory / LATEST)
     save_atomic(payload, path)
-    point_latest(path, payload)
     return path
 
 
-def point_latest(path: Path, payload: dict[str, Any]) -> None:
-    """Make ``latest.pt`` the file ``path`` is: a hard link swapped in with one rename, so that
-    :func:`latest_checkpoint` can tell which ``model_<it>.pt`` it is (and nothing is written
-    twice). Where the file system has no hard links, a second atomic copy."""
-    latest = path.parent / LATEST
-    tmp = path.parent / f".{LATEST}.{os.getpid()}.link.tmp"
-    try:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        os.link(path, tmp)
-        os.replace(tmp, latest)
-    except OSError:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        save_atomic(payload, latest)
-
-
-def _same_file(a: Path, b: Path) -> bool:
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return False
+def ensure_model_file(payload: dict[str, Any], directory: Path) -> Path:
+    """``model_<it>.pt`` of a checkpoint read from ``latest.pt`` (a resume), written if a kill
+    cut its write short, so that every save point keeps its own file."""
+    path = directory / f"model_{int(payload['iteration']):06d}.pt"
+    if not path.is_file():
+        save_atomic(payload, path)
+    return path
 
 
 def latest_checkpoint(directory: Path) -> Path | None:
-    """The newest checkpoint in ``directory`` (normally ``latest.pt``), or None.
-
-    ``latest.pt`` is a hard link to the ``model_<it>.pt`` it was made from. A run killed after
-    writing ``model_<it>.pt`` but before pointing ``latest.pt`` at it leaves ``latest.pt`` one
-    save behind: the newer (complete: only whole files are renamed into place) model file is then
-    the newest checkpoint. A ``latest.pt`` that is no model file's link (an older run, a copy)
-    is taken as it is.
-    """
+    """The newest checkpoint in ``directory`` (``latest.pt`` if present), or None."""
+    if (directory / LATEST).is_file():
+        return directory / LATEST
     found = sorted(
         p for p in directory.glob("model_*.pt") if re.fullmatch(r"model_\d+\.pt", p.name)
     )
-    latest = directory / LATEST
-    if latest.is_file():
-        if (
-            found
-            and not _same_file(latest, found[-1])
-            and any(_same_file(latest, p) for p in found)
-        ):
-            return found[-1]
-        return latest
     return found[-1] if found else None
 
 

@@ -24,9 +24,9 @@ from march.config import MarchConfig
 from march.env.course import CourseRuler
 from march.learn.checkpoint import (
     check_layout,
+    ensure_model_file,
     latest_checkpoint,
     load_checkpoint,
-    point_latest,
     save_checkpoint,
 )
 from march.learn.faults import EnvFaults, UpdateGuard
@@ -197,8 +197,8 @@ class DistillRunner:
             truncate_rows(self.run_dir / "eval.csv", "student", 0)
             return False
         payload = load_checkpoint(path, "student", self.device)
-        if path.name != "latest.pt":  # killed before latest.pt was pointed at this newer file
-            point_latest(path, payload)
+        if path.name == "latest.pt":  # a kill may have cut the write of its model_<it>.pt
+            ensure_model_file(payload, self.ckpt_dir)
         check_layout(payload["layout"], self.layout, "student", path)
         self.student.load_state_dict(payload["student_state_dict"])
         self.optimizer.load_state_dict(payload["optimizer_state_dict"])

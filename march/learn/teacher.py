@@ -25,9 +25,9 @@ from march.config import MarchConfig, TeacherCfg
 from march.env.course import CourseRuler
 from march.learn.checkpoint import (
     check_layout,
+    ensure_model_file,
     latest_checkpoint,
     load_checkpoint,
-    point_latest,
     save_checkpoint,
 )
 from march.learn.faults import EnvFaults, UpdateGuard
@@ -233,8 +233,8 @@ class TeacherRunner:
             truncate_rows(self.run_dir / "eval.csv", "teacher", 0)
             return False
         payload = load_checkpoint(path, "teacher", self.device)
-        if path.name != "latest.pt":  # killed before latest.pt was pointed at this newer file
-            point_latest(path, payload)
+        if path.name == "latest.pt":  # a kill may have cut the write of its model_<it>.pt
+            ensure_model_file(payload, self.ckpt_dir)
         check_layout(payload["layout"], self.layout, "teacher", path)
         self.alg.load(payload, None, strict=True)
         self.alg.learning_rate = payload.get("learning_rate", self.alg.learning_rate)
