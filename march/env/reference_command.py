@@ -65,10 +65,11 @@ from typing import TYPE_CHECKING
 
 import torch
 from mjlab.managers.command_manager import CommandTerm, CommandTermCfg
-from mjlab.utils.lab_api.math import euler_xyz_from_quat, quat_apply_inverse
+from mjlab.utils.lab_api.math import euler_xyz_from_quat, quat_apply_inverse, quat_from_matrix
 
 from march.clf import CLF_OUTPUT_NAMES, UPPER_BODY_JOINTS, ClfCfg, ClfModel, VHistory
 from march.env.course import foothold_table
+from march.env.step_cache import site_pos, site_state, site_xmat
 from march.footholds import Footholds
 from march.hlip import HlipCfg
 from march.planner import Plan, PlannerCfg, course_frame, plan_footsteps
@@ -279,8 +280,9 @@ class ReferenceCommand(CommandTerm):
         )
 
     def feet_pos(self) -> torch.Tensor:
-        """(E, 2, 3) left and right foot site positions, world [m]."""
-        return self.robot.data.site_pos_w[:, self._site_ids]
+        """(E, 2, 3) left and right foot site positions, world [m] (the two sites only: mjlab's
+        ``site_pos_w`` converts the pose of every site on each access)."""
+        return site_pos(self._env, tuple(self.cfg.foot_sites), self.cfg.entity_name)
 
     def foot_contact(self) -> torch.Tensor:
         """(E, 2) bool: left / right foot touches the terrain."""
@@ -371,25 +373,35 @@ class ReferenceCommand(CommandTerm):
         )
         return ref.flatten()
 
+    def _masses(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(W|1, B) robot body masses and their (W|1, 1) sums, kept after the first call: domain
+        randomization changes masses at startup only (march.env.randomization)."""
+        if getattr(self, "_mass_cache", None) is None:
+            mass = self._env.sim.model.body_mass
+            mass = mass[:, self._body_ids] if mass.dim() == 2 else mass[self._body_ids][None]
+            self._mass_cache = (mass.clone(), mass.sum(1, keepdim=True))
+        return self._mass_cache
+
     def measured(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(E, 29) measured outputs y_sim (positions) and their rates (module docstring)."""
         data = self.robot.data
         com = self._env.sim.data.subtree_com[:, self._root_body]
-        mass = self._env.sim.model.body_mass
-        mass = mass[:, self._body_ids] if mass.dim() == 2 else mass[self._body_ids][None]
-        com_vel = (data.body_com_lin_vel_w * mass[..., None]).sum(1) / mass.sum(1, keepdim=True)
+        mass, mass_sum = self._masses()
+        com_vel = (data.body_com_lin_vel_w * mass[..., None]).sum(1) / mass_sum
         quat = data.root_link_quat_w
         pelvis = _euler(quat)
         pelvis_rate = euler_rates(pelvis, data.root_link_ang_vel_b)
-        left = self.stance_is_left
-        sites = self._site_ids
-        swing_site = torch.where(left, sites[1], sites[0])
-        rows = torch.arange(self.num_envs, device=self.device)
-        swing_pos = data.site_pos_w[rows, swing_site]
-        swing_vel = data.site_lin_vel_w[rows, swing_site]
-        swing_quat = data.site_quat_w[rows, swing_site]
+        # The two foot sites only (step_cache): same values as data.site_*_w of the swing site.
+        names = tuple(self.cfg.foot_sites)
+        pos, lin, ang = site_state(self._env, names, self.cfg.entity_name)
+        mat = site_xmat(self._env, names, self.cfg.entity_name)
+        swing_left = ~self.stance_is_left  # the swing foot is the other one
+        pick = swing_left[:, None]
+        swing_pos = torch.where(pick, pos[:, 0], pos[:, 1])
+        swing_vel = torch.where(pick, lin[:, 0], lin[:, 1])
+        swing_quat = quat_from_matrix(torch.where(pick[..., None], mat[:, 0], mat[:, 1]))
         swing_ori = _euler(swing_quat)
-        swing_omega_b = quat_apply_inverse(swing_quat, data.site_ang_vel_w[rows, swing_site])
+        swing_omega_b = quat_apply_inverse(swing_quat, torch.where(pick, ang[:, 0], ang[:, 1]))
         swing_rate = euler_rates(swing_ori, swing_omega_b)
         upper = data.joint_pos[:, self._upper_ids] - data.default_joint_pos[:, self._upper_ids]
         upper_vel = data.joint_vel[:, self._upper_ids]
@@ -399,13 +411,12 @@ class ReferenceCommand(CommandTerm):
 
     def stance_foot(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Stance foot site position (E, 3), linear velocity (E, 3) and angular velocity (E, 3)."""
-        data = self.robot.data
-        site = torch.where(self.stance_is_left, self._site_ids[0], self._site_ids[1])
-        rows = torch.arange(self.num_envs, device=self.device)
+        pos, lin, ang = site_state(self._env, tuple(self.cfg.foot_sites), self.cfg.entity_name)
+        left = self.stance_is_left[:, None]
         return (
-            data.site_pos_w[rows, site],
-            data.site_lin_vel_w[rows, site],
-            data.site_ang_vel_w[rows, site],
+            torch.where(left, pos[:, 0], pos[:, 1]),
+            torch.where(left, lin[:, 0], lin[:, 1]),
+            torch.where(left, ang[:, 0], ang[:, 1]),
         )
 
     def _refresh_outputs(self) -> None:
