@@ -496,6 +496,11 @@ def main(dcfg: DictConfig) -> None:
             cfg, notes = apply_policy_checkpoint(cfg, overrides)
     except (ConfigError, CheckpointError) as err:
         if hc.mode == RunMode.MULTIRUN:
+            # The sweep records this job as failed in its own directory (the figures list it)
+            # and Hydra goes on with the others.
+            job_dir = Path(hc.runtime.output_dir)
+            job_dir.mkdir(parents=True, exist_ok=True)
+            _write_status(job_dir, "failed", stage=str(dcfg.stage), error=str(err))
             raise
         fail(str(err))
     run_dir = Path(cfg.resume) if cfg.resume else Path(hc.runtime.output_dir)

@@ -229,7 +229,20 @@ def _steps_without_sync(reward: str, steps: int) -> dict[str, object]:
 
 
 @pytest.mark.sim
-@pytest.mark.parametrize("reward", ["clf", "modelfree"])
+@pytest.mark.parametrize(
+    "reward",
+    [
+        pytest.param(
+            "clf",
+            # Open work (issue 11): the reference command still replans the envs that touched
+            # down through .any()/.nonzero() branches; strict, so the fix flips it to a failure.
+            marks=pytest.mark.xfail(
+                strict=True, reason="issue 11: masked batched replan not done yet"
+            ),
+        ),
+        "modelfree",
+    ],
+)
 def test_env_steps_issue_no_host_sync_from_march(reward):
     out = _steps_without_sync(reward, steps=60)
     assert out["resets"] > 0  # the reset path (curriculum, DR events, replans) ran
