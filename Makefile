@@ -37,8 +37,8 @@ test-all: $(VENV)/.installed  ## including tests marked slow
 	$(PY) -m pytest -q -m "" $(ARGS)
 
 lint: $(VENV)/.installed
-	$(VENV)/bin/ruff check march tests analysis
-	$(VENV)/bin/ruff format --check march tests analysis
+	$(VENV)/bin/ruff check march tests analysis scripts
+	$(VENV)/bin/ruff format --check march tests analysis scripts
 
 OUT ?= outputs/gpu_check
 gpu-check: $(VENV)/.installed  ## the prepared GPU check into $(OUT) (ARGS=--cpu: tiny, on CPU)
