@@ -500,7 +500,9 @@ def main(dcfg: DictConfig) -> None:
             # and Hydra goes on with the others.
             job_dir = Path(hc.runtime.output_dir)
             job_dir.mkdir(parents=True, exist_ok=True)
-            _write_status(job_dir, "failed", stage=str(dcfg.stage), error=str(err))
+            _write_status(
+                job_dir, "failed", stage=str(dcfg.stage), error=f"{type(err).__name__}: {err}"
+            )
             raise
         fail(str(err))
     run_dir = Path(cfg.resume) if cfg.resume else Path(hc.runtime.output_dir)
