@@ -22,6 +22,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 import torch
+from mjlab.utils.nan_guard import NanGuard
 
 
 class NumericalFault(RuntimeError):
@@ -72,8 +73,6 @@ class EnvFaults:
     ) -> torch.Tensor | None:
         """Reset the faulty envs after a step; ``obs`` (dict or TensorDict, edited in place) gets
         their post-reset rows and ``reward`` zeros there. Returns the mask, None if none."""
-        from mjlab.utils.nan_guard import NanGuard
-
         env = self.env
         bad = NanGuard.detect_nans(env.sim.data) | nonfinite_rows(env.num_envs, obs, reward)
         if bad_actions is not None:
