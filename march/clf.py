@@ -309,6 +309,13 @@ class VHistory:
         self.v1[ids] = 0.0
         self.v2[ids] = 0.0
 
+    def forget(self, mask: torch.Tensor) -> None:
+        """Forget the history where ``mask`` (E,) bool is True (``reset`` without indices, so
+        without a host sync)."""
+        self.count.masked_fill_(mask, 0)
+        self.v1.masked_fill_(mask, 0.0)
+        self.v2.masked_fill_(mask, 0.0)
+
     def update(self, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Push the current V (E,); return (dV/dt (E,), valid (E,) bool).
 

@@ -264,3 +264,65 @@ def test_g1_stands_on_the_start_platform(clf_env):
         assert foot_z.max() < 0.05, foot_z  # resting on it, not stuck above
         pelvis = robot.data.root_link_pos_w[:, 2] - top
         assert (pelvis > 0.6).all() and (pelvis < 0.85).all(), pelvis
+
+
+def _served_per_step(env, capacity: int, steps: int) -> dict[str, list[int]]:
+    """Zero-action steps from a reset with the reference term's planner batch set to
+    ``capacity``: per step, the touchdowns + timeouts served, the ones waiting, the resets."""
+    term = env.command_manager.get_term("reference")
+    saved = term.replan_capacity
+    term.replan_capacity = capacity
+    try:
+        env.reset()
+        zeros = torch.zeros(env.num_envs, env.action_manager.total_action_dim)
+        served, waiting, resets = [], [], []
+        before = int((term.touchdown_count + term.forced_count).sum())
+        deferred0 = int(term.deferred_count.sum())
+        for _ in range(steps):
+            _, _, terminated, truncated, _ = env.step(zeros)
+            now = int((term.touchdown_count + term.forced_count).sum())
+            served.append(now - before)
+            before = now
+            waiting.append(int((term._due_touchdown | term._due_timeout).sum()))
+            resets.append(int((terminated | truncated).sum()))
+        return {
+            "served": served,
+            "waiting": waiting,
+            "resets": resets,
+            "deferred": int(term.deferred_count.sum()) - deferred0,
+        }
+    finally:
+        term.replan_capacity = saved
+
+
+@pytest.mark.sim
+def test_replans_beyond_the_planner_batch_wait_and_are_served(clf_env):
+    """Issue 11: touchdowns and timeouts are planned in a fixed-size batch per step. Standing
+    with zero actions, the swing foot never leaves the ground, so every env's first step ends
+    as a touchdown at 0.6 x its planned duration (0.27-0.42 s), several envs in the same step.
+    With a batch of one env at most one is served per step and the others wait, flagged, for a
+    later step (each waiting env-step is counted once); with a batch of every env nothing waits
+    and the same bursts are served at once."""
+    steps = 70  # 1.4 s: past every first timeout
+    small = _served_per_step(clf_env, capacity=1, steps=steps)
+    assert max(small["served"]) == 1
+    assert small["deferred"] > 0 and max(small["waiting"]) >= 1
+    # Every waiting event is served one per step: the queue shrinks by exactly the served one
+    # unless new events arrive, and the deferred env-steps are the queue's sum over the steps.
+    assert small["deferred"] == sum(small["waiting"])
+    assert sum(small["served"]) >= clf_env.num_envs - sum(small["resets"])
+    full = _served_per_step(clf_env, capacity=clf_env.num_envs, steps=steps)
+    assert full["deferred"] == 0 and max(full["waiting"]) == 0
+    assert max(full["served"]) > 1  # the same burst, served at once
+
+
+def test_planner_batch_size_per_update():
+    """1/8 of the envs, at least 8, never more than there are (hand-computed)."""
+    from march.env.reference_command import ReferenceCommandCfg
+
+    cfg = ReferenceCommandCfg()
+    sizes = {e: cfg.capacity(e) for e in (1, 4, 8, 64, 65, 100, 4096)}
+    assert sizes == {1: 1, 4: 4, 8: 8, 64: 8, 65: 9, 100: 13, 4096: 512}
+    for bad in ({"replan_capacity_fraction": 0.0}, {"replan_capacity_min": 0}):
+        with pytest.raises(ValueError, match="replan_capacity"):
+            ReferenceCommandCfg(**bad)

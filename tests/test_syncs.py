@@ -232,14 +232,7 @@ def _steps_without_sync(reward: str, steps: int) -> dict[str, object]:
 @pytest.mark.parametrize(
     "reward",
     [
-        pytest.param(
-            "clf",
-            # Open work (issue 11): the reference command still replans the envs that touched
-            # down through .any()/.nonzero() branches; strict, so the fix flips it to a failure.
-            marks=pytest.mark.xfail(
-                strict=True, reason="issue 11: masked batched replan not done yet"
-            ),
-        ),
+        "clf",
         "modelfree",
     ],
 )
