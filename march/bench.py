@@ -44,7 +44,7 @@ command and event term) largest first.
 ``planner``: :func:`march.bench_planner.bench_planner` (``steps`` timed replans of all
 ``num_envs`` envs on synthetic courses), plus the march teacher env's step time measured in the
 same run: ``planner_share_of_env_step`` = ms per full-batch replan / ms per env step (an upper
-bound: only envs at a reset, touchdown or step timeout replan). ``in_env_*`` measures the
+bound: the env plans its reset envs plus one fixed batch of 1/8 of the envs per step). ``in_env_*`` measures the
 planner calls the teacher env itself made in its timed steps (random actions: mostly resets
 after falls); ``walk_*`` estimates a walking robot's share: touchdown rate = control step / mean
 step duration of the planner's own walks over generated courses, times one replan of that many
