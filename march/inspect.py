@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from march.cli import run_tool
 from march.config import MarchConfig
+from march.config.cli import run_tool
 
 
 def _jsonable(value: Any) -> Any:
@@ -97,7 +97,7 @@ def describe_env(env: Any) -> dict[str, Any]:
 
 def terrain_summary(cfg: MarchConfig, table: Any) -> dict[str, Any]:
     """Levels with their sampling ranges and what the compiled courses actually contain."""
-    from march.terrain import ROLE_PAIR, ROLE_STONE, difficulty_ranges
+    from march.world.courses import ROLE_PAIR, ROLE_STONE, difficulty_ranges
 
     stone_roles = (ROLE_STONE, ROLE_PAIR)
 

@@ -11,7 +11,7 @@ purpose (the evaluation protocol as configured: command, episode length, depth c
 domain randomization), one episode (until time-out or a fall),
 rendered offscreen on the CPU with MuJoCo by a camera that follows the robot's torso from a
 three-quarter front view. Prints the course progress once per simulated second, then the file,
-its frames and fps, and the rollout's distance and success as ``march.evaluate`` measures them.
+its frames and fps, and the rollout's distance and success as ``march.evaluation.protocol`` measures them.
 
 Rendering needs an OpenGL backend for MuJoCo: mjlab picks ``MUJOCO_GL=egl`` (Mesa's software
 EGL works without a GPU; Debian/Ubuntu packages ``libegl1 libgl1-mesa-dri``); set
@@ -27,8 +27,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from march.cli import fail, run_tool
 from march.config import MarchConfig
+from march.config.cli import fail, run_tool
 
 USAGE = (
     "usage: python -m march.play student_ckpt=<file> | teacher_ckpt=<file> "
@@ -176,7 +176,7 @@ def play(cfg: MarchConfig, env: Any = None, explicit_overrides: Sequence[str] = 
     if why:
         fail(why)
     from march.env.course import CourseRuler
-    from march.evaluate import policy_from_checkpoint
+    from march.evaluation.protocol import policy_from_checkpoint
 
     torch.manual_seed(cfg.seed)
     own_env = env is None

@@ -27,8 +27,8 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from march.cli import fail, resolve_compute
 from march.config import ConfigError, MarchConfig, to_march_config
+from march.config.cli import fail, resolve_compute
 from march.learn.checkpoint import CheckpointError, write_json_atomic
 from march.learn.faults import NumericalFault
 from march.learn.metrics import MetricsLog
@@ -376,7 +376,12 @@ def run_pipeline(
     import torch
 
     from march.env.build import PLACEHOLDERS, make_env
-    from march.evaluate import evaluate, format_summary, policy_from_checkpoint, write_summary
+    from march.evaluation.protocol import (
+        evaluate,
+        format_summary,
+        policy_from_checkpoint,
+        write_summary,
+    )
     from march.learn.checkpoint import load_checkpoint
     from march.learn.distill import DistillRunner, student_policy
     from march.learn.metrics import truncate_rows
@@ -510,7 +515,7 @@ def main(dcfg: DictConfig) -> None:
     if cfg.resume and (run_dir / "config.yaml").is_file():
         # Continue with the run's own config (its sizes and seed), not today's defaults; an
         # override safe on resume applies (and goes into config.yaml), any other is refused.
-        from march.resume import resume_config
+        from march.config.resume import resume_config
 
         try:
             cfg, resumed = resume_config(run_dir, cfg, overrides)

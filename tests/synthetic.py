@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from march.footholds import Footholds
+from march.world.footholds import Footholds
 
 Rect = tuple[float, float, float, float, float]
 """(x, y, z_top, half_x, half_y) of one stone [m]."""

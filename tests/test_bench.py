@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from march.bench import JOB_DEFAULTS, StepProfiler, job_options, pop_bench_options
+from march.bench.env_speed import JOB_DEFAULTS, StepProfiler, job_options, pop_bench_options
 
 ROOT = Path(__file__).resolve().parent.parent
 

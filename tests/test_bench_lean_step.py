@@ -13,7 +13,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from march.cli import load
+from march.config.cli import load
 from march.env.observations import (
     SCAN_MAX_DISTANCE,
     scan_offsets,

@@ -386,7 +386,7 @@ def test_real_teacher_resumes(smoke_run):
 @pytest.mark.sim
 def test_real_student_resumes(smoke_run):
     """What DistillRunner.try_resume does: weights, optimizer, generator."""
-    from march.cli import load
+    from march.config.cli import load
     from march.learn.distill import build_student
 
     payload = load_checkpoint(smoke_run / "student" / "latest.pt", "student")
@@ -404,7 +404,7 @@ def test_real_student_resumes(smoke_run):
 
 @pytest.mark.sim
 def test_real_student_exports(smoke_run, tmp_path, capsys):
-    from march.export import main
+    from march.export.bundle import main
 
     out = tmp_path / "student.onnx"
     main([f"student_ckpt={smoke_run / 'student' / 'latest.pt'}", f"out={out}"])

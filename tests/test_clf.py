@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from march.clf import (
+from march.clf.lyapunov import (
     CLF_OUTPUT_NAMES,
     ClfCfg,
     ClfModel,

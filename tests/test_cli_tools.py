@@ -78,8 +78,8 @@ def run_module(*args: str) -> subprocess.CompletedProcess:
 
 @pytest.mark.parametrize("variant", ["full", "no_mdn"])
 def test_export_writes_onnx_with_parity_and_metadata(tmp_path, capsys, variant):
-    from march.export import main
-    from march.onnx_export import read_onnx_metadata
+    from march.export.bundle import main
+    from march.export.onnx_graph import read_onnx_metadata
 
     ckpt = tmp_path / "run" / "student" / "latest.pt"
     ckpt.parent.mkdir(parents=True)
@@ -116,7 +116,7 @@ def test_export_writes_onnx_with_parity_and_metadata(tmp_path, capsys, variant):
 
 
 def test_export_out_override(tmp_path, capsys):
-    from march.export import main
+    from march.export.bundle import main
 
     ckpt = tmp_path / "ckpt.pt"
     write_student_ckpt(ckpt, "no_transformer")
@@ -128,7 +128,7 @@ def test_export_out_override(tmp_path, capsys):
 
 
 def test_export_metadata_for_the_g1_layout():
-    from march.export import metadata
+    from march.export.bundle import metadata
 
     payload = {
         "layout": {
@@ -165,7 +165,7 @@ def test_export_missing_checkpoint_is_one_line_exit_2(tmp_path):
 
 
 def test_export_wrong_checkpoint_kind_and_no_argument(tmp_path, capsys):
-    from march.export import main
+    from march.export.bundle import main
 
     teacher = tmp_path / "teacher.pt"
     torch.save({"kind": "teacher", "iteration": 1}, teacher)
@@ -186,7 +186,7 @@ def test_export_wrong_checkpoint_kind_and_no_argument(tmp_path, capsys):
 
 
 def test_viz_terrain_writes_png(tmp_path, capsys):
-    from march.viz import main
+    from march.viz.views import main
 
     out = tmp_path / "t.png"
     main(["terrain", f"out={out}"])
@@ -196,7 +196,7 @@ def test_viz_terrain_writes_png(tmp_path, capsys):
 
 
 def test_viz_plan_writes_png(tmp_path, capsys):
-    from march.viz import main
+    from march.viz.views import main
 
     out = tmp_path / "p.png"
     main(["plan", f"out={out}", "seed=1"])
@@ -269,7 +269,7 @@ def test_format_duration(seconds, text):
 
 def test_wall_time_estimate_by_hand():
     from march import train
-    from march.cli import load
+    from march.config.cli import load
 
     cfg = load(ETA_CFG)
     est = train.estimate_wall_s(cfg, teacher_s_per_it=2.0)
@@ -296,7 +296,7 @@ def test_wall_time_estimate_by_hand():
 
 def test_eta_line_after_the_first_iterations():
     from march import train
-    from march.cli import load
+    from march.config.cli import load
 
     cfg = load(ETA_CFG)
     watch = train.EtaWatch(cfg, echo=False)
@@ -331,7 +331,7 @@ def test_eta_line_after_the_first_iterations():
 
 
 def test_banner_says_the_chosen_scale():
-    from march.cli import load
+    from march.config.cli import load
     from march.train import banner
 
     text = banner(load(["compute=auto"]), Path("outputs/x_cpu"), {}, auto=True)

@@ -8,8 +8,8 @@ import math
 import pytest
 import torch
 
-from march.cli import load
 from march.config import ConfigError, EnvCfg
+from march.config.cli import load
 from march.env.build import COURSE_HEADING, build_env_cfg, make_env
 
 

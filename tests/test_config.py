@@ -10,8 +10,8 @@ import pytest
 from hydra.errors import ConfigCompositionException
 from omegaconf.errors import ValidationError
 
-from march.cli import compose, load
 from march.config import COMPUTES, CURRICULA, REWARDS, STUDENTS, ConfigError, MarchConfig
+from march.config.cli import compose, load
 
 ROOT = __import__("pathlib").Path(__file__).resolve().parent.parent
 
@@ -285,7 +285,7 @@ def test_checkpoint_from_an_older_schema_keeps_missing_fields():
 def test_run_dirs_are_named_after_the_resolved_preset():
     import hydra
 
-    from march.cli import CONF_DIR
+    from march.config.cli import CONF_DIR
 
     for compute, suffix in (("auto", "cpu"), ("smoke", "smoke"), ("gpu", "gpu")):
         with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):

@@ -1,6 +1,6 @@
 """Every configuration value is checked when the config is composed (issue 12, item 7).
 
-The schema (``MarchConfig`` and its sections, ``march.terrain.CourseCfg`` included) is walked
+The schema (``MarchConfig`` and its sections, ``march.world.courses.CourseCfg`` included) is walked
 field by field: every leaf must have out-of-domain values below (``BAD``) or be listed in
 ``FREE`` with the reason it has no domain beyond its type, so a field added later without checks
 fails here. Each bad value must raise one :class:`ConfigError` line naming the key and the value;
@@ -23,8 +23,8 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from march.cli import compose
 from march.config import SEED_MAX, ConfigError, MarchConfig, cnn_output_hw, to_march_config
+from march.config.cli import compose
 from march.policies.student import StudentPolicy
 
 ROOT = Path(__file__).resolve().parent.parent

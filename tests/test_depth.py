@@ -59,7 +59,7 @@ def test_corruption_is_reproducible_with_a_generator():
 def test_depth_delay_is_wired_as_configured():
     """The student's depth term is delayed by mjlab's observation delay buffer with
     cfg.depth.delay_steps; evaluation without corruption has neither delay nor corruption."""
-    from march.cli import load
+    from march.config.cli import load
     from march.env.build import build_env_cfg
 
     cfg = load(["compute=smoke"])

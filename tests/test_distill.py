@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from march.cli import load
 from march.config import LoggerCfg, StudentCfg
+from march.config.cli import load
 from march.learn.checkpoint import load_checkpoint
 from march.learn.distill import DistillRunner, distill_update
 from march.learn.metrics import MetricsLog

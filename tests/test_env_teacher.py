@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from march.clf import CLF_OUTPUT_NAMES
-from march.cli import load
+from march.clf.lyapunov import CLF_OUTPUT_NAMES
+from march.config.cli import load
 from march.env.build import build_env_cfg, make_env
 from march.env.course import CourseRuler
 from march.env.observations import NUM_STONES, STONE_FEATURES

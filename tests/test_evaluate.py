@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 import torch
 
-from march.cli import load
+from march.config.cli import load
 from march.env.course import eval_cells
-from march.evaluate import episode_metrics, summarise
+from march.evaluation.protocol import episode_metrics, summarise
 from march.learn.metrics import EVAL_COLUMNS, EVAL_METRICS, append_row, has_row, truncate_rows
-from march.terrain import CourseCfg, generate_course
+from march.world.courses import CourseCfg, generate_course
 
 DT = 0.02
 PRESETS = ("smoke", "cpu", "gpu", "auto")
@@ -267,7 +267,7 @@ def _generated_goal_max(course: CourseCfg, seeds: int = 6) -> float:
 
 @pytest.mark.parametrize("preset", PRESETS)
 def test_goal_reachable_with_a_quarter_of_the_episode_to_spare(preset):
-    from march.env.terrain import foothold_table, terrain_generator_cfg
+    from march.env.stone_terrain import foothold_table, terrain_generator_cfg
 
     cfg = load([f"compute={preset}"])
     course, c = cfg.terrain, cfg.curriculum
@@ -376,7 +376,7 @@ def test_real_env_rollouts_on_stratified_cells_leave_training_rng_alone():
     a couple of seconds): 6 rollouts on 4 envs take two waves on the next course cells, every
     rollout ends by a fall inside the episode, and the caller's random state is untouched."""
     from march.env.build import make_env
-    from march.evaluate import rollout_metrics
+    from march.evaluation.protocol import rollout_metrics
 
     cfg = load(["compute=smoke"])
     env = make_env(cfg, "eval")

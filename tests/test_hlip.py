@@ -7,7 +7,7 @@ import pytest
 import torch
 from scipy.integrate import solve_ivp
 
-from march.hlip import (
+from march.reference.hlip import (
     HlipCfg,
     hlip_com_state,
     hlip_flow,

@@ -13,8 +13,8 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from march.cli import load
 from march.config import ConfigError
+from march.config.cli import load
 from march.learn.checkpoint import CheckpointError, load_checkpoint
 from march.learn.provenance import apply_checkpoint_config
 from march.train import run_pipeline

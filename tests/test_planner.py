@@ -8,11 +8,11 @@ import pytest
 import torch
 from synthetic import grid_course, make_footholds, straight_course
 
-from march.bench_planner import synthetic_courses
+from march.bench.planner_speed import synthetic_courses
 from march.config import EnvCfg
-from march.footholds import Footholds
-from march.planner import PlannerCfg, evaluate_plan, locate_on_stones, plan_footsteps
-from march.terrain import CourseCfg, footholds_from_layouts, generate_course, hardware_course
+from march.reference.planner import PlannerCfg, evaluate_plan, locate_on_stones, plan_footsteps
+from march.world.courses import CourseCfg, footholds_from_layouts, generate_course, hardware_course
+from march.world.footholds import Footholds
 
 torch.set_num_threads(1)
 CFG = PlannerCfg()

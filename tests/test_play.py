@@ -58,7 +58,7 @@ def test_play_writes_a_moving_video_of_a_student(tmp_path):
         pytest.skip(f"offscreen rendering unavailable: {why}")
     import imageio.v3 as iio
 
-    from march.cli import load
+    from march.config.cli import load
     from march.env.build import make_env
     from march.learn.distill import build_student, student_layout
 
@@ -100,7 +100,7 @@ def test_play_writes_a_moving_video_of_a_student(tmp_path):
 
 def test_checkpoint_policy_conflict_is_one_line_before_any_env(tmp_path, capsys):
     """A modelfree student checkpoint played with reward=clf: one line naming both values."""
-    from march.cli import load
+    from march.config.cli import load
 
     ckpt = tmp_path / "student.pt"
     torch.save({"kind": "student", "config": asdict(load(["reward=modelfree"]))}, ckpt)

@@ -6,9 +6,9 @@ import math
 import pytest
 import torch
 
-from march.hlip import HlipCfg, hlip_com_state
-from march.planner import Plan
-from march.reference import (
+from march.reference.hlip import HlipCfg, hlip_com_state
+from march.reference.planner import Plan
+from march.reference.trajectory import (
     ReferenceCfg,
     StepState,
     angle_mask,

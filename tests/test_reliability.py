@@ -19,8 +19,9 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from march.cli import load
 from march.config import ConfigError
+from march.config.cli import load
+from march.config.resume import RESUME_SAFE, resume_config
 from march.learn.checkpoint import (
     CheckpointError,
     ensure_model_file,
@@ -29,7 +30,6 @@ from march.learn.checkpoint import (
     save_checkpoint,
 )
 from march.learn.faults import NumericalFault, UpdateGuard, nonfinite_rows
-from march.resume import RESUME_SAFE, resume_config
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -335,7 +335,7 @@ def test_observation_normalization_in_state_dict_and_updates():
 # ----------------------------------------------------------------------------- ONNX
 @pytest.mark.parametrize("variant", ["full", "no_mdn"])
 def test_onnx_matches_torch(variant, tmp_path):
-    from march.onnx_export import export_student_onnx, read_onnx_metadata
+    from march.export.onnx_graph import export_student_onnx, read_onnx_metadata
 
     pol = small_policy(variant)
     pol.train()
@@ -385,7 +385,7 @@ def deep_policy(variant: str, n_layers: int) -> StudentPolicy:
 def test_deploy_graph_is_act_inference(variant, n_layers):
     """The export's fast graph (last layer CLS-only, attention written out) computes the same
     actions as the policy, mode choice included, for any depth of encoder."""
-    from march.onnx_export import DeployGraph
+    from march.export.onnx_graph import DeployGraph
 
     pol = deep_policy(variant, n_layers).train()
     pol.update_normalization(1.0 + 2.0 * torch.randn(64, HIST, P), torch.randn(64, CMD))
@@ -417,7 +417,7 @@ def test_deploy_graph_exports_without_shape_arithmetic(tmp_path):
     arithmetic); both graphs match the policy."""
     import onnx
 
-    from march.onnx_export import export_student_onnx, read_onnx_metadata
+    from march.export.onnx_graph import export_student_onnx, read_onnx_metadata
 
     pol = deep_policy("full", 2).eval()
     ops = {}

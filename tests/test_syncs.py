@@ -200,7 +200,7 @@ def test_episode_stats_window_over_many_random_steps():
 
 
 def _steps_without_sync(reward: str, steps: int) -> dict[str, object]:
-    from march.cli import load
+    from march.config.cli import load
     from march.env.build import make_env
 
     cfg = load(["compute=smoke", f"reward={reward}", "dr=paper", "compute.num_envs=8"])

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from march.terrain import (
+from march.world.courses import (
     ROLE_GOAL,
     ROLE_PAIR,
     ROLE_START,
@@ -204,7 +204,7 @@ def _compile(gen_cfg):
 def test_foothold_table_matches_compiled_terrain_geoms():
     import copy
 
-    from march.env.terrain import foothold_table, max_model_mismatch, terrain_generator_cfg
+    from march.env.stone_terrain import foothold_table, max_model_mismatch, terrain_generator_cfg
 
     gen_cfg = terrain_generator_cfg("stones", num_rows=4, num_cols=3, seed=7)
     table = foothold_table(gen_cfg)  # regenerated on a scratch spec
@@ -238,7 +238,7 @@ def test_foothold_table_matches_compiled_terrain_geoms():
 
 
 def test_foothold_table_is_deterministic_and_flat_first_levels():
-    from march.env.terrain import foothold_table, terrain_generator_cfg
+    from march.env.stone_terrain import foothold_table, terrain_generator_cfg
 
     a = foothold_table(terrain_generator_cfg("stones", num_rows=3, num_cols=2, seed=1))
     b = foothold_table(terrain_generator_cfg("stones", num_rows=3, num_cols=2, seed=1))
@@ -262,7 +262,11 @@ def test_foothold_table_is_deterministic_and_flat_first_levels():
 def test_terrain_entity_envs_get_their_cells_footholds_after_level_changes():
     from mjlab.terrains import TerrainEntity
 
-    from march.env.terrain import max_model_mismatch, terrain_entity_cfg, terrain_foothold_table
+    from march.env.stone_terrain import (
+        max_model_mismatch,
+        terrain_entity_cfg,
+        terrain_foothold_table,
+    )
 
     cfg = terrain_entity_cfg("stones", num_rows=4, num_cols=3, seed=5, max_init_terrain_level=None)
     cfg.num_envs = 16

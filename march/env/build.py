@@ -43,12 +43,12 @@ from march.env.observations import reference_obs, stones_ahead, terrain_height_s
 from march.env.randomization import apply_dr
 from march.env.reference_command import ReferenceCommandCfg
 from march.env.rewards import REFERENCE_COMMAND, needs_reference, reward_terms
+from march.env.stone_terrain import terrain_entity_cfg
 from march.env.terminations import foot_too_low, planner_infeasible
-from march.env.terrain import terrain_entity_cfg
 
 PURPOSES = ("teacher", "student", "eval")
 COURSE_HEADING = 0.0
-"""World yaw of every generated course's direction (+x, ``march.terrain``) [rad]: the heading
+"""World yaw of every generated course's direction (+x, ``march.world.courses``) [rad]: the heading
 the twist command's heading controller steers to."""
 
 # Warp reports every kernel module it loads (hundreds of lines per run); warnings still show.

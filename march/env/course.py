@@ -1,7 +1,7 @@
 """The course as the env sees it: the ruler (progress, goal) and the level curriculum.
 
 Every env's course comes from the foothold table of the compiled terrain
-(:func:`march.env.terrain.terrain_foothold_table`), built once per env and cached on it. Progress
+(:func:`march.env.stone_terrain.terrain_foothold_table`), built once per env and cached on it. Progress
 is the pelvis displacement along the course direction (+x) from the env's spawn origin on the
 start platform, clipped to [0, course length]; the goal is reached when progress passes the
 start of the goal platform.
@@ -12,9 +12,9 @@ from __future__ import annotations
 import torch
 from mjlab.envs import ManagerBasedRlEnv
 
-from march.env.terrain import terrain_foothold_table
-from march.footholds import Footholds
-from march.terrain import FootholdTable
+from march.env.stone_terrain import terrain_foothold_table
+from march.world.courses import FootholdTable
+from march.world.footholds import Footholds
 
 _TABLE_ATTR = "_march_foothold_table"
 

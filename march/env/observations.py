@@ -13,7 +13,7 @@ from mjlab.envs import ManagerBasedRlEnv
 from march.env.course import CourseRuler, foothold_table
 from march.env.reference_command import reference_term
 from march.env.step_cache import constant, shared
-from march.env.terrain import max_boxes_in_reach, terrain_boxes
+from march.env.stone_terrain import max_boxes_in_reach, terrain_boxes
 
 NUM_STONES = 5
 """K: stones observed ahead of the robot."""
@@ -47,7 +47,7 @@ def terrain_height_scan(
     """(E, N) height of the pelvis above the terrain at the points of a yaw-aligned grid around
     it: what mjlab's ``terrain_scan`` ray-cast sensor + ``height_scan`` observation give
     (vertical rays from pelvis height, first terrain surface below, ``max_distance`` for a
-    miss), computed from the terrain's boxes (:func:`march.env.terrain.terrain_boxes`: every
+    miss), computed from the terrain's boxes (:func:`march.env.stone_terrain.terrain_boxes`: every
     terrain geom is an axis-aligned box whose top is its only upward face) instead of casting
     rays through the scene. The robot's own geoms are not terrain (geom groups 2 and 3; the
     sensor scans group 0 only), so the two agree; a box whose top lies above the pelvis is
@@ -64,7 +64,7 @@ def terrain_height_scan(
 def _scan_table(env: ManagerBasedRlEnv, reach: float) -> tuple[torch.Tensor, torch.Tensor, int]:
     """Per cell (flattened row-major), kept on the env: the boxes' x-extents (R*C, K, 2) (lo, hi;
     padding +inf, -inf), the boxes packed (R*C*K, 6) as (x, y, top, half x, half y, valid) and
-    the most boxes any scan can reach (:func:`march.env.terrain.max_boxes_in_reach`)."""
+    the most boxes any scan can reach (:func:`march.env.stone_terrain.max_boxes_in_reach`)."""
     top_center, half, valid = terrain_boxes(foothold_table(env))
     r, c, k = valid.shape
     lo = (top_center[..., 0] - half[..., 0]).masked_fill(~valid, float("inf"))

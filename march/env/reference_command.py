@@ -1,9 +1,9 @@
 """The ``reference`` command term: stage (1) of the CLF teacher inside the mjlab env.
 
 It keeps, per env, the walking state the CLF rewards need: which foot is the stance foot and
-where it touched down, the current footstep plan (N = 4 steps from :func:`march.planner.
+where it touched down, the current footstep plan (N = 4 steps from :func:`march.reference.planner.
 plan_footsteps`), the time ``tau`` since the step began and its planned duration, the reference
-outputs ``y_ref`` (:func:`march.reference.reference_at`) and the measured outputs ``y_sim``, and
+outputs ``y_ref`` (:func:`march.reference.trajectory.reference_at`) and the measured outputs ``y_sim``, and
 the CLF value V with its derivative.
 
 Decisions (documented here once; the README repeats them)
@@ -18,7 +18,7 @@ Decisions (documented here once; the README repeats them)
   reference that integrated a sampled yaw rate, which led the plan and the yaw references off
   the straight course (goal reached on 0-6% of walks at 0.1-0.2 rad/s).
 - **Start from standing.** The first step of an episode ramps its CoM reference from rest at the
-  measured CoM into the HLIP orbit (``march.reference``, ``StepState.ramp``); later steps (and
+  measured CoM into the HLIP orbit (``march.reference.trajectory``, ``StepState.ramp``); later steps (and
   timeout restarts) start on the orbit as before.
 - **Initial stance (episode reset).** The foot that is further behind along the course direction
   is the stance foot; when the feet are level within ``stance_tie_m`` (the usual spawn) the left
@@ -78,13 +78,12 @@ import torch
 from mjlab.managers.command_manager import CommandTerm, CommandTermCfg
 from mjlab.utils.lab_api.math import euler_xyz_from_quat, quat_apply_inverse, quat_from_matrix
 
-from march.clf import CLF_OUTPUT_NAMES, UPPER_BODY_JOINTS, ClfCfg, ClfModel, VHistory
+from march.clf.lyapunov import CLF_OUTPUT_NAMES, UPPER_BODY_JOINTS, ClfCfg, ClfModel, VHistory
 from march.env.course import foothold_table
 from march.env.step_cache import site_pos, site_state, site_xmat
-from march.footholds import Footholds
-from march.hlip import HlipCfg
-from march.planner import Plan, PlannerCfg, course_frame, plan_footsteps
-from march.reference import (
+from march.reference.hlip import HlipCfg
+from march.reference.planner import Plan, PlannerCfg, course_frame, plan_footsteps
+from march.reference.trajectory import (
     ReferenceCfg,
     StepState,
     angle_mask,
@@ -93,6 +92,7 @@ from march.reference import (
     tracking_error,
     wrap_to_pi,
 )
+from march.world.footholds import Footholds
 
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv

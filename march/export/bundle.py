@@ -9,9 +9,9 @@ The checkpoint decides the policy (:func:`march.learn.provenance.apply_checkpoin
 saved config's ``student`` section and its ``layout`` (proprio size, history length, image size,
 action count) rebuild the :class:`~march.policies.student.StudentPolicy`, and its camera and
 observation settings describe what deployment feeds; the command line does not change them.
-:func:`march.onnx_export.export_student_onnx` writes the fast deployment graph of the
+:func:`march.export.onnx_graph.export_student_onnx` writes the fast deployment graph of the
 deterministic ``act_inference`` (observation normalisers baked in;
-:class:`~march.onnx_export.DeployGraph`), checks
+:class:`~march.export.onnx_graph.DeployGraph`), checks
 it against the policy with onnxruntime and times it on one CPU thread. ``out``: a file ending in
 ``.onnx``, or a folder that receives ``student.onnx``; default ``student.onnx`` next to the
 checkpoint.
@@ -52,8 +52,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from march.cli import fail, run_tool
 from march.config import MarchConfig
+from march.config.cli import fail, run_tool
 from march.env.build import PROPRIO_TERMS
 
 USAGE = (
@@ -250,7 +250,7 @@ def _courses(env_cfg: Any, scene: Any) -> list[list[dict[str, Any]]]:
     """The course grid of a scene as data: per cell its spawn point, goal and boxes (world)."""
     import numpy as np
 
-    from march.env.terrain import foothold_table
+    from march.env.stone_terrain import foothold_table
 
     table = foothold_table(env_cfg.scene.terrain.terrain_generator)
     origins = np.asarray(scene.terrain.terrain_origins.cpu(), dtype=np.float64)
@@ -502,9 +502,9 @@ def write_bundle(
 
 def export(cfg: MarchConfig, overrides: Sequence[str] = ()) -> dict[str, Any]:
     from march.config import ConfigError
+    from march.export.onnx_graph import export_student_onnx
     from march.learn.checkpoint import CheckpointError, load_checkpoint
     from march.learn.provenance import apply_checkpoint_config
-    from march.onnx_export import export_student_onnx
 
     path = cfg.student_ckpt
     if not path:

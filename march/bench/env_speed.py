@@ -41,7 +41,7 @@ step goes, as exclusive milliseconds per control step:
 glue in ``step``). ``sections_ms`` lists the finer sections (each reward, observation, termination,
 command and event term) largest first.
 
-``planner``: :func:`march.bench_planner.bench_planner` (``steps`` timed replans of all
+``planner``: :func:`march.bench.planner_speed.bench_planner` (``steps`` timed replans of all
 ``num_envs`` envs on synthetic courses), plus the march teacher env's step time measured in the
 same run: ``planner_share_of_env_step`` = ms per full-batch replan / ms per env step (an upper
 bound: the env plans its reset envs plus one fixed batch of 1/8 of the envs per step). ``in_env_*`` measures the
@@ -64,8 +64,8 @@ import types
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
-from march.cli import fail, run_tool
 from march.config import MarchConfig
+from march.config.cli import fail, run_tool
 
 USAGE = (
     "usage: python -m march.bench env|planner [compute.num_envs=64] [compute.device=...] "
@@ -579,13 +579,13 @@ def _threads() -> int:
 
 def touchdown_rate(cfg: MarchConfig, num_courses: int = 8) -> tuple[float, float]:
     """(mean planned step duration [s], touchdowns per env per control step) of the planner's
-    own walks (:func:`march.viz_plan.walk_course`) over generated courses at difficulties
+    own walks (:func:`march.viz.plan_view.walk_course`) over generated courses at difficulties
     spread over [0, 1], forward command = the middle of ``env.command_vx``."""
     import numpy as np
     import torch
 
-    from march.terrain import footholds_from_layouts, generate_course
-    from march.viz_plan import walk_course
+    from march.viz.plan_view import walk_course
+    from march.world.courses import footholds_from_layouts, generate_course
 
     rng = np.random.default_rng(cfg.seed)
     layouts = [generate_course(d, cfg.terrain, rng) for d in np.linspace(0, 1, num_courses)]
@@ -599,7 +599,7 @@ def touchdown_rate(cfg: MarchConfig, num_courses: int = 8) -> tuple[float, float
 
 
 def bench_planner_share(cfg: MarchConfig, steps: int, warmup: int) -> dict[str, Any]:
-    from march.bench_planner import bench_planner
+    from march.bench.planner_speed import bench_planner
     from march.env.build import make_env
     from march.env.rewards import needs_reference
 
@@ -655,7 +655,3 @@ def main(argv: Sequence[str] | None = None) -> None:
     }
     result = run_tool(jobs, args, usage=USAGE)
     print(json.dumps(result, indent=2), flush=True)
-
-
-if __name__ == "__main__":
-    main()

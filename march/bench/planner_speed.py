@@ -13,8 +13,8 @@ from collections.abc import Sequence
 
 import torch
 
-from march.footholds import Footholds
-from march.planner import PlannerCfg, plan_footsteps
+from march.reference.planner import PlannerCfg, plan_footsteps
+from march.world.footholds import Footholds
 
 PLATFORM_HALF = 0.6
 """Half size of the square start and goal platforms [m]."""

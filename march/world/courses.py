@@ -1,6 +1,6 @@
 """Stepping-stone courses as pure data: layouts (numpy) and foothold tensors (torch).
 
-No simulator import: ``march.env.terrain`` turns a :class:`CourseLayout` into MuJoCo box geoms
+No simulator import: ``march.env.stone_terrain`` turns a :class:`CourseLayout` into MuJoCo box geoms
 and :class:`FootholdTable` is the per-(level, column) ground truth the command term indexes.
 
 Frames and conventions
@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from march.footholds import Footholds
+from march.world.footholds import Footholds
 
 ROLE_START = 0
 """``CourseLayout.role``: the start platform (also the single platform of the flat layout)."""
@@ -206,7 +206,7 @@ class CourseLayout:
     kind: str = "stones"
     """"stones", "flat" or "hardware"."""
     name: str = ""
-    """Geom name prefix in the compiled model (set by march.env.terrain): box k is named
+    """Geom name prefix in the compiled model (set by march.env.stone_terrain): box k is named
     f"{name}_{k:02d}" and the pit floor f"{name}_pit"."""
 
     @property
@@ -475,7 +475,7 @@ def footholds_from_layouts(
 class FootholdTable:
     """Foothold ground truth of every cell (row = curriculum level, col = column) of a terrain.
 
-    Built once per compiled terrain (``march.env.terrain.foothold_table``); positions are
+    Built once per compiled terrain (``march.env.stone_terrain.foothold_table``); positions are
     stored relative to each cell's spawn origin so that :meth:`for_envs` only adds mjlab's
     ``env_origins``. The table itself never changes: curriculum level changes only move an
     env to another (row, col), so look the env up again after every level change - in mjlab

@@ -1,6 +1,6 @@
 """Top view of stepping-stone courses at several difficulty levels (matplotlib, no simulator).
 
-``python -m march.viz_terrain [out.png]`` draws the default courses; ``draw_terrain`` is the API.
+``python -m march.viz.terrain_view [out.png]`` draws the default courses; ``draw_terrain`` is the API.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np  # noqa: E402
 from matplotlib.colors import Normalize  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
-from march.terrain import (  # noqa: E402
+from march.world.courses import (  # noqa: E402
     ROLE_GOAL,
     ROLE_PAIR,
     ROLE_START,

@@ -7,7 +7,7 @@
 Every job composes the same config as ``march.train`` and takes its ``key=value`` overrides
 (e.g. ``seed=3``, ``terrain.pair_prob=0.5``, ``depth.dropout=0.2``); it prints the file written.
 
-- ``terrain``: :func:`march.viz_terrain.draw_terrain` on ``cfg.terrain`` (difficulties 0, 1/3,
+- ``terrain``: :func:`march.viz.terrain_view.draw_terrain` on ``cfg.terrain`` (difficulties 0, 1/3,
   2/3, 1 and the hardware course; courses drawn with ``seed``). No simulator.
 - ``depth``: builds the ``student`` env with 4 envs (on ``compute.device``) spread over the
   curriculum levels 0 .. num_levels-1, steps it a few control steps with zero actions (the robot
@@ -15,10 +15,10 @@ Every job composes the same config as ``march.train`` and takes its ``key=value`
   env: the chest camera's depth normalised only (``march.env.depth.normalize``), the same frame
   through the training corruption (``corrupt`` then ``normalize`` with ``cfg.depth``, seeded),
   and the env's own ``depth`` observation (corrupted and delayed, what the student was fed).
-- ``plan``: courses drawn by :func:`march.terrain.generate_course` at difficulties 0, 1/3, 2/3,
+- ``plan``: courses drawn by :func:`march.world.courses.generate_course` at difficulties 0, 1/3, 2/3,
   1 (plus the hardware course), walked with the models only by
-  :func:`march.viz_plan.walk_course` (replan at every touchdown, forward command
-  ``eval.command_vx``); drawn by :func:`march.viz_plan.draw_plans`. No simulator.
+  :func:`march.viz.plan_view.walk_course` (replan at every touchdown, forward command
+  ``eval.command_vx``); drawn by :func:`march.viz.plan_view.draw_plans`. No simulator.
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from march.cli import fail, run_tool
 from march.config import MarchConfig
+from march.config.cli import fail, run_tool
 
 USAGE = "usage: python -m march.viz terrain|depth|plan [out=<file>.png] [key=value ...]"
 DIFFICULTIES = (0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0)
@@ -48,7 +48,7 @@ def _out(cfg: MarchConfig, default: str) -> Path:
 
 
 def terrain(cfg: MarchConfig) -> Path:
-    from march.viz_terrain import draw_terrain
+    from march.viz.terrain_view import draw_terrain
 
     out = draw_terrain(cfg.terrain, _out(cfg, "terrain.png"), DIFFICULTIES, seed=cfg.seed)
     print(out)
@@ -59,8 +59,8 @@ def plan(cfg: MarchConfig) -> Path:
     import numpy as np
     import torch
 
-    from march.terrain import footholds_from_layouts, generate_course, hardware_course
-    from march.viz_plan import draw_plans, on_stones, walk_course
+    from march.viz.plan_view import draw_plans, on_stones, walk_course
+    from march.world.courses import footholds_from_layouts, generate_course, hardware_course
 
     out = _out(cfg, "plan.png")
     rng = np.random.default_rng(cfg.seed)

@@ -50,7 +50,7 @@ from mjlab.terrains.terrain_generator import (
     TerrainOutput,
 )
 
-from march.terrain import (
+from march.world.courses import (
     ROLE_GOAL,
     ROLE_START,
     CourseCfg,

@@ -15,11 +15,11 @@ from matplotlib.colors import Normalize  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
-from march.bench_planner import synthetic_courses  # noqa: E402
-from march.footholds import Footholds  # noqa: E402
-from march.hlip import HlipCfg  # noqa: E402
-from march.planner import Plan, PlannerCfg, plan_footsteps  # noqa: E402
-from march.reference import ReferenceCfg, reference_at, step_state_from_plan  # noqa: E402
+from march.bench.planner_speed import synthetic_courses  # noqa: E402
+from march.reference.hlip import HlipCfg  # noqa: E402
+from march.reference.planner import Plan, PlannerCfg, plan_footsteps  # noqa: E402
+from march.reference.trajectory import ReferenceCfg, reference_at, step_state_from_plan  # noqa: E402
+from march.world.footholds import Footholds  # noqa: E402
 
 LEFT_COLOR, RIGHT_COLOR = "tab:blue", "tab:red"
 
@@ -147,7 +147,7 @@ def walk_course(
             swing = plan.start.clone()
             swing[:, :2] -= planner.step_width * lat
         # The first step starts from standing: its CoM reference ramps from rest at the feet's
-        # midpoint (march.reference), as the env's first step does from the measured CoM.
+        # midpoint (march.reference.trajectory), as the env's first step does from the measured CoM.
         ramp_from = 0.5 * (plan.start[:, :2] + swing[:, :2]) if k == 0 else None
         step = step_state_from_plan(plan, plan.start, swing, zero, zero, axis, ramp_from=ramp_from)
         for j in range(samples_per_step):

@@ -61,7 +61,7 @@ from dataclasses import dataclass
 
 import torch
 
-from march.footholds import Footholds
+from march.world.footholds import Footholds
 
 _EPS = 1e-5
 """Numerical slack [m] so that clamped footholds pass ``Footholds.contains`` in float32."""

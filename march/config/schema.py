@@ -20,7 +20,7 @@ from typing import Any, get_args, get_origin, get_type_hints
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
-from march.terrain import CourseCfg
+from march.world.courses import CourseCfg
 
 STAGES = ("all", "teacher", "student", "eval")
 REWARDS = ("clf", "modelfree")
@@ -738,7 +738,7 @@ class MarchConfig:
             )
 
 
-SWEEPS_DIR = Path(__file__).resolve().parent.parent / "sweeps"
+SWEEPS_DIR = Path(__file__).resolve().parents[2] / "sweeps"
 
 
 def register_schema() -> None:

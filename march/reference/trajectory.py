@@ -31,7 +31,7 @@ phi = tau / T:
 so it starts at the measured CoM with zero velocity, v is the exact time derivative of p, and at
 the planned touchdown (s = 1, ds/dtau = 0) it is on the orbit's pre-impact state, where the
 following steps continue as before. Past the planned duration every step's CoM reference keeps
-flowing along the HLIP (:func:`march.hlip.hlip_com_state`).
+flowing along the HLIP (:func:`march.reference.hlip.hlip_com_state`).
 """
 
 from __future__ import annotations
@@ -41,8 +41,8 @@ from dataclasses import dataclass, fields
 
 import torch
 
-from march.hlip import HlipCfg, hlip_com_state
-from march.planner import Plan
+from march.reference.hlip import HlipCfg, hlip_com_state
+from march.reference.planner import Plan
 
 ANGLE_OUTPUTS = (
     "pelvis_roll",

@@ -22,8 +22,8 @@ from omegaconf.errors import OmegaConfBaseException
 import march.config  # noqa: F401  (registers the schema)
 from march.config import ConfigError, MarchConfig, to_march_config
 
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
-SWEEPS_DIR = Path(__file__).resolve().parent.parent / "sweeps"
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+SWEEPS_DIR = Path(__file__).resolve().parents[2] / "sweeps"
 
 
 def cuda_available() -> bool:

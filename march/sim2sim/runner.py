@@ -32,7 +32,7 @@ Arguments (``key=value`` words, as every march tool; parsed here without Hydra):
 - ``threads``: onnxruntime intra-op threads (1, as on the robot).
 
 Prints ONE JSON object: ``distance_m``, ``success``, ``fell``, ``abs_torque_nm``,
-``abs_ang_jerk`` (march.evaluate's definitions, repeated in the bundle), ``steps``,
+``abs_ang_jerk`` (march.evaluation.protocol's definitions, repeated in the bundle), ``steps``,
 ``ms_per_policy_call`` (median), ``ms_per_policy_call_p95``, ``ms_per_depth_image``, the course
 cell and the arguments. Bad input is one line on stderr and exit status 2, before simulating.
 
@@ -72,7 +72,7 @@ USAGE = (
     "[difficulty=0.5] [seed=0] [seconds=20] [out=rollout.mp4] [threads=1]"
 )
 BUNDLE_FORMAT = 1
-"""The ``deploy.json`` layout this loop reads (march.export.BUNDLE_FORMAT)."""
+"""The ``deploy.json`` layout this loop reads (march.export.bundle.BUNDLE_FORMAT)."""
 INPUTS = ("proprio_hist", "command", "depth")
 OUTPUT = "actions"
 
@@ -483,7 +483,7 @@ class Video:
 def rollout(
     sim: Sim2Sim, seconds: float, video: Video | None = None, max_steps: int | None = None
 ) -> dict[str, Any]:
-    """Run one episode from the current state; the metrics of march.evaluate.rollout_metrics.
+    """Run one episode from the current state; the metrics of march.evaluation.protocol.rollout_metrics.
 
     As there, the step that ends the episode (fall or time-out) adds no torque or jerk, and the
     distance is the progress before that step.
@@ -565,7 +565,3 @@ def main(argv: Sequence[str] | None = None) -> None:
         print(f"error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
     print(json.dumps(row))
-
-
-if __name__ == "__main__":
-    main()

@@ -1,0 +1,1 @@
+"""``python -m march.bench env|planner``: env and planner speed against bare mjlab, as JSON."""

@@ -1,0 +1,3 @@
+from march.bench.env_speed import main
+
+main()

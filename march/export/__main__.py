@@ -1,0 +1,3 @@
+from march.export.bundle import main
+
+main()

@@ -1,0 +1,3 @@
+from march.sim2sim.runner import main
+
+main()

@@ -1,0 +1,3 @@
+from march.viz.views import main
+
+main()
