@@ -13,11 +13,9 @@ from them by itself (this is what makes a Slurm requeue continue).
 
 from __future__ import annotations
 
-import math
 import os
 import random
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,8 +28,8 @@ from omegaconf import DictConfig, OmegaConf
 from march.config import ConfigError, MarchConfig, to_march_config
 from march.config.cli import fail, resolve_compute
 from march.learn.checkpoint import CheckpointError, write_json_atomic
+from march.learn.eta import ETA_ITERATIONS, EtaMetricsLog, EtaWatch
 from march.learn.faults import NumericalFault
-from march.learn.metrics import MetricsLog
 
 
 def _seed_everything(seed: int) -> None:
@@ -77,215 +75,6 @@ def banner(
         lines += [f"  - {k}: {v}" for k, v in placeholders.items()]
     lines.append("=" * 78)
     return "\n".join(lines)
-
-
-# ---------------------------------------------------------------------------- wall-time estimate
-
-ETA_ITERATIONS = 3
-"""Iterations measured before the [eta] line is printed (fewer if the stage is shorter)."""
-
-
-@dataclass(frozen=True)
-class StepCosts:
-    """Seconds of one env step of another stage per second of one teacher PPO env step (its
-    rollout step plus its share of the update), at equal env counts. Rough: the [eta] line says
-    so, and distillation is measured again once it runs."""
-
-    eval: float
-    """An evaluation step: depth rendering and inference, no update."""
-    distill_rollout: float
-    """A distillation rollout step: depth rendering, student and teacher inference."""
-    distill_epoch: float
-    """The student update per rollout step and per epoch (student forward + backward)."""
-
-
-STEP_COSTS = {
-    # 2 CPU cores, compute=smoke (4 envs): teacher 0.25 s per step, a 1-epoch distillation
-    # iteration 1.37 s per step, evaluation ~0.4 s per step.
-    "cpu": StepCosts(eval=1.6, distill_rollout=1.6, distill_epoch=4.0),
-    # GPU: not measured yet; the student's batched forward/backward is cheap next to 4096 envs'
-    # physics, so an epoch costs a fraction of a teacher step.
-    "cuda": StepCosts(eval=1.5, distill_rollout=1.5, distill_epoch=0.25),
-}
-
-
-def step_costs(device: str) -> StepCosts:
-    return STEP_COSTS["cuda" if device.startswith("cuda") else "cpu"]
-
-
-def format_duration(seconds: float) -> str:
-    """``45 s``, ``52 min``, ``1 h 10 min``, ``26 h``: minutes are the finest unit past one."""
-    s = max(0.0, float(seconds))
-    if s < 60:
-        return f"{s:.0f} s"
-    minutes = round(s / 60)
-    if minutes < 60:
-        return f"{minutes} min"
-    h, m = divmod(minutes, 60)
-    return f"{h} h {m} min" if m else f"{h} h"
-
-
-def evaluation_counts(cfg: MarchConfig) -> tuple[int, int]:
-    """(teacher, student) evaluations a run of ``cfg.stage`` makes (eval rows + the summary)."""
-    t, d = cfg.teacher, cfg.distill
-    # The teacher: every eval_interval iterations and at the end of the stage.
-    n_teacher = t.iterations // t.eval_interval if t.eval_interval else 0
-    if not t.eval_interval or t.iterations % t.eval_interval:
-        n_teacher += 1
-    # The student: every eval_interval iterations except the last, whose evaluation is the final.
-    n_student = 1 + ((d.max_iterations - 1) // d.eval_interval if d.eval_interval else 0)
-    return {
-        "all": (n_teacher, n_student),
-        "teacher": (n_teacher, 0),
-        "student": (0, n_student),
-        "eval": (0, 1),
-    }[cfg.stage]
-
-
-def estimate_wall_s(
-    cfg: MarchConfig,
-    teacher_s_per_it: float | None = None,
-    distill_s_per_it: float | None = None,
-    teacher_from: int = 0,
-    distill_from: int = 0,
-) -> dict[str, float]:
-    """Expected seconds of the teacher, distillation and evaluations of ``cfg.stage`` from here.
-
-    One measured speed is needed: the teacher's seconds per PPO iteration, or (stage=student, or
-    once distillation runs) the distillation's. The other stages are scaled from it per env step
-    with :data:`STEP_COSTS` of the device; ``*_from`` are the
-    iterations already done (a resumed run). Evaluation: ceil(num_rollouts / eval_num_envs)
-    waves of eval.episode_length_s each, at eval_num_envs envs (step cost taken as linear in the
-    env count, an overestimate on a GPU).
-    """
-    c, t, d, e = cfg.compute, cfg.teacher, cfg.distill, cfg.eval
-    k = step_costs(c.device)
-    distill_step_cost = k.distill_rollout + k.distill_epoch * d.num_learning_epochs
-    if teacher_s_per_it is not None:
-        step_s = teacher_s_per_it / t.num_steps_per_env  # one env step of all num_envs envs
-    elif distill_s_per_it is not None:
-        step_s = distill_s_per_it / (d.num_steps_per_env * distill_step_cost)
-    else:
-        raise ValueError("estimate_wall_s needs a measured teacher or distillation speed")
-    if distill_s_per_it is None:
-        distill_s_per_it = step_s * d.num_steps_per_env * distill_step_cost
-    if teacher_s_per_it is None:
-        teacher_s_per_it = step_s * t.num_steps_per_env
-    dt = cfg.env.sim_dt * cfg.env.decimation
-    waves = math.ceil(e.num_rollouts / c.eval_num_envs)
-    one_eval = waves * (e.episode_length_s / dt) * step_s * k.eval
-    one_eval *= c.eval_num_envs / c.num_envs
-    n_teacher, n_student = evaluation_counts(cfg)
-    teacher = distill = 0.0
-    if cfg.stage in ("all", "teacher"):
-        teacher = teacher_s_per_it * max(0, t.iterations - teacher_from)
-    if cfg.stage in ("all", "student"):
-        distill = distill_s_per_it * max(0, d.max_iterations - distill_from)
-    # Evaluations already made are not repeated.
-    if teacher_from >= t.iterations:
-        n_teacher = 0
-    elif t.eval_interval:
-        n_teacher -= teacher_from // t.eval_interval
-    if d.eval_interval:
-        n_student -= min(n_student - 1, distill_from // d.eval_interval)
-    evals = (n_teacher + n_student) * one_eval
-    return {
-        "teacher": teacher,
-        "distill": distill,
-        "eval": evals,
-        "total": teacher + distill + evals,
-    }
-
-
-class EtaWatch:
-    """Prints the [eta] line once the first iterations of a stage have been measured.
-
-    Fed the rows ``metrics.csv`` receives (their ``wall_s`` is the stage's own training time, so
-    evaluations in between do not distort the speed); :meth:`start` tells it where a resumed
-    stage begins. The first iteration of a process carries one-off costs (kernel compilation,
-    lazy initialisation, CUDA graph capture): it is left out of the measurement when the stage
-    has more than ``n`` iterations, so the speed is that of the following ``n``.
-    """
-
-    def __init__(self, cfg: MarchConfig, n: int = ETA_ITERATIONS, echo: bool = True) -> None:
-        self.cfg, self.n, self.echo = cfg, n, echo
-        self.origin: dict[str, tuple[int, float]] = {}  # where the stage began in this process
-        self.mark: dict[str, tuple[int, float]] = {}  # where the measurement begins
-        self.done: set[str] = set()
-        self.teacher_s_per_it: float | None = None
-        self.lines: list[str] = []
-
-    def start(self, stage: str, iteration: int, wall_s: float) -> None:
-        self.origin[stage] = self.mark[stage] = (int(iteration), float(wall_s))
-
-    def observe(self, row: dict[str, Any]) -> str | None:
-        stage = row.get("stage")
-        if stage not in ("teacher", "student") or stage in self.done:
-            return None
-        it0, _ = self.origin.setdefault(stage, (0, 0.0))
-        total = (
-            self.cfg.teacher.iterations if stage == "teacher" else self.cfg.distill.max_iterations
-        )
-        left = max(1, total - it0)
-        it, wall = int(row["iteration"]), float(row["wall_s"])
-        if left > self.n and it == it0 + 1:  # the warm-up iteration: measure from its end
-            self.mark[stage] = (it, wall)
-            return None
-        mark_it, mark_wall = self.mark.setdefault(stage, (it0, 0.0))
-        done = it - mark_it
-        if done < min(self.n, left):
-            return None
-        self.done.add(stage)
-        s_per_it = (wall - mark_wall) / done
-        plural = "s" if done > 1 else ""
-        kind = "" if stage == "teacher" else "distillation "
-        if mark_it == it0:
-            over = f"the first {done} {kind}iteration{plural}"
-        else:
-            over = f"{kind}iterations {mark_it + 1}-{it}"
-        if stage == "teacher":
-            self.teacher_s_per_it = s_per_it
-            est = estimate_wall_s(self.cfg, teacher_s_per_it=s_per_it, teacher_from=it0)
-            line = (
-                f"[eta] measured {s_per_it:.3g} s/it over {over}: "
-                f"teacher ~{format_duration(est['teacher'])}, whole run "
-                f"~{format_duration(est['total'])}"
-            )
-            if self.cfg.stage == "all":
-                line += (
-                    f" (distillation ~{format_duration(est['distill'])} and evaluations "
-                    f"~{format_duration(est['eval'])}: rough, from the teacher's speed)"
-                )
-        else:
-            # Evaluations scale with the teacher's speed when it was measured in this process.
-            est = estimate_wall_s(
-                self.cfg,
-                teacher_s_per_it=self.teacher_s_per_it,
-                distill_s_per_it=s_per_it,
-                teacher_from=self.cfg.teacher.iterations,
-                distill_from=it0,
-            )
-            line = (
-                f"[eta] measured {s_per_it:.3g} s/it over {over}: distillation "
-                f"~{format_duration(est['distill'])}, with its evaluations "
-                f"~{format_duration(est['distill'] + est['eval'])}"
-            )
-        self.lines.append(line)
-        if self.echo:
-            print(line, flush=True)
-        return line
-
-
-class EtaMetricsLog(MetricsLog):
-    """metrics.csv (and the selected logger) plus the [eta] line after the first iterations."""
-
-    def __init__(self, run_dir: Path, cfg: MarchConfig, eta: EtaWatch) -> None:
-        super().__init__(run_dir, cfg.logger, run_dir.name)
-        self.eta = eta
-
-    def log(self, row: dict[str, Any]) -> None:
-        super().log(row)
-        self.eta.observe(row)
 
 
 def _check_inputs(cfg: MarchConfig) -> None:

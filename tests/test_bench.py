@@ -13,7 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from march.bench.env_speed import JOB_DEFAULTS, StepProfiler, job_options, pop_bench_options
+from march.bench.command import JOB_DEFAULTS, job_options, pop_bench_options
+from march.bench.profiler import StepProfiler
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -232,7 +232,7 @@ def test_viz_depth_writes_png(tmp_path):
 # march.bench's tests: tests/test_bench.py
 
 
-# ------------------------------------------------------------- what a run will cost (march.train)
+# --------------------------------------------- what a run will cost (march.learn.eta, march.train)
 
 ETA_CFG = [
     "compute=smoke",
@@ -262,68 +262,68 @@ ETA_CFG = [
     ],
 )
 def test_format_duration(seconds, text):
-    from march.train import format_duration
+    from march.learn.eta import format_duration
 
     assert format_duration(seconds) == text
 
 
 def test_wall_time_estimate_by_hand():
-    from march import train
     from march.config.cli import load
+    from march.learn import eta
 
     cfg = load(ETA_CFG)
-    est = train.estimate_wall_s(cfg, teacher_s_per_it=2.0)
+    est = eta.estimate_wall_s(cfg, teacher_s_per_it=2.0)
     step = 2.0 / 20  # s per env step of the 8 teacher envs
-    k = train.STEP_COSTS["cpu"]
+    k = eta.STEP_COSTS["cpu"]
     distill_it = step * 40 * (k.distill_rollout + 2 * k.distill_epoch)
     # 3 waves of 4 envs (10 rollouts) x 100 control steps, at 4 of the 8 envs.
     one_eval = 3 * 100 * step * k.eval * 4 / 8
     # Teacher evaluations at 4, 8 and the end (10); student at 4 and the final one.
-    assert train.evaluation_counts(cfg) == (3, 2)
+    assert eta.evaluation_counts(cfg) == (3, 2)
     assert est["teacher"] == pytest.approx(20.0)
     assert est["distill"] == pytest.approx(6 * distill_it)
     assert est["eval"] == pytest.approx(5 * one_eval)
     assert est["total"] == pytest.approx(20.0 + 6 * distill_it + 5 * one_eval)
     # Resumed at teacher iteration 4: 6 iterations and 2 teacher evaluations are left.
-    est = train.estimate_wall_s(cfg, teacher_s_per_it=2.0, teacher_from=4)
+    est = eta.estimate_wall_s(cfg, teacher_s_per_it=2.0, teacher_from=4)
     assert est["teacher"] == pytest.approx(12.0) and est["eval"] == pytest.approx(4 * one_eval)
     # stage=student: distillation and its evaluations only, from the distillation's speed.
     cfg = load([*ETA_CFG, "stage=student"])
-    est = train.estimate_wall_s(cfg, distill_s_per_it=distill_it)
+    est = eta.estimate_wall_s(cfg, distill_s_per_it=distill_it)
     assert est["teacher"] == 0.0 and est["distill"] == pytest.approx(6 * distill_it)
     assert est["eval"] == pytest.approx(2 * one_eval)
 
 
 def test_eta_line_after_the_first_iterations():
-    from march import train
     from march.config.cli import load
+    from march.learn import eta
 
     cfg = load(ETA_CFG)
-    watch = train.EtaWatch(cfg, echo=False)
+    watch = eta.EtaWatch(cfg, echo=False)
     # Iteration 1 is the warm-up (3 s of one-off costs): measured are iterations 2-4.
     lines = [
         watch.observe({"stage": "teacher", "iteration": i, "wall_s": w})
         for i, w in ((1, 5.0), (2, 7.0), (3, 9.0), (4, 11.0), (5, 13.0))
     ]
     assert lines[:3] == [None, None, None] and lines[4] is None  # once, after iteration 4
-    total = train.estimate_wall_s(cfg, teacher_s_per_it=2.0)["total"]
+    total = eta.estimate_wall_s(cfg, teacher_s_per_it=2.0)["total"]
     assert lines[3].startswith(
         "[eta] measured 2 s/it over iterations 2-4: teacher ~20 s, whole run "
-        f"~{train.format_duration(total)} (distillation ~"
+        f"~{eta.format_duration(total)} (distillation ~"
     )
     distill = [
         watch.observe({"stage": "student", "iteration": i, "wall_s": 10.0 * i + 5})
         for i in (1, 2, 3, 4)
     ]
-    est = train.estimate_wall_s(cfg, 2.0, 10.0, teacher_from=10)
+    est = eta.estimate_wall_s(cfg, 2.0, 10.0, teacher_from=10)
     assert est["teacher"] == 0.0
     assert distill[:3] == [None, None, None]
     assert distill[3] == (
         "[eta] measured 10 s/it over distillation iterations 2-4: distillation ~1 min, with its "
-        f"evaluations ~{train.format_duration(est['distill'] + est['eval'])}"
+        f"evaluations ~{eta.format_duration(est['distill'] + est['eval'])}"
     )
     # A stage of no more than 3 iterations left is measured whole: here a resumed one.
-    watch = train.EtaWatch(load([*ETA_CFG, "teacher.max_iterations=6"]), echo=False)
+    watch = eta.EtaWatch(load([*ETA_CFG, "teacher.max_iterations=6"]), echo=False)
     watch.start("teacher", 4, 100.0)
     assert watch.observe({"stage": "teacher", "iteration": 5, "wall_s": 103.0}) is None
     line = watch.observe({"stage": "teacher", "iteration": 6, "wall_s": 106.0})

@@ -270,29 +270,29 @@ def _served_per_step(env, capacity: int, steps: int) -> dict[str, list[int]]:
     """Zero-action steps from a reset with the reference term's planner batch set to
     ``capacity``: per step, the touchdowns + timeouts served, the ones waiting, the resets."""
     term = env.command_manager.get_term("reference")
-    saved = term.replan_capacity
-    term.replan_capacity = capacity
+    saved = term.queue.capacity
+    term.queue.capacity = capacity
     try:
         env.reset()
         zeros = torch.zeros(env.num_envs, env.action_manager.total_action_dim)
         served, waiting, resets = [], [], []
         before = int((term.touchdown_count + term.forced_count).sum())
-        deferred0 = int(term.deferred_count.sum())
+        deferred0 = int(term.queue.deferred_count.sum())
         for _ in range(steps):
             _, _, terminated, truncated, _ = env.step(zeros)
             now = int((term.touchdown_count + term.forced_count).sum())
             served.append(now - before)
             before = now
-            waiting.append(int((term._due_touchdown | term._due_timeout).sum()))
+            waiting.append(int(term.queue.waiting().sum()))
             resets.append(int((terminated | truncated).sum()))
         return {
             "served": served,
             "waiting": waiting,
             "resets": resets,
-            "deferred": int(term.deferred_count.sum()) - deferred0,
+            "deferred": int(term.queue.deferred_count.sum()) - deferred0,
         }
     finally:
-        term.replan_capacity = saved
+        term.queue.capacity = saved
 
 
 @pytest.mark.sim

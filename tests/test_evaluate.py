@@ -139,7 +139,7 @@ def test_standard_errors_against_hand_values():
 
 
 def _naive(tr) -> dict[str, list[float]]:
-    """The metric definitions of march/evaluate.py written as a plain per-env loop."""
+    """The metric definitions of march/evaluation/protocol.py written as a plain per-env loop."""
     t_len, e = tr["reward"].shape
     out: dict[str, list[float]] = {k: [] for k in EVAL_METRICS}
     for i in range(e):

@@ -8,11 +8,11 @@ import pytest
 import torch
 from synthetic import grid_course, make_footholds, straight_course
 
-from march.bench.planner_speed import synthetic_courses
 from march.config import EnvCfg
 from march.reference.planner import PlannerCfg, evaluate_plan, locate_on_stones, plan_footsteps
-from march.world.courses import CourseCfg, footholds_from_layouts, generate_course, hardware_course
-from march.world.footholds import Footholds
+from march.world.courses import CourseCfg, generate_course, hardware_course
+from march.world.footholds import Footholds, footholds_from_layouts
+from march.world.synthetic import synthetic_courses
 
 torch.set_num_threads(1)
 CFG = PlannerCfg()

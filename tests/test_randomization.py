@@ -1,4 +1,4 @@
-"""The paper's DR table as mjlab terms (march.env.randomization).
+"""The paper's DR table as mjlab terms (march.env.randomization, march.env.dr_terms).
 
 Fast tests check the term configs and ``describe_dr``; the ``sim`` test builds one real 4-env
 mjlab G1 env on CPU (with the chest depth camera) and reads every sampled parameter back from
@@ -22,6 +22,7 @@ from mjlab.managers.event_manager import RecomputeLevel  # noqa: E402
 from mjlab.tasks.velocity.config.g1.env_cfgs import unitree_g1_flat_env_cfg  # noqa: E402
 
 from march.config import DepthCfg, DrCfg  # noqa: E402
+from march.env import dr_terms as D  # noqa: E402
 from march.env import randomization as R  # noqa: E402
 
 CAM = "depth_cam"
@@ -102,7 +103,7 @@ def test_dr_none_gives_no_terms_and_no_delay():
     assert set(R.MJLAB_DR_EVENTS) <= set(cfg.events)
     R.apply_dr(cfg, dr)
     assert sorted(cfg.events) == ["reset_base", "reset_robot_joints"]
-    assert R.install_control_delay(cfg, dr) == 0
+    assert D.install_control_delay(cfg, dr) == 0
     lags = [a.delay_max_lag for a in cfg.scene.entities["robot"].articulation.actuators]
     assert lags == [0] * 6
 
@@ -145,7 +146,7 @@ def test_paper_terms_carry_the_paper_ranges():
 def test_install_control_delay_copies_actuators():
     cfg = unitree_g1_flat_env_cfg()
     assert cfg.sim.mujoco.timestep == 0.005
-    assert R.install_control_delay(cfg, DrCfg()) == 4  # 20 ms / 5 ms
+    assert D.install_control_delay(cfg, DrCfg()) == 4  # 20 ms / 5 ms
     acts = cfg.scene.entities["robot"].articulation.actuators
     assert [a.delay_max_lag for a in acts] == [4] * 6
     assert [a.delay_min_lag for a in acts] == [0] * 6
@@ -156,7 +157,7 @@ def test_install_control_delay_copies_actuators():
         G1_ACTUATOR_5020
     )
     cfg.sim.mujoco.timestep = 0.002
-    assert R.max_delay_steps(DrCfg(), cfg.sim.mujoco.timestep) == 10
+    assert D.max_delay_steps(DrCfg(), cfg.sim.mujoco.timestep) == 10
 
 
 # ---------------------------------------------------------------------------------------------
@@ -336,7 +337,7 @@ def test_reset_resamples_per_episode_and_masses_do_not_accumulate(env):
 
     added_before = added()
     link_cfg = env.event_manager.get_term_cfg("link_mass").params["asset_cfg"]
-    R.scale_link_mass(env, None, (0.9, 1.2), link_cfg)
+    D.scale_link_mass(env, None, (0.9, 1.2), link_cfg)
     env.sim.recompute_constants(RecomputeLevel.set_const)
     assert torch.allclose(added(), added_before, atol=1e-4)
     assert float(added()[:, torso].abs().min()) > 0.0
@@ -367,8 +368,8 @@ def test_control_delay_lags_and_delayed_targets(env):
     params = env.event_manager.get_term_cfg("control_delay").params
     draws = []
     for _ in range(250):
-        R.sample_control_delay(env, None, **params)
-        draws.append(R.control_delay_lags(env))
+        D.sample_control_delay(env, None, **params)
+        draws.append(D.control_delay_lags(env))
     lags = torch.cat(draws)
     freq = torch.bincount(lags, minlength=5).float() / lags.numel()
     assert lags.numel() == 1000 and int(lags.min()) == 0 and int(lags.max()) == 4
@@ -378,7 +379,7 @@ def test_control_delay_lags_and_delayed_targets(env):
     # After reset the target is seeded with the zero-action command (default pose - bias).
     seed = robot.data.default_joint_pos - robot.data.encoder_bias
     assert torch.allclose(robot.data.joint_pos_target, seed)
-    assert int(R.control_delay_lags(env).max()) <= 4
+    assert int(D.control_delay_lags(env).max()) <= 4
 
     # Known lags 0, 1, 2, 4 physics steps: substep k of the first control step still applies
     # the seed where k < lag, the new action's target where k >= lag.

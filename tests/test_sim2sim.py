@@ -18,15 +18,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from march.sim2sim.runner import (
-    Args,
-    DepthCamera,
-    History,
-    UsageError,
-    camera_rays,
-    normalize_depth,
-    parse_args,
-)
+from march.sim2sim.deploy_bundle import UsageError
+from march.sim2sim.depth_camera import DepthCamera, camera_rays, normalize_depth
+from march.sim2sim.runner import Args, History, parse_args
 
 ROOT = Path(__file__).resolve().parent.parent
 TRAINING_STACK = ("torch", "warp", "mujoco_warp", "mjlab", "hydra", "omegaconf", "rsl_rl")
@@ -242,7 +236,7 @@ def bundle(smoke_run, tmp_path_factory) -> Path:
 
 @pytest.mark.sim
 def test_bundle_is_self_describing(bundle):
-    from march.sim2sim.runner import Bundle
+    from march.sim2sim.deploy_bundle import Bundle
 
     spec = json.loads(bundle.with_suffix(".deploy.json").read_text())
     assert spec["format"] == 1 and spec["onnx"]["file"] == "student.onnx"
@@ -335,7 +329,8 @@ def test_agreement_with_the_mjlab_eval_env(bundle, smoke_run):
     from march.env.build import build_env_cfg
     from march.learn.checkpoint import load_checkpoint
     from march.learn.provenance import apply_checkpoint_config
-    from march.sim2sim.runner import Bundle, Sim2Sim, policy_session
+    from march.sim2sim.deploy_bundle import Bundle
+    from march.sim2sim.runner import Sim2Sim, policy_session
 
     ckpt = str(smoke_run / "student" / "latest.pt")
     overrides = ["eval.randomization=false", "eval.corruption=false", "eval.course=hardware"]

@@ -14,13 +14,12 @@ from march.world.courses import (
     ROLE_START,
     ROLE_STONE,
     CourseCfg,
-    FootholdTable,
     difficulty_ranges,
     flat_course,
-    footholds_from_layouts,
     generate_course,
     hardware_course,
 )
+from march.world.footholds import FootholdTable, footholds_from_layouts
 
 torch.set_num_threads(1)
 os.environ.setdefault(

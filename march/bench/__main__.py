@@ -1,3 +1,3 @@
-from march.bench.env_speed import main
+from march.bench.command import main
 
 main()

@@ -1,83 +1,31 @@
-"""Timing of the footstep planner on synthetic stepping-stone courses (no simulator import).
+"""``python -m march.bench planner``: how long the footstep planner takes, alone and in the env.
 
-``synthetic_courses`` builds simple straight courses whose stone size, gap, zig-zag, height
-variation and side-by-side pairs grow with a difficulty in [0, 1]; it stands in for the terrain
-generator's foothold tables so the planner can be timed and drawn without mjlab.
+:func:`bench_planner` times the planner on :func:`march.world.synthetic.synthetic_courses` (no
+simulator import). The ``planner`` job (:func:`bench_planner_share`) reports
+:func:`bench_planner` (``steps`` timed replans of all ``num_envs`` envs on synthetic courses),
+plus the march teacher env's step time measured in the same run: ``planner_share_of_env_step`` =
+ms per full-batch replan / ms per env step (an upper bound: the env plans its reset envs plus one
+fixed batch of 1/8 of the envs per step). ``in_env_*`` measures the planner calls the teacher env
+itself made in its timed steps (random actions: mostly resets after falls); ``walk_*`` estimates
+a walking robot's share: touchdown rate = control step / mean step duration of the planner's own
+walks over generated courses, times one replan of that many envs.
 """
 
 from __future__ import annotations
 
+import math
 import statistics
 import time
-from collections.abc import Sequence
+from collections.abc import Callable
+from typing import Any
 
 import torch
 
+from march.bench.harness import Actions, free, stdout_to_stderr, sync
+from march.bench.profiler import planner_timer
+from march.config import MarchConfig
 from march.reference.planner import PlannerCfg, plan_footsteps
-from march.world.footholds import Footholds
-
-PLATFORM_HALF = 0.6
-"""Half size of the square start and goal platforms [m]."""
-
-
-def _lerp(a: float, b: float, t: float) -> float:
-    return a + (b - a) * t
-
-
-def _course(difficulty: float, length: float, rng: torch.Generator) -> list[list[float]]:
-    """Rectangles [x, y, z, hx, hy] of one course: start platform, stones, goal platform."""
-
-    def uni(lo: float, hi: float) -> float:
-        return lo + (hi - lo) * float(torch.rand((), generator=rng))
-
-    size = _lerp(0.45, 0.25, difficulty)
-    gap = _lerp(0.10, 0.40, difficulty)
-    zig = _lerp(0.0, 0.12, difficulty)
-    dz = _lerp(0.0, 0.08, difficulty)
-    p_pair = _lerp(0.0, 0.3, difficulty)
-    rects = [[0.0, 0.0, 0.0, PLATFORM_HALF, PLATFORM_HALF]]
-    x_edge, k = PLATFORM_HALF, 0
-    while x_edge < length:
-        s = size * uni(0.9, 1.1)
-        x = x_edge + gap * uni(0.8, 1.0) + 0.5 * s
-        y = (zig if k % 2 == 0 else -zig) + uni(-0.03, 0.03)
-        if uni(0.0, 1.0) < p_pair:
-            # A side-by-side pair: a left/right choice for the planner.
-            for sign in (-1.0, 1.0):
-                rects.append([x, sign * (0.5 * s + 0.1), uni(-dz, dz), 0.5 * s, 0.5 * s])
-        else:
-            rects.append([x, y, uni(-dz, dz), 0.5 * s, 0.5 * s])
-        x_edge, k = x + 0.5 * s, k + 1
-    x_goal = x_edge + gap + PLATFORM_HALF
-    rects.append([x_goal, 0.0, 0.0, PLATFORM_HALF, PLATFORM_HALF])
-    return rects
-
-
-def synthetic_courses(
-    difficulties: Sequence[float], seed: int = 0, length: float = 6.0
-) -> Footholds:
-    """One straight course along +x per difficulty; start at the origin on the start platform."""
-    rng = torch.Generator().manual_seed(seed)
-    courses = [_course(float(d), length, rng) for d in difficulties]
-    e, s = len(courses), max(len(c) for c in courses)
-    table = torch.zeros(e, s, 5)
-    valid = torch.zeros(e, s, dtype=torch.bool)
-    for i, course in enumerate(courses):
-        table[i, : len(course)] = torch.tensor(course)
-        valid[i, : len(course)] = True
-    goal = torch.tensor([c[-1][0] - c[-1][3] for c in courses])
-    end = torch.tensor([c[-1][0] + c[-1][3] for c in courses])
-    direction = torch.zeros(e, 2)
-    direction[:, 0] = 1.0
-    return Footholds(
-        center=table[..., :3],
-        half_size=table[..., 3:],
-        valid=valid,
-        start_xy=torch.zeros(e, 2),
-        direction=direction,
-        goal_distance=goal,
-        course_length=end,
-    )
+from march.world.synthetic import synthetic_courses
 
 
 def bench_planner(num_envs: int, device: str, repeats: int, seed: int) -> dict:
@@ -121,3 +69,116 @@ def bench_planner(num_envs: int, device: str, repeats: int, seed: int) -> dict:
         "ms_per_replan_min": ordered[0],
         "feasible_fraction": float(plan.feasible.float().mean()),
     }
+
+
+def time_env_steps(
+    env: Any, steps: int, warmup: int, seed: int, planner: dict[str, float] | None = None
+) -> float:
+    """Seconds for ``steps`` control steps after ``warmup`` untimed ones, seeded random actions.
+    ``planner`` (from :func:`planner_timer`) is cleared when the timed steps begin."""
+    import torch
+
+    device = str(env.device)
+    env.reset()
+    act = Actions(env, "random", seed)
+    with torch.no_grad():
+        for _ in range(warmup):
+            env.step(act())
+        sync(device)
+        if planner is not None:
+            planner.update(calls=0, envs=0, s=0.0)
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            env.step(act())
+        sync(device)
+        return time.perf_counter() - t0
+
+
+def _measure(
+    build: Callable[[], Any],
+    steps: int,
+    warmup: int,
+    seed: int,
+    device: str,
+    planner: dict[str, float] | None = None,
+) -> tuple[float, float, int]:
+    """(build seconds, timed seconds, num_envs) of one env, closed afterwards."""
+    t0 = time.perf_counter()
+    env = build()
+    build_s = time.perf_counter() - t0
+    try:
+        elapsed = time_env_steps(env, steps, warmup, seed, planner)
+        n = env.num_envs
+    finally:
+        env.close()
+        del env
+        free(device)
+    return build_s, elapsed, n
+
+
+def touchdown_rate(cfg: MarchConfig, num_courses: int = 8) -> tuple[float, float]:
+    """(mean planned step duration [s], touchdowns per env per control step) of the planner's
+    own walks (:func:`march.reference.walk.walk_course`) over generated courses at difficulties
+    spread over [0, 1], forward command = the middle of ``env.command_vx``."""
+    import numpy as np
+    import torch
+
+    from march.reference.walk import walk_course
+    from march.world.courses import generate_course
+    from march.world.footholds import footholds_from_layouts
+
+    rng = np.random.default_rng(cfg.seed)
+    layouts = [generate_course(d, cfg.terrain, rng) for d in np.linspace(0, 1, num_courses)]
+    footholds = footholds_from_layouts(layouts, np.stack([lay.origin for lay in layouts]))
+    vx = 0.5 * (cfg.env.command_vx[0] + cfg.env.command_vx[1])
+    command = torch.tensor([[vx, 0.0, 0.0]]).expand(num_courses, 3)
+    walked, _ = walk_course(footholds, command, max_steps=60, seed=cfg.seed)
+    durations = walked.durations[torch.isfinite(walked.durations)]
+    mean_t = float(durations.mean())
+    return mean_t, cfg.env.sim_dt * cfg.env.decimation / mean_t
+
+
+def bench_planner_share(cfg: MarchConfig, steps: int, warmup: int) -> dict[str, Any]:
+    from march.env.build import make_env
+    from march.env.rewards import needs_reference
+
+    n, device = cfg.compute.num_envs, cfg.compute.device
+    result = bench_planner(n, device, steps, cfg.seed)
+    with stdout_to_stderr(), planner_timer(device) as planner:
+        print(f"[bench] march_teacher: building {n} envs on {device}", flush=True)
+        build_s, elapsed, _ = _measure(
+            lambda: make_env(cfg, "teacher"), steps, warmup, cfg.seed, device, planner
+        )
+    ms_env = 1e3 * elapsed / steps
+    mean_t, rate = touchdown_rate(cfg)
+    k = min(n, max(1, math.ceil(rate * n)))
+    subset = bench_planner(k, device, steps, cfg.seed)
+    in_env = needs_reference(cfg.reward)  # only the CLF teacher env runs the planner
+    result.update(
+        {
+            "ms_per_env_step": ms_env,
+            "env_build_s": round(build_s, 2),
+            "planner_share_of_env_step": result["ms_per_replan_mean"] / ms_env,
+            "in_env_planner_ms_per_env_step": 1e3 * planner["s"] / steps if in_env else None,
+            "in_env_planner_share": 1e3 * planner["s"] / steps / ms_env if in_env else None,
+            "in_env_replans_per_env_per_step": planner["envs"] / (n * steps) if in_env else None,
+            "in_env_planner_calls_per_step": planner["calls"] / steps if in_env else None,
+            "walk_mean_step_duration_s": mean_t,
+            "walk_touchdown_rate_per_env_step": rate,
+            "walk_envs_replanning_per_step": k,
+            "walk_ms_per_replan_touchdown_envs": subset["ms_per_replan_mean"],
+            "walk_planner_share_estimate": subset["ms_per_replan_mean"] / ms_env,
+            "note": (
+                "planner_share_of_env_step: one replan of all num_envs envs (synthetic courses, "
+                "ms_per_replan_mean) per march teacher env step (random actions, same num_envs "
+                "and device; the step already includes the env's own replans) - an upper bound. "
+                "in_env_*: the planner calls the teacher env's reference command made during "
+                "the timed steps (only envs at a reset, touchdown or step timeout replan; with "
+                "random actions the robot falls, so resets dominate; null for reward=modelfree, "
+                "which has no planner). walk_*: a walking estimate - touchdown rate = control "
+                "step / mean planned step duration of the planner's own walks over generated "
+                "courses, and the time of one replan of ceil(rate * num_envs) envs per step."
+            ),
+        }
+    )
+    return result

@@ -1,28 +1,24 @@
 """The one door from Hydra to typed config: ``conf/`` YAML -> :class:`MarchConfig` dataclasses.
 
-The schema's sections live in :mod:`march.config.schema`; :mod:`march.config.cli` composes a
-config for the command-line tools and :mod:`march.config.resume` decides what a resumed run may
-override. The names below are the public schema (``from march.config import MarchConfig``).
+The whole config is :mod:`march.config.schema`; its sections live in
+:mod:`march.config.simulation` and :mod:`march.config.training`, the name tuples and checks in
+:mod:`march.config.checks`. :mod:`march.config.cli` composes a config for the command-line tools
+and :mod:`march.config.resume` decides what a resumed run may override. The names below are the
+public schema (``from march.config import MarchConfig``).
 """
 
-from march.config.schema import (
+from march.config.checks import (
     COMPUTES,
     CURRICULA,
     REWARDS,
     SEED_MAX,
     STUDENTS,
     ConfigError,
-    DepthCfg,
-    DrCfg,
-    EnvCfg,
-    LoggerCfg,
-    MarchConfig,
-    RewardCfg,
-    StudentCfg,
-    TeacherCfg,
     cnn_output_hw,
-    to_march_config,
 )
+from march.config.schema import MarchConfig, to_march_config
+from march.config.simulation import DepthCfg, DrCfg, EnvCfg, RewardCfg
+from march.config.training import LoggerCfg, StudentCfg, TeacherCfg
 
 __all__ = [
     "COMPUTES",

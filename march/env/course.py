@@ -13,8 +13,7 @@ import torch
 from mjlab.envs import ManagerBasedRlEnv
 
 from march.env.stone_terrain import terrain_foothold_table
-from march.world.courses import FootholdTable
-from march.world.footholds import Footholds
+from march.world.footholds import Footholds, FootholdTable
 
 _TABLE_ATTR = "_march_foothold_table"
 

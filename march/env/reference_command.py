@@ -1,10 +1,11 @@
 """The ``reference`` command term: stage (1) of the CLF teacher inside the mjlab env.
 
 It keeps, per env, the walking state the CLF rewards need: which foot is the stance foot and
-where it touched down, the current footstep plan (N = 4 steps from :func:`march.reference.planner.
-plan_footsteps`), the time ``tau`` since the step began and its planned duration, the reference
-outputs ``y_ref`` (:func:`march.reference.trajectory.reference_at`) and the measured outputs ``y_sim``, and
-the CLF value V with its derivative.
+where it touched down, the current footstep plan (N = 4 steps from
+:func:`march.reference.planner.plan_footsteps`), the time ``tau`` since the step began and its
+planned duration, the reference outputs ``y_ref`` (:func:`march.reference.trajectory.reference_at`)
+and the measured outputs ``y_sim`` (:mod:`march.env.clf_outputs`), and the CLF value V with its
+derivative.
 
 Decisions (documented here once; the README repeats them)
 - **Velocity command, in the course frame** (issue 10). mjlab's ``twist`` command stays the one
@@ -14,12 +15,10 @@ Decisions (documented here once; the README repeats them)
   yaw rate that is mjlab's heading controller toward the course heading (march.env.build). This
   term plans with the forward speed along the course direction (``Footholds.direction``) and
   the lateral speed across it, whatever the robot's heading; the pelvis- and swing-yaw
-  references are the course heading (yaw rate 0). Before, (vx, vy) were rotated by a yaw
-  reference that integrated a sampled yaw rate, which led the plan and the yaw references off
-  the straight course (goal reached on 0-6% of walks at 0.1-0.2 rad/s).
+  references are the course heading (yaw rate 0); why: README, "Velocity command".
 - **Start from standing.** The first step of an episode ramps its CoM reference from rest at the
-  measured CoM into the HLIP orbit (``march.reference.trajectory``, ``StepState.ramp``); later steps (and
-  timeout restarts) start on the orbit as before.
+  measured CoM into the HLIP orbit (``march.reference.trajectory``, ``StepState.ramp``); later
+  steps (and timeout restarts) start on the orbit as before.
 - **Initial stance (episode reset).** The foot that is further behind along the course direction
   is the stance foot; when the feet are level within ``stance_tie_m`` (the usual spawn) the left
   foot is the stance foot, so the right foot swings first. The first plan starts from that foot
@@ -37,29 +36,15 @@ Decisions (documented here once; the README repeats them)
   making it the stance foot would anchor the reference (and the holonomic terms) on a foot that
   bears no weight. The plan is remade from the same stance foot, the new swing starts where the
   foot is, ``tau`` restarts and ``step_switched`` is set (counted in ``forced_count``).
-- **CoM.** Whole-body CoM: ``subtree_com`` of the robot's root body (MuJoCo's mass-weighted CoM of
-  all robot bodies, domain-randomised masses included); its velocity is the mass-weighted mean of
-  the bodies' CoM velocities (``body_com_lin_vel_w``), with the per-world body masses.
-- **Outputs** (``CLF_OUTPUT_NAMES`` order, 29): CoM x/y/z (world), pelvis roll/pitch/yaw (ZYX Euler
-  of the root link) and their Euler-angle rates, swing-foot site position/velocity (world) and its
-  roll/pitch/yaw with Euler rates, 17 upper-body joints relative to their defaults. The swing-foot
-  site is at sole level on the G1 (z ~ 1.5 mm standing), so ``ReferenceCfg.foot_height_offset``
-  is 0.
+- **CoM and outputs**: the measured outputs y_sim are documented with their code in
+  :mod:`march.env.clf_outputs`.
 - **r_dclf clip.** ``ClfCfg.dclf_clip = 1.0`` (the author's ``clip(., 0, 1)``; the paper prints
   no clip): unclipped, under the initial policy's action noise (std 1) the weighted r_dclf
   averages about -22 per step against +3.7 for the weighted r_clf (8 envs, 150 steps), so the
   decrease term swamps every other signal; clipped it averages about -0.5.
-- **Replanning without host syncs** (issue 11). A GPU stalls whenever the host reads a device
-  value (``if mask.any()``, ``nonzero()``), so the update never branches on data. Episode starts
-  are planned as exactly the envs mjlab reset (their ids reach :meth:`_resample_command` with a
-  size the host already knows). Touchdowns and timeouts are found as masks and served by one
-  planner call of fixed size ``replan_capacity`` (``ReferenceCommandCfg.capacity``: 1/8 of the
-  envs, at least 8): the due envs first in env order (a stable sort of the mask), the rest of
-  the batch planned and discarded. The planner costs 4.7 ms for 1 env and 23 ms for 64 on
-  2 CPU threads, so planning every env on every step would add ~7% to a 64-env CPU step; the
-  fixed batch adds ~2 ms. A due event that does not fit waits for the next update (20 ms),
-  still flagged, and is counted in ``deferred_count``; resets never wait. The planner is called
-  on every update (also when no env is due), so its random stream advances once per update.
+- **Replanning without host syncs** (issue 11): resets are planned as mjlab's batch of reset
+  envs, touchdowns and timeouts in one fixed-size planner batch per update
+  (:mod:`march.env.replan_queue`).
 - **When V is evaluated.** mjlab computes rewards *before* the command update of a step. V is
   computed once per env step, lazily, by the first CLF reward term that asks
   (:meth:`ReferenceCommand.clf_state`): y_sim of the state the action produced against y_ref at
@@ -76,11 +61,12 @@ from typing import TYPE_CHECKING
 
 import torch
 from mjlab.managers.command_manager import CommandTerm, CommandTermCfg
-from mjlab.utils.lab_api.math import euler_xyz_from_quat, quat_apply_inverse, quat_from_matrix
 
 from march.clf.lyapunov import CLF_OUTPUT_NAMES, UPPER_BODY_JOINTS, ClfCfg, ClfModel, VHistory
+from march.env.clf_outputs import body_masses, measured_outputs, stance_foot_state, yaw_rotate
 from march.env.course import foothold_table
-from march.env.step_cache import site_pos, site_state, site_xmat
+from march.env.replan_queue import ReplanQueue
+from march.env.step_cache import site_pos
 from march.reference.hlip import HlipCfg
 from march.reference.planner import Plan, PlannerCfg, course_frame, plan_footsteps
 from march.reference.trajectory import (
@@ -98,38 +84,6 @@ if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv
 
 NUM_OUTPUTS = len(CLF_OUTPUT_NAMES)
-
-
-def euler_rates(euler: torch.Tensor, omega_b: torch.Tensor) -> torch.Tensor:
-    """ZYX Euler-angle rates (roll, pitch, yaw)-dot (E, 3) from the body-frame angular velocity.
-
-    R = Rz(yaw) Ry(pitch) Rx(roll) (``euler_xyz_from_quat``'s convention); cos(pitch) is kept
-    away from 0 (the tilt termination ends episodes long before the singularity).
-    """
-    roll, pitch = euler[:, 0], euler[:, 1]
-    p, q, r = omega_b.unbind(-1)
-    sr, cr = torch.sin(roll), torch.cos(roll)
-    cp = torch.cos(pitch)
-    cp = torch.where(cp.abs() < 0.1, torch.full_like(cp, 0.1), cp)
-    tp = torch.sin(pitch) / cp
-    a = q * sr + r * cr
-    return torch.stack([p + a * tp, q * cr - r * sr, a / cp], dim=-1)
-
-
-def _euler(quat: torch.Tensor) -> torch.Tensor:
-    return torch.stack(euler_xyz_from_quat(quat), dim=-1)
-
-
-def _yaw_rotate(vec: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
-    """Rotate the xy part of (E, ..., 2|3) vectors by -yaw (world -> yaw-aligned base frame)."""
-    c, s = torch.cos(yaw), torch.sin(yaw)
-    while c.dim() < vec.dim() - 1:
-        c, s = c[..., None], s[..., None]
-    x, y = vec[..., 0], vec[..., 1]
-    out = vec.clone()
-    out[..., 0] = c * x + s * y
-    out[..., 1] = -s * x + c * y
-    return out
 
 
 class ReferenceCommand(CommandTerm):
@@ -191,14 +145,8 @@ class ReferenceCommand(CommandTerm):
         """(E,) timeout restarts since the env was built."""
         self.replan_count = torch.zeros(e, dtype=torch.long, device=dev)
         """(E,) plans made (resets, touchdowns, restarts) since the env was built."""
-        self.deferred_count = torch.zeros(e, dtype=torch.long, device=dev)
-        """(E,) env steps a due touchdown or timeout waited for planner capacity (see
-        ``replan_capacity``)."""
-        self.replan_capacity = cfg.capacity(e)
-        """Running envs (touchdowns, timeouts) planned per update at most; resets always are."""
-        self._pending_ids: list[torch.Tensor] = [torch.arange(e, device=dev)]
-        self._due_touchdown = torch.zeros(e, dtype=torch.bool, device=dev)
-        self._due_timeout = torch.zeros(e, dtype=torch.bool, device=dev)
+        self.queue = ReplanQueue(e, cfg.capacity(e), dev)
+        """The resets to plan and the touchdowns / timeouts waiting for the planner batch."""
         self._all_envs = torch.ones(e, dtype=torch.bool, device=dev)
         self._dt: float | torch.Tensor = 0.0
         self.step = StepState(
@@ -249,9 +197,7 @@ class ReferenceCommand(CommandTerm):
         ``env_ids`` is host-sized (mjlab found the reset envs), so the episode starts are planned
         as exactly that batch in the next :meth:`_update_command`, without a host sync here.
         """
-        self._pending_ids.append(env_ids)
-        self._due_touchdown[env_ids] = False
-        self._due_timeout[env_ids] = False
+        self.queue.add_resets(env_ids)
         fh = self._lookup_footholds(env_ids)
         for name in ("center", "half_size", "valid", "start_xy", "direction"):
             getattr(self.footholds, name)[env_ids] = getattr(fh, name)
@@ -276,55 +222,30 @@ class ReferenceCommand(CommandTerm):
         step_dt = dt if isinstance(dt, torch.Tensor) else torch.full_like(self.tau, float(dt))
         self.tau += torch.where(active, step_dt, torch.zeros_like(step_dt))
 
-        pending_ids = self._take_pending()
-        pending = torch.zeros(e, dtype=torch.bool, device=self.device)
-        pending[pending_ids] = True
-        running = active & ~pending
+        resets = self.queue.take_resets()
+        running = active.clone()
+        running[resets] = False
         contact = self.foot_contact()
         swing_contact = torch.where(self.stance_is_left, contact[:, 1], contact[:, 0])
         dur = self.step.duration
         touchdown = running & swing_contact & (self.tau >= self.cfg.touchdown_min_fraction * dur)
         timeout = running & (self.tau >= self.cfg.touchdown_timeout_fraction * dur)
-        # Events wait here until served; a touchdown outranks a timeout of the same step.
-        self._due_touchdown |= touchdown
-        self._due_timeout = (self._due_timeout | timeout) & ~self._due_touchdown
-        due = (self._due_touchdown | self._due_timeout) & active
-
-        # The envs served this update: the due ones first, in env order, up to the capacity
-        # (sizes known on the host: no sync). Pending envs sort last and are never taken here.
-        n_pending = pending_ids.numel()
-        cap = min(self.replan_capacity, e - n_pending)
-        order_key = (~due).to(torch.int8) + 2 * pending.to(torch.int8)
-        sel = torch.argsort(order_key, stable=True)[:cap]
-        serve = due[sel]
-        flip = serve & self._due_touchdown[sel]
+        sel, serve, flip = self.queue.serve(touchdown, timeout, active, resets)
         forced = serve & ~flip
-        served = torch.zeros(e, dtype=torch.bool, device=self.device)
-        served[sel] = serve
-        self.deferred_count += (due & ~served).long()
-        self._due_touchdown &= ~served
-        self._due_timeout &= ~served
         self.stance_is_left[sel] = self.stance_is_left[sel] ^ flip
         self.touchdown_count[sel] += flip.long()
         self.forced_count[sel] += forced.long()
         self.metrics["touchdowns"][sel] += flip.float()
         self.metrics["timeouts"][sel] += forced.float()
 
-        if n_pending:
-            self._start_episode(pending_ids)
-        ids = torch.cat([pending_ids, sel])
-        apply = torch.cat([torch.ones_like(pending_ids, dtype=torch.bool), serve])
-        ramp = torch.cat([torch.ones_like(pending_ids, dtype=torch.bool), torch.zeros_like(serve)])
+        if resets.numel():
+            self._start_episode(resets)
+        ids = torch.cat([resets, sel])
+        starts = torch.ones_like(resets, dtype=torch.bool)
         if ids.numel():
+            apply, ramp = torch.cat([starts, serve]), torch.cat([starts, torch.zeros_like(serve)])
             self._new_step(ids, apply=apply, ramp=ramp)
         self._refresh_outputs()
-
-    def _take_pending(self) -> torch.Tensor:
-        """(p,) the envs reset since the last update (host-known size), and forget them."""
-        ids, self._pending_ids = self._pending_ids, []
-        if not ids:
-            return torch.zeros(0, dtype=torch.long, device=self.device)
-        return torch.cat([i.to(device=self.device, dtype=torch.long) for i in ids])
 
     # ---------------------------------------------------------------- planning
 
@@ -453,46 +374,26 @@ class ReferenceCommand(CommandTerm):
         """(W|1, B) robot body masses and their (W|1, 1) sums, kept after the first call: domain
         randomization changes masses at startup only (march.env.randomization)."""
         if getattr(self, "_mass_cache", None) is None:
-            mass = self._env.sim.model.body_mass
-            mass = mass[:, self._body_ids] if mass.dim() == 2 else mass[self._body_ids][None]
-            self._mass_cache = (mass.clone(), mass.sum(1, keepdim=True))
+            self._mass_cache = body_masses(self._env, self._body_ids)
         return self._mass_cache
 
     def measured(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """(E, 29) measured outputs y_sim (positions) and their rates (module docstring)."""
-        data = self.robot.data
-        com = self._env.sim.data.subtree_com[:, self._root_body]
-        mass, mass_sum = self._masses()
-        com_vel = (data.body_com_lin_vel_w * mass[..., None]).sum(1) / mass_sum
-        quat = data.root_link_quat_w
-        pelvis = _euler(quat)
-        pelvis_rate = euler_rates(pelvis, data.root_link_ang_vel_b)
-        # The two foot sites only (step_cache): same values as data.site_*_w of the swing site.
-        names = tuple(self.cfg.foot_sites)
-        pos, lin, ang = site_state(self._env, names, self.cfg.entity_name)
-        mat = site_xmat(self._env, names, self.cfg.entity_name)
-        swing_left = ~self.stance_is_left  # the swing foot is the other one
-        pick = swing_left[:, None]
-        swing_pos = torch.where(pick, pos[:, 0], pos[:, 1])
-        swing_vel = torch.where(pick, lin[:, 0], lin[:, 1])
-        swing_quat = quat_from_matrix(torch.where(pick[..., None], mat[:, 0], mat[:, 1]))
-        swing_ori = _euler(swing_quat)
-        swing_omega_b = quat_apply_inverse(swing_quat, torch.where(pick, ang[:, 0], ang[:, 1]))
-        swing_rate = euler_rates(swing_ori, swing_omega_b)
-        upper = data.joint_pos[:, self._upper_ids] - data.default_joint_pos[:, self._upper_ids]
-        upper_vel = data.joint_vel[:, self._upper_ids]
-        pos = torch.cat([com, pelvis, swing_pos, swing_ori, upper], dim=-1)
-        vel = torch.cat([com_vel, pelvis_rate, swing_vel, swing_rate, upper_vel], dim=-1)
-        return pos, vel
+        """(E, 29) measured outputs y_sim (positions) and their rates (march.env.clf_outputs)."""
+        return measured_outputs(
+            self._env,
+            self.robot,
+            self.cfg.foot_sites,
+            self.cfg.entity_name,
+            self._root_body,
+            self._upper_ids,
+            self._masses(),
+            self.stance_is_left,
+        )
 
     def stance_foot(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Stance foot site position (E, 3), linear velocity (E, 3) and angular velocity (E, 3)."""
-        pos, lin, ang = site_state(self._env, tuple(self.cfg.foot_sites), self.cfg.entity_name)
-        left = self.stance_is_left[:, None]
-        return (
-            torch.where(left, pos[:, 0], pos[:, 1]),
-            torch.where(left, lin[:, 0], lin[:, 1]),
-            torch.where(left, ang[:, 0], ang[:, 1]),
+        return stance_foot_state(
+            self._env, self.cfg.foot_sites, self.cfg.entity_name, self.stance_is_left
         )
 
     def _refresh_outputs(self) -> None:
@@ -531,11 +432,11 @@ class ReferenceCommand(CommandTerm):
         yaw = data.heading_w
         pos, vel = self.y_ref_pos.clone(), self.y_ref_vel.clone()
         for k in (0, 6):  # com_xyz, swing_xyz
-            pos[:, k : k + 3] = _yaw_rotate(pos[:, k : k + 3] - base, yaw)
-            vel[:, k : k + 3] = _yaw_rotate(vel[:, k : k + 3], yaw)
+            pos[:, k : k + 3] = yaw_rotate(pos[:, k : k + 3] - base, yaw)
+            vel[:, k : k + 3] = yaw_rotate(vel[:, k : k + 3], yaw)
         for k in (5, 11):  # pelvis_yaw, swing_yaw
             pos[:, k] = wrap_to_pi(pos[:, k] - yaw)
-        feet = _yaw_rotate(self.plan_footholds - base[:, None], yaw).flatten(1)
+        feet = yaw_rotate(self.plan_footholds - base[:, None], yaw).flatten(1)
         dur = self.step.duration
         phase = torch.stack([(self.tau / dur).clamp(max=2.0), dur], dim=-1)
         return torch.cat([pos, vel, feet, phase], dim=-1)

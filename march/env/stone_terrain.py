@@ -55,11 +55,11 @@ from march.world.courses import (
     ROLE_START,
     CourseCfg,
     CourseLayout,
-    FootholdTable,
     flat_course,
     generate_course,
     hardware_course,
 )
+from march.world.footholds import FootholdTable
 
 TerrainKind = Literal["stones", "flat_first", "flat", "hardware"]
 KINDS: tuple[str, ...] = ("stones", "flat_first", "flat", "hardware")

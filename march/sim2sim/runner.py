@@ -45,8 +45,6 @@ pickle). The JSON records the SHA-256 of the ONNX file and the scenes, checked b
 
 from __future__ import annotations
 
-import gzip
-import hashlib
 import json
 import math
 import os
@@ -58,27 +56,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-# As mjlab (and so march.play) does: offscreen video through EGL on Linux (Mesa's software EGL
-# needs no GPU). mujoco reads MUJOCO_GL once, when it is imported.
-if sys.platform.startswith("linux"):
-    os.environ.setdefault("MUJOCO_GL", "egl")
+import mujoco
+import numpy as np
+import onnxruntime as ort
 
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
-import onnxruntime as ort  # noqa: E402
+from march.sim2sim.deploy_bundle import INPUTS, OUTPUT, Bundle, UsageError
+from march.sim2sim.depth_camera import DepthCamera
 
 USAGE = (
     "usage: python -m march.sim2sim onnx=<student.onnx> [course=hardware|stones] "
     "[difficulty=0.5] [seed=0] [seconds=20] [out=rollout.mp4] [threads=1]"
 )
-BUNDLE_FORMAT = 1
-"""The ``deploy.json`` layout this loop reads (march.export.bundle.BUNDLE_FORMAT)."""
-INPUTS = ("proprio_hist", "command", "depth")
-OUTPUT = "actions"
-
-
-class UsageError(ValueError):
-    """Bad arguments or an unusable bundle: one line for the user."""
 
 
 @dataclass
@@ -125,138 +113,7 @@ def parse_args(argv: Sequence[str]) -> Args:
 
 
 # ---------------------------------------------------------------------------------------------
-# The bundle.
-
-
-def _sha256(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
-
-
-@dataclass
-class Bundle:
-    """``<stem>.deploy.json`` beside an ONNX file, checked."""
-
-    onnx_path: Path
-    spec: dict[str, Any]
-
-    @classmethod
-    def load(cls, onnx_path: str | Path) -> Bundle:
-        onnx_path = Path(onnx_path)
-        if not onnx_path.is_file():
-            raise UsageError(f"onnx={onnx_path}: no such file (python -m march.export writes it)")
-        path = onnx_path.with_suffix(".deploy.json")
-        if not path.is_file():
-            raise UsageError(
-                f"onnx={onnx_path}: no deployment bundle beside it ({path.name}); export it "
-                "with python -m march.export student_ckpt=<file> out=<folder>"
-            )
-        try:
-            spec = json.loads(path.read_text())
-        except (OSError, ValueError) as err:
-            raise UsageError(f"{path}: not readable JSON ({err})") from None
-        if not isinstance(spec, dict) or spec.get("format") != BUNDLE_FORMAT:
-            found = spec.get("format") if isinstance(spec, dict) else None
-            raise UsageError(f"{path}: bundle format {found!r}, this loop reads {BUNDLE_FORMAT}")
-        if spec.get("mujoco_version") != mujoco.__version__:
-            raise UsageError(
-                f"{path}: the scenes were compiled with MuJoCo {spec.get('mujoco_version')}, "
-                f"this is MuJoCo {mujoco.__version__} (MJB files are version-bound)"
-            )
-        want = spec["onnx"]["sha256"]
-        if _sha256(onnx_path.read_bytes()) != want:
-            raise UsageError(f"onnx={onnx_path}: its SHA-256 differs from the bundle's record")
-        return cls(onnx_path, spec)
-
-    def scene(self, course: str) -> mujoco.MjModel:
-        """The compiled scene of ``course`` (gzipped MJB, loaded from memory)."""
-        entry = self.spec["courses"][course]
-        path = self.onnx_path.parent / entry["scene"]
-        if not path.is_file():
-            raise UsageError(f"{path}: the bundle's {course} scene is missing")
-        packed = path.read_bytes()
-        if _sha256(packed) != entry["sha256"]:
-            raise UsageError(f"{path}: its SHA-256 differs from the bundle's record")
-        return mujoco.MjModel.from_binary_path("scene.mjb", {"scene.mjb": gzip.decompress(packed)})
-
-    def cell(self, course: str, difficulty: float, seed: int) -> dict[str, Any]:
-        """The course cell: hardware's only one; stones: nearest level, column seed mod C."""
-        grid = self.spec["courses"][course]["cells"]
-        if course == "hardware":
-            return grid[0][0]
-        row = min(range(len(grid)), key=lambda r: abs(grid[r][0]["difficulty"] - difficulty))
-        return grid[row][seed % len(grid[row])]
-
-
-# ---------------------------------------------------------------------------------------------
-# Sensors: proprioception and depth.
-
-
-def camera_rays(width: int, height: int, fovy_deg: float) -> np.ndarray:
-    """(H*W, 3) unit ray directions in the camera frame, row-major from the top-left pixel.
-
-    MuJoCo cameras look along -z with +y up; pixel (i, j) is the ray through the centre of that
-    pixel of a pinhole with vertical field of view ``fovy_deg`` (mujoco_warp's ``compute_ray``).
-    """
-    t = math.tan(0.5 * math.radians(fovy_deg))
-    aspect = width / height
-    jj, ii = np.meshgrid(np.arange(width), np.arange(height))
-    x = (2.0 * (jj + 0.5) / width - 1.0) * t * aspect
-    y = (1.0 - 2.0 * (ii + 0.5) / height) * t
-    d = np.stack([x, y, -np.ones_like(x)], axis=-1).reshape(-1, 3)
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
-
-
-def normalize_depth(depth: np.ndarray, min_range: float, max_range: float) -> np.ndarray:
-    """Invalid (<= 0, non-finite) -> max_range, clip, map to [0, 1] (march.env.depth.normalize)."""
-    d = np.where(np.isfinite(depth) & (depth > 0.0), depth, max_range)
-    return (np.clip(d, min_range, max_range) - min_range) / (max_range - min_range)
-
-
-class DepthCamera:
-    """The student's depth camera by ray casting against the scene's enabled geom groups."""
-
-    def __init__(self, model: mujoco.MjModel, spec: dict[str, Any]) -> None:
-        self.cam = model.camera(spec["camera"]).id
-        self.h, self.w = int(spec["height"]), int(spec["width"])
-        self.lo, self.hi = float(spec["min_range_m"]), float(spec["max_range_m"])
-        fovy = float(model.cam_fovy[self.cam])
-        if abs(fovy - float(spec["fovy_deg"])) > 1e-6:
-            raise UsageError(f"scene camera fovy {fovy} != bundle's {spec['fovy_deg']}")
-        self.rays = camera_rays(self.w, self.h, fovy)
-        self.cos = -self.rays[:, 2]  # planar depth = distance x cos(angle to the optical axis)
-        self.groups = np.zeros(6, dtype=np.uint8)
-        self.groups[list(spec["geom_groups"])] = 1
-        # Past the max range every pixel reads 1 whether it hits or not: stop looking there.
-        self.cutoff = self.hi / float(self.cos.min()) + 1e-3
-        self.n = self.rays.shape[0]
-        self._geom = np.zeros(self.n, dtype=np.int32)
-        self._dist = np.zeros(self.n, dtype=np.float64)
-
-    def planar(self, model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
-        """(H, W) planar depth [m] from the current kinematics; 0 where a ray hits nothing."""
-        origin = data.cam_xpos[self.cam].copy()
-        world = self.rays @ data.cam_xmat[self.cam].reshape(3, 3).T
-        mujoco.mj_multiRay(
-            model,
-            data,
-            origin,
-            world.reshape(-1),
-            self.groups,
-            1,  # static geoms (the terrain) count
-            -1,
-            self._geom,
-            self._dist,
-            None,
-            self.n,
-            self.cutoff,
-        )
-        depth = np.where(self._geom >= 0, self._dist * self.cos, 0.0)
-        return depth.reshape(self.h, self.w)
-
-    def image(self, model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
-        """(1, 1, H, W) float32 normalised depth, the ONNX ``depth`` input."""
-        d = normalize_depth(self.planar(model, data), self.lo, self.hi)
-        return d.astype(np.float32)[None, None]
+# Sensors: proprioception (the depth image: march.sim2sim.depth_camera).
 
 
 @dataclass
@@ -483,7 +340,8 @@ class Video:
 def rollout(
     sim: Sim2Sim, seconds: float, video: Video | None = None, max_steps: int | None = None
 ) -> dict[str, Any]:
-    """Run one episode from the current state; the metrics of march.evaluation.protocol.rollout_metrics.
+    """Run one episode from the current state; the metrics of
+    march.evaluation.protocol.rollout_metrics.
 
     As there, the step that ends the episode (fall or time-out) adds no torque or jerk, and the
     distance is the progress before that step.

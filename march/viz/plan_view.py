@@ -15,11 +15,10 @@ from matplotlib.colors import Normalize  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
-from march.bench.planner_speed import synthetic_courses  # noqa: E402
-from march.reference.hlip import HlipCfg  # noqa: E402
-from march.reference.planner import Plan, PlannerCfg, plan_footsteps  # noqa: E402
-from march.reference.trajectory import ReferenceCfg, reference_at, step_state_from_plan  # noqa: E402
+from march.reference.planner import Plan  # noqa: E402
+from march.reference.walk import on_stones, walk_course  # noqa: E402
 from march.world.footholds import Footholds  # noqa: E402
+from march.world.synthetic import synthetic_courses  # noqa: E402
 
 LEFT_COLOR, RIGHT_COLOR = "tab:blue", "tab:red"
 
@@ -106,75 +105,6 @@ def draw_plans(
     plt.close(fig)
 
 
-def walk_course(
-    footholds: Footholds,
-    command: torch.Tensor,
-    max_steps: int = 30,
-    seed: int = 0,
-    planner: PlannerCfg | None = None,
-    hlip: HlipCfg | None = None,
-    samples_per_step: int = 10,
-) -> tuple[Plan, torch.Tensor]:
-    """Receding-horizon walk with the models only: plan at each touchdown, take step 0.
-
-    The start stance is the left foot at start_xy + (0.3, w/2) along/across the course. Returns
-    the executed steps as a Plan (E, S; entries after an env stops are NaN) and the CoM reference
-    path (E, S * samples_per_step, 2). An env stops when the plan turns infeasible or the stance
-    foot reaches the goal platform.
-    """
-    planner = planner or PlannerCfg()
-    hlip = hlip or HlipCfg()
-    gen = torch.Generator().manual_seed(seed)
-    e = footholds.num_envs
-    axis = footholds.direction
-    lat = torch.stack([-axis[:, 1], axis[:, 0]], dim=-1)
-    stance = footholds.start_xy + 0.3 * axis + 0.5 * planner.step_width * lat
-    swing = None  # (E, 3) swing foot at lift-off; starts beside the stance foot
-    left = torch.ones(e, dtype=torch.bool)
-    active = torch.ones(e, dtype=torch.bool)
-    nan = float("nan")
-    feet = torch.full((e, max_steps, 3), nan)
-    durations = torch.full((e, max_steps), nan)
-    sides = torch.zeros(e, max_steps, dtype=torch.bool)
-    com = torch.full((e, max_steps * samples_per_step, 2), nan)
-    start = None
-    zero = torch.zeros(e)
-    for k in range(max_steps):
-        plan = plan_footsteps(stance, left, command, footholds, planner, gen)
-        start = plan.start if start is None else start
-        active = active & plan.feasible
-        if swing is None:
-            swing = plan.start.clone()
-            swing[:, :2] -= planner.step_width * lat
-        # The first step starts from standing: its CoM reference ramps from rest at the feet's
-        # midpoint (march.reference.trajectory), as the env's first step does from the measured CoM.
-        ramp_from = 0.5 * (plan.start[:, :2] + swing[:, :2]) if k == 0 else None
-        step = step_state_from_plan(plan, plan.start, swing, zero, zero, axis, ramp_from=ramp_from)
-        for j in range(samples_per_step):
-            tau = plan.durations[:, 0] * j / (samples_per_step - 1)
-            ref = reference_at(step, tau, ReferenceCfg(), hlip, num_upper=0)
-            com[active, k * samples_per_step + j] = ref.com_pos[active, :2]
-        feet[active, k] = plan.footholds[active, 0]
-        durations[active, k] = plan.durations[active, 0]
-        sides[:, k] = plan.lands_left[:, 0]
-        swing = torch.where(active[:, None], plan.start, swing)
-        stance = torch.where(active[:, None], plan.footholds[:, 0, :2], stance)
-        left = torch.where(active, plan.lands_left[:, 0], left)
-        reached = footholds.progress(stance) >= footholds.goal_distance + 0.3
-        active = active & ~reached
-        if not active.any():
-            break
-    walked = Plan(
-        footholds=feet,
-        durations=durations,
-        lands_left=sides,
-        cost=torch.zeros(e),
-        feasible=~torch.isnan(feet[..., 0]).all(-1),
-        start=start,
-    )
-    return walked, com
-
-
 def demo_plan_figure(path: str, seed: int = 0) -> Plan:
     """Synthetic courses at difficulties 0, 1/3, 2/3, 1 walked by the planner; drawn to ``path``."""
     difficulties = [0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0]
@@ -189,11 +119,3 @@ def demo_plan_figure(path: str, seed: int = 0) -> Plan:
     ]
     draw_plans(footholds, walked, com, path, titles)
     return walked
-
-
-def on_stones(footholds: Footholds, plan: Plan, i: int) -> bool:
-    feet = plan.footholds[i : i + 1, :, :2]
-    ok = torch.isfinite(feet[..., 0])
-    one = footholds.index(torch.tensor([i]))
-    inside = one.contains(feet.nan_to_num(), PlannerCfg().stone_margin)
-    return bool(inside[ok].all()) and bool(ok.any())

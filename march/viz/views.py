@@ -17,7 +17,7 @@ Every job composes the same config as ``march.train`` and takes its ``key=value`
   and the env's own ``depth`` observation (corrupted and delayed, what the student was fed).
 - ``plan``: courses drawn by :func:`march.world.courses.generate_course` at difficulties 0, 1/3, 2/3,
   1 (plus the hardware course), walked with the models only by
-  :func:`march.viz.plan_view.walk_course` (replan at every touchdown, forward command
+  :func:`march.reference.walk.walk_course` (replan at every touchdown, forward command
   ``eval.command_vx``); drawn by :func:`march.viz.plan_view.draw_plans`. No simulator.
 """
 
@@ -59,8 +59,10 @@ def plan(cfg: MarchConfig) -> Path:
     import numpy as np
     import torch
 
-    from march.viz.plan_view import draw_plans, on_stones, walk_course
-    from march.world.courses import footholds_from_layouts, generate_course, hardware_course
+    from march.reference.walk import on_stones, walk_course
+    from march.viz.plan_view import draw_plans
+    from march.world.courses import generate_course, hardware_course
+    from march.world.footholds import footholds_from_layouts
 
     out = _out(cfg, "plan.png")
     rng = np.random.default_rng(cfg.seed)

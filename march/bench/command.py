@@ -1,0 +1,103 @@
+"""``python -m march.bench <job>``: how fast march's env and planner are, as one JSON object.
+
+    python -m march.bench env [compute.num_envs=64] [bench.steps=40] [bench.warmup_random=30]
+                              [bench.warmup_standing=5]
+                              [bench.profile_steps=20] [bench.rounds=8]
+    python -m march.bench planner [compute.num_envs=64] [bench.steps=100]
+
+Both jobs compose the same config as ``march.train`` (Hydra ``key=value`` overrides). The
+benchmark's own options are not part of the config schema and are taken off the command line
+before the config is composed: ``bench.steps`` (timed steps per env and workload),
+``bench.warmup_random`` / ``bench.warmup_standing`` (untimed steps after each reset;
+``bench.warmup`` sets both), ``bench.profile_steps`` (steps of the separate
+instrumented pass, 0 = none) and ``bench.rounds`` (how many interleaved chunks the timed steps are
+split into). Everything mjlab and warp print while building and compiling goes to stderr, so
+stdout is the JSON object alone (``... | jq`` works).
+
+What each job measures and the keys of its JSON object: :mod:`march.bench.env_speed` (``env``)
+and :mod:`march.bench.planner_speed` (``planner``).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Sequence
+
+from march.bench.env_speed import bench_env
+from march.bench.harness import WORKLOADS
+from march.bench.planner_speed import bench_planner_share
+from march.config.cli import fail, run_tool
+
+USAGE = (
+    "usage: python -m march.bench env|planner [compute.num_envs=64] [compute.device=...] "
+    "[bench.steps=N] [bench.warmup=N] [bench.warmup_random=N] [bench.warmup_standing=N] "
+    "[bench.profile_steps=N] [bench.rounds=N] [key=value ...]"
+)
+JOB_DEFAULTS: dict[str, dict[str, int]] = {
+    "env": {
+        "steps": 40,
+        "warmup_random": 30,
+        "warmup_standing": 5,
+        "profile_steps": 20,
+        "rounds": 8,
+    },
+    "planner": {"steps": 100, "warmup": 10, "profile_steps": 0, "rounds": 1},
+}
+"""Per job: timed steps (env: per env and workload), untimed warm-up steps after each reset,
+steps of the instrumented profile pass (env only; 0 = none) and interleaved chunks. Sized for a
+loaded 2-core machine at 64 envs (about 10 minutes)."""
+BENCH_MINIMUM = {
+    "steps": 1,
+    "warmup": 0,
+    "warmup_random": 0,
+    "warmup_standing": 0,
+    "profile_steps": 0,
+    "rounds": 1,
+}
+"""Smallest value of each option; ``bench.warmup=N`` sets both workloads' warm-up."""
+
+
+def pop_bench_options(argv: Sequence[str]) -> tuple[list[str], dict[str, int]]:
+    """Split ``bench.<option>=N`` off the overrides (they are not config keys); returns the
+    remaining overrides and the options given (job defaults: :data:`JOB_DEFAULTS`)."""
+    rest: list[str] = []
+    opts: dict[str, int] = {}
+    for arg in argv:
+        if not arg.startswith("bench."):
+            rest.append(arg)
+            continue
+        key, _, value = arg[len("bench.") :].partition("=")
+        if key not in BENCH_MINIMUM:
+            known = ", ".join(f"bench.{k}=N" for k in BENCH_MINIMUM)
+            fail(f"unknown benchmark option {arg!r}; use {known}")
+        try:
+            n = int(value)
+        except ValueError:
+            fail(f"{arg}: expected an integer")
+        if n < BENCH_MINIMUM[key]:
+            fail(f"{arg}: bench.{key} must be >= {BENCH_MINIMUM[key]}")
+        opts[key] = n
+    return rest, opts
+
+
+def job_options(job: str, given: dict[str, int]) -> dict[str, int]:
+    """The job's defaults with the given options over them (``bench.warmup=N``: the warm-up of
+    both env workloads, unless one is given by itself)."""
+    opts = {**JOB_DEFAULTS.get(job, JOB_DEFAULTS["env"]), **given}
+    if "warmup" in given:
+        for w in WORKLOADS:
+            opts[f"warmup_{w}"] = given.get(f"warmup_{w}", given["warmup"])
+    return opts
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    args, given = pop_bench_options(sys.argv[1:] if argv is None else argv)
+    job = args[0] if args else ""
+    opts = job_options(job, given)
+    jobs = {
+        "env": lambda cfg: bench_env(cfg, opts),
+        "planner": lambda cfg: bench_planner_share(cfg, opts["steps"], opts["warmup"]),
+    }
+    result = run_tool(jobs, args, usage=USAGE)
+    print(json.dumps(result, indent=2), flush=True)

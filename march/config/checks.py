@@ -1,0 +1,129 @@
+"""Validation helpers of the config schema: the valid-name tuples, :class:`ConfigError` and the
+checks each section's ``__post_init__`` runs (one line saying what is wrong and how to fix it;
+:class:`ConfigError` itself lives in :mod:`march.errors`).
+
+Also :func:`cnn_output_hw`, the student CNN's feature-map size that the whole-config check needs.
+Pure data: no simulator import.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import fields
+from functools import cache
+from typing import Any, get_args, get_origin, get_type_hints
+
+from march.errors import ConfigError
+
+STAGES = ("all", "teacher", "student", "eval")
+REWARDS = ("clf", "modelfree")
+STUDENTS = ("full", "no_transformer", "no_mdn")
+CURRICULA = ("stones", "flat_first")
+COMPUTES = ("auto", "cpu", "gpu", "smoke")
+LOGGERS = ("csv", "tensorboard", "wandb")
+DRS = ("paper", "none")
+COURSES = ("stones", "hardware")
+
+
+def _one_of(section: str, key: str, value: Any, valid: tuple[str, ...]) -> None:
+    if value not in valid:
+        raise ConfigError(
+            f"{section}.{key}={value!r} is not valid; choose one of {', '.join(valid)}"
+        )
+
+
+def _positive(section: str, key: str, value: float) -> None:
+    if not value > 0:
+        raise ConfigError(f"{section}.{key}={value} must be > 0")
+
+
+SEED_MAX = 2**31 - 1
+"""Largest seed every RNG of a run accepts: numpy takes 0..2**32-1, but warp's ``wp.rand_init``
+(mjlab's ``seed_rng``) takes an int32 and silently wraps anything larger."""
+
+ACTIVATIONS = ("elu", "relu", "gelu", "silu", "tanh")
+"""Activations of march's own networks (march.policies.student._activation)."""
+RSL_ACTIVATIONS = ("elu", "selu", "relu", "crelu", "lrelu", "tanh", "sigmoid", "softplus")
+RSL_ACTIVATIONS += ("gelu", "swish", "mish", "identity")
+"""Activations rsl-rl's actor-critic MLP takes (rsl_rl.utils.resolve_nn_activation)."""
+MJ_GEOM_GROUPS = 6
+"""MuJoCo's number of geom groups (mjNGROUP): valid groups are 0..5."""
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_fmt(v) for v in value) + "]"
+    return str(value)
+
+
+def _need(section: str, key: str, value: Any, ok: bool, allowed: str) -> None:
+    """Raise ``<section>.<key>=<value> must be <allowed>`` unless ``ok``."""
+    if not ok:
+        name = f"{section}.{key}" if section else key
+        raise ConfigError(f"{name}={_fmt(value)} must be {allowed}")
+
+
+def _at_least(section: str, key: str, value: float, lo: float) -> None:
+    _need(section, key, value, value >= lo, f">= {lo}")
+
+
+def _interval(
+    section: str, key: str, value: float, lo: float, hi: float, *, lo_open=False, hi_open=False
+) -> None:
+    ok = (value > lo if lo_open else value >= lo) and (value < hi if hi_open else value <= hi)
+    text = f"in {'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
+    _need(section, key, value, ok, text)
+
+
+def _bounds(
+    section: str, key: str, pair: Any, lo: float | None = None, *, lo_open: bool = False
+) -> None:
+    """A range [a, b]: a <= b, and a >= lo (a > lo with ``lo_open``)."""
+    a, b = pair
+    _need(section, key, pair, a <= b, "[lo, hi] with lo <= hi")
+    if lo is not None:
+        ok = a > lo if lo_open else a >= lo
+        _need(section, key, pair, ok, f"[lo, hi] with lo {'>' if lo_open else '>='} {lo}")
+
+
+def _each(section: str, key: str, values: Any, lo: float, *, nonempty: bool = False) -> None:
+    """Every entry >= lo (and at least one entry with ``nonempty``)."""
+    if nonempty:
+        _need(section, key, values, len(values) > 0, "a non-empty list")
+    _need(section, key, values, all(v >= lo for v in values), f"a list of values >= {lo}")
+
+
+@cache
+def _hints(cls: type) -> dict[str, Any]:
+    return get_type_hints(cls)
+
+
+def _check_shapes(section: str, obj: Any) -> None:
+    """Every number finite and every fixed-size tuple of its declared length.
+
+    OmegaConf accepts ``nan``/``inf`` for floats and a list of any length for a ``tuple[float,
+    float]``; both would fail far from the command line."""
+    hints = _hints(type(obj))
+    for f in fields(obj):
+        value, hint = getattr(obj, f.name), hints[f.name]
+        items = list(value.values()) if isinstance(value, dict) else value
+        if isinstance(items, (list, tuple)):
+            args = get_args(hint)
+            if get_origin(hint) is tuple and args and Ellipsis not in args:
+                _need(
+                    section, f.name, value, len(items) == len(args), f"a list of {len(args)} values"
+                )
+            nums = [v for v in items if isinstance(v, float)]
+        else:
+            nums = [items] if isinstance(items, float) else []
+        _need(section, f.name, value, all(math.isfinite(v) for v in nums), "finite")
+
+
+def cnn_output_hw(hw: tuple[int, int], kernels: Any, strides: Any) -> tuple[int, int]:
+    """The student CNN's feature-map size for an image of ``hw`` (height, width) pixels: conv
+    layers with same padding (kernel // 2), as march.policies.student builds them."""
+    h, w = hw
+    for k, s in zip(kernels, strides, strict=True):
+        h = (h + 2 * (k // 2) - k) // s + 1
+        w = (w + 2 * (k // 2) - k) // s + 1
+    return h, w

@@ -1,0 +1,299 @@
+"""Config sections of the simulated world: compute, environment, depth camera, reward,
+terrain curriculum and domain randomization (``conf/`` groups of the same names).
+
+Each ``__post_init__`` checks its values with :mod:`march.config.checks`. Pure data: no simulator
+import.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from march.config.checks import (
+    COMPUTES,
+    CURRICULA,
+    DRS,
+    MJ_GEOM_GROUPS,
+    REWARDS,
+    SEED_MAX,
+    ConfigError,
+    _at_least,
+    _bounds,
+    _check_shapes,
+    _each,
+    _interval,
+    _need,
+    _one_of,
+    _positive,
+)
+
+
+@dataclass
+class ComputeCfg:
+    """Where and how big: presets in ``conf/compute/`` also size teacher, distill and eval."""
+
+    name: str = "cpu"
+    """Preset name: auto (gpu if CUDA is available, else cpu), cpu, gpu or smoke."""
+    device: str = "cpu"
+    """Torch/warp device for simulation and learning: "cpu", "cuda" or "cuda:N"."""
+    num_envs: int = 32
+    """Parallel environments for teacher training and distillation."""
+    eval_num_envs: int = 32
+    """Parallel environments for evaluation rollouts (at most eval.num_rollouts are used)."""
+    torch_threads: int = 0
+    """torch.set_num_threads on CPU; 0 keeps torch's default."""
+
+    def __post_init__(self) -> None:
+        _check_shapes("compute", self)
+        _one_of("compute", "name", self.name, COMPUTES)
+        dev = self.device
+        if not (dev in ("cpu", "cuda") or (dev.startswith("cuda:") and dev[5:].isdigit())):
+            raise ConfigError(f"compute.device={self.device!r}: use cpu, cuda or cuda:N")
+        _positive("compute", "num_envs", self.num_envs)
+        _positive("compute", "eval_num_envs", self.eval_num_envs)
+        _need(
+            "compute",
+            "torch_threads",
+            self.torch_threads,
+            self.torch_threads >= 0,
+            ">= 0 (0 = torch's default)",
+        )
+
+
+@dataclass
+class EnvCfg:
+    """The mjlab environment around the Unitree G1 (SPEC §2)."""
+
+    episode_length_s: float = 20.0
+    """Episode length [s]."""
+    sim_dt: float = 0.005
+    """Physics time step [s]."""
+    decimation: int = 4
+    """Physics steps per control step (50 Hz control at 0.005 s)."""
+    history_length: int = 5
+    """Proprioception history length [control steps] for teacher and student."""
+    command_vx: tuple[float, float] = (0.3, 0.8)
+    """Forward speed command range [m/s], sampled once per episode; the speed along the course
+    (``Footholds.direction``; the robot is steered to face it)."""
+    command_vy: tuple[float, float] = (0.0, 0.0)
+    """Lateral velocity command range [m/s], across the course. 0 on the straight stone courses:
+    0.1 m/s sideways for a 20 s episode is 2 m off the course axis (README, reference/commands)."""
+    command_yaw_rate: tuple[float, float] = (-0.2, 0.2)
+    """Bounds of the yaw-rate command [rad/s]. The yaw rate is not sampled: a heading controller
+    steers back to the course heading, yaw rate = clip(command_heading_stiffness * (course
+    heading - robot heading), these bounds) (mjlab's heading command); must contain 0."""
+    command_heading_stiffness: float = 0.5
+    """Gain of that heading controller [1/s] (mjlab's velocity task uses 0.5)."""
+
+    def __post_init__(self) -> None:
+        _check_shapes("env", self)
+        _positive("env", "episode_length_s", self.episode_length_s)
+        _positive("env", "sim_dt", self.sim_dt)
+        _positive("env", "decimation", self.decimation)
+        _positive("env", "history_length", self.history_length)
+        step = self.sim_dt * self.decimation
+        _need(
+            "env",
+            "episode_length_s",
+            self.episode_length_s,
+            self.episode_length_s >= step,
+            f">= one control step (sim_dt * decimation = {step:g} s)",
+        )
+        for key in ("command_vx", "command_vy", "command_yaw_rate"):
+            lo, hi = getattr(self, key)
+            if lo > hi:
+                raise ConfigError(f"env.{key}=[{lo}, {hi}]: the lower bound exceeds the upper")
+        lo, hi = self.command_yaw_rate
+        if not lo <= 0.0 <= hi:
+            raise ConfigError(
+                f"env.command_yaw_rate=[{lo}, {hi}] must contain 0: it bounds the heading "
+                "controller that steers back to the course (0 once the robot faces along it)"
+            )
+        if self.command_heading_stiffness < 0.0:
+            raise ConfigError(
+                f"env.command_heading_stiffness={self.command_heading_stiffness} must be >= 0"
+            )
+
+
+@dataclass
+class DepthCfg:
+    """Chest depth camera (Realsense D435i-like) and its corruption."""
+
+    name: str = "depth_cam"
+    """Camera / sensor name in the scene."""
+    width: int = 32
+    """Image width [px]."""
+    height: int = 24
+    """Image height [px]."""
+    fovy: float = 55.2
+    """Vertical field of view [deg]."""
+    min_range: float = 0.1
+    """Closest depth the camera reports [m] (D435i ~0.1 m at low resolution); nearer is clipped."""
+    max_range: float = 3.0
+    """Farthest depth kept [m]; misses, invalid and dropped pixels read as this."""
+    pos: tuple[float, float, float] = (0.0576, 0.0175, 0.42)
+    """Camera position in the torso_link frame [m] (x forward, y left, z up): the D435 mount of
+    Unitree's G1 URDF (d435_joint), ~1.25 m above the ground when standing."""
+    pitch_deg: float = 47.6
+    """Downward pitch of the optical axis below the torso's forward (+x) axis [deg] (URDF
+    d435_joint: 0.83 rad); with fovy 55.2 the view spans ~20-75 deg below the horizon."""
+    geom_groups: tuple[int, ...] = (0,)
+    """Geom groups the camera renders: 0 = terrain only (the robot's own visual geoms are
+    group 2). All cameras of a scene must share this (mujoco_warp)."""
+    noise_scale: float = 0.1
+    """Gaussian depth noise sigma as a fraction of depth (sigma = noise_scale * depth)."""
+    dropout: float = 0.05
+    """Fraction of pixels dropped (set invalid -> max range) per frame."""
+    delay_steps: tuple[int, int] = (0, 1)
+    """Per-env delay [control steps], drawn uniformly from [lo, hi] at reset (1 step = 20 ms)."""
+
+    def __post_init__(self) -> None:
+        _check_shapes("depth", self)
+        _need("depth", "name", self.name, bool(self.name), "a non-empty sensor name")
+        _at_least("depth", "width", self.width, 1)
+        _at_least("depth", "height", self.height, 1)
+        _interval("depth", "fovy", self.fovy, 0, 180, lo_open=True, hi_open=True)
+        _positive("depth", "max_range", self.max_range)
+        _interval("depth", "min_range", self.min_range, 0, self.max_range, hi_open=True)
+        _interval("depth", "pitch_deg", self.pitch_deg, -90, 90)
+        _need(
+            "depth",
+            "geom_groups",
+            self.geom_groups,
+            len(self.geom_groups) > 0 and all(0 <= g < MJ_GEOM_GROUPS for g in self.geom_groups),
+            f"a non-empty list of MuJoCo geom groups 0..{MJ_GEOM_GROUPS - 1}",
+        )
+        _at_least("depth", "noise_scale", self.noise_scale, 0)
+        if not 0.0 <= self.dropout < 1.0:
+            raise ConfigError(f"depth.dropout={self.dropout} must be in [0, 1)")
+        if self.delay_steps[0] > self.delay_steps[1] or self.delay_steps[0] < 0:
+            raise ConfigError(f"depth.delay_steps={list(self.delay_steps)}: need 0 <= lo <= hi")
+
+
+@dataclass
+class RewardCfg:
+    """The teacher's reward: named terms and weights (conf/reward/*.yaml)."""
+
+    name: str = "clf"
+    """clf (CLF-RL terms around the model-based reference) or modelfree (RPL-style baseline)."""
+    terms: dict[str, float] = field(default_factory=dict)
+    """Reward term name -> weight. A penalty term returns a value <= 0 and carries a positive
+    weight, so every weight here is the sign the term's contribution has (SPEC §2)."""
+    tilt_limit_deg: float = 50.0
+    """Terminate when the torso tilts beyond this [deg]."""
+    min_base_height_m: float = 0.4
+    """Terminate when the pelvis is lower than this above the start platform [m]."""
+    max_foot_drop_m: float = 0.15
+    """Terminate when a foot is more than this below the start platform top [m] (it fell off a
+    stone; stone tops vary by at most terrain.height_hard = 0.10 m)."""
+
+    def __post_init__(self) -> None:
+        _check_shapes("reward", self)
+        _one_of("reward", "name", self.name, REWARDS)
+        _interval("reward", "tilt_limit_deg", self.tilt_limit_deg, 0, 180, lo_open=True)
+        _at_least("reward", "min_base_height_m", self.min_base_height_m, 0)
+        _positive("reward", "max_foot_drop_m", self.max_foot_drop_m)
+
+
+@dataclass
+class CurriculumCfg:
+    """Terrain curriculum (conf/curriculum/*.yaml)."""
+
+    name: str = "stones"
+    """stones (stepping stones from the start, easiest level first) or flat_first."""
+    num_levels: int = 10
+    """Difficulty levels (terrain rows)."""
+    num_cols: int = 8
+    """Courses per level (terrain columns)."""
+    max_init_level: int = 0
+    """Highest level an env may start on."""
+    flat_levels: int = 0
+    """Lowest levels that are flat ground (flat_first: envs start there and climb onto stones)."""
+    terrain_seed: int = 0
+    """Seed of the terrain generator; fixed so the foothold table can regenerate the courses."""
+    promote_fraction: float = 1.0
+    """Level up when progress >= this x the goal distance (the goal platform was reached)."""
+    demote_fraction: float = 0.3
+    """Level down when progress < this x the goal distance."""
+
+    def __post_init__(self) -> None:
+        _one_of("curriculum", "name", self.name, CURRICULA)
+        _check_shapes("curriculum", self)
+        _positive("curriculum", "num_levels", self.num_levels)
+        _positive("curriculum", "num_cols", self.num_cols)
+        _interval("curriculum", "max_init_level", self.max_init_level, 0, self.num_levels - 1)
+        _interval("curriculum", "flat_levels", self.flat_levels, 0, self.num_levels - 1)
+        _interval("curriculum", "terrain_seed", self.terrain_seed, 0, SEED_MAX)
+        # Progress is measured against the goal distance: 1 = the goal platform was reached.
+        _interval("curriculum", "promote_fraction", self.promote_fraction, 0, 1, lo_open=True)
+        _interval(
+            "curriculum",
+            "demote_fraction",
+            self.demote_fraction,
+            0,
+            self.promote_fraction,
+            hi_open=True,
+        )
+        if self.name == "flat_first" and not 0 < self.flat_levels < self.num_levels:
+            raise ConfigError(
+                f"curriculum.flat_levels={self.flat_levels}: flat_first needs 1..num_levels-1"
+            )
+        if self.name == "stones" and self.flat_levels:
+            raise ConfigError("curriculum=stones has no flat levels; set curriculum.flat_levels=0")
+
+
+@dataclass
+class DrCfg:
+    """Domain randomization (conf/dr/*.yaml): the paper's table or none."""
+
+    name: str = "paper"
+    """paper (every row of the paper's table) or none."""
+    friction: tuple[float, float] = (0.5, 1.25)
+    """Foot friction coefficient range."""
+    link_mass_scale: tuple[float, float] = (0.9, 1.2)
+    """Link mass multiplier range."""
+    base_added_mass_kg: tuple[float, float] = (-1.0, 3.0)
+    """Added torso mass range [kg]."""
+    encoder_bias_rad: tuple[float, float] = (-0.015, 0.015)
+    """Joint encoder bias range [rad]."""
+    base_com_offset_m: tuple[float, float, float] = (0.025, 0.05, 0.05)
+    """Torso CoM offset half-ranges in x, y, z [m]."""
+    effort_limit_scale: tuple[float, float] = (0.85, 1.1)
+    """Motor effort limit multiplier range."""
+    joint_damping_scale: tuple[float, float] = (0.75, 1.25)
+    """Joint damping multiplier range."""
+    joint_friction: tuple[float, float] = (0.0, 0.04)
+    """Joint friction loss range [N m]."""
+    push_interval_s: tuple[float, float] = (10.0, 15.0)
+    """Velocity push interval [s]."""
+    push_lin_vel: float = 1.0
+    """Push linear velocity half-range in x and y [m/s]."""
+    push_ang_vel: float = 0.4
+    """Push angular velocity half-range in roll, pitch, yaw [rad/s]."""
+    control_delay_ms: tuple[float, float] = (0.0, 20.0)
+    """Action delay range [ms]."""
+    camera_pos_m: float = 0.025
+    """Camera translation half-range per axis [m]."""
+    camera_rot_deg: tuple[float, float, float] = (2.5, 3.0, 2.5)
+    """Camera rotation half-ranges roll, pitch, yaw [deg]."""
+    camera_fov_deg: float = 2.0
+    """Camera FOV half-range [deg]."""
+
+    def __post_init__(self) -> None:
+        _check_shapes("dr", self)
+        _one_of("dr", "name", self.name, DRS)
+        _bounds("dr", "friction", self.friction, 0)
+        _bounds("dr", "link_mass_scale", self.link_mass_scale, 0, lo_open=True)
+        _bounds("dr", "base_added_mass_kg", self.base_added_mass_kg)
+        _bounds("dr", "encoder_bias_rad", self.encoder_bias_rad)
+        _each("dr", "base_com_offset_m", self.base_com_offset_m, 0)
+        _bounds("dr", "effort_limit_scale", self.effort_limit_scale, 0, lo_open=True)
+        _bounds("dr", "joint_damping_scale", self.joint_damping_scale, 0)
+        _bounds("dr", "joint_friction", self.joint_friction, 0)
+        _bounds("dr", "push_interval_s", self.push_interval_s, 0, lo_open=True)
+        _at_least("dr", "push_lin_vel", self.push_lin_vel, 0)
+        _at_least("dr", "push_ang_vel", self.push_ang_vel, 0)
+        _bounds("dr", "control_delay_ms", self.control_delay_ms, 0)
+        _at_least("dr", "camera_pos_m", self.camera_pos_m, 0)
+        _each("dr", "camera_rot_deg", self.camera_rot_deg, 0)
+        _at_least("dr", "camera_fov_deg", self.camera_fov_deg, 0)

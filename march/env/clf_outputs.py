@@ -1,0 +1,133 @@
+"""The measured CLF outputs y_sim of the robot in the mjlab env, and the stance foot's state.
+
+:func:`measured_outputs` reads the 29 outputs the CLF tracks (``CLF_OUTPUT_NAMES`` order) and
+their rates from the simulator state; :func:`stance_foot_state` the stance foot's site position
+and velocities for the holonomic terms. Plain functions of the env, the robot entity, the foot
+site names, the body masses and the stance mask, called by the ``reference`` command term
+(``march.env.reference_command``); :func:`yaw_rotate` also serves its base-relative observation.
+
+Decisions (``march.env.reference_command`` lists the others)
+- **CoM.** Whole-body CoM: ``subtree_com`` of the robot's root body (MuJoCo's mass-weighted CoM of
+  all robot bodies, domain-randomised masses included); its velocity is the mass-weighted mean of
+  the bodies' CoM velocities (``body_com_lin_vel_w``), with the per-world body masses.
+- **Outputs** (``CLF_OUTPUT_NAMES`` order, 29): CoM x/y/z (world), pelvis roll/pitch/yaw (ZYX Euler
+  of the root link) and their Euler-angle rates, swing-foot site position/velocity (world) and its
+  roll/pitch/yaw with Euler rates, 17 upper-body joints relative to their defaults. The swing-foot
+  site is at sole level on the G1 (z ~ 1.5 mm standing), so ``ReferenceCfg.foot_height_offset``
+  is 0.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import torch
+from mjlab.utils.lab_api.math import euler_xyz_from_quat, quat_apply_inverse, quat_from_matrix
+
+from march.env.step_cache import site_state, site_xmat
+
+if TYPE_CHECKING:
+    from mjlab.entity import Entity
+    from mjlab.envs import ManagerBasedRlEnv
+
+
+def euler_rates(euler: torch.Tensor, omega_b: torch.Tensor) -> torch.Tensor:
+    """ZYX Euler-angle rates (roll, pitch, yaw)-dot (E, 3) from the body-frame angular velocity.
+
+    R = Rz(yaw) Ry(pitch) Rx(roll) (``euler_xyz_from_quat``'s convention); cos(pitch) is kept
+    away from 0 (the tilt termination ends episodes long before the singularity).
+    """
+    roll, pitch = euler[:, 0], euler[:, 1]
+    p, q, r = omega_b.unbind(-1)
+    sr, cr = torch.sin(roll), torch.cos(roll)
+    cp = torch.cos(pitch)
+    cp = torch.where(cp.abs() < 0.1, torch.full_like(cp, 0.1), cp)
+    tp = torch.sin(pitch) / cp
+    a = q * sr + r * cr
+    return torch.stack([p + a * tp, q * cr - r * sr, a / cp], dim=-1)
+
+
+def euler_zyx(quat: torch.Tensor) -> torch.Tensor:
+    """(E, 3) ZYX Euler angles (roll, pitch, yaw) of (E, 4) quaternions."""
+    return torch.stack(euler_xyz_from_quat(quat), dim=-1)
+
+
+def yaw_rotate(vec: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
+    """Rotate the xy part of (E, ..., 2|3) vectors by -yaw (world -> yaw-aligned base frame)."""
+    c, s = torch.cos(yaw), torch.sin(yaw)
+    while c.dim() < vec.dim() - 1:
+        c, s = c[..., None], s[..., None]
+    x, y = vec[..., 0], vec[..., 1]
+    out = vec.clone()
+    out[..., 0] = c * x + s * y
+    out[..., 1] = -s * x + c * y
+    return out
+
+
+def body_masses(
+    env: ManagerBasedRlEnv, body_ids: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(W|1, B) masses of the robot bodies ``body_ids`` (per world when the model has them per
+    world) and their (W|1, 1) sums, copied from the model."""
+    mass = env.sim.model.body_mass
+    mass = mass[:, body_ids] if mass.dim() == 2 else mass[body_ids][None]
+    return mass.clone(), mass.sum(1, keepdim=True)
+
+
+def measured_outputs(
+    env: ManagerBasedRlEnv,
+    robot: Entity,
+    foot_sites: tuple[str, str],
+    entity_name: str,
+    root_body: int,
+    upper_ids: torch.Tensor,
+    masses: tuple[torch.Tensor, torch.Tensor],
+    stance_is_left: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(E, 29) measured outputs y_sim (positions) and their rates (module docstring).
+
+    ``robot`` is the robot entity (``entity_name`` in the scene), ``foot_sites`` its left and
+    right foot sites, ``root_body`` its root body id, ``upper_ids`` the upper-body joints
+    (``UPPER_BODY_JOINTS`` order), ``masses`` from :func:`body_masses` and ``stance_is_left``
+    (E,) the stance mask (the swing foot is the other one).
+    """
+    data = robot.data
+    com = env.sim.data.subtree_com[:, root_body]
+    mass, mass_sum = masses
+    com_vel = (data.body_com_lin_vel_w * mass[..., None]).sum(1) / mass_sum
+    quat = data.root_link_quat_w
+    pelvis = euler_zyx(quat)
+    pelvis_rate = euler_rates(pelvis, data.root_link_ang_vel_b)
+    # The two foot sites only (step_cache): same values as data.site_*_w of the swing site.
+    names = tuple(foot_sites)
+    pos, lin, ang = site_state(env, names, entity_name)
+    mat = site_xmat(env, names, entity_name)
+    swing_left = ~stance_is_left  # the swing foot is the other one
+    pick = swing_left[:, None]
+    swing_pos = torch.where(pick, pos[:, 0], pos[:, 1])
+    swing_vel = torch.where(pick, lin[:, 0], lin[:, 1])
+    swing_quat = quat_from_matrix(torch.where(pick[..., None], mat[:, 0], mat[:, 1]))
+    swing_ori = euler_zyx(swing_quat)
+    swing_omega_b = quat_apply_inverse(swing_quat, torch.where(pick, ang[:, 0], ang[:, 1]))
+    swing_rate = euler_rates(swing_ori, swing_omega_b)
+    upper = data.joint_pos[:, upper_ids] - data.default_joint_pos[:, upper_ids]
+    upper_vel = data.joint_vel[:, upper_ids]
+    pos = torch.cat([com, pelvis, swing_pos, swing_ori, upper], dim=-1)
+    vel = torch.cat([com_vel, pelvis_rate, swing_vel, swing_rate, upper_vel], dim=-1)
+    return pos, vel
+
+
+def stance_foot_state(
+    env: ManagerBasedRlEnv,
+    foot_sites: tuple[str, str],
+    entity_name: str,
+    stance_is_left: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Stance foot site position (E, 3), linear velocity (E, 3) and angular velocity (E, 3)."""
+    pos, lin, ang = site_state(env, tuple(foot_sites), entity_name)
+    left = stance_is_left[:, None]
+    return (
+        torch.where(left, pos[:, 0], pos[:, 1]),
+        torch.where(left, lin[:, 0], lin[:, 1]),
+        torch.where(left, ang[:, 0], ang[:, 1]),
+    )
