@@ -199,3 +199,34 @@ def test_docs_layout_names_every_room():
         if f"`{name}`" not in text:
             missing.append(name)
     assert missing == []
+
+
+def _runtime_imports(path: Path) -> set[str]:
+    """Top-level package names ``path`` imports when it runs (``if TYPE_CHECKING:`` blocks,
+    read only by type checkers, left out)."""
+    tree = ast.parse(path.read_text())
+    skip: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            skip |= {id(n) for stmt in node.body for n in ast.walk(stmt)}
+    found = set()
+    for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
+        if isinstance(node, ast.Import):
+            found |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            found.add(node.module.split(".")[0])
+    return found
+
+
+def test_only_the_env_imports_mjlab():
+    """``march/env/`` is the one door to mjlab: the runners, the evaluation, the tools reach
+    mjlab's envs, wrappers, robot and renderer through it."""
+    users = sorted(
+        str(p.relative_to(ROOT))
+        for p in _modules(PACKAGE)
+        if "mjlab" in _runtime_imports(p) and _room(_dotted(p)) != "env"
+    )
+    assert users == []
+    assert any("mjlab" in _runtime_imports(p) for p in _modules(PACKAGE / "env"))

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from march import play
+from march.env import rendering
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -53,7 +54,7 @@ def test_argument_errors(args, message, tmp_path, capsys):
 
 @pytest.mark.sim
 def test_play_writes_a_moving_video_of_a_student(tmp_path):
-    why = play.rendering_error()  # first: without a GL library even ``import mujoco`` fails
+    why = rendering.rendering_error()  # first: without a GL library even ``import mujoco`` fails
     if why:
         pytest.skip(f"offscreen rendering unavailable: {why}")
     import imageio.v3 as iio
@@ -93,7 +94,7 @@ def test_play_writes_a_moving_video_of_a_student(tmp_path):
     assert result.frames == play.expected_frames(result.steps, stride)
     frames = iio.imread(out, index=None)
     assert frames.shape[0] == result.frames
-    assert frames.shape[1:3] == (play.HEIGHT, play.WIDTH)
+    assert frames.shape[1:3] == (rendering.HEIGHT, rendering.WIDTH)
     assert any(not (frames[i] == frames[0]).all() for i in range(1, len(frames)))
     assert result.distance_m >= 0.0
 

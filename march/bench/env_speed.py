@@ -42,17 +42,6 @@ FLAT_TASK = "Mjlab-Velocity-Flat-Unitree-G1"
 ENV_NAMES = ("march_teacher", "bare_rough", "bare_flat")
 
 
-def bare_env(task: str, cfg: MarchConfig) -> Any:
-    """mjlab's registered task ``task`` with only num_envs and seed changed."""
-    from mjlab.envs import ManagerBasedRlEnv
-    from mjlab.tasks.registry import load_env_cfg
-
-    env_cfg = load_env_cfg(task)
-    env_cfg.scene.num_envs = cfg.compute.num_envs
-    env_cfg.seed = cfg.seed
-    return ManagerBasedRlEnv(cfg=env_cfg, device=cfg.compute.device)
-
-
 def run_workload(
     envs: dict[str, Any], workload: str, opts: dict[str, int], seed: int, device: str
 ) -> dict[str, Any]:
@@ -100,13 +89,14 @@ def run_workload(
 
 
 def bench_env(cfg: MarchConfig, opts: dict[str, int]) -> dict[str, Any]:
-    from march.env.build import make_env
+    from march.env.build import bare_env, make_env
 
     device = cfg.compute.device
+    n, seed = cfg.compute.num_envs, cfg.seed
     builders = {
         "march_teacher": lambda: make_env(cfg, "teacher"),
-        "bare_rough": lambda: bare_env(ROUGH_TASK, cfg),
-        "bare_flat": lambda: bare_env(FLAT_TASK, cfg),
+        "bare_rough": lambda: bare_env(ROUGH_TASK, n, seed, device),
+        "bare_flat": lambda: bare_env(FLAT_TASK, n, seed, device),
     }
     envs: dict[str, Any] = {}
     build: dict[str, float] = {}

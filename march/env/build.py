@@ -30,6 +30,7 @@ from mjlab.managers.curriculum_manager import CurriculumTermCfg
 from mjlab.managers.event_manager import EventTermCfg
 from mjlab.managers.observation_manager import ObservationGroupCfg, ObservationTermCfg
 from mjlab.managers.termination_manager import TerminationTermCfg
+from mjlab.rl.vecenv_wrapper import RslRlVecEnvWrapper
 from mjlab.tasks.velocity import mdp as vel_mdp
 from mjlab.tasks.velocity.config.g1.env_cfgs import unitree_g1_rough_env_cfg
 from mjlab.tasks.velocity.mdp import UniformVelocityCommandCfg
@@ -385,3 +386,20 @@ def make_env(
             flush=True,
         )
     return env
+
+
+def bare_env(task: str, num_envs: int, seed: int, device: str) -> ManagerBasedRlEnv:
+    """mjlab's registered task ``task`` (e.g. ``Mjlab-Velocity-Rough-Unitree-G1``) with only
+    ``num_envs`` and ``seed`` changed: the reference ``python -m march.bench`` measures against."""
+    from mjlab.tasks.registry import load_env_cfg
+
+    env_cfg = load_env_cfg(task)
+    env_cfg.scene.num_envs = num_envs
+    env_cfg.seed = seed
+    return ManagerBasedRlEnv(cfg=env_cfg, device=device)
+
+
+def rsl_rl_env(env: ManagerBasedRlEnv) -> RslRlVecEnvWrapper:
+    """``env`` behind mjlab's rsl-rl vec-env wrapper (TensorDict observations), as rsl-rl's
+    runners and algorithms expect it."""
+    return RslRlVecEnvWrapper(env)

@@ -35,15 +35,17 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
-from mjlab.envs import ManagerBasedRlEnv
 
 from march.config import MarchConfig
 from march.env.course import CourseRuler, assign_eval_cells
 from march.learn.checkpoint import write_json_atomic
 from march.learn.metrics import EVAL_COLUMNS, EVAL_METRICS, append_row
+
+if TYPE_CHECKING:
+    from mjlab.envs import ManagerBasedRlEnv
 
 Policy = Callable[[dict[str, Any]], torch.Tensor]
 

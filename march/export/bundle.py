@@ -54,11 +54,10 @@ from typing import Any
 from march.config import MarchConfig
 from march.config.cli import fail, run_tool
 from march.env.build import PROPRIO_TERMS
+from march.env.g1 import course_scene, g1_action_layout, g1_joint_names
 from march.export.deploy_spec import (
     course_cells,
-    course_scene,
     deployment_spec,
-    g1_action_layout,
     layout_problem,
     proprio_term_dims,
 )
@@ -194,13 +193,9 @@ def write_bundle(
     import mujoco
 
     files = bundle_files(onnx_path)
-    from mjlab.asset_zoo.robots.unitree_g1 import g1_constants as g1
-
     free = mujoco.mjtJoint.mjJNT_FREE
-    g1_spec = g1.get_spec()  # a cheap look before any scene is built
-    problem = layout_problem(
-        payload["layout"], cfg, sum(1 for j in g1_spec.joints if j.type != free)
-    )
+    # a cheap look before any scene is built
+    problem = layout_problem(payload["layout"], cfg, len(g1_joint_names()))
     if problem is not None:
         return problem
     spec: dict[str, Any] | None = None

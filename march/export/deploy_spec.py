@@ -3,9 +3,10 @@
 :func:`deployment_spec` describes the evaluation env's G1 for a robot-side loop (rates, joints and
 default pose, actions and their actuators, proprioception order and history, the velocity
 command, the depth camera, terminations, metric definitions) from the env's compiled MuJoCo model
-(:func:`course_scene`); :func:`course_cells` turns a course grid into data (spawn point, goal and
-boxes per cell). :func:`proprio_term_dims` and :func:`g1_action_layout` give the proprioception
-terms and mjlab's G1 action layout that the ONNX metadata (:mod:`march.export.bundle`) repeats.
+(:func:`march.env.g1.course_scene`); :func:`course_cells` turns a course grid into data (spawn
+point, goal and boxes per cell). :func:`proprio_term_dims` gives the proprioception terms that the
+ONNX metadata (:mod:`march.export.bundle`) repeats with mjlab's G1 action layout
+(:func:`march.env.g1.g1_action_layout`).
 """
 
 from __future__ import annotations
@@ -28,56 +29,6 @@ def proprio_term_dims(proprio_dim: int, num_actions: int) -> list[tuple[str, int
     if sum(dims.values()) != proprio_dim:
         return None
     return [(k, dims[k]) for k in PROPRIO_TERMS]
-
-
-def g1_action_layout(num_actions: int) -> dict[str, list] | None:
-    """Joint names (action order), action scales and default joint positions of mjlab's G1,
-    or None when the checkpoint's action count is not the G1's."""
-    try:
-        import mujoco
-        from mjlab.asset_zoo.robots.unitree_g1 import g1_constants as g1
-    except Exception:  # noqa: BLE001 - metadata is best effort without mjlab
-        return None
-    free = mujoco.mjtJoint.mjJNT_FREE
-    spec = g1.get_spec()  # keep the spec alive while its joints are read
-    names = [str(j.name) for j in spec.joints if j.type != free]
-    if len(names) != num_actions:
-        return None
-
-    def resolve(table: dict[str, float], name: str, default: float | None) -> float | None:
-        for pattern, value in table.items():
-            if re.fullmatch(pattern, name):
-                return float(value)
-        return default
-
-    default_pos = dict(g1.get_g1_robot_cfg().init_state.joint_pos or {})
-    return {
-        "action_joint_names": names,
-        "action_scale": [resolve(g1.G1_ACTION_SCALE, n, None) for n in names],
-        "default_joint_pos": [resolve(default_pos, n, 0.0) for n in names],
-    }
-
-
-def course_scene(cfg: MarchConfig, course: str) -> tuple[Any, Any, Any]:
-    """(MjModel, env cfg, mjlab Scene) of the evaluation env on ``course``, DR and corruption off.
-
-    The model is compiled the way mjlab's ``Simulation`` compiles the env's scene
-    (``scene.spec.compile()`` then the env's ``MujocoCfg.apply``), without the warp copy:
-    the same G1 (actuators, gains, effort limits, armature, joint order), the same depth camera
-    and the same course geoms as ``env.sim.mj_model`` (tests/test_sim2sim.py compares them).
-    """
-    from dataclasses import replace
-
-    from mjlab.scene import Scene
-
-    from march.env.build import build_env_cfg
-
-    ev = replace(cfg.eval, course=course, randomization=False, corruption=False)
-    env_cfg = build_env_cfg(replace(cfg, eval=ev), "eval", num_envs=1)
-    scene = Scene(env_cfg.scene, device="cpu")
-    model = scene.spec.compile()
-    env_cfg.sim.mujoco.apply(model)
-    return model, env_cfg, scene
 
 
 def _resolve(table: Any, name: str, default: float | None) -> float | None:

@@ -14,10 +14,9 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
-from mjlab.envs import ManagerBasedRlEnv
 from tensordict import TensorDict
 
 from march.config import MarchConfig
@@ -33,6 +32,9 @@ from march.learn.faults import EnvFaults, UpdateGuard
 from march.learn.metrics import MetricsLog, Progress, truncate_rows
 from march.learn.teacher import EpisodeStats, build_teacher_actor, teacher_obs
 from march.policies.student import StudentPolicy
+
+if TYPE_CHECKING:
+    from mjlab.envs import ManagerBasedRlEnv
 
 COMMAND = "twist"
 

@@ -22,7 +22,8 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 import torch
-from mjlab.utils.nan_guard import NanGuard
+
+from march.env.nonfinite import nonfinite_physics
 
 
 class NumericalFault(RuntimeError):
@@ -74,7 +75,7 @@ class EnvFaults:
         """Reset the faulty envs after a step; ``obs`` (dict or TensorDict, edited in place) gets
         their post-reset rows and ``reward`` zeros there. Returns the mask, None if none."""
         env = self.env
-        bad = NanGuard.detect_nans(env.sim.data) | nonfinite_rows(env.num_envs, obs, reward)
+        bad = nonfinite_physics(env) | nonfinite_rows(env.num_envs, obs, reward)
         if bad_actions is not None:
             bad = bad | bad_actions
         if not bool(bad.any()):

@@ -12,16 +12,15 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
-from mjlab.envs import ManagerBasedRlEnv
-from mjlab.rl.vecenv_wrapper import RslRlVecEnvWrapper
 from rsl_rl.algorithms import PPO
 from rsl_rl.models import MLPModel
 from tensordict import TensorDict
 
 from march.config import MarchConfig, TeacherCfg
+from march.env.build import rsl_rl_env
 from march.env.course import CourseRuler
 from march.learn.checkpoint import (
     check_layout,
@@ -32,6 +31,9 @@ from march.learn.checkpoint import (
 )
 from march.learn.faults import EnvFaults, UpdateGuard
 from march.learn.metrics import MetricsLog, Progress, has_row, truncate_rows
+
+if TYPE_CHECKING:
+    from mjlab.envs import ManagerBasedRlEnv
 
 TeacherEval = Callable[[MLPModel, int, int], dict[str, Any]]
 """(deterministic actor, teacher iteration, teacher env steps) -> the eval.csv row it appended."""
@@ -175,7 +177,7 @@ class TeacherRunner:
         self.cfg, self.run_dir, self.log = cfg, run_dir, log
         self.evaluate_fn = evaluate_fn
         self.device = cfg.compute.device
-        self.env = RslRlVecEnvWrapper(env)
+        self.env = rsl_rl_env(env)
         self.ruler = CourseRuler(env)
         self.ckpt_dir = run_dir / "teacher"
         self.train_cfg = ppo_train_cfg(cfg.teacher)
