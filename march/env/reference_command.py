@@ -223,8 +223,7 @@ class ReferenceCommand(CommandTerm):
         self.tau += torch.where(active, step_dt, torch.zeros_like(step_dt))
 
         resets = self.queue.take_resets()
-        running = active.clone()
-        running[resets] = False
+        running = active & ~self.queue.is_reset
         contact = self.foot_contact()
         swing_contact = torch.where(self.stance_is_left, contact[:, 1], contact[:, 0])
         dur = self.step.duration

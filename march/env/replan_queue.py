@@ -39,6 +39,9 @@ class ReplanQueue:
         """(E,) a step timeout waits to be served (a touchdown of the same env outranks it)."""
         self.deferred_count = torch.zeros(num_envs, dtype=torch.long, device=device)
         """(E,) env steps a due event waited for capacity."""
+        self.is_reset = torch.zeros(num_envs, dtype=torch.bool, device=device)
+        """(E,) the env is among the last :meth:`take_resets` (kept buffer, no per-step alloc)."""
+        self._served = torch.zeros(num_envs, dtype=torch.bool, device=device)
         self._resets: list[torch.Tensor] = [torch.arange(num_envs, device=device)]
 
     def add_resets(self, env_ids: torch.Tensor) -> None:
@@ -48,11 +51,15 @@ class ReplanQueue:
         self.due_timeout[env_ids] = False
 
     def take_resets(self) -> torch.Tensor:
-        """(p,) the envs reset since the last call (host-known size), and forget them."""
+        """(p,) the envs reset since the last call (host-known size), and forget them; marks
+        them in :attr:`is_reset`."""
         ids, self._resets = self._resets, []
+        self.is_reset.zero_()
         if not ids:
             return torch.zeros(0, dtype=torch.long, device=self.device)
-        return torch.cat([i.to(device=self.device, dtype=torch.long) for i in ids])
+        resets = torch.cat([i.to(device=self.device, dtype=torch.long) for i in ids])
+        self.is_reset[resets] = True
+        return resets
 
     def serve(
         self,
@@ -62,7 +69,8 @@ class ReplanQueue:
         resets: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Queue this update's ``touchdown`` / ``timeout`` masks (E,) and take up to ``capacity``
-        due envs among ``active`` (E,), never one of ``resets`` (p,) (planned apart).
+        due envs among ``active`` (E,), never one of ``resets`` (p,) (planned apart; the ids
+        :meth:`take_resets` returned in this update).
 
         Returns ``sel`` (c,) the env ids of the fixed-size batch (c = min(capacity, E - p), known
         on the host), ``serve`` (c,) bool: the env is due and is served now, and ``flip`` (c,)
@@ -72,13 +80,11 @@ class ReplanQueue:
         self.due_touchdown |= touchdown
         self.due_timeout = (self.due_timeout | timeout) & ~self.due_touchdown
         due = (self.due_touchdown | self.due_timeout) & active
-        is_reset = torch.zeros(e, dtype=torch.bool, device=self.device)
-        is_reset[resets] = True
-        order_key = (~due).to(torch.int8) + 2 * is_reset.to(torch.int8)  # due, idle, resets
+        order_key = (~due).to(torch.int8) + 2 * self.is_reset.to(torch.int8)  # due, idle, resets
         sel = torch.argsort(order_key, stable=True)[: min(self.capacity, e - resets.numel())]
         serve = due[sel]
         flip = serve & self.due_touchdown[sel]
-        served = torch.zeros(e, dtype=torch.bool, device=self.device)
+        served = self._served.zero_()
         served[sel] = serve
         self.deferred_count += (due & ~served).long()
         self.due_touchdown &= ~served
