@@ -311,15 +311,18 @@ class DistillRunner:
                 flush=True,
             )
             last = self.iteration == total_iterations
-            if self.iteration % d.save_interval == 0 or last:
-                save_checkpoint(self.payload(), self.ckpt_dir, self.iteration)
-            # The final iteration's evaluation is the pipeline's eval stage (summary.json).
+            # Evaluate before the checkpoint, as the teacher does: a run killed in between resumes
+            # from the previous checkpoint (its later eval.csv rows truncated) and redoes both;
+            # the other order lost this evaluation for good. The final iteration's evaluation is
+            # the pipeline's eval stage (summary.json).
             if (
                 self.evaluate_fn is not None
                 and not last
                 and (d.eval_interval and self.iteration % d.eval_interval == 0)
             ):
                 self.evaluate_fn(self.student, self.iteration, self.env_steps)
+            if self.iteration % d.save_interval == 0 or last:
+                save_checkpoint(self.payload(), self.ckpt_dir, self.iteration)
         if latest_checkpoint(self.ckpt_dir) is None:
             save_checkpoint(self.payload(), self.ckpt_dir, self.iteration)
         return self.ckpt_dir / "latest.pt"
