@@ -200,3 +200,29 @@ def test_real_student_update_sums_huber_gradients_of_both_steps():
             grad = err.clamp(-cfg.huber_delta, cfg.huber_delta).sum(0) / err.numel()
             expected -= lr * grad
     assert student.action_out.bias.detach().tolist() == pytest.approx(expected.tolist(), abs=1e-12)
+
+
+@pytest.mark.sim
+def test_distillation_evaluates_an_iteration_before_checkpointing_it(
+    student_env, smoke_run, tmp_path
+):
+    """A kill between an evaluation and its iteration's checkpoint must not lose the evaluation
+    (found by ``make kill-trials``): the evaluation comes first, so a resume from the previous
+    checkpoint redoes both. Every evaluated iteration has no checkpoint yet when evaluated."""
+    teacher = smoke_run / "teacher" / "latest.pt"
+    overrides = [*OVERRIDES, "distill.eval_interval=1", "distill.save_interval=1"]
+    cfg = load([*overrides, f"teacher_ckpt={teacher}", "stage=student"])
+    log = MetricsLog(tmp_path, LoggerCfg(), tmp_path.name)
+    seen: list[tuple[int, bool]] = []
+
+    def evaluate(student, iteration, env_steps):
+        saved = (tmp_path / "student" / f"model_{iteration:06d}.pt").exists()
+        seen.append((iteration, saved))
+        return {}
+
+    runner = DistillRunner(
+        student_env, cfg, tmp_path, log, load_checkpoint(teacher, "teacher"), str(teacher), evaluate
+    )
+    runner.learn(3)
+    assert seen == [(1, False), (2, False)]  # the last iteration's is the pipeline's eval stage
+    assert all((tmp_path / "student" / f"model_{i:06d}.pt").exists() for i in (1, 2, 3))
