@@ -27,6 +27,7 @@ import csv
 import os
 import random
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -182,6 +183,9 @@ def run_trial(i: int, phase: str, rng: random.Random, out: Path) -> dict:
     from march.learn.checkpoint import CheckpointError, load_checkpoint
 
     run = out / f"trial_{i:02d}"
+    # A fresh run directory: a previous invocation's trial_NN would be resumed (already finished,
+    # or holding that trial's broken rows), and the trial would measure nothing of its own.
+    shutil.rmtree(run, ignore_errors=True)
     trig = Trigger(phase, rng)
     log = (out / f"trial_{i:02d}.killed.log").open("w")
     cmd = [sys.executable, "-m", "march.train", *SIZES, f"hydra.run.dir={run}"]
