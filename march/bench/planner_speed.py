@@ -45,17 +45,13 @@ def bench_planner(num_envs: int, device: str, repeats: int, seed: int) -> dict:
     command[:, 0] = 0.6
     gen = torch.Generator(device=device).manual_seed(seed)
 
-    def sync() -> None:
-        if torch.device(device).type == "cuda":
-            torch.cuda.synchronize()
-
     plan = plan_footsteps(stance, left, command, footholds, cfg, gen)
-    sync()
+    sync(device)
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         plan = plan_footsteps(stance, left, command, footholds, cfg, gen)
-        sync()
+        sync(device)
         times.append(1e3 * (time.perf_counter() - t0))
     ordered = sorted(times)
     p95 = ordered[min(len(ordered) - 1, int(round(0.95 * (len(ordered) - 1))))]

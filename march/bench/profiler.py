@@ -28,31 +28,25 @@ class StepProfiler:
     """
 
     def __init__(self, device: str) -> None:
-        self.cuda = str(device).startswith("cuda")
+        self.device = str(device)
         self.self_s: dict[str, float] = {}
         self.calls: dict[str, int] = {}
         self._stack: list[list[Any]] = []
         self._undo: list[tuple[Any, str, Any, bool]] = []
         self.planner_patched = False
 
-    def _sync(self) -> None:
-        if self.cuda:
-            import torch
-
-            torch.cuda.synchronize()
-
     def timed(self, name: str | Callable[..., str], fn: Callable[..., Any]) -> Callable[..., Any]:
         """``fn`` timed as section ``name`` (or ``name(*args, **kwargs)``)."""
 
         def wrapper(*args: Any, **kwargs: Any) -> Any:
             label = name(*args, **kwargs) if callable(name) else name
-            self._sync()
+            sync(self.device)
             frame = [label, time.perf_counter(), 0.0]
             self._stack.append(frame)
             try:
                 return fn(*args, **kwargs)
             finally:
-                self._sync()
+                sync(self.device)
                 elapsed = time.perf_counter() - frame[1]
                 self._stack.pop()
                 self.self_s[label] = self.self_s.get(label, 0.0) + elapsed - frame[2]
