@@ -218,9 +218,7 @@ class ReferenceCommand(CommandTerm):
             active = torch.zeros(e, dtype=torch.bool, device=self.device)
             active[env_ids] = True
         self.step_switched &= ~active
-        dt = self._dt
-        step_dt = dt if isinstance(dt, torch.Tensor) else torch.full_like(self.tau, float(dt))
-        self.tau += torch.where(active, step_dt, torch.zeros_like(step_dt))
+        self.tau += active * self._dt  # dt: a float, or per env on mjlab's auto-reset path
 
         resets = self.queue.take_resets()
         running = active & ~self.queue.is_reset
@@ -229,7 +227,7 @@ class ReferenceCommand(CommandTerm):
         dur = self.step.duration
         touchdown = running & swing_contact & (self.tau >= self.cfg.touchdown_min_fraction * dur)
         timeout = running & (self.tau >= self.cfg.touchdown_timeout_fraction * dur)
-        sel, serve, flip = self.queue.serve(touchdown, timeout, active, resets)
+        sel, serve, flip = self.queue.serve(touchdown, timeout, active)
         forced = serve & ~flip
         self.stance_is_left[sel] = self.stance_is_left[sel] ^ flip
         self.touchdown_count[sel] += flip.long()
@@ -283,7 +281,6 @@ class ReferenceCommand(CommandTerm):
         right_behind = along[:, 1] < along[:, 0] - self.cfg.stance_tie_m
         self.stance_is_left[env_ids] = ~right_behind
         self.yaw0[env_ids] = torch.atan2(axis[:, 1], axis[:, 0])  # the course heading
-        self.tau[env_ids] = 0.0
 
     def replan(self, env_ids: torch.Tensor) -> Plan:
         """Plan from the current stance foot of ``env_ids`` and make step 0 the current step.

@@ -41,6 +41,7 @@ class ReplanQueue:
         """(E,) env steps a due event waited for capacity."""
         self.is_reset = torch.zeros(num_envs, dtype=torch.bool, device=device)
         """(E,) the env is among the last :meth:`take_resets` (kept buffer, no per-step alloc)."""
+        self._num_resets = 0
         self._served = torch.zeros(num_envs, dtype=torch.bool, device=device)
         self._resets: list[torch.Tensor] = [torch.arange(num_envs, device=device)]
 
@@ -56,9 +57,11 @@ class ReplanQueue:
         ids, self._resets = self._resets, []
         self.is_reset.zero_()
         if not ids:
+            self._num_resets = 0
             return torch.zeros(0, dtype=torch.long, device=self.device)
         resets = torch.cat([i.to(device=self.device, dtype=torch.long) for i in ids])
         self.is_reset[resets] = True
+        self._num_resets = resets.numel()
         return resets
 
     def serve(
@@ -66,11 +69,10 @@ class ReplanQueue:
         touchdown: torch.Tensor,
         timeout: torch.Tensor,
         active: torch.Tensor,
-        resets: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Queue this update's ``touchdown`` / ``timeout`` masks (E,) and take up to ``capacity``
-        due envs among ``active`` (E,), never one of ``resets`` (p,) (planned apart; the ids
-        :meth:`take_resets` returned in this update).
+        due envs among ``active`` (E,), never one of the p resets :meth:`take_resets` returned
+        in this update (they are planned apart).
 
         Returns ``sel`` (c,) the env ids of the fixed-size batch (c = min(capacity, E - p), known
         on the host), ``serve`` (c,) bool: the env is due and is served now, and ``flip`` (c,)
@@ -81,7 +83,7 @@ class ReplanQueue:
         self.due_timeout = (self.due_timeout | timeout) & ~self.due_touchdown
         due = (self.due_touchdown | self.due_timeout) & active
         order_key = (~due).to(torch.int8) + 2 * self.is_reset.to(torch.int8)  # due, idle, resets
-        sel = torch.argsort(order_key, stable=True)[: min(self.capacity, e - resets.numel())]
+        sel = torch.argsort(order_key, stable=True)[: min(self.capacity, e - self._num_resets)]
         serve = due[sel]
         flip = serve & self.due_touchdown[sel]
         served = self._served.zero_()
