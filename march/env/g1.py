@@ -27,6 +27,17 @@ def g1_joint_names() -> list[str]:
     return [str(j.name) for j in spec.joints if j.type != free]
 
 
+def joint_value(table: Any, name: str, default: float | None) -> float | None:
+    """A joint's entry in one of mjlab's name -> value tables: a float for all joints, or
+    {regex: value} (the first full match), else ``default``."""
+    if isinstance(table, (int, float)):
+        return float(table)
+    for pattern, value in (table or {}).items():
+        if re.fullmatch(pattern, name):
+            return float(value)
+    return default
+
+
 def g1_action_layout(num_actions: int) -> dict[str, list] | None:
     """Joint names (action order), action scales and default joint positions of mjlab's G1,
     or None when the checkpoint's action count is not the G1's."""
@@ -34,17 +45,11 @@ def g1_action_layout(num_actions: int) -> dict[str, list] | None:
     if len(names) != num_actions:
         return None
 
-    def resolve(table: dict[str, float], name: str, default: float | None) -> float | None:
-        for pattern, value in table.items():
-            if re.fullmatch(pattern, name):
-                return float(value)
-        return default
-
     default_pos = dict(g1.get_g1_robot_cfg().init_state.joint_pos or {})
     return {
         "action_joint_names": names,
-        "action_scale": [resolve(g1.G1_ACTION_SCALE, n, None) for n in names],
-        "default_joint_pos": [resolve(default_pos, n, 0.0) for n in names],
+        "action_scale": [joint_value(g1.G1_ACTION_SCALE, n, None) for n in names],
+        "default_joint_pos": [joint_value(default_pos, n, 0.0) for n in names],
     }
 
 

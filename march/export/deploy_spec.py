@@ -11,11 +11,11 @@ ONNX metadata (:mod:`march.export.bundle`) repeats with mjlab's G1 action layout
 
 from __future__ import annotations
 
-import re
 from typing import Any
 
 from march.config import MarchConfig
 from march.env.build import PROPRIO_TERMS
+from march.env.g1 import joint_value
 
 BUNDLE_FORMAT = 1
 """Version of the ``<stem>.deploy.json`` layout; march.sim2sim refuses other versions."""
@@ -29,16 +29,6 @@ def proprio_term_dims(proprio_dim: int, num_actions: int) -> list[tuple[str, int
     if sum(dims.values()) != proprio_dim:
         return None
     return [(k, dims[k]) for k in PROPRIO_TERMS]
-
-
-def _resolve(table: Any, name: str, default: float | None) -> float | None:
-    """mjlab's name -> value tables: a float for all, or {regex: value} (first full match)."""
-    if isinstance(table, (int, float)):
-        return float(table)
-    for pattern, value in (table or {}).items():
-        if re.fullmatch(pattern, name):
-            return float(value)
-    return default
 
 
 def course_cells(env_cfg: Any, scene: Any) -> list[list[dict[str, Any]]]:
@@ -141,8 +131,8 @@ def deployment_spec(
     act_cfg = env_cfg.actions["joint_pos"]
     if getattr(act_cfg, "clip", None) is not None or not act_cfg.use_default_offset:
         raise ValueError("the action term clips or has no default offset: not supported here")
-    default_pos = [_resolve(init.joint_pos, n, 0.0) for n in bare]
-    scale = [_resolve(act_cfg.scale, n, 1.0) for n in bare]
+    default_pos = [joint_value(init.joint_pos, n, 0.0) for n in bare]
+    scale = [joint_value(act_cfg.scale, n, 1.0) for n in bare]
     actuator_of = {}
     for a in range(model.nu):
         if model.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT:
