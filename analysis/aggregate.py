@@ -2,20 +2,22 @@
 
 Which rows feed what:
 
-* baseline -- ``eval.csv`` rows ``stage == "student"`` of runs with student variant ``full``,
-  grouped by reward (clf vs modelfree), per distillation iteration.
+* baseline -- ``eval.csv`` rows ``stage == "student"`` of runs with the reference student variant
+  (``full``), grouped by reward arm (every arm found; the compared pairs default to clf vs
+  modelfree), per distillation iteration.
 * sample efficiency -- ``eval.csv`` rows ``stage == "teacher"`` (each teacher evaluated on the fixed
   stone evaluation set every ``teacher.eval_interval`` iterations), grouped by reward, per teacher
   iteration.
-* ablation -- ``eval.csv`` rows ``stage == "student"`` of clf runs, grouped by student variant.
+* ablation -- ``eval.csv`` rows ``stage == "student"`` of the ablation teacher's runs (clf),
+  grouped by student variant.
 * teacher training diagnostic -- ``metrics.csv`` rows ``stage == "teacher"`` (training rollouts,
   each arm on its own curriculum: not a like-for-like comparison, never used for one).
 * final metrics -- ``summary.json`` of complete runs (the final evaluation of the student, the
   same numbers as the run's last ``eval.csv`` student row).
 
 Several seeds combine per iteration with :func:`combine` (``--se-mode``). Relative differences
-follow the paper: (clf - modelfree) / modelfree for the baseline, (variant - full) / full for the
-ablation.
+follow the paper's convention for the chosen pairs (analysis.arms.Comparisons): (A - B) / B for an
+arm pair A:B (default clf:modelfree), (variant - full) / full for the ablation.
 """
 
 from __future__ import annotations
@@ -26,14 +28,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from analysis.arms import Comparisons
 from analysis.rundirs import Run, eval_rows, stage_rows
 
-REFERENCE_TEACHER = "clf"  # the ablation uses students of the clf teacher
-BASELINE_ARM = "clf"  # (clf - modelfree) / modelfree
-BASELINE_REFERENCE = "modelfree"
-FULL_VARIANT = "full"
-VARIANT_ORDER = ["full", "no_transformer", "no_mdn"]
-REWARD_ORDER = ["clf", "modelfree"]
 # metric key in eval.csv / summary.json (mean_<key>, se_<key>) -> short name, axis label
 METRICS = {
     "distance_m": ("distance", "distance traveled [m]"),
@@ -140,11 +137,12 @@ def aggregate_eval(frames: list[pd.DataFrame], mode: str) -> pd.DataFrame:
 
 
 def _eval_curves(
-    runs: list[Run], stage: str, key_of, series: list[str], mode: str, what: str
+    runs: list[Run], stage: str, key_of, series: list[str], order: list[str], mode: str, what: str
 ) -> Curves:
-    """Group runs by ``key_of(run)`` and aggregate their ``stage`` eval rows per iteration."""
+    """Group runs by ``key_of(run)`` and aggregate their ``stage`` eval rows per iteration: every
+    group found, and a ``missing`` entry for each expected ``series`` without rows."""
     out = Curves()
-    for name in _ordered(set(series) | {key_of(r) for r in runs}, series):
+    for name in _ordered(set(series) | {key_of(r) for r in runs}, order):
         group = [r for r in runs if key_of(r) == name]
         frames = [f for f in (eval_rows(r, stage) for r in group) if f is not None]
         if frames:
@@ -158,29 +156,33 @@ def _eval_curves(
     return out
 
 
-def baseline_data(runs: list[Run], mode: str, notes: list[str]) -> Curves:
-    """reward -> eval.csv student rows of the runs with student variant ``full``."""
-    full = [r for r in runs if r.variant == FULL_VARIANT]
+def baseline_data(runs: list[Run], mode: str, notes: list[str], comp: Comparisons) -> Curves:
+    """reward -> eval.csv student rows of the runs with the reference student variant."""
+    ref = comp.reference_variant
     out = _eval_curves(
-        runs=full,
+        runs=[r for r in runs if r.variant == ref],
         stage="student",
         key_of=lambda r: r.reward,
-        series=REWARD_ORDER,
+        series=comp.expected_arms,
+        order=comp.arm_order,
         mode=mode,
-        what=f"{FULL_VARIANT}-student ",
+        what=f"{ref}-student ",
     )
     for name, why in out.missing.items():
-        notes.append(f"baseline: {name}/{FULL_VARIANT} has {why}")
+        notes.append(f"baseline: {name}/{ref} has {why}")
     return out
 
 
-def sample_efficiency_data(runs: list[Run], mode: str, notes: list[str]) -> Curves:
+def sample_efficiency_data(
+    runs: list[Run], mode: str, notes: list[str], comp: Comparisons
+) -> Curves:
     """reward -> eval.csv teacher rows (every teacher.eval_interval teacher iterations)."""
     out = _eval_curves(
         runs=runs,
         stage="teacher",
         key_of=lambda r: r.reward,
-        series=REWARD_ORDER,
+        series=comp.expected_arms,
+        order=comp.arm_order,
         mode=mode,
         what="",
     )
@@ -189,20 +191,22 @@ def sample_efficiency_data(runs: list[Run], mode: str, notes: list[str]) -> Curv
     return out
 
 
-def ablation_data(runs: list[Run], mode: str, notes: list[str]) -> Curves:
-    """variant -> eval.csv student rows of the clf teacher's students."""
+def ablation_data(runs: list[Run], mode: str, notes: list[str], comp: Comparisons) -> Curves:
+    """variant -> eval.csv student rows of the ablation teacher's (clf's) students."""
+    teacher = comp.ablation_teacher
     rewards = {r.reward for r in runs if eval_rows(r, "student") is not None}
-    cand = [r for r in runs if r.reward == REFERENCE_TEACHER]
-    if rewards - {REFERENCE_TEACHER}:
-        others = ", ".join(sorted(rewards - {REFERENCE_TEACHER}))
-        notes.append(f"ablation: clf teacher only; student rows of reward {others} not used")
+    cand = [r for r in runs if r.reward == teacher]
+    if rewards - {teacher}:
+        others = ", ".join(sorted(rewards - {teacher}))
+        notes.append(f"ablation: {teacher} teacher only; student rows of reward {others} not used")
     out = _eval_curves(
         runs=cand,
         stage="student",
         key_of=lambda r: r.variant,
-        series=VARIANT_ORDER,
+        series=comp.expected_variants,
+        order=comp.variant_order,
         mode=mode,
-        what=f"{REFERENCE_TEACHER} ",
+        what=f"{teacher} ",
     )
     for name, why in out.missing.items():
         notes.append(f"ablation: variant {name} has {why}")
@@ -222,14 +226,15 @@ SE_COLUMNS = [
     "iteration",
     "env_steps",
     "result",
-    "vs_modelfree",
+    "compared_to",
+    "relative",
     "per_run",
     "source",
 ]
 
 
 def sample_efficiency(
-    runs: list[Run], curves: Curves, target: float, notes: list[str]
+    runs: list[Run], curves: Curves, target: float, notes: list[str], comp: Comparisons
 ) -> pd.DataFrame:
     """Per reward: first teacher iteration (and env steps) at which the seed-mean evaluation
     distance (eval.csv teacher rows, no smoothing) reaches ``target``; per run the same."""
@@ -253,22 +258,31 @@ def sample_efficiency(
                 "iteration": it,
                 "env_steps": steps,
                 "result": "reached" if it is not None else "not reached",
-                "vs_modelfree": "",
+                "compared_to": "",
+                "relative": "",
                 "per_run": " ".join(per_run),
                 "source": "eval.csv teacher rows (fixed stone evaluation set)",
             }
         )
     eff = pd.DataFrame(records, columns=SE_COLUMNS)
     by = {row["reward"]: row for _, row in eff.iterrows()}
-    arm, ref = by.get(BASELINE_ARM), by.get(BASELINE_REFERENCE)
-    if arm is not None and ref is not None:
+    for a, b in comp.pairs:
+        arm, ref = by.get(a), by.get(b)
+        if arm is None or ref is None or (eff["reward"] == a).sum() != 1:
+            continue
         if arm["result"] == ref["result"] == "reached":
             rel_it = rel_diff(arm["iteration"], ref["iteration"])
             rel_steps = rel_diff(arm["env_steps"], ref["env_steps"])
             text = f"iterations {format_rel(rel_it)}, env steps {format_rel(rel_steps)}"
         else:
             text = "n/a (target not reached by both)"
-        eff.loc[eff["reward"] == BASELINE_ARM, "vs_modelfree"] = text
+        row = eff["reward"] == a
+        if eff.loc[row, "compared_to"].iloc[0]:  # several references: one line each
+            text = f"{eff.loc[row, 'relative'].iloc[0]}; vs {b}: {text}"
+            eff.loc[row, "compared_to"] = eff.loc[row, "compared_to"] + f",{b}"
+        else:
+            eff.loc[row, "compared_to"] = b
+        eff.loc[row, "relative"] = text
     if not eff.empty and (eff["result"] == "not reached").all():
         notes.append(f"sample_efficiency: no arm reaches {target:g} m (see --target-distance)")
     return eff
@@ -288,10 +302,12 @@ def aggregate_curves(per_run: list[pd.DataFrame], column: str) -> pd.DataFrame:
     return out.reset_index()
 
 
-def teacher_training_data(runs: list[Run], window: int, notes: list[str]) -> dict[str, dict]:
+def teacher_training_data(
+    runs: list[Run], window: int, notes: list[str], comp: Comparisons
+) -> dict[str, dict]:
     """reward -> {metrics.csv column: smoothed curve, mean and SE across runs} (diagnostic)."""
     out: dict[str, dict] = {}
-    for reward in _ordered({r.reward for r in runs}, REWARD_ORDER):
+    for reward in _ordered({r.reward for r in runs}, comp.arm_order):
         curves = {}
         for col, _ in TEACHER_PANELS:
             per_run = []
@@ -345,18 +361,19 @@ def _span(values) -> str:
     return str(vals[0]) if len(vals) == 1 else f"{vals[0]}-{vals[-1]}"
 
 
-def final_table(runs: list[Run], mode: str, notes: list[str]) -> pd.DataFrame:
+def final_table(
+    runs: list[Run], mode: str, notes: list[str], comp: Comparisons
+) -> pd.DataFrame:
     """Per (reward, variant): the final evaluation (summary.json of complete runs) combined over
-    seeds, and the paper's relative differences: clf/full vs modelfree/full, and every other clf
-    variant vs clf/full (columns ``compared_to``, ``rel_<metric>``, ``relative``)."""
+    seeds, and the relative differences of the chosen pairs: A/full vs B/full for each arm pair
+    A:B, and every other variant of the ablation teacher vs its reference variant (columns
+    ``compared_to``, ``rel_<metric>``, ``relative``)."""
     done = _final_runs(runs, notes)
+    arm_rank = {n: i for i, n in enumerate(comp.arm_order)}
+    var_rank = {n: i for i, n in enumerate(comp.variant_order)}
     groups = sorted(
         {(r.reward, r.variant) for r in done},
-        key=lambda g: (
-            REWARD_ORDER.index(g[0]) if g[0] in REWARD_ORDER else 99,
-            VARIANT_ORDER.index(g[1]) if g[1] in VARIANT_ORDER else 99,
-            g,
-        ),
+        key=lambda g: (arm_rank.get(g[0], 999), var_rank.get(g[1], 999), g),
     )
     records = []
     for reward, variant in groups:
@@ -386,12 +403,9 @@ def final_table(runs: list[Run], mode: str, notes: list[str]) -> pd.DataFrame:
     for key in METRICS:
         table[f"rel_{key}"] = math.nan
     index = {(row.reward, row.variant): i for i, row in enumerate(table.itertuples())}
-    pairs = [((BASELINE_ARM, FULL_VARIANT), (BASELINE_REFERENCE, FULL_VARIANT))]
-    pairs += [
-        ((REFERENCE_TEACHER, v), (REFERENCE_TEACHER, FULL_VARIANT))
-        for (rw, v) in index
-        if rw == REFERENCE_TEACHER and v != FULL_VARIANT
-    ]
+    full, teacher = comp.reference_variant, comp.ablation_teacher
+    pairs = [((a, full), (b, full)) for a, b in comp.pairs]
+    pairs += [((teacher, v), (teacher, full)) for (rw, v) in index if rw == teacher and v != full]
     for group, ref in pairs:
         if group not in index:
             continue
@@ -410,8 +424,13 @@ def final_table(runs: list[Run], mode: str, notes: list[str]) -> pd.DataFrame:
                 parts.append(f"{short} n/a (different reward sets)")
                 continue
             rel = rel_diff(table.at[i, f"mean_{key}"], table.at[j, f"mean_{key}"])
-            table.at[i, f"rel_{key}"] = rel
+            if not table.at[i, "compared_to"]:  # the first pair of a group fills the columns
+                table.at[i, f"rel_{key}"] = rel
             parts.append(f"{short} {format_rel(rel)}")
-        table.at[i, "compared_to"] = "/".join(ref)
-        table.at[i, "relative"] = ", ".join(parts)
+        if table.at[i, "compared_to"]:  # a group compared with several references
+            table.at[i, "compared_to"] += "," + "/".join(ref)
+            table.at[i, "relative"] += f"; vs {'/'.join(ref)}: " + ", ".join(parts)
+        else:
+            table.at[i, "compared_to"] = "/".join(ref)
+            table.at[i, "relative"] = ", ".join(parts)
     return table

@@ -79,37 +79,53 @@ from analysis.plotting import (  # noqa: E402
     plot_teacher_training,
     teacher_points,
 )
+from analysis.arms import choose, parse_pair  # noqa: E402
 from analysis.reports import report, write_tables  # noqa: E402
 from analysis.rundirs import discover, runs_frame  # noqa: E402
 
 
 def analyze(
-    dirs: list[Path], out: Path, target: float = 2.0, window: int = 20, mode: str = "seeds"
+    dirs: list[Path],
+    out: Path,
+    target: float = 2.0,
+    window: int = 20,
+    mode: str = "seeds",
+    compare: list[str] | None = None,
+    reference_variant: str | None = None,
+    ablation_teacher: str | None = None,
 ) -> dict:
-    """Load runs, write figures and tables into ``out``; returns what was computed."""
+    """Load runs, write figures and tables into ``out``; returns what was computed.
+
+    ``compare``: arm pairs ``A:B`` (default: the runs' ``figures.compare``, else clf:modelfree);
+    ``reference_variant`` / ``ablation_teacher``: the ablation's reference (full) and teacher
+    (clf). A malformed pair raises ValueError before anything is written."""
     runs = discover(dirs)
     notes: list[str] = []
     written: list[Path] = []
     if not runs:
         return {"runs": runs, "notes": notes, "written": written}
+    comp = choose(runs, dirs, compare, reference_variant, ablation_teacher, notes)
     out.mkdir(parents=True, exist_ok=True)
     all_points = []
     axes_notes: dict[str, dict] = {}
 
-    base = baseline_data(runs, mode, notes)
+    base = baseline_data(runs, mode, notes, comp)
     if base:
         pts = eval_points(BASELINE, base)
-        axes_notes["baseline"] = plot_eval_figure(BASELINE, pts, base, mode, out, written)
+        axes_notes["baseline"] = plot_eval_figure(BASELINE, pts, base, mode, out, written, comp)
         all_points.append(pts)
     else:
-        notes.append("skip baseline: no eval.csv student rows of a 'full' student in any run")
+        notes.append(
+            f"skip baseline: no eval.csv student rows of a '{comp.reference_variant}' student "
+            "in any run"
+        )
 
-    se_curves = sample_efficiency_data(runs, mode, notes)
-    eff = sample_efficiency(runs, se_curves, target, notes)
+    se_curves = sample_efficiency_data(runs, mode, notes, comp)
+    eff = sample_efficiency(runs, se_curves, target, notes, comp)
     if se_curves:
         pts = eval_points(SAMPLE_EFFICIENCY, se_curves)
         axes_notes["sample_efficiency"] = plot_eval_figure(
-            SAMPLE_EFFICIENCY, pts, se_curves, mode, out, written, target, eff
+            SAMPLE_EFFICIENCY, pts, se_curves, mode, out, written, comp, target, eff
         )
         all_points.append(pts)
     else:
@@ -118,23 +134,23 @@ def analyze(
             "teacher evaluations existed have none; teacher_curves is a training diagnostic only)"
         )
 
-    abl = ablation_data(runs, mode, notes)
+    abl = ablation_data(runs, mode, notes, comp)
     if abl:
         pts = eval_points(ABLATION, abl)
-        axes_notes["ablation"] = plot_eval_figure(ABLATION, pts, abl, mode, out, written)
+        axes_notes["ablation"] = plot_eval_figure(ABLATION, pts, abl, mode, out, written, comp)
         all_points.append(pts)
     else:
-        notes.append("skip ablation: no eval.csv student rows of a clf run")
+        notes.append(f"skip ablation: no eval.csv student rows of a {comp.ablation_teacher} run")
 
-    teach = teacher_training_data(runs, window, notes)
+    teach = teacher_training_data(runs, window, notes, comp)
     if teach:
         pts = teacher_points(teach)
-        plot_teacher_training(teach, pts, window, out, written, notes)
+        plot_teacher_training(teach, pts, window, out, written, notes, comp)
         all_points.append(pts)
     else:
         notes.append("skip teacher_curves: no metrics.csv teacher rows with values in any run")
 
-    table = final_table(runs, mode, notes)
+    table = final_table(runs, mode, notes, comp)
     if table.empty:
         notes.append("skip final_metrics: no complete run with a student summary.json")
     listing = runs_frame(runs)
@@ -143,9 +159,10 @@ def analyze(
         if all_points
         else pd.DataFrame(columns=POINT_COLUMNS)
     )
-    write_tables(out, listing, table, eff, points, mode, written)
+    write_tables(out, listing, table, eff, points, mode, written, comp)
     return {
         "runs": runs,
+        "comparisons": comp,
         "notes": notes,
         "written": written,
         "baseline": base,
@@ -182,7 +199,33 @@ def main(argv: list[str] | None = None) -> int:
         default="seeds",
         help="how SEs of several seeds combine (default seeds)",
     )
+    ap.add_argument(
+        "--compare",
+        action="append",
+        metavar="ARM:REFERENCE",
+        help="compare reward arm ARM with REFERENCE, (ARM - REFERENCE) / REFERENCE, student = "
+        "the reference variant; repeatable (default: the runs' figures.compare, else "
+        "clf:modelfree)",
+    )
+    ap.add_argument(
+        "--reference-variant",
+        default=None,
+        help="the student variant the arms are compared with and the ablation is relative to "
+        "(default: the runs' figures.reference_variant, else full)",
+    )
+    ap.add_argument(
+        "--ablation-teacher",
+        default=None,
+        help="the reward arm whose students form the ablation (default: the runs' "
+        "figures.ablation_teacher, else clf)",
+    )
     args = ap.parse_args(argv)
+    for pair in args.compare or []:
+        try:
+            parse_pair(pair)
+        except ValueError as err:
+            print(f"figures.py: {err}", file=sys.stderr)
+            return 2
     for d in args.dirs:
         if not d.is_dir():
             print(
@@ -191,7 +234,16 @@ def main(argv: list[str] | None = None) -> int:
             )
             return 2
     out = args.out if args.out is not None else args.dirs[0] / "figures"
-    res = analyze(args.dirs, out, args.target_distance, args.smooth, args.se_mode)
+    res = analyze(
+        args.dirs,
+        out,
+        args.target_distance,
+        args.smooth,
+        args.se_mode,
+        args.compare,
+        args.reference_variant,
+        args.ablation_teacher,
+    )
     if not res["runs"]:
         where = ", ".join(str(d) for d in args.dirs)
         print(

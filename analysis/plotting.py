@@ -20,9 +20,8 @@ import pandas as pd  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from analysis.aggregate import METRICS, TEACHER_PANELS, Curves  # noqa: E402
+from analysis.arms import Comparisons, Series  # noqa: E402
 
-REWARD_COLORS = {"clf": "tab:blue", "modelfree": "tab:red"}
-VARIANT_COLORS = {"full": "tab:green", "no_transformer": "tab:blue", "no_mdn": "tab:orange"}
 FIG_EXTS = ("png", "pdf")
 POINT_COLUMNS = ["figure", "panel", "x_name", "series", "x", "y", "se", "yerr", "n"]
 X_LABELS = {
@@ -38,7 +37,7 @@ class FigureSpec:
     stem: str
     panels: tuple[tuple[str, str], ...]  # (metric key, x column)
     err_mult: float
-    colors: dict
+    group: str  # "reward" (arms) or "student" (variants): whose colours and labels
     xstage: str  # "student" or "teacher": which x labels
     title: str
 
@@ -53,9 +52,9 @@ BASELINE = FigureSpec(
         ("success_rate", "iteration"),
     ),
     err_mult=BASELINE_ERR_MULT,
-    colors=REWARD_COLORS,
+    group="reward",
     xstage="student",
-    title="Baseline: clf vs modelfree, student 'full' -- eval.csv student rows "
+    title="Baseline: {pairs}, student '{full}' -- eval.csv student rows "
     "(fixed evaluation set), bars = 4 x {se}",
 )
 SAMPLE_EFFICIENCY = FigureSpec(
@@ -66,7 +65,7 @@ SAMPLE_EFFICIENCY = FigureSpec(
         ("distance_m", "env_steps"),
     ),
     err_mult=1.0,
-    colors=REWARD_COLORS,
+    group="reward",
     xstage="teacher",
     title="Sample efficiency: teachers on the fixed stone evaluation set -- eval.csv teacher "
     "rows, bars = 1 x {se}",
@@ -75,9 +74,9 @@ ABLATION = FigureSpec(
     stem="ablation",
     panels=(("reward", "iteration"), ("distance_m", "iteration"), ("success_rate", "iteration")),
     err_mult=1.0,
-    colors=VARIANT_COLORS,
+    group="student",
     xstage="student",
-    title="Student ablation (clf teacher) -- eval.csv student rows (fixed evaluation set), "
+    title="Student ablation ({teacher} teacher, vs '{full}') -- eval.csv student rows (fixed evaluation set), "
     "bars = 1 x {se}",
 )
 
@@ -148,15 +147,18 @@ def plot_eval_figure(
     mode: str,
     out: Path,
     written: list[Path],
+    comp: Comparisons,
     target: float | None = None,
     reach: pd.DataFrame | None = None,
 ) -> dict[str, list[str]]:
     """Draw ``points`` (from :func:`eval_points`) panel by panel; name what has no data.
 
     ``target``/``reach``: a dashed target-distance line on distance panels and a dotted vertical
-    line where each series first reaches it (sample efficiency). Returns the grey notes written
-    on each panel (metric key -> lines).
+    line where each series first reaches it (sample efficiency). Colours and labels come from
+    ``comp`` (the arms' or variants' registry). Returns the grey notes written on each panel
+    (metric key -> lines).
     """
+    styles = comp.arms if spec.group == "reward" else comp.variants
     n_panels = len(spec.panels)
     fig, axes = plt.subplots(1, n_panels, figsize=(4.2 * n_panels, 3.8), squeeze=False)
     names = list(curves.series) + [m for m in curves.missing if m not in curves.series]
@@ -170,7 +172,7 @@ def plot_eval_figure(
                 if name in curves.series:
                     notes.append(f"{name}: no mean_{key} in eval.csv (older file?)")
                 continue
-            color = spec.colors.get(name)
+            color, label = _style(styles, name)
             ax.errorbar(
                 pts["x"],
                 pts["y"],
@@ -179,7 +181,7 @@ def plot_eval_figure(
                 ms=4,
                 capsize=3,
                 color=color,
-                label=f"{name} (n={int(pts['n'].max())})",
+                label=f"{label} (n={int(pts['n'].max())})",
             )
             if target is not None and key == "distance_m" and reach is not None:
                 hit = reach[(reach["reward"] == name) & reach["iteration"].notna()]
@@ -196,10 +198,24 @@ def plot_eval_figure(
             ax.legend(fontsize=8, loc="lower right")
         _note(ax, notes)
         panel_notes[key] = notes
-    fig.suptitle(spec.title.format(se=se_text(mode)), fontsize=10)
+    title = spec.title.format(
+        se=se_text(mode),
+        pairs=comp.title,
+        full=comp.reference_variant,
+        teacher=comp.ablation_teacher,
+    )
+    fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     save(fig, out, spec.stem, written)
     return panel_notes
+
+
+def _style(styles: dict[str, Series], name: str) -> tuple[str | None, str]:
+    """(colour, legend label) of a series; a name the registry lacks keeps matplotlib's."""
+    info = styles.get(name)
+    if info is None:
+        return None, name
+    return info.color, name if info.label == name else f"{info.label} [{name}]"
 
 
 def teacher_points(data: dict[str, dict]) -> pd.DataFrame:
@@ -249,6 +265,7 @@ def plot_teacher_training(
     out: Path,
     written: list[Path],
     notes: list[str],
+    comp: Comparisons,
 ) -> None:
     """Training diagnostic from metrics.csv teacher rows; says on its face it is no comparison."""
     fig, axes = plt.subplots(1, len(TEACHER_PANELS), figsize=(13, 3.8))
@@ -261,8 +278,8 @@ def plot_teacher_training(
             pts = sel[sel["series"] == reward]
             if pts.empty:
                 continue
-            color = REWARD_COLORS.get(reward)
-            ax.plot(pts["x"], pts["y"], color=color, label=f"{reward} (n={int(pts['n'].max())})")
+            color, label = _style(comp.arms, reward)
+            ax.plot(pts["x"], pts["y"], color=color, label=f"{label} (n={int(pts['n'].max())})")
             ax.fill_between(
                 pts["x"], pts["y"] - pts["yerr"], pts["y"] + pts["yerr"], color=color, alpha=0.25
             )

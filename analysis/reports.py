@@ -8,13 +8,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from analysis.aggregate import (
-    BASELINE_ARM,
-    BASELINE_REFERENCE,
-    FULL_VARIANT,
-    METRICS,
-    REFERENCE_TEACHER,
-)
+from analysis.aggregate import METRICS
+from analysis.arms import Comparisons
 
 UNITS = {"distance_m": " m", "abs_torque_nm": " Nm", "abs_ang_jerk": " rad/s^3"}
 
@@ -31,27 +26,33 @@ def md_table(header: list[str], rows: list[list[str]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _rule(row) -> str:
-    if row["variant"] == FULL_VARIANT:
-        return f"({BASELINE_ARM} - {BASELINE_REFERENCE}) / {BASELINE_REFERENCE}, student full"
-    return f"(variant - {FULL_VARIANT}) / {FULL_VARIANT}, {REFERENCE_TEACHER} teacher"
+def _rule(row, ref: str, comp: Comparisons) -> str:
+    full = comp.reference_variant
+    if row["variant"] == full:
+        return f"({row['reward']} - {ref}) / {ref}, student {full}"
+    return f"(variant - {full}) / {full}, {comp.ablation_teacher} teacher"
 
 
-def comparisons(table: pd.DataFrame) -> list[str]:
+def comparisons(table: pd.DataFrame, comp: Comparisons) -> list[str]:
     """One line per relative comparison in the final table, e.g.
     'baseline clf vs modelfree ((clf - modelfree) / modelfree, student full): torque -12%, ...'."""
     lines = []
     if table.empty:
         return lines
     for _, row in table[table["compared_to"] != ""].iterrows():
-        kind = "baseline" if row["variant"] == FULL_VARIANT else "ablation"
+        kind = "baseline" if row["variant"] == comp.reference_variant else "ablation"
         who = row["reward"] if kind == "baseline" else row["variant"]
-        ref = row["compared_to"].split("/")[0 if kind == "baseline" else 1]
-        lines.append(f"{kind} {who} vs {ref} ({_rule(row)}): {row['relative']}")
+        refs = row["compared_to"].split(",")
+        texts = row["relative"].split("; vs ")
+        for k, (ref, text) in enumerate(zip(refs, texts, strict=False)):
+            if k:
+                text = text.split(": ", 1)[-1]
+            name = ref.split("/")[0 if kind == "baseline" else 1]
+            lines.append(f"{kind} {who} vs {name} ({_rule(row, name, comp)}): {text}")
     return lines
 
 
-def _final_md(table: pd.DataFrame, mode: str) -> str:
+def _final_md(table: pd.DataFrame, mode: str, comp: Comparisons) -> str:
     header = ["reward", "variant", "n runs", "iteration"] + [METRICS[k][0] for k in METRICS]
     header += ["compared to", "relative difference"]
     rows = []
@@ -66,14 +67,16 @@ def _final_md(table: pd.DataFrame, mode: str) -> str:
         else "pooled SE sqrt(sum se_i^2)/n"
     )
     units = ", ".join(f"{METRICS[k][0]} = {METRICS[k][1]}" for k in METRICS)
-    lines = comparisons(table)
+    lines = comparisons(table, comp)
+    pairs = "; ".join(f"({a} - {b}) / {b}" for a, b in comp.pairs)
+    full = comp.reference_variant
     rel = "\n".join(f"- {ln}" for ln in lines) if lines else "- none (a reference group is missing)"
     return (
         "# Final metrics (final evaluation: summary.json of complete runs)\n\n"
         f"mean ± {se_txt}. Relative differences in the paper's convention: "
-        f"({BASELINE_ARM} - {BASELINE_REFERENCE}) / {BASELINE_REFERENCE} for the baseline "
-        f"(student {FULL_VARIANT}), (variant - {FULL_VARIANT}) / {FULL_VARIANT} for the "
-        f"ablation ({REFERENCE_TEACHER} teacher).\nUnits: {units}.\n\n"
+        f"{pairs} for the arm comparison (student {full}; chosen by {comp.source}), "
+        f"(variant - {full}) / {full} for the ablation ({comp.ablation_teacher} teacher)."
+        f"\nUnits: {units}.\n\n"
         + md_table(header, rows)
         + "\n## Relative differences\n\n"
         + rel
@@ -89,6 +92,7 @@ def write_tables(
     points: pd.DataFrame,
     mode: str,
     written: list[Path],
+    comp: Comparisons,
 ) -> None:
     listing.to_csv(out / "runs.csv", index=False)
     (out / "runs.md").write_text(
@@ -97,7 +101,7 @@ def write_tables(
     written += [out / "runs.csv", out / "runs.md"]
     if not table.empty:
         table.to_csv(out / "final_metrics.csv", index=False)
-        (out / "final_metrics.md").write_text(_final_md(table, mode))
+        (out / "final_metrics.md").write_text(_final_md(table, mode, comp))
         written += [out / "final_metrics.csv", out / "final_metrics.md"]
     if not eff.empty:
         eff.to_csv(out / "sample_efficiency.csv", index=False)
@@ -134,12 +138,14 @@ def report(res: dict, out: Path) -> str:
             extra = "; ".join(x for x in [row["error"], row["issues"]] if x)
             print(f"  {row['run']}: {row['status']}" + (f" -- {extra}" if extra else ""), file=buf)
     table: pd.DataFrame = res["final"]
+    comp: Comparisons = res["comparisons"]
+    full, teacher = comp.reference_variant, comp.ablation_teacher
+    pairs = "; ".join(f"({a} - {b}) / {b}" for a, b in comp.pairs)
     if not table.empty:
-        base = table[table["variant"] == FULL_VARIANT]
+        base = table[table["variant"] == full]
         if not base.empty:
             print(
-                f"baseline, final evaluation (student {FULL_VARIANT}; relative = "
-                f"({BASELINE_ARM} - {BASELINE_REFERENCE}) / {BASELINE_REFERENCE}):",
+                f"baseline, final evaluation (student {full}; relative = {pairs}):",
                 file=buf,
             )
             for _, row in base.iterrows():
@@ -149,17 +155,18 @@ def report(res: dict, out: Path) -> str:
                     file=buf,
                 )
             for _, row in base[base["compared_to"] != ""].iterrows():
-                print(f"  {row['reward']} vs {BASELINE_REFERENCE}: {row['relative']}", file=buf)
-        abl = table[table["reward"] == REFERENCE_TEACHER]
-        if (abl["variant"] != FULL_VARIANT).any():
+                ref = row["compared_to"].split(",")[0].split("/")[0]
+                print(f"  {row['reward']} vs {ref}: {row['relative']}", file=buf)
+        abl = table[table["reward"] == teacher]
+        if (abl["variant"] != full).any():
             print(
-                f"ablation, final evaluation ({REFERENCE_TEACHER} teacher; relative = "
-                f"(variant - {FULL_VARIANT}) / {FULL_VARIANT}):",
+                f"ablation, final evaluation ({teacher} teacher; relative = "
+                f"(variant - {full}) / {full}):",
                 file=buf,
             )
             for _, row in abl.iterrows():
-                own = row["variant"] != FULL_VARIANT and row["compared_to"]
-                vs = f"; vs {FULL_VARIANT}: {row['relative']}" if own else ""
+                own = row["variant"] != full and row["compared_to"]
+                vs = f"; vs {full}: {row['relative']}" if own else ""
                 print(
                     f"  {row['variant']} (n={row['n_runs']}): "
                     + _values(row, ["reward", "distance_m", "success_rate"])
@@ -179,8 +186,8 @@ def report(res: dict, out: Path) -> str:
                 print(f"  {row['reward']}: iteration {int(row['iteration'])}{steps}", file=buf)
             else:
                 print(f"  {row['reward']}: not reached", file=buf)
-        for _, row in eff[eff["vs_modelfree"] != ""].iterrows():
-            print(f"  {row['reward']} vs {BASELINE_REFERENCE}: {row['vs_modelfree']}", file=buf)
+        for _, row in eff[eff["compared_to"] != ""].iterrows():
+            print(f"  {row['reward']} vs {row['compared_to']}: {row['relative']}", file=buf)
     print(
         f"runs found: {len(runs)} ({n_ok} complete, {n_failed} failed, "
         f"{len(runs) - n_ok - n_failed} other incomplete)",

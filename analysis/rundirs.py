@@ -39,6 +39,8 @@ class Run:
     summary: dict | None = None
     issues: list[str] = field(default_factory=list)
     csv_problem: bool = False
+    meta: dict = field(default_factory=dict)  # group -> {label, color, order} from config.yaml
+    figures: dict = field(default_factory=dict)  # the run's figures.* config (comparisons)
 
     @property
     def complete(self) -> bool:
@@ -166,6 +168,14 @@ def load_run(path: Path) -> Run:
         if val is not None:
             setattr(run, attr, str(val))
     run.seed = _cfg_get(cfg, "seed")
+    for group in ("reward", "student"):
+        run.meta[group] = {k: _cfg_get(cfg, f"{group}.{k}") for k in ("label", "color", "order")}
+    figures = _cfg_get(cfg, "figures")
+    if figures is not None:
+        try:
+            run.figures = OmegaConf.to_container(figures, resolve=False) or {}
+        except Exception:  # noqa: BLE001
+            run.figures = {}
 
     status_path = path / "status.json"
     if status_path.is_file():

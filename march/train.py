@@ -332,4 +332,10 @@ def main(dcfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    import sys
+
+    from march.config.sweeps import sweep_problem
+
+    if problem := sweep_problem(sys.argv[1:]):
+        fail(problem)
     main()

@@ -149,7 +149,9 @@ def test_baseline_plots_student_eval_rows(tree):
 
 
 def test_sample_efficiency_reads_teacher_eval_rows(tree):
-    eff = pd.read_csv(tree["out"] / "sample_efficiency.csv").fillna({"vs_modelfree": ""})
+    eff = pd.read_csv(tree["out"] / "sample_efficiency.csv").fillna(
+        {"compared_to": "", "relative": ""}
+    )
     by = {r.reward: r for r in eff.itertuples()}
     # seed-mean evaluation distance 0.06 * it (clf), 0.03 * it (modelfree), evaluated every 10
     # iterations: first >= 2.0 m at 40 (2.4 m) and 70 (2.1 m). Training rows (50 + it m) would
@@ -157,8 +159,9 @@ def test_sample_efficiency_reads_teacher_eval_rows(tree):
     assert (by["clf"].iteration, by["modelfree"].iteration) == (40, 70)
     assert by["clf"].env_steps == 40 * syn.STEPS_PER_IT
     assert by["modelfree"].env_steps == 70 * syn.STEPS_PER_IT
-    assert by["clf"].vs_modelfree == "iterations -43%, env steps -43%"  # (40 - 70) / 70
-    assert by["modelfree"].vs_modelfree == ""
+    assert by["clf"].relative == "iterations -43%, env steps -43%"  # (40 - 70) / 70
+    assert by["clf"].compared_to == "modelfree"
+    assert by["modelfree"].relative == by["modelfree"].compared_to == ""
     assert "sweep_base/0:40" in by["clf"].per_run and "sweep_base/3:70" in by["modelfree"].per_run
     assert "sweep_abl/3:not reached" in by["clf"].per_run  # the crashed run still contributes
     assert "eval.csv teacher rows" in by["clf"].source

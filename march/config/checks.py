@@ -9,15 +9,33 @@ Pure data: no simulator import.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import fields
 from functools import cache
 from typing import Any, get_args, get_origin, get_type_hints
 
+from march.config.registry import names
 from march.errors import ConfigError
 
 STAGES = ("all", "teacher", "student", "eval")
-REWARDS = ("clf", "modelfree")
-STUDENTS = ("full", "no_transformer", "no_mdn")
+REWARDS = names("reward")
+"""The reward arms of ``conf/reward/`` (march.config.registry): tests compose every one."""
+STUDENTS = names("student")
+"""The student variants of ``conf/student/``."""
+IMAGE_ENCODERS = ("cnn", "none")
+"""How a student reads the depth image: a CNN, or not at all (proprioception only)."""
+FUSIONS = ("transformer", "mlp")
+"""How a student fuses its inputs: attention over tokens, or an MLP over the concatenation."""
+HEADS = ("mdn", "deterministic")
+"""A student's output: a mixture density network (NLL loss) or one action (Huber loss)."""
+BUILTIN_PARTS = {
+    "full": ("cnn", "transformer", "mdn"),
+    "no_transformer": ("cnn", "mlp", "mdn"),
+    "no_mdn": ("cnn", "transformer", "deterministic"),
+}
+"""(image, fusion, head) of the paper's variants, for checkpoints written before the parts were
+config fields; the YAMLs in ``conf/student/`` state their parts themselves."""
+_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 CURRICULA = ("stones", "flat_first")
 COMPUTES = ("auto", "cpu", "gpu", "smoke")
 LOGGERS = ("csv", "tensorboard", "wandb")
@@ -29,6 +47,15 @@ def _one_of(section: str, key: str, value: Any, valid: tuple[str, ...]) -> None:
     if value not in valid:
         raise ConfigError(
             f"{section}.{key}={value!r} is not valid; choose one of {', '.join(valid)}"
+        )
+
+
+def _identifier(section: str, key: str, value: Any) -> None:
+    """A name that labels runs, directories and figures: letters, digits, underscores."""
+    if not isinstance(value, str) or not _NAME.match(value):
+        raise ConfigError(
+            f"{section}.{key}={value!r} must be a name of letters, digits and underscores "
+            "(starting with a letter)"
         )
 
 

@@ -35,6 +35,7 @@ RESUME_SAFE = (
     "teacher.max_nonfinite_updates",
     "distill.max_nonfinite_updates",
     "compute.torch_threads",  # speed only
+    "figures",  # what the figures compare: labels only
     "logger",  # every logger.* field and the logger=<choice> group
 )
 """Config paths (a section: every field in it) an override may change on resume."""

@@ -35,7 +35,14 @@ from march.config.simulation import (
     EnvCfg,
     RewardCfg,
 )
-from march.config.training import DistillCfg, EvalCfg, LoggerCfg, StudentCfg, TeacherCfg
+from march.config.training import (
+    DistillCfg,
+    EvalCfg,
+    FiguresCfg,
+    LoggerCfg,
+    StudentCfg,
+    TeacherCfg,
+)
 from march.world.courses import CourseCfg
 
 
@@ -67,6 +74,7 @@ class MarchConfig:
     dr: DrCfg = field(default_factory=DrCfg)
     depth: DepthCfg = field(default_factory=DepthCfg)
     terrain: CourseCfg = field(default_factory=CourseCfg)
+    figures: FiguresCfg = field(default_factory=FiguresCfg)
 
     def __post_init__(self) -> None:
         if self.stage not in STAGES:

@@ -14,7 +14,6 @@ from march.config.checks import (
     CURRICULA,
     DRS,
     MJ_GEOM_GROUPS,
-    REWARDS,
     SEED_MAX,
     ConfigError,
     _at_least,
@@ -23,6 +22,7 @@ from march.config.checks import (
     _each,
     _interval,
     _need,
+    _identifier,
     _one_of,
     _positive,
 )
@@ -175,7 +175,14 @@ class RewardCfg:
     """The teacher's reward: named terms and weights (conf/reward/*.yaml)."""
 
     name: str = "clf"
-    """clf (CLF-RL terms around the model-based reference) or modelfree (RPL-style baseline)."""
+    """The arm's name, e.g. clf (CLF-RL terms around the model-based reference) or modelfree
+    (RPL-style baseline): one per ``conf/reward/<name>.yaml`` (march.config.registry)."""
+    label: str = ""
+    """How figures and tables name the arm (empty: the name)."""
+    color: str = ""
+    """The arm's matplotlib colour in figures (empty: one no other arm uses)."""
+    order: int = 100
+    """The arm's position in legends and tables (lower first)."""
     terms: dict[str, float] = field(default_factory=dict)
     """Reward term name -> weight. A penalty term returns a value <= 0 and carries a positive
     weight, so every weight here is the sign the term's contribution has (SPEC §2)."""
@@ -189,7 +196,7 @@ class RewardCfg:
 
     def __post_init__(self) -> None:
         _check_shapes("reward", self)
-        _one_of("reward", "name", self.name, REWARDS)
+        _identifier("reward", "name", self.name)
         _interval("reward", "tilt_limit_deg", self.tilt_limit_deg, 0, 180, lo_open=True)
         _at_least("reward", "min_base_height_m", self.min_base_height_m, 0)
         _positive("reward", "max_foot_drop_m", self.max_foot_drop_m)

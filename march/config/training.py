@@ -14,12 +14,16 @@ from march.config.checks import (
     COURSES,
     LOGGERS,
     RSL_ACTIVATIONS,
-    STUDENTS,
+    BUILTIN_PARTS,
+    FUSIONS,
+    HEADS,
+    IMAGE_ENCODERS,
     ConfigError,
     _at_least,
     _check_shapes,
     _each,
     _fmt,
+    _identifier,
     _interval,
     _need,
     _one_of,
@@ -32,8 +36,21 @@ class StudentCfg:
     """Student network (conf/student/*.yaml); SPEC §2 has the author's sizes."""
 
     variant: str = "full"
-    """full (CNN + transformer + MDN), no_transformer (MLP fusion) or no_mdn (deterministic
-    head)."""
+    """The variant's name, one per ``conf/student/<name>.yaml`` (march.config.registry): full
+    (CNN + transformer + MDN), no_transformer (MLP fusion), no_mdn (deterministic head), ..."""
+    image: str = ""
+    """Image encoder: cnn, or none (the depth image is not read). Empty: the paper variant's."""
+    fusion: str = ""
+    """Fusion of image, history and command: transformer or mlp. Empty: the paper variant's."""
+    head: str = ""
+    """Output: mdn (NLL of teacher samples) or deterministic (Huber against the teacher mean).
+    Empty: the paper variant's."""
+    label: str = ""
+    """How figures and tables name the variant (empty: the name)."""
+    color: str = ""
+    """The variant's matplotlib colour in figures (empty: one no other variant uses)."""
+    order: int = 100
+    """The variant's position in legends and tables (lower first)."""
     cnn_channels: tuple[int, ...] = (24, 32, 48, 64)
     """CNN output channels per layer."""
     cnn_kernels: tuple[int, ...] = (5, 3, 3, 3)
@@ -71,7 +88,19 @@ class StudentCfg:
 
     def __post_init__(self) -> None:
         _check_shapes("student", self)
-        _one_of("student", "variant", self.variant, STUDENTS)
+        _identifier("student", "variant", self.variant)
+        parts = BUILTIN_PARTS.get(self.variant, ("", "", ""))
+        for key, default, valid in zip(
+            ("image", "fusion", "head"), parts, (IMAGE_ENCODERS, FUSIONS, HEADS), strict=True
+        ):
+            if not getattr(self, key):
+                if not default:
+                    raise ConfigError(
+                        f"student={self.variant}: set student.{key} ({', '.join(valid)}) in "
+                        f"conf/student/{self.variant}.yaml"
+                    )
+                setattr(self, key, default)
+            _one_of("student", key, getattr(self, key), valid)
         _each("student", "cnn_channels", self.cnn_channels, 1, nonempty=True)
         _each("student", "cnn_kernels", self.cnn_kernels, 1)
         _each("student", "cnn_strides", self.cnn_strides, 1)
@@ -271,3 +300,31 @@ class LoggerCfg:
         _check_shapes("logger", self)
         _one_of("logger", "name", self.name, LOGGERS)
         _need("logger", "project", self.project, bool(self.project), "a non-empty project name")
+
+
+@dataclass
+class FiguresCfg:
+    """What ``python analysis/figures.py`` compares for the runs of this config (a sweep file
+    names its comparison here; the command line's ``--compare`` wins). Labels only: no run
+    reads it."""
+
+    compare: tuple[str, ...] = ()
+    """Reward-arm pairs ``ARM:REFERENCE``, relative difference (ARM - REFERENCE) / REFERENCE;
+    empty: the paper's clf:modelfree."""
+    reference_variant: str = "full"
+    """The student variant arms are compared with; the ablation is relative to it."""
+    ablation_teacher: str = "clf"
+    """The reward arm whose students form the ablation."""
+
+    def __post_init__(self) -> None:
+        for pair in self.compare:
+            parts = str(pair).split(":")
+            _need(
+                "figures",
+                "compare",
+                list(self.compare),
+                len(parts) == 2 and all(parts) and parts[0] != parts[1],
+                "a list of ARM:REFERENCE pairs of two different arms",
+            )
+        _identifier("figures", "reference_variant", self.reference_variant)
+        _identifier("figures", "ablation_teacher", self.ablation_teacher)

@@ -132,7 +132,37 @@ def feet_edge_distance(
     return -(pen * contact.float()).sum(-1)
 
 
+_REGISTERED: dict[str, tuple[Callable[..., torch.Tensor], dict[str, Any]]] = {}
+"""Terms added with :func:`reward_term` (by a module of yours, or a test)."""
+
+
+def reward_term(
+    name: str | None = None, **params: Any
+) -> Callable[[Callable[..., torch.Tensor]], Callable[..., torch.Tensor]]:
+    """Add a reward term to the vocabulary ``conf/reward/*.yaml`` weights::
+
+        @reward_term("upright_bonus", std=0.2)
+        def upright_bonus(env, std): ...
+
+    The function takes the env (and ``params`` as keywords) and returns one value per env,
+    reward-signed (a penalty returns <= 0 and gets a positive weight). A name already taken,
+    built-in or registered, is an error: a term means one thing in every arm."""
+
+    def register(func: Callable[..., torch.Tensor]) -> Callable[..., torch.Tensor]:
+        key = name or func.__name__
+        if key in _builtin_specs() or (key in _REGISTERED and _REGISTERED[key][0] is not func):
+            raise ConfigError(f"reward term {key!r} exists already; choose another name")
+        _REGISTERED[key] = (func, dict(params))
+        return func
+
+    return register
+
+
 def _term_specs() -> dict[str, tuple[Callable[..., torch.Tensor], dict[str, Any]]]:
+    return {**_builtin_specs(), **_REGISTERED}
+
+
+def _builtin_specs() -> dict[str, tuple[Callable[..., torch.Tensor], dict[str, Any]]]:
     return {
         "alive": (alive, {}),
         "track_linear_velocity": (

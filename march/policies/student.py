@@ -11,7 +11,9 @@ Proprioception and command pass through empirical running mean/std normalisers (
 ``EmpiricalNormalization``; buffers live in the state_dict and are baked into the ONNX export).
 One normaliser of size ``proprio_dim`` is shared by all history steps.
 
-Variants (``StudentNetCfg.variant``):
+Variants (``StudentNetCfg.variant``, one per ``conf/student/<name>.yaml``) are data: each names
+its parts, ``image`` (cnn | none), ``fusion`` (transformer | mlp) and ``head`` (mdn |
+deterministic), and this module builds whatever combination is asked for. The paper's three:
 
 * ``full``: CNN feature map -> one token per spatial cell (linear to d_model) + one token per
   history step + a command token + a learned CLS token, learned positional embedding over the whole
@@ -20,19 +22,20 @@ Variants (``StudentNetCfg.variant``):
   ``fusion_mlp`` -> the same MLP + MDN head. No attention anywhere.
 * ``no_mdn``: the ``full`` trunk with a deterministic MLP head (no mixture), trained with a Huber
   loss against the teacher's mean action.
+
+With ``image: none`` the depth image is still an input (every variant takes the same inputs) but
+nothing reads it: no CNN, no image tokens.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Literal
-
 import torch
 import torch.nn.functional as F
 from rsl_rl.modules.normalization import EmpiricalNormalization
 from torch import nn
 
-from march.config import StudentCfg
+from march.config import STUDENTS, StudentCfg
 from march.policies.mdn import (
     MDNHead,
     MDNParams,
@@ -42,8 +45,8 @@ from march.policies.mdn import (
     top_mode_mean,
 )
 
-Variant = Literal["full", "no_transformer", "no_mdn"]
-VARIANTS: tuple[str, ...] = ("full", "no_transformer", "no_mdn")
+VARIANTS: tuple[str, ...] = STUDENTS
+"""The registered student variants (``conf/student/``; march.config.registry)."""
 
 
 StudentNetCfg = StudentCfg
@@ -78,13 +81,13 @@ class StudentPolicy(nn.Module):
         num_actions: int,
     ) -> None:
         super().__init__()
-        if cfg.variant not in VARIANTS:
-            raise ValueError(f"unknown student variant {cfg.variant!r}; choose from {VARIANTS}")
         if not len(cfg.cnn_channels) == len(cfg.cnn_kernels) == len(cfg.cnn_strides):
             raise ValueError("cnn_channels, cnn_kernels and cnn_strides need the same length")
         self.cfg = cfg
         self.variant: str = cfg.variant
-        self.is_mdn: bool = cfg.variant != "no_mdn"
+        self.image: str = cfg.image
+        self.fusion_kind: str = cfg.fusion
+        self.is_mdn: bool = cfg.head == "mdn"
         self.proprio_dim = proprio_dim
         self.history_len = history_len
         self.command_dim = command_dim
@@ -94,22 +97,27 @@ class StudentPolicy(nn.Module):
         self.proprio_normalizer = EmpiricalNormalization(proprio_dim, eps=cfg.normalizer_eps)
         self.command_normalizer = EmpiricalNormalization(command_dim, eps=cfg.normalizer_eps)
 
-        convs: list[nn.Module] = []
-        in_ch = 1
-        for ch, k, s in zip(cfg.cnn_channels, cfg.cnn_kernels, cfg.cnn_strides, strict=True):
-            convs += [
-                nn.Conv2d(in_ch, ch, k, stride=s, padding=k // 2),
-                _activation(cfg.activation),
-            ]
-            in_ch = ch
-        self.cnn = nn.Sequential(*convs)
-        with torch.no_grad():
-            fmap = self.cnn(torch.zeros(1, 1, *self.image_hw))
-        self.cnn_out_channels = int(fmap.shape[1])
-        self.fmap_hw = (int(fmap.shape[2]), int(fmap.shape[3]))
+        if self.image == "cnn":
+            convs: list[nn.Module] = []
+            in_ch = 1
+            for ch, k, s in zip(cfg.cnn_channels, cfg.cnn_kernels, cfg.cnn_strides, strict=True):
+                convs += [
+                    nn.Conv2d(in_ch, ch, k, stride=s, padding=k // 2),
+                    _activation(cfg.activation),
+                ]
+                in_ch = ch
+            self.cnn = nn.Sequential(*convs)
+            with torch.no_grad():
+                fmap = self.cnn(torch.zeros(1, 1, *self.image_hw))
+            self.cnn_out_channels = int(fmap.shape[1])
+            self.fmap_hw = (int(fmap.shape[2]), int(fmap.shape[3]))
+        else:  # image: none
+            self.cnn = None
+            self.cnn_out_channels = 0
+            self.fmap_hw = (0, 0)
         self.num_image_tokens = self.fmap_hw[0] * self.fmap_hw[1]
 
-        if cfg.variant == "no_transformer":
+        if self.fusion_kind == "mlp":
             fused_in = (
                 self.cnn_out_channels * self.num_image_tokens
                 + history_len * proprio_dim
@@ -118,7 +126,7 @@ class StudentPolicy(nn.Module):
             self.fusion, trunk_dim = _mlp(fused_in, cfg.fusion_mlp, cfg.activation)
         else:
             d = cfg.d_model
-            self.image_proj = nn.Linear(self.cnn_out_channels, d)
+            self.image_proj = nn.Linear(self.cnn_out_channels, d) if self.cnn is not None else None
             self.proprio_proj = nn.Linear(proprio_dim, d)
             self.command_proj = nn.Linear(command_dim, d)
             self.cls_token = nn.Parameter(torch.zeros(1, 1, d))
@@ -184,23 +192,25 @@ class StudentPolicy(nn.Module):
             self._check_inputs(proprio_hist, command, depth)
         p = self.proprio_normalizer(proprio_hist)  # (B, H, P); stats broadcast over H
         c = self.command_normalizer(command)  # (B, C)
-        fmap = self.cnn(depth)  # (B, Ch, h, w)
-        if self.variant == "no_transformer":
-            x = torch.cat([fmap.flatten(1), p.flatten(1), c], dim=-1)
-            z = self.fusion(x)
+        fmap = self.cnn(depth) if self.cnn is not None else None  # (B, Ch, h, w)
+        if self.fusion_kind == "mlp":
+            parts = [p.flatten(1), c] if fmap is None else [fmap.flatten(1), p.flatten(1), c]
+            z = self.fusion(torch.cat(parts, dim=-1))
         else:
-            img = self.image_proj(fmap.flatten(2).transpose(1, 2))  # (B, N, d)
             hist = self.proprio_proj(p)  # (B, H, d)
             cmd = self.command_proj(c).unsqueeze(1)  # (B, 1, d)
-            cls = self.cls_token.expand(img.shape[0], -1, -1)
-            tokens = torch.cat([cls, cmd, hist, img], dim=1) + self.pos_embed
+            cls = self.cls_token.expand(hist.shape[0], -1, -1)
+            seq = [cls, cmd, hist]
+            if fmap is not None:
+                seq.append(self.image_proj(fmap.flatten(2).transpose(1, 2)))  # (B, N, d)
+            tokens = torch.cat(seq, dim=1) + self.pos_embed
             z = self.out_norm(self.transformer(tokens)[:, 0])
         return self.head_mlp(z)
 
     def forward(
         self, proprio_hist: torch.Tensor, command: torch.Tensor, depth: torch.Tensor
     ) -> MDNParams | torch.Tensor:
-        """MDN variants: :class:`MDNParams`; ``no_mdn``: (B, A) actions."""
+        """MDN head: :class:`MDNParams`; deterministic head: (B, A) actions."""
         z = self.features(proprio_hist, command, depth)
         if self.is_mdn:
             return self.mdn(z)
