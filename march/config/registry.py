@@ -44,6 +44,8 @@ class Option:
     color: str
     order: int
     path: Path
+    data: dict
+    """The option's YAML as plain data (e.g. a student variant's ``image``/``fusion``/``head``)."""
 
 
 def _read(group: str, path: Path) -> dict:
@@ -65,6 +67,7 @@ def _options(group: str, conf_dirs: tuple[Path, ...]) -> tuple[Option, ...]:
                 color=str(data.get("color") or ""),
                 order=int(data.get("order", DEFAULT_ORDER)),
                 path=path,
+                data=data,
             )
     ordered = sorted(found.values(), key=lambda o: (o.order, o.name))
     return tuple(ordered)

@@ -115,20 +115,15 @@ class DeployGraph(nn.Module):
         d = p.cfg.d_model
         pn = p.proprio_normalizer(proprio_hist)
         c = p.command_normalizer(command)
-        fmap = p.cnn(depth).reshape(-1, p.cnn_out_channels, p.num_image_tokens)
-        img = p.image_proj(fmap.transpose(1, 2).reshape(-1, p.cnn_out_channels))
         hist = p.proprio_proj(pn.reshape(-1, p.proprio_dim))
         cmd = p.command_proj(c)
         cls = cmd * 0.0 + p.cls_token[0]  # (B, d) by broadcasting, no Shape/Expand
-        x = torch.cat(
-            [
-                cls.unsqueeze(1),
-                cmd.unsqueeze(1),
-                hist.reshape(-1, p.history_len, d),
-                img.reshape(-1, p.num_image_tokens, d),
-            ],
-            dim=1,
-        )
+        seq = [cls.unsqueeze(1), cmd.unsqueeze(1), hist.reshape(-1, p.history_len, d)]
+        if p.cnn is not None:  # image: none reads no image (the input stays, see _keep_inputs)
+            fmap = p.cnn(depth).reshape(-1, p.cnn_out_channels, p.num_image_tokens)
+            img = p.image_proj(fmap.transpose(1, 2).reshape(-1, p.cnn_out_channels))
+            seq.append(img.reshape(-1, p.num_image_tokens, d))
+        x = torch.cat(seq, dim=1)
         x = (x + p.pos_embed).reshape(-1, d)  # token rows (B * N, d)
         layers = list(p.transformer.layers)
         for i, layer in enumerate(layers):
@@ -181,6 +176,27 @@ def _export(model: nn.Module, dummy: tuple[torch.Tensor, ...], path: Path, opset
             opset_version=opset,
             do_constant_folding=True,
         )
+    _keep_inputs(path, dummy)
+
+
+def _keep_inputs(path: Path, dummy: tuple[torch.Tensor, ...]) -> None:
+    """Every variant's graph takes the same named inputs: the exporter drops an input the
+    network does not read (a student with ``image: none`` ignores ``depth``), so add it back
+    as an unused graph input of the same shape (valid ONNX; onnxruntime accepts the feed)."""
+    model = onnx.load(str(path))
+    have = {i.name for i in model.graph.input}
+    missing = [(n, t) for n, t in zip(INPUT_NAMES, dummy, strict=True) if n not in have]
+    if not missing:
+        return
+    for name, tensor in missing:
+        shape = ["batch", *tensor.shape[1:]]
+        info = onnx.helper.make_tensor_value_info(name, onnx.TensorProto.FLOAT, shape)
+        model.graph.input.append(info)
+    order = {n: i for i, n in enumerate(INPUT_NAMES)}
+    inputs = sorted(model.graph.input, key=lambda i: order.get(i.name, len(order)))
+    del model.graph.input[:]
+    model.graph.input.extend(inputs)
+    onnx.save(model, str(path))
 
 
 def export_student_onnx(

@@ -25,6 +25,9 @@ from march.config import ConfigError, MarchConfig
 COMMON_FIELDS = (
     "reward.name",  # the reward set decides the observation layout (clf adds the reference) and
     "reward.terms",  # the return a rollout is scored with; the figures label runs by it
+    "reward.label",  # how the figures draw the arm (march.config.registry)
+    "reward.color",
+    "reward.order",
     "env.history_length",  # proprioception history [control steps] the networks read
     "env.sim_dt",  # control rate = 1 / (sim_dt * decimation): a policy is trained at one rate
     "env.decimation",
