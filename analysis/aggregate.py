@@ -361,9 +361,7 @@ def _span(values) -> str:
     return str(vals[0]) if len(vals) == 1 else f"{vals[0]}-{vals[-1]}"
 
 
-def final_table(
-    runs: list[Run], mode: str, notes: list[str], comp: Comparisons
-) -> pd.DataFrame:
+def final_table(runs: list[Run], mode: str, notes: list[str], comp: Comparisons) -> pd.DataFrame:
     """Per (reward, variant): the final evaluation (summary.json of complete runs) combined over
     seeds, and the relative differences of the chosen pairs: A/full vs B/full for each arm pair
     A:B, and every other variant of the ablation teacher vs its reference variant (columns

@@ -69,6 +69,7 @@ from analysis.aggregate import (  # noqa: E402
     sample_efficiency_data,
     teacher_training_data,
 )
+from analysis.arms import choose, parse_pair  # noqa: E402
 from analysis.plotting import (  # noqa: E402
     ABLATION,
     BASELINE,
@@ -79,7 +80,6 @@ from analysis.plotting import (  # noqa: E402
     plot_teacher_training,
     teacher_points,
 )
-from analysis.arms import choose, parse_pair  # noqa: E402
 from analysis.reports import report, write_tables  # noqa: E402
 from analysis.rundirs import discover, runs_frame  # noqa: E402
 

@@ -14,6 +14,7 @@ import pytest  # noqa: E402
 from torch import nn  # noqa: E402
 from torch.distributions import Categorical, Independent, MixtureSameFamily, Normal  # noqa: E402
 
+from march.config import ConfigError  # noqa: E402
 from march.policies import (  # noqa: E402
     VARIANTS,
     MDNHead,
@@ -28,7 +29,6 @@ from march.policies import (  # noqa: E402
     squash_log_std,
     top_mode_mean,
 )
-from march.config import ConfigError  # noqa: E402
 from march.policies.mdn import unsquash_log_std  # noqa: E402
 
 P, HIST, CMD, HW, A = 10, 5, 3, (24, 32), 4

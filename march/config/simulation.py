@@ -20,9 +20,9 @@ from march.config.checks import (
     _bounds,
     _check_shapes,
     _each,
+    _identifier,
     _interval,
     _need,
-    _identifier,
     _one_of,
     _positive,
 )

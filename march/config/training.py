@@ -11,13 +11,13 @@ from dataclasses import dataclass
 
 from march.config.checks import (
     ACTIVATIONS,
-    COURSES,
-    LOGGERS,
-    RSL_ACTIVATIONS,
     BUILTIN_PARTS,
+    COURSES,
     FUSIONS,
     HEADS,
     IMAGE_ENCODERS,
+    LOGGERS,
+    RSL_ACTIVATIONS,
     ConfigError,
     _at_least,
     _check_shapes,

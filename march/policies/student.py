@@ -30,6 +30,7 @@ nothing reads it: no CNN, no image tokens.
 from __future__ import annotations
 
 from collections.abc import Sequence
+
 import torch
 import torch.nn.functional as F
 from rsl_rl.modules.normalization import EmpiricalNormalization
