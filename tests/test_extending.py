@@ -28,8 +28,8 @@ pytestmark = pytest.mark.sim
 
 ARM_YAML = """\
 # CLF terms and the regularisers, no holonomic terms, plus an upright bonus.
-name: clf_only
-label: CLF only
+name: clf_upright
+label: CLF upright
 terms:
   clf: 10.0
   dclf: 1.0
@@ -75,15 +75,15 @@ def tree(tmp_path_factory):
     root = tmp_path_factory.mktemp("extending")
     conf = root / "my_conf"
     (conf / "reward").mkdir(parents=True)
-    (conf / "reward" / "clf_only.yaml").write_text(ARM_YAML)
+    (conf / "reward" / "clf_upright.yaml").write_text(ARM_YAML)
     return {"root": root, "search": f"hydra.searchpath=[file://{conf}]", "conf": conf}
 
 
 def test_the_new_arm_and_term_are_registered(tree):
     assert "upright_bonus" in available_terms()
     arms = {o.name: o for o in options("reward", [ROOT / "conf", tree["conf"]])}
-    assert {"clf", "modelfree", "clf_only"} <= set(arms)
-    assert arms["clf_only"].label == "CLF only"
+    assert {"clf", "modelfree", "clf_upright"} <= set(arms)
+    assert arms["clf_upright"].label == "CLF upright"
     with pytest.raises(Exception, match="exists already"):
         reward_term("clf")(upright_bonus)  # a name means one thing in every arm
 
@@ -91,20 +91,20 @@ def test_the_new_arm_and_term_are_registered(tree):
 def test_inspect_builds_the_new_arm(tree):
     import march.inspect
 
-    text = _tool(march.inspect, [tree["search"], "reward=clf_only", "compute=smoke"])
+    text = _tool(march.inspect, [tree["search"], "reward=clf_upright", "compute=smoke"])
     report = json.loads(text[text.index("{") :])
     blob = json.dumps(report)
-    assert "upright_bonus" in blob and "clf_only" in blob
+    assert "upright_bonus" in blob and "clf_upright" in blob
     assert "holonomic_pos" not in blob  # the arm dropped them; nothing else changed
 
 
 def test_smoke_run_and_figures_compare_it_with_clf(tree, capsys):
     import march.train
 
-    run = tree["root"] / "clf_only_run"
+    run = tree["root"] / "clf_upright_run"
     # In this process Hydra finds conf/ by path (``python -m march.train`` finds it beside
     # the module); the rest is the command line a user types.
-    args = [f"--config-path={ROOT / 'conf'}", tree["search"], "reward=clf_only", *QUICK]
+    args = [f"--config-path={ROOT / 'conf'}", tree["search"], "reward=clf_upright", *QUICK]
     _tool(march.train, [*args, f"hydra.run.dir={run}"])
     assert json.loads((run / "status.json").read_text())["state"] == "done"
     summary = json.loads((run / "summary.json").read_text())
@@ -116,22 +116,22 @@ def test_smoke_run_and_figures_compare_it_with_clf(tree, capsys):
     out = tree["root"] / "figures"
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
-        code = fig.main([str(run), str(ref), "--out", str(out), "--compare", "clf_only:clf"])
+        code = fig.main([str(run), str(ref), "--out", str(out), "--compare", "clf_upright:clf"])
     text = buf.getvalue()
     assert code == 0, text
-    res = fig.analyze([run, ref], out, compare=["clf_only:clf"])
+    res = fig.analyze([run, ref], out, compare=["clf_upright:clf"])
     comp = res["comparisons"]
-    assert comp.pairs == [("clf_only", "clf")]
+    assert comp.pairs == [("clf_upright", "clf")]
     colors = {name: s.color for name, s in comp.arms.items()}
-    assert colors["clf_only"] != colors["clf"]
+    assert colors["clf_upright"] != colors["clf"]
     assert len(set(colors.values())) == len(colors)  # no two arms share a colour
-    assert comp.arms["clf_only"].label == "CLF only"
-    # drawn: both arms in the baseline figure; compared: clf_only against clf
+    assert comp.arms["clf_upright"].label == "CLF upright"
+    # drawn: both arms in the baseline figure; compared: clf_upright against clf
     base = res["points"].query("figure == 'baseline'")
-    assert set(base["series"]) == {"clf_only", "clf"}
-    assert "clf_only vs clf:" in text and "distance " in text
+    assert set(base["series"]) == {"clf_upright", "clf"}
+    assert "clf_upright vs clf:" in text and "distance " in text
     table = pd.read_csv(out / "final_metrics.csv", keep_default_na=False)
-    row = table[table["reward"] == "clf_only"].iloc[0]
+    row = table[table["reward"] == "clf_upright"].iloc[0]
     assert row["compared_to"] == "clf/full"
     ref_distance = syn.FINAL[("clf", "full", 0)][0]
     want = (summary["mean_distance_m"] - ref_distance) / ref_distance
