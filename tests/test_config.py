@@ -296,3 +296,25 @@ def test_run_dirs_are_named_after_the_resolved_preset():
             )
         assert cfg.hydra.run.dir.endswith(f"_modelfree_full_{suffix}")  # no CUDA here
         assert cfg.hydra.sweep.dir.endswith(f"_{suffix}")
+
+
+def test_compute_is_never_a_sweep_parameter(tmp_path):
+    """A sweep over the compute preset splits its directories (issue 24): refused in one line,
+    from a sweep file's hydra.sweeper.params and from a -m command line; one value is fine."""
+    from march.config.sweeps import sweep_problem
+
+    (tmp_path / "scaled.yaml").write_text(
+        "hydra:\n  sweeper:\n    params:\n      compute: cpu,smoke\n      seed: 0,1\n"
+    )
+    (tmp_path / "pinned.yaml").write_text(
+        "defaults:\n  - override /compute: smoke\nhydra:\n  sweeper:\n    params:\n"
+        "      seed: 0,1\n"
+    )
+    msg = sweep_problem(["-m", "+sweep=scaled"], tmp_path)
+    assert "hydra.sweeper.params.compute" in msg and "defaults" in msg and "\n" not in msg
+    assert sweep_problem(["-m", "+sweep=pinned"], tmp_path) is None
+    assert "compute cannot be swept" in sweep_problem(["-m", "compute=cpu,smoke"], tmp_path)
+    assert sweep_problem(["-m", "compute=smoke", "seed=0,1"], tmp_path) is None
+    assert sweep_problem(["compute=cpu,smoke"], tmp_path) is None  # not a multirun
+    for real in sorted((ROOT / "sweeps").glob("*.yaml")):
+        assert sweep_problem(["-m", f"+sweep={real.stem}"]) is None, real.name

@@ -359,3 +359,50 @@ def test_imports_no_simulator():
     third_party = mods - set(sys.stdlib_module_names) - {"__future__", "analysis"}
     assert third_party == {"matplotlib", "numpy", "pandas", "omegaconf"}
     assert len(mods & {"march", "mjlab", "mujoco", "torch", "warp"}) == 0
+
+
+def test_every_arm_found_is_drawn_in_a_colour_of_its_own(tmp_path):
+    """A new arm gets the first palette colour no other arm has (never clf's blue); a clash
+    between two configured colours is noted and resolved; only arms a sweep asked for are
+    noted as missing."""
+    from analysis import arms
+
+    sweep = tmp_path / "sweep"
+    syn.make_run(sweep / "0", "clf", "full", 0, student=True)
+    new = syn.make_run(sweep / "1", "clf", "full", 1, student=True)
+    # an arm the repository does not know, with clf's own colour in its config
+    cfg = (new / "config.yaml").read_text().replace("name: clf", "name: mine\n  color: tab:blue")
+    (new / "config.yaml").write_text(cfg)
+    (sweep / "multirun.yaml").write_text(
+        "hydra:\n  mode: MULTIRUN\n  sweeper:\n    params:\n      reward: clf,mine,ghost\n"
+    )
+    res = fig.analyze([sweep], tmp_path / "out", compare=["mine:clf"])
+    comp = res["comparisons"]
+    colors = {n: s.color for n, s in comp.arms.items()}
+    assert colors["clf"] == "tab:blue"  # the repository's colour for clf
+    assert colors["mine"] not in set(colors.values()) - {colors["mine"]}
+    assert colors["mine"] == next(c for c in arms.PALETTE if c not in {"tab:blue", "tab:red"})
+    assert "reward mine: colour tab:blue is taken; drawn in another" in res["notes"]
+    assert set(res["points"].query("figure == 'baseline'")["series"]) == {"clf", "mine"}
+    missing = [n for n in res["notes"] if n.startswith("baseline:")]
+    assert missing == ["baseline: ghost/full has no full-student runs"]  # not modelfree
+    table = res["final"].set_index("reward")
+    assert table.loc["mine", "compared_to"] == "clf/full"
+    want = (syn.FINAL[("clf", "full", 1)][0] - 3.8) / 3.8  # mine (seed 1) vs clf (seed 0)
+    assert table.loc["mine", "rel_distance_m"] == pytest.approx(want)
+
+
+def test_compare_flag_is_checked_and_sweep_requests_are_read(tmp_path):
+    from analysis import arms
+
+    assert _main([str(tmp_path), "--compare", "clf"])[0] == 2
+    assert _main([str(tmp_path), "--compare", "clf:clf"])[0] == 2
+    assert arms.parse_pair("a:b") == ("a", "b")
+    sweep = tmp_path / "s"
+    sweep.mkdir()
+    (sweep / "multirun.yaml").write_text(
+        "hydra:\n  sweeper:\n    params:\n      +arm: clf,modelfree\n      student: full,no_cnn\n"
+        "  overrides:\n    task: [seed=0]\n"
+    )
+    got = arms.sweep_requests([sweep])
+    assert got == (["clf", "modelfree"], ["full", "no_cnn"])  # arm -> its reward's name
