@@ -213,7 +213,7 @@ def deployment_spec(
         },
         "observation": {
             "proprio_terms": [{"name": n, "dim": k} for n, k in dims],
-            "terms": observation_terms(dims, env_cfg, robot_joints, imu_site, root_body),
+            "terms": observation_terms(dims, env_cfg, robot_joints, imu_site, bare(root_body)),
             "training_range": training_range(payload, dims),
             "history_len": int(lay["history_len"]),
             "history_order": "oldest first; at reset every slot holds the first observation",
