@@ -18,9 +18,9 @@ import mujoco
 import numpy as np
 import pytest
 
+from march.sim2sim.command_line import Args, parse_args
 from march.sim2sim.deploy_bundle import UsageError
 from march.sim2sim.depth_camera import DepthCamera, camera_rays, normalize_depth
-from march.sim2sim.command_line import Args, parse_args
 from march.sim2sim.runner import History
 
 ROOT = Path(__file__).resolve().parent.parent
