@@ -269,3 +269,90 @@ def test_cli_with_delays_and_a_refused_command(bundle):
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert res.returncode == 2 and len(lines) == 1
     assert "lin_vel_y=0.1 is outside the trained range [0, 0]" in lines[0]
+
+
+DELAY_JOINT_TOL_RAD = 1e-3
+"""Closed-loop joint agreement over 0.5 s with 20 ms command delay and 1 step depth delay on both
+sides: measured 5.2e-5 rad (2026-12-01); one physics step more or less: 1.4e-2 rad."""
+DELAY_DEPTH_MAD_TOL = 1e-4
+"""Mean |depth_env - depth_loop| of the fed image: measured 2e-7; the wrong depth lag 1.7e-2."""
+
+
+@pytest.mark.sim
+def test_delays_match_the_mjlab_env_with_the_same_delays(bundle, smoke_run):
+    """The mjlab eval env with training's delay mechanisms fixed at 20 ms (lag 4 physics steps,
+    march.env.dr_terms) and a depth lag of 1 step, against the loop with Delays(4, (1, 1)), same
+    ONNX student, same start, 25 control steps. An off-by-one command lag or a missing depth
+    delay in the loop breaks the agreement."""
+    from dataclasses import replace
+
+    import torch
+    from mjlab.envs import ManagerBasedRlEnv
+    from mjlab.managers.event_manager import EventTermCfg
+    from mjlab.managers.scene_entity_config import SceneEntityCfg
+
+    from march.config.cli import load
+    from march.env.build import build_env_cfg
+    from march.env.dr_terms import install_control_delay, sample_control_delay
+    from march.learn.checkpoint import load_checkpoint
+    from march.learn.provenance import apply_checkpoint_config
+    from march.sim2sim.deploy_bundle import Bundle
+    from march.sim2sim.runner import Delays, Sim2Sim, policy_session
+
+    ckpt = str(smoke_run / "student" / "latest.pt")
+    overrides = ["eval.randomization=false", "eval.corruption=false", "eval.course=hardware"]
+    cfg = apply_checkpoint_config(
+        load(overrides), load_checkpoint(ckpt, "student"), overrides, ckpt, "student"
+    )
+    env_cfg = build_env_cfg(cfg, "eval", num_envs=1)
+    env_cfg.observations["student"].enable_corruption = False
+    ms = (20.0, 20.0)
+    install_control_delay(env_cfg, replace(cfg.dr, control_delay_ms=ms))
+    env_cfg.events["control_delay"] = EventTermCfg(
+        func=sample_control_delay,
+        mode="reset",
+        params={"asset_cfg": SceneEntityCfg("robot"), "delay_ms": ms},
+    )
+    term = env_cfg.observations["depth"].terms["depth"]
+    term.delay_min_lag = term.delay_max_lag = 1
+    env = ManagerBasedRlEnv(cfg=env_cfg, device="cpu")
+    b = Bundle.load(bundle)
+    cell = b.cell("hardware", 0.0, 0)
+    session = policy_session(b.onnx_path)
+    obs, _ = env.reset()
+    data = env.sim.data
+    q0, v0 = data.qpos[0].cpu().numpy().copy(), data.qvel[0].cpu().numpy().copy()
+    env_q, env_depth = [], []
+    for _ in range(25):
+        feeds = {
+            "proprio_hist": obs["student"].numpy(),
+            "command": env.command_manager.get_command("twist").numpy(),
+            "depth": obs["depth"].numpy(),
+        }
+        env_depth.append(obs["depth"][0].numpy().copy())
+        obs, _, terminated, truncated, _ = env.step(
+            torch.as_tensor(session.run(["actions"], feeds)[0])
+        )
+        assert not bool(terminated | truncated)
+        env_q.append(data.qpos[0].cpu().numpy().copy())
+    env.close()
+
+    def loop(lag: int, depth_lag: int) -> tuple[float, float]:
+        sim = Sim2Sim(b, "hardware")
+        sim.data.qpos[:] = q0
+        sim.data.qvel[:] = v0
+        sim.start(cell, Delays(lag, (depth_lag, depth_lag)))
+        joint, mad = 0.0, 0.0
+        for k in range(25):
+            feeds = sim.inputs()
+            mad = max(mad, float(np.abs(feeds["depth"][0] - env_depth[k]).mean()))
+            sim.step(sim.act(feeds)[0])
+            joint = max(joint, float(np.abs(env_q[k][sim.qadr] - sim.data.qpos[sim.qadr]).max()))
+        return joint, mad
+
+    joint, mad = loop(4, 1)
+    print(f"\nwith delays 20 ms / 1 step: max joint {joint:.2e} rad, depth MAD {mad:.2e}")
+    assert joint < DELAY_JOINT_TOL_RAD and mad < DELAY_DEPTH_MAD_TOL
+    assert loop(3, 1)[0] > DELAY_JOINT_TOL_RAD  # one physics step too early
+    assert loop(5, 1)[0] > DELAY_JOINT_TOL_RAD  # one physics step too late
+    assert loop(4, 0)[1] > DELAY_DEPTH_MAD_TOL  # the depth delay left out
