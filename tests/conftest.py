@@ -31,3 +31,20 @@ def smoke_run(tmp_path_factory) -> Path:
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     (run_dir / "stdout.txt").write_text(out.stdout)
     return run_dir
+
+
+@pytest.fixture(scope="session")
+def bundle(smoke_run, tmp_path_factory) -> Path:
+    """The smoke student exported as a deployment bundle (``python -m march.export``)."""
+    out = tmp_path_factory.mktemp("bundle")
+    ckpt = smoke_run / "student" / "latest.pt"
+    res = subprocess.run(
+        [sys.executable, "-m", "march.export", f"student_ckpt={ckpt}", f"out={out}"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
+    assert "run it: python -m march.sim2sim" in res.stdout
+    return out / "student.onnx"

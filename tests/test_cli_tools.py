@@ -96,7 +96,7 @@ def test_export_writes_onnx_with_parity_and_metadata(tmp_path, capsys, variant):
 
     meta = read_onnx_metadata(onnx_file)
     assert meta["variant"] == variant and meta["iteration"] == "7"
-    assert meta["teacher_ckpt"] == "outputs/run/teacher/latest.pt"
+    assert meta["teacher_ckpt"] == "run/teacher/latest.pt"  # no training-machine directories
     obs = json.loads(meta["observations"])
     assert obs["proprio_hist"]["shape"] == [1, H, P]
     names = [t["name"] for t in obs["proprio_hist"]["terms"]]

@@ -18,9 +18,10 @@ import mujoco
 import numpy as np
 import pytest
 
+from march.sim2sim.command_line import Args, parse_args
 from march.sim2sim.deploy_bundle import UsageError
 from march.sim2sim.depth_camera import DepthCamera, camera_rays, normalize_depth
-from march.sim2sim.runner import Args, History, parse_args
+from march.sim2sim.runner import History
 
 ROOT = Path(__file__).resolve().parent.parent
 TRAINING_STACK = ("torch", "warp", "mujoco_warp", "mjlab", "hydra", "omegaconf", "rsl_rl")
@@ -217,29 +218,12 @@ DEPTH_MAD_TOL = 1e-4
 """Mean |depth_mjlab - depth_mujoco| of the normalised image at the same pose (measured 3e-8)."""
 
 
-@pytest.fixture(scope="module")
-def bundle(smoke_run, tmp_path_factory) -> Path:
-    """The smoke student exported as a deployment bundle (``python -m march.export``)."""
-    out = tmp_path_factory.mktemp("bundle")
-    ckpt = smoke_run / "student" / "latest.pt"
-    res = subprocess.run(
-        [sys.executable, "-m", "march.export", f"student_ckpt={ckpt}", f"out={out}"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
-    assert "run it: python -m march.sim2sim" in res.stdout
-    return out / "student.onnx"
-
-
 @pytest.mark.sim
 def test_bundle_is_self_describing(bundle):
     from march.sim2sim.deploy_bundle import Bundle
 
     spec = json.loads(bundle.with_suffix(".deploy.json").read_text())
-    assert spec["format"] == 1 and spec["onnx"]["file"] == "student.onnx"
+    assert spec["format"] == 2 and spec["onnx"]["file"] == "student.onnx"
     assert spec["rates"]["decimation"] * spec["rates"]["physics_dt_s"] == pytest.approx(0.02)
     assert len(spec["action"]["joint_names"]) == len(spec["action"]["scale"]) == 29
     assert [t["name"] for t in spec["observation"]["proprio_terms"]] == [
@@ -267,7 +251,7 @@ def test_bundle_is_self_describing(bundle):
 def test_cli_prints_one_json_and_imports_nothing_of_training(bundle, course):
     code = (
         "import sys, json\n"
-        "from march.sim2sim.runner import main\n"
+        "from march.sim2sim.command_line import main\n"
         f"main(['onnx={bundle}', 'course={course}', 'seconds=1', 'seed=1', 'difficulty=0.3'])\n"
         "print(json.dumps(sorted(sys.modules)))\n"
     )

@@ -61,6 +61,7 @@ from march.export.deploy_spec import (
     layout_problem,
     proprio_term_dims,
 )
+from march.export.deploy_terms import portable_path
 
 USAGE = (
     "usage: python -m march.export student_ckpt=<file> [out=<folder> | out=<file>.onnx] "
@@ -107,7 +108,7 @@ def metadata(payload: dict[str, Any]) -> dict[str, str]:
     }
     meta = {
         "variant": str(lay["variant"]),
-        "teacher_ckpt": str(payload.get("teacher_ckpt") or ""),
+        "teacher_ckpt": portable_path(payload.get("teacher_ckpt")),
         "iteration": str(payload.get("iteration", "")),
         "env_steps": str(payload.get("env_steps", "")),
         "march_layout": json.dumps(lay),

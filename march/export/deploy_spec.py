@@ -16,8 +16,20 @@ from typing import Any
 from march.config import MarchConfig
 from march.env.build import PROPRIO_TERMS
 from march.env.g1 import joint_value
+from march.export.deploy_terms import (
+    REAL_DEPTH_RECIPE,
+    SCENE_PREFIX,
+    bare,
+    command_ranges,
+    depth_intrinsics,
+    joint_table,
+    latency_ranges,
+    observation_terms,
+    portable_path,
+    training_range,
+)
 
-BUNDLE_FORMAT = 1
+BUNDLE_FORMAT = 2
 """Version of the ``<stem>.deploy.json`` layout; march.sim2sim refuses other versions."""
 
 
@@ -125,14 +137,14 @@ def deployment_spec(
     joints = [model.joint(j).name for j in range(model.njnt)]
     root = next(model.joint(j) for j in range(model.njnt) if model.jnt_type[j] == free)
     robot_joints = [n for j, n in enumerate(joints) if model.jnt_type[j] != free]
-    bare = [n.removeprefix("robot/") for n in robot_joints]
+    bare_names = [bare(n) for n in robot_joints]
     ent = env_cfg.scene.entities["robot"]
     init = ent.init_state
     act_cfg = env_cfg.actions["joint_pos"]
     if getattr(act_cfg, "clip", None) is not None or not act_cfg.use_default_offset:
         raise ValueError("the action term clips or has no default offset: not supported here")
-    default_pos = [joint_value(init.joint_pos, n, 0.0) for n in bare]
-    scale = [joint_value(act_cfg.scale, n, 1.0) for n in bare]
+    default_pos = [joint_value(init.joint_pos, n, 0.0) for n in bare_names]
+    scale = [joint_value(act_cfg.scale, n, 1.0) for n in bare_names]
     actuator_of = {}
     for a in range(model.nu):
         if model.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT:
@@ -148,46 +160,64 @@ def deployment_spec(
     cam = model.camera(d.name)
     reset = env_cfg.events["reset_base"].params["pose_range"]
     a = int(lay["num_actions"])
+    dims = proprio_term_dims(int(lay["proprio_dim"]), a)
+    trained = payload.get("config", {})
+    imu_site = "imu_in_pelvis"
+    root_body = model.body(int(model.jnt_bodyid[root.id])).name
+    physics_dt = float(model.opt.timestep)
     return {
         "format": BUNDLE_FORMAT,
         "mujoco_version": mujoco.__version__,
+        "names": "the G1's own names (Unitree's, as in the ONNX metadata) everywhere in this "
+        f"file; in the compiled scenes the robot's joints, actuators, bodies, sites and sensors "
+        f"carry scene_prefix ({SCENE_PREFIX!r}); the depth camera is a scene name",
+        "scene_prefix": SCENE_PREFIX,
         "checkpoint": {
             "variant": str(lay["variant"]),
             "iteration": payload.get("iteration"),
             "env_steps": payload.get("env_steps"),
-            "teacher_ckpt": str(payload.get("teacher_ckpt") or ""),
+            "teacher_ckpt": portable_path(payload.get("teacher_ckpt")),
             "layout": lay,
         },
         "rates": {
-            "physics_dt_s": float(model.opt.timestep),
+            "physics_dt_s": physics_dt,
+            "physics_hz": 1.0 / physics_dt,
             "decimation": int(env_cfg.decimation),
-            "control_dt_s": float(model.opt.timestep) * int(env_cfg.decimation),
+            "control_dt_s": physics_dt * int(env_cfg.decimation),
+            "control_hz": 1.0 / (physics_dt * int(env_cfg.decimation)),
         },
+        "joints": joint_table(model, robot_joints, default_pos, scale),
+        "joints_meaning": "policy order (the order of joint_pos, joint_vel, actions); "
+        "motor_index: unitree_sdk2 G1JointIndex (LowCmd_.motor_cmd slot); target = default_pos "
+        "+ action_scale * action [rad]; torque = kp (target - q) - kd dq, clipped to "
+        "+-torque_limit [N m]; pos_limits [rad] (the scene's joint range)",
         "robot": {
-            "root_joint": root.name,
-            "root_body": model.body(int(model.jnt_bodyid[root.id])).name,
-            "joint_names": robot_joints,
+            "root_joint": bare(root.name),
+            "root_body": bare(root_body),
+            "joint_names": bare_names,
             "default_joint_pos": default_pos,
             "init_root_pos": [float(v) for v in init.pos],
             "init_root_quat_wxyz": [float(v) for v in init.rot],
             "reset_pose_range": {k: [float(v) for v in r] for k, r in reset.items()},
-            "foot_sites": [f"robot/{s}" for s in FOOT_SITES],
+            "foot_sites": list(FOOT_SITES),
+            "imu_site": imu_site,
         },
         "action": {
-            "joint_names": robot_joints,
-            "actuator_names": actuators,
+            "joint_names": bare_names,
+            "actuator_names": [bare(n) for n in actuators],
             "scale": scale,
             "offset": default_pos,
+            "clip": None,
             "meaning": "actuator ctrl (position target, rad) = offset + scale * action; MuJoCo "
             "position actuators (kp, kv, force range in the scene) track it at the physics rate",
         },
         "observation": {
-            "proprio_terms": [
-                {"name": n, "dim": k} for n, k in proprio_term_dims(int(lay["proprio_dim"]), a)
-            ],
+            "proprio_terms": [{"name": n, "dim": k} for n, k in dims],
+            "terms": observation_terms(dims, env_cfg, robot_joints, imu_site, bare(root_body)),
+            "training_range": training_range(payload, dims),
             "history_len": int(lay["history_len"]),
             "history_order": "oldest first; at reset every slot holds the first observation",
-            "base_ang_vel_sensor": "robot/imu_ang_vel",
+            "base_ang_vel_sensor": "imu_ang_vel",
             "projected_gravity": "R_root^T (0, 0, -1), R_root the root body's world rotation",
             "joint_pos": "qpos - default_joint_pos, joints in joint_names order",
             "joint_vel": "qvel, joints in joint_names order",
@@ -196,14 +226,22 @@ def deployment_spec(
             "when": "after the control step's last physics step and mj_forward (as mjlab)",
         },
         "command": _command_spec(env_cfg),
+        "command_ranges": command_ranges(trained.get("env") or asdict_env(cfg)),
+        "latency": latency_ranges(trained or {"dr": asdict_section(cfg.dr)}, physics_dt),
         "depth": {
             "camera": d.name,
-            "parent_body": model.body(int(model.cam_bodyid[cam.id])).name,
+            "parent_body": bare(model.body(int(model.cam_bodyid[cam.id])).name),
             "pos": [float(v) for v in model.cam_pos[cam.id]],
             "quat_wxyz": [float(v) for v in model.cam_quat[cam.id]],
+            "pose_meaning": "camera frame in the parent body's frame (MuJoCo camera: looks "
+            f"along -z, +y up): the mount at {list(d.pos)} m in torso_link, pitched "
+            f"{d.pitch_deg:g} deg down from the torso's +x",
             "fovy_deg": float(model.cam_fovy[cam.id]),
             "width": int(d.width),
             "height": int(d.height),
+            "intrinsics": depth_intrinsics(int(d.width), int(d.height), float(d.fovy)),
+            "units": "input: normalised depth in [0, 1] (0 = min_range_m, 1 = max_range_m or no "
+            "return); metres before the normalisation",
             "min_range_m": float(d.min_range),
             "max_range_m": float(d.max_range),
             "geom_groups": sorted(cam_groups),
@@ -212,6 +250,7 @@ def deployment_spec(
             "depth": "planar: hit distance x cos(angle to the optical axis); no hit -> invalid",
             "normalisation": "invalid (<= 0) -> max_range; clip to [min_range, max_range]; "
             "(d - min_range) / (max_range - min_range)",
+            "from_a_real_camera": REAL_DEPTH_RECIPE,
         },
         "terminations": {
             "tilt_limit_rad": math.radians(cfg.reward.tilt_limit_deg),
@@ -229,3 +268,14 @@ def deployment_spec(
             "|(w_t - 2 w_t-1 + w_t-2)| / dt^2, w the root angular velocity in the body frame",
         },
     }
+
+
+def asdict_env(cfg: MarchConfig) -> dict[str, Any]:
+    """The command ranges of ``cfg.env`` as the checkpoint's saved config spells them."""
+    return {k: list(getattr(cfg.env, k)) for k in ("command_vx", "command_vy", "command_yaw_rate")}
+
+
+def asdict_section(section: Any) -> dict[str, Any]:
+    from dataclasses import asdict
+
+    return asdict(section)

@@ -1,6 +1,8 @@
 """``python -m march.sim2sim``: the exported student in plain MuJoCo + onnxruntime, nothing of the
 training stack (no torch, warp, mjlab or Hydra): :mod:`.deploy_bundle` reads the bundle,
-:mod:`.depth_camera` renders the depth image, :mod:`.runner` runs the control loop and the command.
+:mod:`.depth_camera` renders the depth image, :mod:`.runner` runs the control loop (with the
+training's latencies), :mod:`.guard` flags inputs outside training, :mod:`.command_line` is the
+command.
 """
 
 import os

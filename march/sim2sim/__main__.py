@@ -1,3 +1,3 @@
-from march.sim2sim.runner import main
+from march.sim2sim.command_line import main
 
 main()

@@ -17,7 +17,7 @@ from typing import Any
 
 import mujoco
 
-BUNDLE_FORMAT = 1
+BUNDLE_FORMAT = 2
 """The ``deploy.json`` layout this loop reads (march.export.deploy_spec.BUNDLE_FORMAT)."""
 INPUTS = ("proprio_hist", "command", "depth")
 OUTPUT = "actions"
