@@ -30,11 +30,15 @@ train: $(VENV)/.installed  ## the main job: CLF teacher -> full student -> evalu
 smoke: $(VENV)/.installed  ## the whole pipeline in a few minutes
 	$(PY) -m march.train compute=smoke $(ARGS)
 
+# One pytest-xdist worker per core, whole files to a worker (module fixtures build their env
+# once); the session's smoke run and bundle are built once and shared (tests/conftest.py).
+XDIST ?= -n auto --dist loadfile
+
 test: $(VENV)/.installed  ## the test suite CI runs (slow extras left out)
-	$(PY) -m pytest -q $(ARGS)
+	$(PY) -m pytest -q $(XDIST) $(ARGS)
 
 test-all: $(VENV)/.installed  ## including tests marked slow
-	$(PY) -m pytest -q -m "" $(ARGS)
+	$(PY) -m pytest -q -m "" $(XDIST) $(ARGS)
 
 lint: $(VENV)/.installed
 	$(VENV)/bin/ruff check march tests analysis scripts

@@ -15,12 +15,35 @@ import subprocess  # noqa: E402
 import sys  # noqa: E402
 
 import pytest  # noqa: E402
+from filelock import FileLock  # noqa: E402
 
 
-@pytest.fixture(scope="session")
-def smoke_run(tmp_path_factory) -> Path:
-    """`python -m march.train compute=smoke` exactly as a user runs it (once per session)."""
-    run_dir = tmp_path_factory.mktemp("smoke")
+def shared_dir(tmp_path_factory, name: str, build) -> Path:
+    """A directory ``build(path)`` fills once per test session, also when pytest-xdist runs the
+    session in several worker processes: the first worker builds it under a file lock in the
+    session's common temp dir, the others wait and reuse it (a failed build fails them all)."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    if worker is None:
+        path = tmp_path_factory.mktemp(name)
+        build(path)
+        return path
+    root = tmp_path_factory.getbasetemp().parent  # shared by the session's workers
+    path, done, failed = root / name, root / f"{name}.done", root / f"{name}.failed"
+    with FileLock(str(root / f"{name}.lock")):
+        if failed.is_file():
+            pytest.fail(f"shared fixture {name} failed in another worker: {failed.read_text()}")
+        if not done.is_file():
+            path.mkdir(exist_ok=True)
+            try:
+                build(path)
+            except BaseException as err:
+                failed.write_text(str(err)[-3000:])
+                raise
+            done.write_text(worker)
+    return path
+
+
+def _smoke(run_dir: Path) -> None:
     out = subprocess.run(
         [sys.executable, "-m", "march.train", "compute=smoke", f"hydra.run.dir={run_dir}"],
         cwd=ROOT,
@@ -30,13 +53,25 @@ def smoke_run(tmp_path_factory) -> Path:
     )
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     (run_dir / "stdout.txt").write_text(out.stdout)
-    return run_dir
+
+
+@pytest.fixture(scope="session")
+def smoke_run(tmp_path_factory) -> Path:
+    """`python -m march.train compute=smoke` exactly as a user runs it (once per session)."""
+    return shared_dir(tmp_path_factory, "smoke", _smoke)
 
 
 @pytest.fixture(scope="session")
 def bundle(smoke_run, tmp_path_factory) -> Path:
     """The smoke student exported as a deployment bundle (``python -m march.export``)."""
-    out = tmp_path_factory.mktemp("bundle")
+
+    def export(out: Path) -> None:
+        _export(smoke_run, out)
+
+    return shared_dir(tmp_path_factory, "bundle", export) / "student.onnx"
+
+
+def _export(smoke_run: Path, out: Path) -> None:
     ckpt = smoke_run / "student" / "latest.pt"
     res = subprocess.run(
         [sys.executable, "-m", "march.export", f"student_ckpt={ckpt}", f"out={out}"],
@@ -47,4 +82,3 @@ def bundle(smoke_run, tmp_path_factory) -> Path:
     )
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
     assert "run it: python -m march.sim2sim" in res.stdout
-    return out / "student.onnx"
