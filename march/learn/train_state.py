@@ -40,7 +40,17 @@ if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv
 
 STATE_KEYS = ("curriculum", "episode", "streams")
-__all__ = ["STATE_KEYS", "collect_state", "mean_terrain_level", "restore_state", "stream_seed"]
+CUDA_STATE_BYTES = 16
+"""A CUDA (Philox) generator's state: seed and offset, 8 bytes each."""
+__all__ = [
+    "STATE_KEYS",
+    "collect_state",
+    "collect_streams",
+    "mean_terrain_level",
+    "restore_state",
+    "restore_streams",
+    "stream_seed",
+]
 
 
 def stream_seed(seed: int, iteration: int, name: str) -> int:
@@ -68,10 +78,8 @@ def _python_state() -> dict[str, Any]:
     }
 
 
-def collect_state(
-    env: ManagerBasedRlEnv, device: str, generators: dict[str, torch.Generator] | None = None
-) -> dict[str, Any]:
-    """The ``curriculum``, ``episode`` and ``streams`` entries of a checkpoint (plain data)."""
+def collect_streams(device: str, generators: dict[str, torch.Generator]) -> dict[str, Any]:
+    """The ``streams`` entry: the process's generators plus ``generators`` (by name)."""
     streams: dict[str, Any] = {
         "device": str(device),
         "torch": torch.get_rng_state(),
@@ -80,12 +88,23 @@ def collect_state(
     }
     if str(device).startswith("cuda"):
         streams["cuda"] = torch.cuda.get_rng_state(device)
-    planner = planner_generator(env)
-    if planner is not None:
-        streams["planner"] = planner.get_state()
-    for name, gen in (generators or {}).items():
+    for name, gen in generators.items():
         streams[name] = gen.get_state()
-    return {**env_state(env), "streams": streams}
+    return streams
+
+
+def _generators(
+    env: ManagerBasedRlEnv, extra: dict[str, torch.Generator] | None
+) -> dict[str, torch.Generator]:
+    planner = planner_generator(env)
+    return {**({"planner": planner} if planner is not None else {}), **(extra or {})}
+
+
+def collect_state(
+    env: ManagerBasedRlEnv, device: str, generators: dict[str, torch.Generator] | None = None
+) -> dict[str, Any]:
+    """The ``curriculum``, ``episode`` and ``streams`` entries of a checkpoint (plain data)."""
+    return {**env_state(env), "streams": collect_streams(device, _generators(env, generators))}
 
 
 def _rng_tensor(value: Any, name: str, where: str) -> torch.Tensor:
@@ -98,10 +117,6 @@ def _set_generator(
     gen: torch.Generator, state: Any, name: str, reseed: int, where: str, moved: list[str]
 ) -> None:
     """``gen`` continues the saved stream when the state is in its format, else is reseeded."""
-    if state is None:
-        gen.manual_seed(reseed)
-        moved.append(name)
-        return
     state = _rng_tensor(state, name, where)
     if state.numel() == gen.get_state().numel():
         gen.set_state(state)
@@ -137,6 +152,52 @@ def _restore_python(state: Any, where: str) -> None:
         raise CheckpointError(f"{where}: 'streams.python' is not a random state ({err})") from None
 
 
+def restore_streams(
+    streams: dict[str, Any],
+    device: str,
+    seed: int,
+    iteration: int,
+    where: str,
+    generators: dict[str, torch.Generator],
+) -> str | None:
+    """Put the saved streams back; a stream that cannot be carried to ``device`` is reseeded
+    with :func:`stream_seed`. Returns the one line that says so (None: every stream continued).
+    A generator whose state is missing is left as it is (an older checkpoint)."""
+    moved: list[str] = []
+    dropped = ""
+    saved_dev = str(streams.get("device", device))
+    if streams.get("torch") is not None:
+        torch.set_rng_state(_rng_tensor(streams["torch"], "torch", where))
+    if "numpy" in streams:
+        _restore_numpy(streams["numpy"], where)
+    if "python" in streams:
+        _restore_python(streams["python"], where)
+    if str(device).startswith("cuda"):
+        cuda = streams.get("cuda")
+        if cuda is not None and _rng_tensor(cuda, "cuda", where).numel() == CUDA_STATE_BYTES:
+            torch.cuda.set_rng_state(_rng_tensor(cuda, "cuda", where), device)
+        else:
+            with torch.cuda.device(device):
+                torch.cuda.manual_seed(stream_seed(seed, iteration, "cuda"))
+            moved.append("cuda")
+    elif "cuda" in streams:
+        dropped = "; the CUDA generator's stream has no place on the CPU (its draws now come "
+        dropped += "from the restored CPU generator)"
+    for name, gen in generators.items():
+        if name in streams:
+            reseed = stream_seed(seed, iteration, name)
+            _set_generator(gen, streams[name], name, reseed, where, moved)
+    if not (moved or dropped):
+        return None
+    said = (
+        f"the stream(s) {', '.join(moved)} cannot continue across devices: reseeded from seed "
+        f"{seed} and iteration {iteration}"
+        if moved
+        else "every stream continues"
+    )
+    return f"saved on {saved_dev}, resumed on {device}: {said}{dropped}"
+
+
 def restore_state(
     env: ManagerBasedRlEnv,
     payload: dict[str, Any],
@@ -151,52 +212,20 @@ def restore_state(
         notes = restore_env_state(env, payload)
     except EnvStateError as err:
         raise CheckpointError(f"{where}: {err}; it does not fit this run's env") from None
-    terrain = env.scene.terrain
     if isinstance(payload.get("curriculum"), dict):
-        lv = terrain.terrain_levels
+        lv = env.scene.terrain.terrain_levels
         notes.append(
             f"curriculum: {env.num_envs} envs start from their saved terrain levels (mean "
             f"{float(lv.float().mean()):.3g}, digest {levels_digest(lv)})"
         )
-    iteration = int(payload.get("iteration", 0))
     streams = payload.get("streams")
-    moved: list[str] = []
-    dropped = ""
     if not isinstance(streams, dict):
         # An older checkpoint: only the CPU generator (and the distillation's) were saved.
         streams = {"device": str(device), "torch": payload.get("rng")}
-        streams.update({k: payload.get("generator") for k in (generators or {})})
-        notes.append("the checkpoint holds no numpy, python or planner streams (an older run)")
-    saved_dev = str(streams.get("device", device))
-    if streams.get("torch") is not None:
-        torch.set_rng_state(_rng_tensor(streams["torch"], "torch", where))
-    if "numpy" in streams:
-        _restore_numpy(streams["numpy"], where)
-    if "python" in streams:
-        _restore_python(streams["python"], where)
-    if str(device).startswith("cuda"):
-        cuda = streams.get("cuda")
-        if cuda is not None and _rng_tensor(cuda, "cuda", where).numel() == 16:
-            torch.cuda.set_rng_state(_rng_tensor(cuda, "cuda", where), device)
-        else:
-            torch.cuda.manual_seed(stream_seed(seed, iteration, "cuda"))
-            moved.append("cuda")
-    elif "cuda" in streams:
-        dropped = "; the CUDA generator's stream has no place on the CPU (its draws now come "
-        dropped += "from the restored CPU generator)"
-    planner = planner_generator(env)
-    if planner is not None and ("planner" in streams or "numpy" in streams):
-        reseed = stream_seed(seed, iteration, "planner")
-        _set_generator(planner, streams.get("planner"), "planner", reseed, where, moved)
-    for name, gen in (generators or {}).items():
-        reseed = stream_seed(seed, iteration, name)
-        _set_generator(gen, streams.get(name), name, reseed, where, moved)
-    if moved or dropped:
-        said = (
-            f"the stream(s) {', '.join(moved)} cannot continue across devices: reseeded from "
-            f"seed {seed} and iteration {iteration}"
-            if moved
-            else "every stream continues"
+        streams.update(
+            {k: payload["generator"] for k in generators or {} if "generator" in payload}
         )
-        notes.append(f"saved on {saved_dev}, resumed on {device}: {said}{dropped}")
-    return notes
+        notes.append("the checkpoint holds no numpy, python or planner streams (an older run)")
+    iteration = int(payload.get("iteration", 0))
+    line = restore_streams(streams, device, seed, iteration, where, _generators(env, generators))
+    return notes + ([line] if line else [])
