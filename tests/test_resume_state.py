@@ -375,7 +375,8 @@ CURRICULUM = (
     "compute=smoke",
     "curriculum.promote_fraction=0.01",  # ~1.5 cm along the course promotes
     "curriculum.demote_fraction=0.0",
-    "env.episode_length_s=0.5",  # a time-out every 25 steps: the curriculum runs often
+    "curriculum.max_init_level=2",  # envs start on different levels
+    "env.episode_length_s=0.3",  # a time-out every 15 steps: the curriculum runs often
 )
 
 
