@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import enum
+import errno
 import json
 import os
 import pickle
@@ -74,12 +75,14 @@ def _write_error(path: Path, err: BaseException) -> CheckpointError:
 
 def fsync_dir(directory: Path) -> None:
     """Make a rename or a new file in ``directory`` durable (its entry survives a power loss)."""
-    with contextlib.suppress(OSError):  # e.g. a file system without directory fsync
-        fd = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    except OSError as err:
+        if err.errno not in (errno.EINVAL, errno.ENOTSUP, errno.EBADF):
+            raise  # a file system without directory fsync is fine; an I/O error is not
+    finally:
+        os.close(fd)
 
 
 def replace_durably(tmp: str | Path, path: Path) -> None:
