@@ -216,9 +216,7 @@ def test_resume_may_change_the_device_and_nothing_else_of_compute(tmp_path, monk
             _resume(run, "compute.device=cpu", other)
 
 
-def test_a_cuda_run_resumed_without_cuda_names_the_device_and_the_override(
-    tmp_path, monkeypatch
-):
+def test_a_cuda_run_resumed_without_cuda_names_the_device_and_the_override(tmp_path, monkeypatch):
     import march.config.cli as cli
 
     monkeypatch.setattr(cli, "cuda_available", lambda: False)
