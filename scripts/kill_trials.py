@@ -1,7 +1,8 @@
 """Kill-and-resume trials: SIGKILL ``python -m march.train`` at seeded random moments, resume it.
 
-    python scripts/kill_trials.py                 # 10 trials (make kill-trials)
+    python scripts/kill_trials.py                 # every phase once: 13 trials (make kill-trials)
     python scripts/kill_trials.py --trials 3 --seed 1 --out /tmp/kt
+    python scripts/kill_trials.py --first 10 --trials 3   # only the curriculum and device trials
 
 Each trial starts a small ``compute=smoke`` run, kills its process group with SIGKILL at a moment
 of one of the phases below (the teacher before its first checkpoint, during a checkpoint write,
@@ -12,7 +13,14 @@ evaluation), then runs ``python -m march.train resume=<run dir>`` to completion 
 - it starts from the newest checkpoint present at the kill (no iteration lost beyond it);
 - metrics.csv holds every teacher and student iteration exactly once, eval.csv every expected
   evaluation (teacher every eval_interval and at the end, student likewise) exactly once;
-- the final teacher and student checkpoints load with ``load_checkpoint`` at the last iteration.
+- the final teacher and student checkpoints load with ``load_checkpoint`` at the last iteration;
+- curriculum trials (envs start on levels 0-2 and are promoted within two iterations): the kill
+  comes after a promotion reached a checkpoint, and the resumed envs start from that
+  checkpoint's levels, env by env (the digest the resume prints equals the checkpoint's);
+- the device trial resumes with ``compute.device=cpu`` a run saved on ``cuda:0``: a real one
+  where CUDA is available, else the killed CPU run's directory rewritten as a CUDA run leaves it
+  (config.yaml on cuda:0, CUDA generator states); without the override the resume must exit 2
+  with one line, with it the run ends ``done`` and says which streams it reseeded.
 
 It prints one line per trial and the tally (trials, killed, resumed, rows lost, rows
 duplicated); the exit status is 0 only when every trial passed. A trial whose run finished
@@ -66,6 +74,17 @@ PHASES = (
     "final evaluation",
     "teacher: during a checkpoint write",
     "final evaluation",
+    "teacher: after a curriculum promotion",
+    "teacher: after a curriculum promotion",
+    "distillation: at a random moment, resumed on another device",
+)
+CURRICULUM = (
+    # Levels only go up (demote 0), ~1.5 cm of progress promotes, and episodes time out every
+    # 15 steps: every env is promoted at iteration 2 (16 steps), from a start level of 0-2.
+    "curriculum.promote_fraction=0.01",
+    "curriculum.demote_fraction=0.0",
+    "curriculum.max_init_level=2",
+    "env.episode_length_s=0.3",
 )
 
 
@@ -87,6 +106,72 @@ def rows(path: Path) -> list[tuple[str, int]]:
             except (KeyError, TypeError, ValueError):
                 continue  # a row half written at this instant
     return out
+
+
+def terrain_levels(path: Path) -> dict[int, float]:
+    """Teacher iteration -> mean_terrain_level of metrics.csv's complete rows."""
+    if not path.is_file():
+        return {}
+    out = {}
+    with path.open(newline="") as f:
+        for r in csv.DictReader(f):
+            try:
+                if r["stage"] == "teacher":
+                    out[int(r["iteration"])] = float(r["mean_terrain_level"])
+            except (KeyError, TypeError, ValueError):
+                continue
+    return out
+
+
+def checkpoint_levels(path: Path, kind: str) -> tuple[int, str, float] | None:
+    """(iteration, levels digest, mean level) of the newest checkpoint in ``path``'s directory."""
+    from march.env.env_state import levels_digest
+    from march.learn.checkpoint import load_checkpoint
+
+    files = [*path.parent.glob("model_*.pt"), path] if path.parent.is_dir() else []
+    best = None
+    for p in files:
+        if p.is_file():
+            payload = load_checkpoint(p, kind)
+            if best is None or int(payload["iteration"]) > int(best["iteration"]):
+                best = payload
+    if best is None or "curriculum" not in best:
+        return None
+    lv = best["curriculum"]["terrain_levels"]
+    return int(best["iteration"]), levels_digest(lv), float(lv.float().mean())
+
+
+def resumed_levels(text: str, stage: str) -> str | None:
+    """The levels digest a resume printed for ``stage``'s envs."""
+    m = re.search(rf"\[{stage}\] curriculum: \d+ envs start from .* digest (\w+)\)", text)
+    return m.group(1) if m else None
+
+
+def craft_cuda_run(run: Path) -> None:
+    """The run directory as a ``cuda:0`` run leaves it: config.yaml on cuda:0, every checkpoint's
+    config and device generator states (planner, distillation, CUDA default) in CUDA format."""
+    import torch
+
+    from march.learn.checkpoint import load_checkpoint, save_atomic
+
+    def cuda_state(offset: int) -> torch.Tensor:
+        return torch.tensor([0, offset], dtype=torch.int64).view(torch.uint8).clone()
+
+    text = (run / "config.yaml").read_text()
+    assert "\n  device: cpu\n" in text, "config.yaml without compute.device: cpu"
+    (run / "config.yaml").write_text(text.replace("\n  device: cpu\n", "\n  device: cuda:0\n", 1))
+    for kind in ("teacher", "student"):
+        for path in sorted((run / kind).glob("*.pt")):
+            payload = load_checkpoint(path, kind)
+            payload["config"]["compute"]["device"] = "cuda:0"
+            streams = payload["streams"]
+            streams.update(device="cuda:0", cuda=cuda_state(2**20))
+            for name in ("planner", "distill"):
+                if name in streams:
+                    streams[name] = cuda_state(2**12)
+            if "generator" in payload:
+                payload["generator"] = cuda_state(2**12)
+            save_atomic(payload, path)
 
 
 def tmp_files(directory: Path) -> list[str]:
@@ -118,6 +203,8 @@ class Trigger:
             self.delay = r.uniform(0.0, 2.0)
         elif "random moment" in self.phase:
             self.delay = r.uniform(0.0, 25.0)
+        elif "curriculum" in self.phase:
+            self.delay = r.uniform(0.0, 6.0)
         elif "evaluation" in self.phase:
             self.delay = r.uniform(0.5, 6.0)
 
@@ -129,9 +216,14 @@ class Trigger:
             return (run / "metrics.csv").is_file()
         if self.phase == "teacher: during an evaluation":
             return ("teacher", T_EVAL) in m
+        if self.phase == "teacher: after a curriculum promotion":
+            levels = terrain_levels(run / "metrics.csv")
+            return (run / "teacher" / f"model_{T_SAVE:06d}.pt").is_file() and levels.get(
+                T_SAVE, -1.0
+            ) > levels.get(1, float("inf"))
         if self.phase == "distillation: before the first checkpoint":
             return ("student", 1) in m
-        if self.phase == "distillation: at a random moment":
+        if self.phase.startswith("distillation: at a random moment"):
             return ("teacher", T_ITERS) in rows(run / "eval.csv")
         if self.phase == "final evaluation":
             return (run / "student" / f"model_{D_ITERS:06d}.pt").is_file()
@@ -172,6 +264,12 @@ def resumed_at(text: str, stage: str) -> int:
     return int(m.group(1)) if m else 0
 
 
+def cuda_available() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
+
+
 def train_env() -> dict[str, str]:
     env = dict(os.environ)
     env.setdefault("WARP_CACHE_PATH", str(ROOT / ".warp_cache"))
@@ -188,7 +286,13 @@ def run_trial(i: int, phase: str, rng: random.Random, out: Path) -> dict:
     shutil.rmtree(run, ignore_errors=True)
     trig = Trigger(phase, rng)
     log = (out / f"trial_{i:02d}.killed.log").open("w")
-    cmd = [sys.executable, "-m", "march.train", *SIZES, f"hydra.run.dir={run}"]
+    curriculum = "curriculum" in phase
+    device_trial = "another device" in phase
+    has_cuda = device_trial and cuda_available()
+    sizes = [*SIZES, *(CURRICULUM if curriculum else ())]
+    if has_cuda:
+        sizes.append("compute.device=cuda:0")
+    cmd = [sys.executable, "-m", "march.train", *sizes, f"hydra.run.dir={run}"]
     proc = subprocess.Popen(
         cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, env=train_env(), start_new_session=True
     )
@@ -213,15 +317,33 @@ def run_trial(i: int, phase: str, rng: random.Random, out: Path) -> dict:
         if s_ck < D_ITERS
         else "final evaluation"
     )
-    res = subprocess.run(
-        [sys.executable, "-m", "march.train", f"resume={run}"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        env=train_env(),
-    )
-    (out / f"trial_{i:02d}.resume.log").write_text(res.stdout + res.stderr)
     problems = []
+    saved_levels = checkpoint_levels(run / "teacher" / "latest.pt", "teacher")
+    resume = [sys.executable, "-m", "march.train", f"resume={run}"]
+    if device_trial:
+        if not has_cuda and killed:
+            craft_cuda_run(run)
+        # Without the override a cuda:0 run on a machine without CUDA stops in one line.
+        if not cuda_available():
+            no = subprocess.run(resume, cwd=ROOT, capture_output=True, text=True, env=train_env())
+            err = no.stderr.strip().splitlines()
+            if no.returncode != 2 or len(err) != 1 or "compute.device=cpu" not in err[0]:
+                problems.append(f"resume without the override: exit {no.returncode}, {err}")
+        resume.append("compute.device=cpu")
+    res = subprocess.run(resume, cwd=ROOT, capture_output=True, text=True, env=train_env())
+    (out / f"trial_{i:02d}.resume.log").write_text(res.stdout + res.stderr)
+    if device_trial and killed and "saved on cuda:0, resumed on cpu" not in res.stdout:
+        problems.append("the resume on the CPU did not say which streams it reseeded")
+    if curriculum:
+        if saved_levels is None or saved_levels[0] < T_SAVE:
+            problems.append(f"killed before a promotion reached a checkpoint ({saved_levels})")
+        else:
+            got = resumed_levels(res.stdout, "teacher")
+            if got != saved_levels[1]:
+                problems.append(
+                    f"teacher envs resumed on levels {got}, checkpoint {saved_levels[0]} holds "
+                    f"{saved_levels[1]} (mean {saved_levels[2]:.3g})"
+                )
     status = ""
     if (run / "status.json").is_file():
         import json
@@ -292,12 +414,19 @@ def run_trial(i: int, phase: str, rng: random.Random, out: Path) -> dict:
         "dup": dup,
         "loadable": loadable,
         "problems": problems,
+        "levels": (
+            f"checkpoint {saved_levels[0]} mean {saved_levels[2]:.3g} digest {saved_levels[1]}"
+            if curriculum and saved_levels
+            else ""
+        ),
     }
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--trials", type=int, default=10, help="number of trials (default 10)")
+    ap.add_argument(
+        "--trials", type=int, default=len(PHASES), help=f"number of trials (default {len(PHASES)})"
+    )
     ap.add_argument("--seed", type=int, default=0, help="seeds the kill moments (default 0)")
     ap.add_argument("--first", type=int, default=0, help="start at this trial of the schedule")
     ap.add_argument("--out", type=Path, default=ROOT / "outputs" / "kill_trials")
@@ -313,12 +442,13 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.monotonic()
         r = run_trial(i, phase, rng, out)
         results.append(r)
+        extra = f"; levels at the kill: {r['levels']}" if r["levels"] else ""
         ok = "ok" if not r["problems"] else "FAILED: " + "; ".join(r["problems"])
         print(
             f"trial {i:2d} [{phase}] killed after {r['kill_s']:.1f} s ({r['trigger']}) in "
             f"{r['killed_in']}; checkpoints teacher {r['ckpts'][0]} student {r['ckpts'][1]}"
             f"{'; temp files left ' + ','.join(r['tmp_left']) if r['tmp_left'] else ''}; "
-            f"{time.monotonic() - t0:.0f} s: {ok}",
+            f"{time.monotonic() - t0:.0f} s{extra}: {ok}",
             flush=True,
         )
     n = len(results)
@@ -328,10 +458,15 @@ def main(argv: list[str] | None = None) -> int:
     dup = sum(r["dup"] for r in results)
     loadable = sum(r["loadable"] for r in results)
     phases = Counter(r["killed_in"] for r in results)
+    cur = [r for r in results if "curriculum" in r["phase"]]
+    levels_ok = sum(1 for r in cur if not r["problems"])
+    dev = [r for r in results if "another device" in r["phase"]]
+    dev_ok = sum(1 for r in dev if not r["problems"])
     print(
         f"tally: trials {n}, killed {killed}/{n} "
         f"({', '.join(f'{k} {v}' for k, v in sorted(phases.items()))}), resumed {resumed}/{n}, "
-        f"rows lost {lost}, rows duplicated {dup}, final checkpoints loadable {loadable}/{n}",
+        f"rows lost {lost}, rows duplicated {dup}, final checkpoints loadable {loadable}/{n}, "
+        f"levels resumed env by env {levels_ok}/{len(cur)}, device override {dev_ok}/{len(dev)}",
         flush=True,
     )
     passed = all(not r["problems"] for r in results)

@@ -142,10 +142,11 @@ def _no_tmp(directory: Path) -> bool:
 
 def test_a_failed_checkpoint_write_keeps_the_previous_one(tmp_path, monkeypatch):
     """A full disk as os.fsync reports it (ENOSPC): at the latest.pt write (the previous one
-    stays), and at the model_<it>.pt write that follows (latest.pt is then the new one, whole)."""
+    stays), and at the model_<it>.pt write that follows (latest.pt is then the new one, whole).
+    fsync calls of a save: latest.pt's data, its directory, model_<it>.pt's data, its directory."""
     save_checkpoint(_payload(4000, 1), tmp_path, 1)
     real = os.fsync
-    for fail_at, latest_it in ((1, 1), (2, 2)):
+    for fail_at, latest_it in ((1, 1), (3, 2)):
         calls = []
 
         def fsync(fd, calls=calls, fail_at=fail_at):

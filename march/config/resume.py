@@ -36,6 +36,7 @@ RESUME_SAFE = (
     "distill.max_nonfinite_updates",
     "compute.torch_threads",  # speed only
     "figures",  # what the figures compare: labels only
+    "compute.device",  # where it runs: every saved state is carried to the new device
     "logger",  # every logger.* field and the logger=<choice> group
 )
 """Config paths (a section: every field in it) an override may change on resume."""
@@ -64,25 +65,74 @@ def _safe(path: str) -> bool:
     return any(path == s or path.startswith(s + ".") for s in RESUME_SAFE)
 
 
+def _interpolations(node: Any, where: str = "") -> list[str]:
+    """Keys (dotted) of ``node`` whose key or string value holds ``${`` once parsed."""
+    found = []
+    items = (
+        node.items()
+        if isinstance(node, dict)
+        else enumerate(node)
+        if isinstance(node, list)
+        else ()
+    )
+    for k, v in items:
+        key = (
+            f"{where}.{k}" if where and isinstance(k, str) else f"{where}[{k}]" if where else str(k)
+        )
+        if isinstance(k, str) and "${" in k:
+            found.append(key)
+        elif isinstance(v, str):
+            if "${" in v:
+                found.append(key)
+        else:
+            found += _interpolations(v, key)
+    return found
+
+
 def load_saved_config(run_dir: Path) -> MarchConfig:
-    """The run's config.yaml, validated; a file with ``${...}`` (march never writes one) is
-    refused rather than resolved."""
+    """The run's config.yaml, validated. A value holding an interpolation or a resolver call
+    (``${...}``, ``${oc.env:...}``, ``${oc.decode:...}``, however the YAML spells it: escapes
+    such as ``"\\x24{"`` are decoded by the parser first) is refused, naming its key, and
+    nothing is resolved: march never writes one."""
     path = run_dir / "config.yaml"
-    text = path.read_text()
-    if "${" in text:
+    try:
+        raw = OmegaConf.load(path)
+        # Unresolved: the strings exactly as parsed, interpolations and all.
+        bad = _interpolations(OmegaConf.to_container(raw, resolve=False))
+    except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise ConfigError(f"resume={run_dir}: its config.yaml cannot be read ({first})") from None
+    if bad:
         raise ConfigError(
-            f"resume={run_dir}: {path} holds a '${{...}}' interpolation, which march never "
+            f"resume={run_dir}: {path} key {bad[0]} holds a '${{...}}' interpolation or resolver"
+            f"{f' (and {len(bad) - 1} more key(s))' if len(bad) > 1 else ''}, which march never "
             "writes; refusing to resolve a modified config (restore the file or start a new run)"
         )
     try:
-        return to_march_config(
-            OmegaConf.merge(OmegaConf.structured(MarchConfig), OmegaConf.load(path))
-        )
+        return to_march_config(OmegaConf.merge(OmegaConf.structured(MarchConfig), raw))
     except ConfigError as err:
         raise ConfigError(f"resume={run_dir}: its config.yaml is not valid: {err}") from None
     except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise ConfigError(f"resume={run_dir}: its config.yaml cannot be read ({first})") from None
+
+
+def check_device(run_dir: Path, saved: MarchConfig, cfg: MarchConfig) -> None:
+    """A run saved on CUDA, resumed where there is none, needs ``compute.device=<dev>``: said in
+    one line before any env is built (not torch's assertion from inside the env)."""
+    from march.config.cli import cuda_available
+
+    dev = cfg.compute.device
+    if dev.startswith("cuda") and not cuda_available():
+        how = (
+            f"the run was saved on {saved.compute.device}"
+            if dev == saved.compute.device
+            else f"compute.device={dev} was asked for"
+        )
+        raise ConfigError(
+            f"resume={run_dir}: {how} and CUDA is not available on this machine; resume it on "
+            f"the CPU with: resume={run_dir} compute.device=cpu"
+        )
 
 
 def _parse(overrides: Sequence[str]) -> list[tuple[str, str]]:
@@ -157,4 +207,5 @@ def resume_config(
         for s, v in sections.items()
     }
     cfg = replace(saved, resume=composed.resume, **new)
+    check_device(run_dir, saved, cfg)
     return cfg, notes

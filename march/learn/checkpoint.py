@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import enum
+import errno
 import json
 import os
 import pickle
@@ -50,7 +51,7 @@ def save_atomic(payload: dict[str, Any], path: Path) -> None:
             torch.save(payload, f)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        replace_durably(tmp, path)
     except BaseException as err:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
@@ -72,11 +73,37 @@ def _write_error(path: Path, err: BaseException) -> CheckpointError:
     )
 
 
-def write_json_atomic(obj: Any, path: Path) -> None:
-    """A JSON file replaced in one rename: readers never see half of it."""
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=2, default=float))
+def fsync_dir(directory: Path) -> None:
+    """Make a rename or a new file in ``directory`` durable (its entry survives a power loss)."""
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    except OSError as err:
+        if err.errno not in (errno.EINVAL, errno.ENOTSUP, errno.EBADF):
+            raise  # a file system without directory fsync is fine; an I/O error is not
+    finally:
+        os.close(fd)
+
+
+def replace_durably(tmp: str | Path, path: Path) -> None:
+    """``os.replace(tmp, path)`` (``tmp`` already fsynced), then fsync of the directory."""
     os.replace(tmp, path)
+    fsync_dir(path.parent)
+
+
+def write_text_durably(path: Path, text: str) -> None:
+    """``path`` replaced by ``text`` in one rename, data and directory fsynced."""
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w", newline="") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    replace_durably(tmp, path)
+
+
+def write_json_atomic(obj: Any, path: Path) -> None:
+    """A JSON file replaced in one rename (fsynced): readers never see half of it."""
+    write_text_durably(path, json.dumps(obj, indent=2, default=float))
 
 
 def save_checkpoint(payload: dict[str, Any], directory: Path, iteration: int) -> Path:
@@ -86,7 +113,7 @@ def save_checkpoint(payload: dict[str, Any], directory: Path, iteration: int) ->
         # A programming error, not a user one: refuse to write a file that load_checkpoint refuses.
         raise TypeError(f"checkpoint payload holds {bad}; convert it with to_plain() before saving")
     path = directory / f"model_{iteration:06d}.pt"
-    # latest.pt first: it is then always the newest complete checkpoint. A kill during its write
+    # latest.pt first (docs/decisions.md, Reliability): it is then always the newest complete one. A kill during its write
     # leaves the previous one (no iteration of this save was checkpointed yet); a kill during
     # model_<it>.pt's leaves that copy to be written on resume (ensure_model_file).
     save_atomic(payload, directory / LATEST)
@@ -123,6 +150,9 @@ PLAIN_SEQS = (list, tuple, torch.Size)
 #: Top-level payload keys holding a torch RNG state (``torch.get_rng_state()``,
 #: ``torch.Generator.get_state()``): a 1-D uint8 CPU tensor for CPU and CUDA generators alike.
 TORCH_RNG_KEYS = ("rng", "generator")
+#: Entries loaded onto the CPU whatever the device: RNG states (``Generator.set_state`` takes a
+#: CPU tensor) and the env state the runners copy onto the env device themselves.
+CPU_KEYS = (*TORCH_RNG_KEYS, "streams", "curriculum", "episode")
 
 
 def non_plain(obj: Any, where: str = "payload") -> str | None:
@@ -208,19 +238,26 @@ def _place(obj: Any, device: str, key: Any = None) -> Any:
     return obj
 
 
-def load_checkpoint(path: str | Path, kind: str, device: str = "cpu") -> dict[str, Any]:
+def load_checkpoint(
+    path: str | Path, kind: str, device: str = "cpu", source: str | None = None
+) -> dict[str, Any]:
     """Load a march checkpoint of ``kind`` (teacher | student) or raise CheckpointError.
+
+    ``source``: how errors name the file (default ``<kind>_ckpt=<path>``, the option that passed
+    it; a resume passes ``resume=<run dir>: <path>``).
 
     Only plain data is read (``weights_only=True``): a file that names any Python callable is
     refused with one line, and nothing in it runs. Model and optimizer tensors come back on
     ``device``; torch RNG states (``rng``, ``generator``) always come back as CPU uint8 tensors,
     the only form ``torch.set_rng_state`` and ``Generator.set_state`` accept, so a checkpoint
-    written on one device resumes on any other (CPU, ``cuda``, ``cuda:1``, ``meta``).
+    written on one device resumes on any other (CPU, ``cuda``, ``cuda:1``, ``meta``); so do
+    the ``streams``, ``curriculum`` and ``episode`` entries (:mod:`march.learn.train_state`).
     """
     p = Path(path)
+    label = source or f"{kind}_ckpt={path}"
     if not p.is_file():
         raise CheckpointError(
-            f"{kind}_ckpt={path}: no such file; pass a checkpoint written by march.train "
+            f"{label}: no such file; pass a checkpoint written by march.train "
             f"(outputs/<run>/{kind}/latest.pt)"
         )
     try:
@@ -234,27 +271,27 @@ def load_checkpoint(path: str | Path, kind: str, device: str = "cpu") -> dict[st
         names_code, why = _why_refused(err)
         if names_code:
             raise CheckpointError(
-                f"{kind}_ckpt={path}: refused: {why}, and a march checkpoint is plain data "
+                f"{label}: refused: {why}, and a march checkpoint is plain data "
                 "(tensors, numbers, strings, lists, dicts); nothing in the file was run. Re-save "
                 "it from a trusted environment (README: Checkpoints are plain data) or retrain"
             ) from None
-        raise CheckpointError(f"{kind}_ckpt={path}: not a readable checkpoint ({why})") from None
+        raise CheckpointError(f"{label}: not a readable checkpoint ({why})") from None
     except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
         # torch's messages run to several sentences; the first names the fault.
         text = str(err).strip()
         why = text.splitlines()[0].split(". ")[0].rstrip(".") if text else type(err).__name__
         raise CheckpointError(
-            f"{kind}_ckpt={path}: not a readable checkpoint (truncated or corrupt: {why})"
+            f"{label}: not a readable checkpoint (truncated or corrupt: {why})"
         ) from None
     if not isinstance(payload, dict) or payload.get("kind") != kind:
         found = payload.get("kind") if isinstance(payload, dict) else type(payload).__name__
-        raise CheckpointError(f"{kind}_ckpt={path}: this is a {found!r} checkpoint, not a {kind}")
+        raise CheckpointError(f"{label}: this is a {found!r} checkpoint, not a {kind}")
     # weights_only also rebuilds types other libraries allow-listed (tensordict's TensorDict):
     # harmless to load, but not what a march checkpoint holds.
     bad = non_plain(payload)
     if bad is not None:
         raise CheckpointError(
-            f"{kind}_ckpt={path}: holds {bad}, which is not plain data; re-save it from a "
+            f"{label}: holds {bad}, which is not plain data; re-save it from a "
             "trusted environment (README: Checkpoints are plain data) or retrain"
         )
     for key in TORCH_RNG_KEYS:
@@ -262,11 +299,13 @@ def load_checkpoint(path: str | Path, kind: str, device: str = "cpu") -> dict[st
         if key in payload and not (
             isinstance(state, torch.Tensor) and state.dtype == torch.uint8 and state.dim() == 1
         ):
-            raise CheckpointError(
-                f"{kind}_ckpt={path}: '{key}' is not a torch RNG state (a 1-D uint8 tensor)"
-            )
+            raise CheckpointError(f"{label}: '{key}' is not a torch RNG state (a 1-D uint8 tensor)")
     return {
-        k: v.to("cpu").contiguous() if k in TORCH_RNG_KEYS else _place(v, device, k)
+        k: v.to("cpu").contiguous()
+        if k in TORCH_RNG_KEYS
+        else v
+        if k in CPU_KEYS
+        else _place(v, device, k)
         for k, v in payload.items()
     }
 

@@ -31,6 +31,7 @@ from march.learn.checkpoint import (
 from march.learn.faults import EnvFaults, UpdateGuard
 from march.learn.metrics import MetricsLog, Progress, truncate_rows
 from march.learn.teacher import EpisodeStats, build_teacher_actor, teacher_obs
+from march.learn.train_state import collect_state, mean_terrain_level, restore_state
 from march.policies.student import StudentPolicy
 
 if TYPE_CHECKING:
@@ -187,6 +188,8 @@ class DistillRunner:
             "generator": self.generator.get_state(),
             "rng": torch.get_rng_state(),
             "common_step_counter": self.env.common_step_counter,
+            # curriculum (terrain levels), episode clocks, every random stream
+            **collect_state(self.env, self.device, {"distill": self.generator}),
         }
 
     def try_resume(self) -> bool:
@@ -198,21 +201,28 @@ class DistillRunner:
             self.log.resume_from("student", 0)
             truncate_rows(self.run_dir / "eval.csv", "student", 0)
             return False
-        payload = load_checkpoint(path, "student", self.device)
+        where = f"resume={self.run_dir}: {path}"
+        payload = load_checkpoint(path, "student", self.device, source=where)
         if path.name == "latest.pt":  # a kill may have cut the write of its model_<it>.pt
             ensure_model_file(payload, self.ckpt_dir)
         check_layout(payload["layout"], self.layout, "student", path)
         self.student.load_state_dict(payload["student_state_dict"])
         self.optimizer.load_state_dict(payload["optimizer_state_dict"])
-        self.generator.set_state(payload["generator"])
-        torch.set_rng_state(payload["rng"])
         self.iteration = int(payload["iteration"])
         self.env_steps = int(payload["env_steps"])
         self.wall_s = float(payload.get("wall_s", 0.0))
+        # Levels, episode clocks and random streams (the distillation generator's too; across
+        # devices it is reseeded): the env's reset here draws from them, so they come last.
+        notes = restore_state(
+            self.env, payload, self.device, self.cfg.seed, where, {"distill": self.generator}
+        )
+        self.obs = self.env.obs_buf  # the observations of that reset
         self.env.common_step_counter = payload.get("common_step_counter", 0)
         self.log.resume_from("student", self.iteration)
         truncate_rows(self.run_dir / "eval.csv", "student", self.iteration)
         print(f"[student] resuming from {path} at iteration {self.iteration}")
+        for line in notes:
+            print(f"[student] {line}")
         return True
 
     @torch.no_grad()
@@ -289,6 +299,7 @@ class DistillRunner:
                 "env_steps": self.env_steps,
                 "wall_s": self.wall_s,
                 **stats.pop(),
+                "mean_terrain_level": mean_terrain_level(self.env),
                 "loss": info.get("loss", float("nan")),
                 "action_error": info.get("action_error", float("nan")),
                 "teacher_reward": teacher_reward,

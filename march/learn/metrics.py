@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from march.config import LoggerCfg
+from march.learn.checkpoint import replace_durably, write_text_durably
 
 METRIC_COLUMNS = (
     "stage",
@@ -19,6 +20,7 @@ METRIC_COLUMNS = (
     "mean_reward",
     "mean_episode_length",
     "mean_distance_m",
+    "mean_terrain_level",  # mean curriculum level over the training envs after the iteration
     "value_loss",
     "surrogate_loss",
     "entropy",
@@ -44,10 +46,40 @@ env_steps of the teacher) or student (during distillation and the final evaluati
 ``n_torque`` / ``n_jerk`` count the rollouts long enough for the torque / jerk means."""
 
 
+def drop_torn_row(path: Path) -> bool:
+    """Drop a torn last row of the CSV ``path`` (a write a kill cut short); says so in one line.
+
+    A row is torn when the file does not end with a line break, or when its last line has fewer
+    fields than the header. Rows are appended one per iteration before that iteration's
+    checkpoint, so a torn row is always past the checkpoint a resume starts from.
+    """
+    if not path.is_file():
+        return False
+    data = path.read_bytes()
+    if not data:
+        return False
+    lines = data.splitlines(keepends=True)
+    last = lines[-1]
+    torn = not last.endswith((b"\n", b"\r"))
+    if not torn and len(lines) > 1:
+        header = next(csv.reader([lines[0].decode(errors="replace")]), [])
+        fields = next(csv.reader([last.decode(errors="replace")]), [])
+        torn = len(fields) < len(header)
+    if not torn:
+        return False
+    shown = last.decode(errors="replace").strip()
+    shown = shown if len(shown) <= 60 else shown[:57] + "..."
+    print(f"[resume] {path.name}: dropped a torn last row ({shown!r}), cut short by a kill")
+    write_text_durably(path, b"".join(lines[:-1]).decode())
+    return True
+
+
 def truncate_rows(path: Path, stage: str, after_iteration: int) -> None:
-    """Drop rows of ``stage`` past ``after_iteration`` (a resumed run re-does them)."""
+    """Drop rows of ``stage`` past ``after_iteration`` (a resumed run re-does them), and a torn
+    last row (:func:`drop_torn_row`)."""
     if not path.is_file():
         return
+    drop_torn_row(path)
     with path.open(newline="") as f:
         rows = list(csv.DictReader(f))
     keep = [r for r in rows if r["stage"] != stage or int(r["iteration"]) <= after_iteration]
@@ -58,7 +90,9 @@ def truncate_rows(path: Path, stage: str, after_iteration: int) -> None:
         writer = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
         writer.writeheader()
         writer.writerows(keep)
-    os.replace(tmp, path)
+        f.flush()
+        os.fsync(f.fileno())
+    replace_durably(tmp, path)
 
 
 def has_row(path: Path, stage: str, iteration: int) -> bool:
@@ -87,12 +121,17 @@ def append_row(path: Path, columns: tuple[str, ...], row: dict[str, Any]) -> Non
                 writer = csv.DictWriter(f, fieldnames=list(columns), extrasaction="ignore")
                 writer.writeheader()
                 writer.writerows(old_rows)
-            os.replace(tmp, path)
+                f.flush()
+                os.fsync(f.fileno())
+            replace_durably(tmp, path)
+    # One row per iteration: flushed and fsynced before the iteration's checkpoint is written.
     with path.open("a", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(columns), extrasaction="ignore")
         if new:
             writer.writeheader()
         writer.writerow({k: _fmt(row.get(k)) for k in columns})
+        f.flush()
+        os.fsync(f.fileno())
 
 
 def _fmt(v: Any) -> Any:

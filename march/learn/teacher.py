@@ -31,6 +31,7 @@ from march.learn.checkpoint import (
 )
 from march.learn.faults import EnvFaults, UpdateGuard
 from march.learn.metrics import MetricsLog, Progress, has_row, truncate_rows
+from march.learn.train_state import collect_state, mean_terrain_level, restore_state
 
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv
@@ -221,6 +222,8 @@ class TeacherRunner:
             "learning_rate": self.alg.learning_rate,
             "rng": torch.get_rng_state(),
             "common_step_counter": self.env.unwrapped.common_step_counter,
+            # curriculum (terrain levels), episode clocks, every random stream
+            **collect_state(self.env.unwrapped, self.device),
         }
 
     def try_resume(self) -> bool:
@@ -234,7 +237,8 @@ class TeacherRunner:
             self.log.resume_from("teacher", 0)
             truncate_rows(self.run_dir / "eval.csv", "teacher", 0)
             return False
-        payload = load_checkpoint(path, "teacher", self.device)
+        where = f"resume={self.run_dir}: {path}"
+        payload = load_checkpoint(path, "teacher", self.device, source=where)
         if path.name == "latest.pt":  # a kill may have cut the write of its model_<it>.pt
             ensure_model_file(payload, self.ckpt_dir)
         check_layout(payload["layout"], self.layout, "teacher", path)
@@ -245,11 +249,14 @@ class TeacherRunner:
         self.iteration = int(payload["iteration"])
         self.env_steps = int(payload["env_steps"])
         self.wall_s = float(payload.get("wall_s", 0.0))
-        torch.set_rng_state(payload["rng"])
+        # Levels, episode clocks and random streams last: the env's reset here draws from them.
+        notes = restore_state(self.env.unwrapped, payload, self.device, self.cfg.seed, where)
         self.env.unwrapped.common_step_counter = payload.get("common_step_counter", 0)
         self.log.resume_from("teacher", self.iteration)
         truncate_rows(self.run_dir / "eval.csv", "teacher", self.iteration)
         print(f"[teacher] resuming from {path} at iteration {self.iteration}")
+        for line in notes:
+            print(f"[teacher] {line}")
         return True
 
     def save(self) -> Path:
@@ -311,6 +318,7 @@ class TeacherRunner:
                 "env_steps": self.env_steps,
                 "wall_s": self.wall_s,
                 **stats.pop(),
+                "mean_terrain_level": mean_terrain_level(self.env.unwrapped),
                 "value_loss": losses.get("value", losses.get("value_function", float("nan"))),
                 "surrogate_loss": losses.get("surrogate", float("nan")),
                 "entropy": losses.get("entropy", float("nan")),
