@@ -112,7 +112,11 @@ def series_table(
         name = getattr(run, ATTR[group])
         own = run.meta.get(group, {})
         meta.setdefault(name, {}).update({k: v for k, v in own.items() if v not in (None, "")})
-    ordered = sorted(meta, key=lambda n: (int(meta[n].get("order", 100) or 100), n))
+    def order(name: str) -> int:
+        value = meta[name].get("order")
+        return 100 if value in (None, "") else int(value)
+
+    ordered = sorted(meta, key=lambda n: (order(n), n))
     used: set[str] = set()
     table: dict[str, Series] = {}
     found = {getattr(r, ATTR[group]) for r in runs}
@@ -133,7 +137,7 @@ def series_table(
             name=name,
             label=str(meta[name].get("label") or name),
             color=color,
-            order=int(meta[name].get("order", 100) or 100),
+            order=order(name),
         )
     return table
 
