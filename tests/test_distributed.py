@@ -6,6 +6,7 @@ pipeline runs under ``torchrun`` at smoke size (``tests/ddp_trace.py`` dumps eve
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import os
 import signal
@@ -186,6 +187,16 @@ def _torchrun(script: list[str], *overrides: str, timeout: int = 900, **kw):
     )
 
 
+def _descendants(pid: int) -> list[int]:
+    """Every process below ``pid`` (from /proc), children first."""
+    out: list[int] = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        with contextlib.suppress(OSError):
+            for child in (task / "children").read_text().split():
+                out += [int(child), *_descendants(int(child))]
+    return out
+
+
 def _rows(path: Path) -> list[dict[str, str]]:
     with path.open(newline="") as f:
         return list(csv.DictReader(f))
@@ -270,8 +281,13 @@ def test_kill_and_resume_of_a_two_rank_run(tmp_path):
             assert time.time() < deadline, "no checkpoint after 600 s"
             time.sleep(0.5)
     finally:
-        os.killpg(proc.pid, signal.SIGKILL)  # torchrun and both ranks, at once
+        # torchrun starts each rank in its own session: kill torchrun and every rank at once
+        # (as Slurm does with a job's processes), by their ids.
+        for pid in [proc.pid, *_descendants(proc.pid)]:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
         proc.wait()
+    time.sleep(1.0)
     killed_at = max(int(r["iteration"]) for r in _rows(run / "metrics.csv"))
     assert killed_at < 3
     out = _torchrun(["-m", "march.train"], f"resume={run}")
