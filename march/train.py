@@ -169,7 +169,8 @@ def apply_policy_checkpoint(
 def run_pipeline(
     cfg: MarchConfig, run_dir: Path, *, auto: bool = False, notes: list[str] | None = None
 ) -> dict[str, Any] | None:
-    """Run the configured stage(s) in ``run_dir``; returns the final summary (if any).
+    """Run the configured stage(s) in ``run_dir``; returns the final summary (stage=teacher: the
+    teacher's final evaluation row; None if a finished stage was resumed without one).
 
     A checkpoint the stage runs defines its policy (:func:`apply_policy_checkpoint`; ``main``
     has already applied it with the command line's explicit choices). ``auto``: the compute
@@ -216,6 +217,7 @@ def run_pipeline(
     env_log = run_dir / "env.log" if distributed.writes_files() else None
     teacher_path = cfg.teacher_ckpt
     summary = None
+    last_eval: dict[str, dict[str, Any]] = {}
     try:
         # One eval env, built once: the teacher's evaluations during PPO and the student's.
         eval_env = make_env(cfg, "eval", log=env_log)
@@ -232,7 +234,9 @@ def run_pipeline(
             return row
 
         def eval_teacher(actor, iteration: int, env_steps: int) -> dict[str, Any]:
-            return eval_policy(teacher_policy(eval_env, actor), "teacher", iteration, env_steps)
+            row = eval_policy(teacher_policy(eval_env, actor), "teacher", iteration, env_steps)
+            last_eval["teacher"] = row
+            return row
 
         def eval_student(student, iteration: int, env_steps: int) -> dict[str, Any]:
             return eval_policy(student_policy(eval_env, student), "student", iteration, env_steps)
@@ -248,7 +252,7 @@ def run_pipeline(
             print(f"[teacher] done: {teacher_path}", flush=True)
         if cfg.stage == "teacher":
             eval_env.close()
-            return None
+            return last_eval.get("teacher")  # the stage's final evaluation (for a sweeper)
 
         if cfg.stage in ("all", "student"):
             if teacher_payload is None:
