@@ -64,8 +64,23 @@ def writes_files() -> bool:
     return _DIST.rank == 0
 
 
+def _export_slurm_env() -> None:
+    """Inside a Slurm job step of several tasks (``srun``, or submitit's
+    ``hydra/launcher=march_slurm_ddp``) and not under torchrun: torch's env:// variables from
+    Slurm's (submitit's TorchDistributedEnvironment: the first node is the master, the port
+    derived from the job id, RANK = SLURM_PROCID, LOCAL_RANK = SLURM_LOCALID)."""
+    if "WORLD_SIZE" in os.environ or int(os.environ.get("SLURM_NTASKS", "1")) <= 1:
+        return
+    if "SLURM_PROCID" not in os.environ:
+        return
+    from submitit.helpers import TorchDistributedEnvironment
+
+    TorchDistributedEnvironment().export()
+
+
 def env_world() -> tuple[int, int, int]:
     """(rank, world size, local rank) from torchrun's or Slurm's environment."""
+    _export_slurm_env()
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     local = int(os.environ.get("LOCAL_RANK", str(rank)))
