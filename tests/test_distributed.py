@@ -76,6 +76,45 @@ def test_resume_restores_each_ranks_stream_or_says_why(monkeypatch):
     assert torch.equal(torch.get_rng_state(), expected)
 
 
+def test_ranks_from_a_slurm_step_of_several_tasks():
+    # srun / submitit's 2-node, 4-task step: rank 3 on the second node; no torchrun variables.
+    env = {k: v for k, v in os.environ.items() if k not in ("WORLD_SIZE", "RANK", "LOCAL_RANK")}
+    env |= {"SLURM_NTASKS": "4", "SLURM_PROCID": "3", "SLURM_LOCALID": "1", "SLURM_NODEID": "1"}
+    env |= {"SLURM_JOB_ID": "4242", "SLURM_JOB_NODELIST": "gpu[07-08]"}
+    env |= {"SLURM_JOB_NUM_NODES": "2", "PYTHONPATH": str(ROOT)}
+    code = (
+        "import os; from march.learn.distributed import env_world; print(*env_world(), "
+        "os.environ['MASTER_ADDR'], os.environ['LOCAL_WORLD_SIZE'])"
+    )
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert out.stdout.split() == ["3", "4", "1", "gpu07", "2"], out.stderr
+    env["SLURM_NTASKS"] = "1"  # one task per job (hydra/launcher=march_slurm): one process
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            code.replace(", os.environ['MASTER_ADDR'], os.environ['LOCAL_WORLD_SIZE']", ""),
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+    )
+    assert out.stdout.split() == ["0", "1", "0"], out.stderr
+
+
+def test_rank_config_changes_seed_and_device_only():
+    from march.config.cli import load
+
+    cfg = load(["compute=smoke", "seed=5"])
+    assert distributed.rank_config(cfg, Dist()) is cfg
+    r1 = distributed.rank_config(cfg, Dist(rank=1, world=2, local_rank=1, backend="gloo"))
+    assert r1.seed == rank_seed(5, 1) and r1.compute.device == "cpu"
+    assert r1.compute.num_envs == cfg.compute.num_envs and r1.curriculum == cfg.curriculum
+    gpu = load(["compute=gpu", "seed=5"])
+    r3 = distributed.rank_config(gpu, Dist(rank=3, world=4, local_rank=3, backend="nccl"))
+    assert r3.compute.device == "cuda:3" and r3.seed == rank_seed(5, 3)
+
+
 # -- collectives on two real gloo ranks ---------------------------------------------------------
 
 

@@ -67,15 +67,28 @@ def writes_files() -> bool:
 def _export_slurm_env() -> None:
     """Inside a Slurm job step of several tasks (``srun``, or submitit's
     ``hydra/launcher=march_slurm_ddp``) and not under torchrun: torch's env:// variables from
-    Slurm's (submitit's TorchDistributedEnvironment: the first node is the master, the port
-    derived from the job id, RANK = SLURM_PROCID, LOCAL_RANK = SLURM_LOCALID)."""
+    Slurm's, as submitit's TorchDistributedEnvironment sets them (the job's first node is the
+    master, the port drawn from the job id, RANK = SLURM_PROCID, LOCAL_RANK = SLURM_LOCALID)."""
     if "WORLD_SIZE" in os.environ or int(os.environ.get("SLURM_NTASKS", "1")) <= 1:
         return
-    if "SLURM_PROCID" not in os.environ:
+    if "SLURM_PROCID" not in os.environ or "SLURM_JOB_ID" not in os.environ:
         return
-    from submitit.helpers import TorchDistributedEnvironment
+    import random
 
-    TorchDistributedEnvironment().export()
+    from submitit.slurm.slurm import SlurmJobEnvironment
+
+    job = SlurmJobEnvironment()  # reads SLURM_* (also outside a submitit job: plain srun)
+    port = os.environ.get("MASTER_PORT") or str(random.Random(job.job_id).randint(20000, 60000))
+    os.environ.update(
+        {
+            "MASTER_ADDR": os.environ.get("MASTER_ADDR") or job.hostnames[0],
+            "MASTER_PORT": port,
+            "RANK": str(job.global_rank),
+            "WORLD_SIZE": str(job.num_tasks),
+            "LOCAL_RANK": str(job.local_rank),
+            "LOCAL_WORLD_SIZE": str(job.num_tasks // max(job.num_nodes, 1)),
+        }
+    )
 
 
 def env_world() -> tuple[int, int, int]:
