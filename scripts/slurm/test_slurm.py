@@ -153,10 +153,11 @@ DDP_ARGS = [
 
 
 def requeue_when_checkpointed(
-    sweep: Path, launcher: subprocess.Popen, deadline: float
+    sweep: Path, launcher: subprocess.Popen, deadline: float, single: bool = False
 ) -> tuple[str | None, str]:
     """``scontrol requeue`` job 0 of ``sweep`` once its first teacher checkpoint exists while it
-    still runs; (the requeued job id or None, run 0's state when it was requeued)."""
+    still runs; (the requeued job id or None, run 0's state when it was requeued). ``single``:
+    a sweep of one run, which submitit submits as a plain job (id ``<n>``, not ``<n>_0``)."""
     run0_state = ""
     while time.time() < deadline and launcher.poll() is None:
         time.sleep(2)
@@ -170,7 +171,11 @@ def requeue_when_checkpointed(
         except (json.JSONDecodeError, KeyError):
             continue  # being written
         if (run0 / "teacher" / "latest.pt").is_file() and run0_state == "running":
-            jobs = {j: s for j, s in squeue_jobs().items() if j.endswith("_0")}
+            jobs = {
+                j: s
+                for j, s in squeue_jobs().items()
+                if j.endswith("_0") or (single and "_" not in j)
+            }
             if len(jobs) != 1 or next(iter(jobs.values())) != "RUNNING":
                 continue
             requeued = next(iter(jobs))
@@ -198,7 +203,7 @@ def check_ddp(checks: Checks, sweep: Path, deadline: float, timeout_min: float) 
     launcher_log = sweep.parent / f"{sweep.name}.launcher.log"
     with launcher_log.open("w") as log:
         launcher = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
-    requeued, state = requeue_when_checkpointed(sweep, launcher, deadline)
+    requeued, state = requeue_when_checkpointed(sweep, launcher, deadline, single=True)
     checks.check(requeued is not None, f"ddp: job requeued mid-run (run state {state or 'none'})")
     wait_for(launcher, deadline, timeout_min)
     checks.check(launcher.returncode == 0, f"ddp: launcher exit code {launcher.returncode}")
