@@ -112,6 +112,7 @@ def series_table(
         name = getattr(run, ATTR[group])
         own = run.meta.get(group, {})
         meta.setdefault(name, {}).update({k: v for k, v in own.items() if v not in (None, "")})
+
     def order(name: str) -> int:
         value = meta[name].get("order")
         return 100 if value in (None, "") else int(value)

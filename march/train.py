@@ -5,6 +5,10 @@
     python -m march.train stage=eval student_ckpt=outputs/<run>/student/latest.pt
     python -m march.train resume=outputs/<run>               # continue a killed run
     python -m march.train -m +sweep=baseline                 # the paper's baseline comparison
+    torchrun --nproc_per_node=N -m march.train ...           # one run over N processes
+
+Returns the final evaluation's ``objective`` value (default mean_distance_m), for sweepers that
+optimise (``-m +sweep=optuna_clf``).
 
 A run directory holds config.yaml (resolved), teacher/ and student/ checkpoints, metrics.csv,
 eval.csv, summary.json and status.json. A run whose directory already holds checkpoints resumes
@@ -15,6 +19,7 @@ from __future__ import annotations
 
 import os
 import random
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -27,6 +32,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from march.config import ConfigError, MarchConfig, to_march_config
 from march.config.cli import fail, resolve_compute
+from march.learn import distributed
 from march.learn.checkpoint import CheckpointError, write_json_atomic
 from march.learn.eta import ETA_ITERATIONS, EtaMetricsLog, EtaWatch
 from march.learn.faults import NumericalFault
@@ -62,6 +68,14 @@ def banner(
         f"on {c.eval_num_envs} envs",
         f"run dir: {run_dir}",
     ]
+    dist = distributed.current()
+    if dist.active:
+        lines.insert(
+            3,
+            f"distributed: {dist.world} ranks ({dist.backend}); compute.num_envs={c.num_envs} "
+            f"per rank, {dist.world * c.num_envs} envs in total; eval rollouts split over the "
+            f"ranks; rank seeds from seed={cfg.seed}",
+        )
     first = {"all": "teacher", "teacher": "teacher", "student": "distillation"}.get(cfg.stage)
     if first:
         n = t.iterations if first == "teacher" else d.max_iterations
@@ -155,7 +169,8 @@ def apply_policy_checkpoint(
 def run_pipeline(
     cfg: MarchConfig, run_dir: Path, *, auto: bool = False, notes: list[str] | None = None
 ) -> dict[str, Any] | None:
-    """Run the configured stage(s) in ``run_dir``; returns the final summary (if any).
+    """Run the configured stage(s) in ``run_dir``; returns the final summary (stage=teacher: the
+    teacher's final evaluation row; None if a finished stage was resumed without one).
 
     A checkpoint the stage runs defines its policy (:func:`apply_policy_checkpoint`; ``main``
     has already applied it with the command line's explicit choices). ``auto``: the compute
@@ -199,11 +214,13 @@ def run_pipeline(
     for line in (notes or []) + changed:
         print(line, flush=True)
     log = EtaMetricsLog(run_dir, cfg, EtaWatch(cfg))
+    env_log = run_dir / "env.log" if distributed.writes_files() else None
     teacher_path = cfg.teacher_ckpt
     summary = None
+    last_eval: dict[str, dict[str, Any]] = {}
     try:
         # One eval env, built once: the teacher's evaluations during PPO and the student's.
-        eval_env = make_env(cfg, "eval", log=run_dir / "env.log")
+        eval_env = make_env(cfg, "eval", log=env_log)
 
         def eval_policy(policy, stage: str, iteration: int, env_steps: int) -> dict[str, Any]:
             row = evaluate(
@@ -217,13 +234,15 @@ def run_pipeline(
             return row
 
         def eval_teacher(actor, iteration: int, env_steps: int) -> dict[str, Any]:
-            return eval_policy(teacher_policy(eval_env, actor), "teacher", iteration, env_steps)
+            row = eval_policy(teacher_policy(eval_env, actor), "teacher", iteration, env_steps)
+            last_eval["teacher"] = row
+            return row
 
         def eval_student(student, iteration: int, env_steps: int) -> dict[str, Any]:
             return eval_policy(student_policy(eval_env, student), "student", iteration, env_steps)
 
         if cfg.stage in ("all", "teacher"):
-            env = make_env(cfg, "teacher", log=run_dir / "env.log")
+            env = make_env(cfg, "teacher", log=env_log)
             runner = TeacherRunner(env, cfg, run_dir, log, eval_teacher)
             runner.try_resume()
             log.eta.start("teacher", runner.iteration, runner.wall_s)
@@ -233,12 +252,12 @@ def run_pipeline(
             print(f"[teacher] done: {teacher_path}", flush=True)
         if cfg.stage == "teacher":
             eval_env.close()
-            return None
+            return last_eval.get("teacher")  # the stage's final evaluation (for a sweeper)
 
         if cfg.stage in ("all", "student"):
             if teacher_payload is None:
                 teacher_payload = load_checkpoint(teacher_path, "teacher", dev)
-            env = make_env(cfg, "student", log=run_dir / "env.log")
+            env = make_env(cfg, "student", log=env_log)
             runner = DistillRunner(
                 env, cfg, run_dir, log, teacher_payload, teacher_path, eval_student
             )
@@ -277,7 +296,7 @@ def run_pipeline(
 
 
 @hydra.main(config_path="../conf", config_name="config", version_base="1.3")
-def main(dcfg: DictConfig) -> None:
+def main(dcfg: DictConfig) -> float | None:
     hc = HydraConfig.get()
     overrides = list(hc.overrides.task)
     auto = dcfg.compute.name == "auto"
@@ -299,7 +318,12 @@ def main(dcfg: DictConfig) -> None:
             )
             raise
         fail(str(err))
+    # N processes (torchrun, srun): join the group; rank 0's run directory is everyone's.
+    dist = distributed.init(cfg.compute.device)
+    if not dist.main:
+        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 (rank 0 alone prints)
     run_dir = Path(cfg.resume) if cfg.resume else Path(hc.runtime.output_dir)
+    run_dir = Path(distributed.agree(str(run_dir)))
     run_dir.mkdir(parents=True, exist_ok=True)
     if cfg.resume and (run_dir / "config.yaml").is_file():
         # Continue with the run's own config (its sizes and seed), not today's defaults; an
@@ -314,11 +338,13 @@ def main(dcfg: DictConfig) -> None:
             fail(str(err))
         notes += resumed
         auto = False  # the run's own compute preset, whatever compute= composed to today
-    OmegaConf.save(OmegaConf.structured(cfg), run_dir / "config.yaml")
+    distributed.barrier()  # every rank has read config.yaml before rank 0 rewrites it
+    if dist.main:
+        OmegaConf.save(OmegaConf.structured(cfg), run_dir / "config.yaml")
     os.environ.setdefault("WANDB_MODE", "offline")
     _write_status(run_dir, "running", stage=cfg.stage, pid=os.getpid())
     try:
-        run_pipeline(cfg, run_dir, auto=auto, notes=notes)
+        summary = run_pipeline(distributed.rank_config(cfg), run_dir, auto=auto, notes=notes)
     except BaseException as err:
         _write_status(run_dir, "failed", stage=cfg.stage, error=f"{type(err).__name__}: {err}")
         # A single run ends with one clear line; in a sweep the error is raised so that Hydra
@@ -328,14 +354,33 @@ def main(dcfg: DictConfig) -> None:
         ):
             fail(str(err))
         raise
+    finally:
+        distributed.shutdown()
     _write_status(run_dir, "done", stage=cfg.stage)
+    # What a sweeper optimises: the final evaluation's objective (None without one).
+    return None if summary is None else float(summary[cfg.objective])
+
+
+def _rank_argv(argv: list[str]) -> list[str]:
+    """Ranks > 0 of a torchrun / srun launch keep Hydra's own files out of the run: their Hydra
+    output directory is a throw-away temporary one (rank 0's is the run directory, which every
+    rank is told once the group is up)."""
+    rank, world, _ = distributed.env_world()
+    if world <= 1 or rank == 0:
+        return argv
+    import atexit
+    import shutil
+    import tempfile
+
+    tmp = tempfile.mkdtemp(prefix=f"march-rank{rank}-")
+    atexit.register(shutil.rmtree, tmp, True)
+    return [*argv, f"hydra.run.dir={tmp}", "hydra.output_subdir=null"]
 
 
 if __name__ == "__main__":
-    import sys
-
     from march.config.sweeps import sweep_problem
 
     if problem := sweep_problem(sys.argv[1:]):
         fail(problem)
+    sys.argv = _rank_argv(sys.argv)
     main()

@@ -34,6 +34,7 @@ NAN, INF = float("nan"), float("inf")
 BAD: dict[str, list[Any]] = {
     "seed": [-1, SEED_MAX + 1, 2**32 - 1],
     "stage": ["train"],
+    "objective": ["mean_speed", "distance_m"],
     "teacher_ckpt": [""],
     "student_ckpt": [""],
     "resume": [""],

@@ -45,6 +45,14 @@ from march.config.training import (
 )
 from march.world.courses import CourseCfg
 
+OBJECTIVES = tuple(
+    f"{p}_{m}"
+    for m in ("distance_m", "success_rate", "abs_torque_nm", "abs_ang_jerk", "reward")
+    for p in ("mean", "se")
+)
+"""What ``objective`` may name: summary.json's mean_/se_ keys (march.learn.metrics.EVAL_METRICS;
+a test checks the two agree)."""
+
 
 @dataclass
 class MarchConfig:
@@ -62,6 +70,9 @@ class MarchConfig:
     """A run directory to continue from its last checkpoints."""
     out: str | None = None
     """A file a tool writes (viz, export, play)."""
+    objective: str = "mean_distance_m"
+    """The final evaluation's value ``march.train`` returns (what a Hydra sweeper such as
+    Optuna optimises): mean_<metric> or se_<metric> of summary.json."""
     compute: ComputeCfg = field(default_factory=ComputeCfg)
     env: EnvCfg = field(default_factory=EnvCfg)
     reward: RewardCfg = field(default_factory=RewardCfg)
@@ -82,6 +93,11 @@ class MarchConfig:
                 f"stage={self.stage!r} is not valid; choose one of {', '.join(STAGES)}"
             )
         _interval("", "seed", self.seed, 0, SEED_MAX)
+        if self.objective not in OBJECTIVES:
+            raise ConfigError(
+                f"objective={self.objective!r} is not a summary value; choose one of "
+                f"{', '.join(OBJECTIVES)}"
+            )
         for key in ("teacher_ckpt", "student_ckpt", "resume", "out"):
             _need("", key, getattr(self, key), getattr(self, key) != "", "a path (or left unset)")
         hw = cnn_output_hw(

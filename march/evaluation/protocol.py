@@ -42,6 +42,7 @@ import torch
 from march.config import MarchConfig
 from march.env.course import CourseRuler, assign_eval_cells
 from march.learn.checkpoint import write_json_atomic
+from march.learn.distributed import eval_share, gather_rollouts
 from march.learn.metrics import EVAL_COLUMNS, EVAL_METRICS, append_row
 
 if TYPE_CHECKING:
@@ -197,18 +198,19 @@ def _eval_rng(env: ManagerBasedRlEnv):
 
 @torch.no_grad()
 def rollout_metrics(
-    env: ManagerBasedRlEnv, policy: Policy, num_rollouts: int
+    env: ManagerBasedRlEnv, policy: Policy, num_rollouts: int, first: int = 0
 ) -> dict[str, torch.Tensor]:
     """Per-rollout metrics of ``num_rollouts`` rollouts on the stratified course cells, run in
     waves of ``env.num_envs`` (the last wave keeps its first envs, i.e. the next rollout
-    indices)."""
+    indices). ``first``: the index of the first rollout (a rank's share of a distributed
+    evaluation, march.learn.distributed.eval_share)."""
     ruler = CourseRuler(env)
     collected: dict[str, list[torch.Tensor]] = {}
     total = 0
     with _eval_rng(env):
         torch.manual_seed(int(env.cfg.seed or 0))
         while total < num_rollouts:
-            assign_eval_cells(env, total)
+            assign_eval_cells(env, first + total)
             per = _wave(env, policy, ruler)
             take = min(env.num_envs, num_rollouts - total)
             for k, v in per.items():
@@ -226,8 +228,10 @@ def evaluate(
     iteration: int,
     env_steps: int,
 ) -> dict[str, Any]:
-    """Roll out, append a row to ``eval.csv`` and return the summary row."""
-    per = rollout_metrics(env, policy, num_rollouts)
+    """Roll out, append a row to ``eval.csv`` and return the summary row. Over N processes each
+    rank runs its share of the rollouts and every rank gets the summary of all of them."""
+    first, mine = eval_share(num_rollouts)
+    per = gather_rollouts(rollout_metrics(env, policy, mine, first))
     row = {
         "stage": stage,
         "iteration": iteration,

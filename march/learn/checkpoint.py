@@ -27,6 +27,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from march.learn.distributed import writes_files
+
 LATEST = "latest.pt"
 
 
@@ -40,7 +42,10 @@ def save_atomic(payload: dict[str, Any], path: Path) -> None:
     A run killed mid-write leaves the previous checkpoint intact, never a truncated one. A write
     that fails (a full disk, a quota, an I/O error) removes its temporary file and raises
     :class:`CheckpointError`: one line, and the previous checkpoint is left as it was.
+    In a run over N processes only rank 0 writes (march.learn.distributed).
     """
+    if not writes_files():
+        return
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -102,7 +107,10 @@ def write_text_durably(path: Path, text: str) -> None:
 
 
 def write_json_atomic(obj: Any, path: Path) -> None:
-    """A JSON file replaced in one rename (fsynced): readers never see half of it."""
+    """A JSON file replaced in one rename (fsynced): readers never see half of it (rank 0
+    only)."""
+    if not writes_files():
+        return
     write_text_durably(path, json.dumps(obj, indent=2, default=float))
 
 

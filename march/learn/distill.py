@@ -21,6 +21,7 @@ from tensordict import TensorDict
 
 from march.config import MarchConfig
 from march.env.course import CourseRuler
+from march.learn import distributed
 from march.learn.checkpoint import (
     check_layout,
     ensure_model_file,
@@ -95,6 +96,7 @@ def distill_update(
     num_epochs: int,
     gradient_length: int,
     max_grad_norm: float,
+    reduce_gradients: Callable[[], None] | None = None,
 ) -> dict[str, float]:
     """``num_epochs`` passes over a rollout's ``steps``; the losses of every ``gradient_length``
     consecutive steps are summed into one optimiser step.
@@ -103,7 +105,8 @@ def distill_update(
     group may span two), the summed loss is back-propagated when the count reaches a multiple of
     ``gradient_length``, gradients are clipped to ``max_grad_norm``, and steps left over at the
     very end (when ``num_epochs * len(steps)`` is not a multiple) make no optimiser step. Returns
-    the mean of each ``info`` entry over every step seen.
+    the mean of each ``info`` entry over every step seen. ``reduce_gradients`` runs between the
+    backward pass and the clipping (N ranks: the all-reduce to the mean gradient).
     """
     totals: dict[str, float] = {}
     count = 0
@@ -118,6 +121,8 @@ def distill_update(
             if count % gradient_length == 0:
                 optimizer.zero_grad()
                 loss.backward()
+                if reduce_gradients is not None:
+                    reduce_gradients()
                 if max_grad_norm:
                     torch.nn.utils.clip_grad_norm_(model.parameters(), max_grad_norm)
                 optimizer.step()
@@ -152,6 +157,10 @@ class DistillRunner:
         self.teacher_path = teacher_path
         self.layout = student_layout(obs, cfg, num_actions)
         self.student = build_student(cfg, self.layout, self.device)
+        # N ranks: rank 0's initial student everywhere, normalisers learning from every rank.
+        distributed.broadcast_module(self.student)
+        distributed.sync_normalizers(self.student)
+        self.world = distributed.current().world
         d = cfg.distill
         self.optimizer = torch.optim.Adam(self.student.parameters(), lr=d.learning_rate)
         self.generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
@@ -192,6 +201,11 @@ class DistillRunner:
             **collect_state(self.env, self.device, {"distill": self.generator}),
         }
 
+    def _save(self) -> Path:
+        # Every rank's random states go in (a collective); rank 0 alone writes the files.
+        payload = distributed.with_rank_states(self.payload(), self.generator)
+        return save_checkpoint(payload, self.ckpt_dir, self.iteration)
+
     def try_resume(self) -> bool:
         for tmp in self.ckpt_dir.glob(".*.tmp"):  # a write that a kill cut short
             tmp.unlink(missing_ok=True)
@@ -216,6 +230,10 @@ class DistillRunner:
         notes = restore_state(
             self.env, payload, self.device, self.cfg.seed, where, {"distill": self.generator}
         )
+        # N processes: rank r > 0 then takes its own torch and generator streams (rank 0's are
+        # the ones just restored).
+        if note := distributed.restore_rank_states(payload, self.generator):
+            notes.append(note)
         self.obs = self.env.obs_buf  # the observations of that reset
         self.env.common_step_counter = payload.get("common_step_counter", 0)
         self.log.resume_from("student", self.iteration)
@@ -277,6 +295,9 @@ class DistillRunner:
             d.num_learning_epochs,
             d.gradient_length,
             d.max_grad_norm,
+            (lambda: distributed.average_gradients(self.student.parameters()))
+            if self.world > 1
+            else None,
         )
 
     def learn(self, total_iterations: int) -> Path:
@@ -287,25 +308,26 @@ class DistillRunner:
             t0 = time.time()
             steps, teacher_reward = self._rollout(stats)
             self.guard.before()
-            info = self._update(steps)
+            info = distributed.mean_over_ranks(self._update(steps))
+            teacher_reward = distributed.mean_over_ranks({"r": teacher_reward})["r"]
             # A non-finite update is undone; too many in a row stop before this checkpoint.
             self.guard.after(info, it + 1, latest_checkpoint(self.ckpt_dir))
             self.iteration = it + 1
-            self.env_steps += d.num_steps_per_env * self.env.num_envs
+            self.env_steps += d.num_steps_per_env * self.env.num_envs * self.world
             self.wall_s += time.time() - t0
             row = {
                 "stage": "student",
                 "iteration": self.iteration,
                 "env_steps": self.env_steps,
                 "wall_s": self.wall_s,
-                **stats.pop(),
-                "mean_terrain_level": mean_terrain_level(self.env),
+                **distributed.pop_episode_stats(stats),
+                **distributed.mean_over_ranks({"mean_terrain_level": mean_terrain_level(self.env)}),
                 "loss": info.get("loss", float("nan")),
                 "action_error": info.get("action_error", float("nan")),
                 "teacher_reward": teacher_reward,
                 "mode_weight_0": info.get("mode_weight_0", float("nan")),
                 "mode_weight_1": info.get("mode_weight_1", float("nan")),
-                "nonfinite_resets": self.faults.pop(),
+                "nonfinite_resets": distributed.sum_over_ranks(self.faults.pop()),
                 "nonfinite_updates": self.guard.pop(),
             }
             self.log.log(row)
@@ -333,7 +355,7 @@ class DistillRunner:
             ):
                 self.evaluate_fn(self.student, self.iteration, self.env_steps)
             if self.iteration % d.save_interval == 0 or last:
-                save_checkpoint(self.payload(), self.ckpt_dir, self.iteration)
-        if latest_checkpoint(self.ckpt_dir) is None:
-            save_checkpoint(self.payload(), self.ckpt_dir, self.iteration)
+                self._save()
+        if distributed.agree(latest_checkpoint(self.ckpt_dir) is None):  # rank 0 owns the files
+            self._save()
         return self.ckpt_dir / "latest.pt"

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from march.config import MarchConfig
+from march.learn.distributed import current
 from march.learn.metrics import MetricsLog
 
 ETA_ITERATIONS = 3
@@ -190,6 +191,15 @@ class EtaWatch:
                 line += (
                     f" (distillation ~{format_duration(est['distill'])} and evaluations "
                     f"~{format_duration(est['eval'])}: rough, from the teacher's speed)"
+                )
+            if row.get("env_steps") and it > 0:
+                # env steps per iteration are constant (num_steps_per_env x envs x ranks)
+                world = current().world
+                envs = self.cfg.compute.num_envs * world
+                ranks = f" over {world} processes" if world > 1 else ""
+                line += (
+                    f"; {int(row['env_steps']) / it / s_per_it:.4g} env steps/s "
+                    f"({envs} envs{ranks})"
                 )
         else:
             # Evaluations scale with the teacher's speed when it was measured in this process.

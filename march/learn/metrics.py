@@ -11,6 +11,7 @@ from typing import Any
 
 from march.config import LoggerCfg
 from march.learn.checkpoint import replace_durably, write_text_durably
+from march.learn.distributed import writes_files
 
 METRIC_COLUMNS = (
     "stage",
@@ -77,6 +78,8 @@ def drop_torn_row(path: Path) -> bool:
 def truncate_rows(path: Path, stage: str, after_iteration: int) -> None:
     """Drop rows of ``stage`` past ``after_iteration`` (a resumed run re-does them), and a torn
     last row (:func:`drop_torn_row`)."""
+    if not writes_files():  # N processes: rank 0 owns the run's files
+        return
     if not path.is_file():
         return
     drop_torn_row(path)
@@ -108,7 +111,10 @@ def has_row(path: Path, stage: str, iteration: int) -> bool:
 
 def append_row(path: Path, columns: tuple[str, ...], row: dict[str, Any]) -> None:
     """Append ``row`` under ``columns``; a file written with other columns (an older run being
-    resumed) is first rewritten under the current ones, its missing values left empty."""
+    resumed) is first rewritten under the current ones, its missing values left empty.
+    In a run over N processes only rank 0 writes (march.learn.distributed)."""
+    if not writes_files():
+        return
     new = not path.is_file()
     if not new:
         with path.open(newline="") as f:
@@ -150,6 +156,8 @@ class MetricsLog:
         self.run_dir = run_dir
         self._writer: Any = None
         self._wandb: Any = None
+        if not writes_files():  # N processes: rank 0 alone logs
+            return
         if logger.name == "tensorboard":
             from torch.utils.tensorboard import SummaryWriter
 

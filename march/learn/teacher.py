@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import os
 import time
 from collections.abc import Callable
 from dataclasses import asdict
@@ -22,6 +23,7 @@ from tensordict import TensorDict
 from march.config import MarchConfig, TeacherCfg
 from march.env.build import rsl_rl_env
 from march.env.course import CourseRuler
+from march.learn import distributed
 from march.learn.checkpoint import (
     check_layout,
     ensure_model_file,
@@ -40,12 +42,13 @@ TeacherEval = Callable[[MLPModel, int, int], dict[str, Any]]
 """(deterministic actor, teacher iteration, teacher env steps) -> the eval.csv row it appended."""
 
 
-def ppo_train_cfg(t: TeacherCfg) -> dict[str, Any]:
-    """The rsl-rl runner dict for the paper's PPO table (SPEC §2)."""
+def ppo_train_cfg(t: TeacherCfg, multi_gpu: dict[str, int] | None = None) -> dict[str, Any]:
+    """The rsl-rl runner dict for the paper's PPO table (SPEC §2); ``multi_gpu``: rsl-rl's
+    data-parallel entry (march.learn.distributed.ppo_multi_gpu), None for one process."""
     return {
         "num_steps_per_env": t.num_steps_per_env,
         "obs_groups": {"actor": ["actor"], "critic": ["critic"]},
-        "multi_gpu": None,
+        "multi_gpu": multi_gpu,
         "actor": {
             "class_name": "MLPModel",
             "hidden_dims": list(t.hidden_dims),
@@ -181,17 +184,22 @@ class TeacherRunner:
         self.env = rsl_rl_env(env)
         self.ruler = CourseRuler(env)
         self.ckpt_dir = run_dir / "teacher"
-        self.train_cfg = ppo_train_cfg(cfg.teacher)
+        self.train_cfg = ppo_train_cfg(cfg.teacher, distributed.ppo_multi_gpu())
         obs = self.env.get_observations()
         self.layout = teacher_layout(obs, self.env.num_actions)
         # rsl-rl prints both networks; they belong in the run's log, not on the console.
-        with (run_dir / "env.log").open("a") as f, contextlib.redirect_stdout(f):
+        log_to = run_dir / "env.log" if distributed.writes_files() else Path(os.devnull)
+        with log_to.open("a") as f, contextlib.redirect_stdout(f):
             self.alg = PPO.construct_algorithm(
                 obs, self.env, copy.deepcopy(self.train_cfg), self.device
             )
+        if self.alg.is_multi_gpu:  # N ranks: rank 0's networks everywhere, shared normalisers
+            self.alg.broadcast_parameters()
+            distributed.sync_normalizers(self.alg.actor, self.alg.critic)
         self.iteration = 0  # iterations completed
         self.env_steps = 0
         self.wall_s = 0.0
+        self.world = distributed.current().world
         self.faults = EnvFaults(env)
         self.guard = UpdateGuard(
             "teacher",
@@ -251,6 +259,9 @@ class TeacherRunner:
         self.wall_s = float(payload.get("wall_s", 0.0))
         # Levels, episode clocks and random streams last: the env's reset here draws from them.
         notes = restore_state(self.env.unwrapped, payload, self.device, self.cfg.seed, where)
+        # N processes: rank r > 0 then takes its own torch stream (rank 0's was just restored).
+        if note := distributed.restore_rank_states(payload):
+            notes.append(note)
         self.env.unwrapped.common_step_counter = payload.get("common_step_counter", 0)
         self.log.resume_from("teacher", self.iteration)
         truncate_rows(self.run_dir / "eval.csv", "teacher", self.iteration)
@@ -260,7 +271,10 @@ class TeacherRunner:
         return True
 
     def save(self) -> Path:
-        return save_checkpoint(self.payload(), self.ckpt_dir, self.iteration)
+        # Every rank's random states go in (a collective); rank 0 alone writes the files.
+        return save_checkpoint(
+            distributed.with_rank_states(self.payload()), self.ckpt_dir, self.iteration
+        )
 
     def evaluate(self) -> None:
         """Evaluate the current deterministic actor (a ``stage=teacher`` row of eval.csv)."""
@@ -278,7 +292,7 @@ class TeacherRunner:
         self.alg.train_mode()
         stats = EpisodeStats(self.env.num_envs, self.device)
         progress = Progress("teacher", self.iteration, total_iterations)
-        last = latest_checkpoint(self.ckpt_dir)
+        last = distributed.agree(latest_checkpoint(self.ckpt_dir))  # rank 0 owns the files
         for it in range(self.iteration, total_iterations):
             t0 = time.time()
             with torch.inference_mode():
@@ -306,25 +320,27 @@ class TeacherRunner:
                     stats.step(rewards, dones.bool(), before)
                 self.alg.compute_returns(obs)
             self.guard.before()
-            losses = self.alg.update()
+            losses = distributed.mean_over_ranks(self.alg.update())
             # A non-finite update is undone; too many in a row stop before this checkpoint.
             self.guard.after(losses, it + 1, last)
             self.iteration = it + 1
-            self.env_steps += t.num_steps_per_env * self.env.num_envs
+            self.env_steps += t.num_steps_per_env * self.env.num_envs * self.world
             self.wall_s += time.time() - t0
             row = {
                 "stage": "teacher",
                 "iteration": self.iteration,
                 "env_steps": self.env_steps,
                 "wall_s": self.wall_s,
-                **stats.pop(),
-                "mean_terrain_level": mean_terrain_level(self.env.unwrapped),
+                **distributed.pop_episode_stats(stats),
+                **distributed.mean_over_ranks(
+                    {"mean_terrain_level": mean_terrain_level(self.env.unwrapped)}
+                ),
                 "value_loss": losses.get("value", losses.get("value_function", float("nan"))),
                 "surrogate_loss": losses.get("surrogate", float("nan")),
                 "entropy": losses.get("entropy", float("nan")),
                 "learning_rate": self.alg.learning_rate,
                 "action_std": self.alg.get_policy().output_std.mean().item(),
-                "nonfinite_resets": self.faults.pop(),
+                "nonfinite_resets": distributed.sum_over_ranks(self.faults.pop()),
                 "nonfinite_updates": self.guard.pop(),
             }
             self.log.log(row)
@@ -349,8 +365,8 @@ class TeacherRunner:
             last = self.save()
         # The stage's last teacher is always evaluated once (also when a finished stage is
         # resumed, or a run died during this evaluation).
-        if self.evaluate_fn is not None and not has_row(
-            self.run_dir / "eval.csv", "teacher", self.iteration
+        if self.evaluate_fn is not None and not distributed.agree(
+            has_row(self.run_dir / "eval.csv", "teacher", self.iteration)
         ):
             self.evaluate()
         return self.ckpt_dir / "latest.pt"

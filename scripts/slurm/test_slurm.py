@@ -10,7 +10,11 @@ Needs the single-node cluster of ``scripts/slurm/start.sh`` (SLURM_CONF set). Th
 3. both runs must end ``done`` with a summary, the requeued one with ``Restarts=1`` in Slurm and a
    "resuming from" line in its log; no (stage, iteration) row of metrics.csv or eval.csv may be
    duplicated or missing, and every stage's final checkpoint must load;
-4. ``analysis/figures.py`` reads the sweep directory and lists both runs as done.
+4. ``analysis/figures.py`` reads the sweep directory and lists both runs as done;
+5. one data-parallel run as one job of 2 tasks (``hydra/launcher=march_slurm_ddp``, gloo on the
+   node's 2 CPUs), requeued the same way once its first teacher checkpoint exists: it must end
+   ``done`` with every row once, its env steps summed over both ranks, a checkpoint holding both
+   ranks' random states and a "resuming from" line after the requeue (``--no-ddp`` skips it).
 
 Prints one PASS/FAIL line per check and exits 0 only when all pass.
 
@@ -134,28 +138,26 @@ def check_checkpoints(checks: Checks, run: Path) -> None:
     )
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=None, help="sweep directory (default: new)")
-    ap.add_argument("--timeout-min", type=float, default=60.0, help="give up after [min]")
-    args = ap.parse_args()
-    if not os.environ.get("SLURM_CONF") and not Path("/etc/slurm/slurm.conf").is_file():
-        say("error: no cluster: run scripts/slurm/start.sh and export the SLURM_CONF it prints")
-        return 2
-    stamp = time.strftime("%Y-%m-%d_%H-%M-%S")
-    sweep = (args.out or ROOT / "outputs" / "slurm-test" / stamp).resolve()
-    sweep.parent.mkdir(parents=True, exist_ok=True)
-    checks = Checks()
-    deadline = time.time() + 60 * args.timeout_min
+# One run over 2 Slurm tasks (2 ranks, gloo, one CPU each) with the DDP launcher.
+DDP_ARGS = [
+    "compute=smoke",
+    "compute.torch_threads=1",
+    "teacher.max_iterations=4",
+    "hydra/launcher=march_slurm_ddp",
+    "hydra.launcher.tasks_per_node=2",
+    "hydra.launcher.gpus_per_node=null",
+    "hydra.launcher.cpus_per_task=1",
+    "hydra.launcher.mem_gb=2",
+    "hydra.launcher.timeout_min=60",
+]
 
-    cmd = [PY, "-m", "march.train", "-m", *SWEEP_ARGS, f"hydra.sweep.dir={sweep}"]
-    say("sweep: " + " ".join(cmd[1:]))
-    launcher_log = sweep.parent / f"{sweep.name}.launcher.log"
-    with launcher_log.open("w") as log:
-        launcher = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
 
-    # Job 0 (clf): requeue once its first teacher checkpoint exists, while it still runs.
-    requeued: str | None = None
+def requeue_when_checkpointed(
+    sweep: Path, launcher: subprocess.Popen, deadline: float, single: bool = False
+) -> tuple[str | None, str]:
+    """``scontrol requeue`` job 0 of ``sweep`` once its first teacher checkpoint exists while it
+    still runs; (the requeued job id or None, run 0's state when it was requeued). ``single``:
+    a sweep of one run, which submitit submits as a plain job (id ``<n>``, not ``<n>_0``)."""
     run0_state = ""
     while time.time() < deadline and launcher.poll() is None:
         time.sleep(2)
@@ -169,26 +171,118 @@ def main() -> int:
         except (json.JSONDecodeError, KeyError):
             continue  # being written
         if (run0 / "teacher" / "latest.pt").is_file() and run0_state == "running":
-            jobs = {j: s for j, s in squeue_jobs().items() if j.endswith("_0")}
+            jobs = {
+                j: s
+                for j, s in squeue_jobs().items()
+                if j.endswith("_0") or (single and "_" not in j)
+            }
             if len(jobs) != 1 or next(iter(jobs.values())) != "RUNNING":
                 continue
             requeued = next(iter(jobs))
             ckpts = sorted(p.name for p in (run0 / "teacher").glob("model_*.pt"))
             say(f"requeueing job {requeued} (run {run0.name}, checkpoints {ckpts})")
             sh("scontrol", "requeue", requeued)
-            break
+            return requeued, run0_state
+    return None, run0_state
+
+
+def wait_for(launcher: subprocess.Popen, deadline: float, timeout_min: float) -> None:
+    while time.time() < deadline and launcher.poll() is None:
+        time.sleep(5)
+    if launcher.poll() is None:
+        say(f"timeout after {timeout_min} min: cancelling the sweep")
+        subprocess.run(["scancel", "--user", os.environ.get("USER", "root")], check=False)
+        launcher.terminate()
+        launcher.wait(30)
+
+
+def check_ddp(checks: Checks, sweep: Path, deadline: float, timeout_min: float) -> None:
+    """One run as one 2-task job (2 ranks), requeued mid-run: all ranks resume."""
+    cmd = [PY, "-m", "march.train", "-m", *DDP_ARGS, f"hydra.sweep.dir={sweep}"]
+    say("ddp run: " + " ".join(cmd[1:]))
+    launcher_log = sweep.parent / f"{sweep.name}.launcher.log"
+    with launcher_log.open("w") as log:
+        launcher = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+    requeued, state = requeue_when_checkpointed(sweep, launcher, deadline, single=True)
+    checks.check(requeued is not None, f"ddp: job requeued mid-run (run state {state or 'none'})")
+    wait_for(launcher, deadline, timeout_min)
+    checks.check(launcher.returncode == 0, f"ddp: launcher exit code {launcher.returncode}")
+    runs = sorted(p for p in sweep.iterdir() if p.is_dir() and re.match(r"\d+_", p.name))
+    if not checks.check(len(runs) == 1, f"ddp: one run directory {[r.name for r in runs]}"):
+        return
+    run = runs[0]
+    status = (
+        json.loads((run / "status.json").read_text()) if (run / "status.json").is_file() else {}
+    )
+    checks.check(status.get("state") == "done", f"ddp {label(run)}: status {status.get('state')}")
+    checks.check((run / "summary.json").is_file(), f"ddp {label(run)}: summary.json written")
+    cfg = OmegaConf.load(run / "config.yaml")
+    its = {"teacher": int(cfg.teacher.max_iterations), "student": int(cfg.distill.max_iterations)}
+    check_rows(checks, run, "metrics.csv", its)
+    check_rows(checks, run, "eval.csv", its)
+    rows = [r for r in read_rows(run / "metrics.csv") if r["stage"] == "teacher"]
+    per_it = 2 * int(cfg.compute.num_envs) * int(cfg.teacher.num_steps_per_env)
+    steps = [int(r["env_steps"]) for r in rows]
+    checks.check(
+        steps == [per_it * (i + 1) for i in range(len(steps))],
+        f"ddp: teacher env steps {steps} = 2 ranks x {cfg.compute.num_envs} envs x "
+        f"{cfg.teacher.num_steps_per_env} steps per iteration",
+    )
+    check_checkpoints(checks, run)
+    code = (
+        "import sys, torch; p = torch.load(sys.argv[1], weights_only=True); "
+        "print(p['world_size'], len(p['rank_rng']))"
+    )
+    res = subprocess.run(
+        [PY, "-c", code, str(run / "teacher" / "latest.pt")], capture_output=True, text=True
+    )
+    checks.check(
+        res.stdout.split() == ["2", "2"],
+        f"ddp: the teacher checkpoint holds both ranks' random states ({res.stdout.strip()})",
+    )
+    logs = sorted((sweep / ".submitit").glob("*/*_0_log.out"))
+    text = "".join(p.read_text(errors="replace") for p in logs)
+    checks.check("distributed: 2 ranks (gloo)" in text, "ddp: rank 0's log says 2 ranks (gloo)")
+    if requeued is not None:
+        restarts = job_field(requeued, "Restarts")
+        checks.check(restarts == "1", f"ddp: Slurm reports job {requeued} Restarts={restarts}")
+        resumed = re.findall(r"\[(teacher|student)\] resuming from .* at iteration (\d+)", text)
+        checks.check(bool(resumed), f"ddp: resumed from its checkpoint {resumed or ''}")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=None, help="sweep directory (default: new)")
+    ap.add_argument("--timeout-min", type=float, default=60.0, help="give up after [min]")
+    ap.add_argument("--no-ddp", action="store_true", help="skip the 2-task data-parallel job")
+    ap.add_argument("--only-ddp", action="store_true", help="only the 2-task data-parallel job")
+    args = ap.parse_args()
+    if not os.environ.get("SLURM_CONF") and not Path("/etc/slurm/slurm.conf").is_file():
+        say("error: no cluster: run scripts/slurm/start.sh and export the SLURM_CONF it prints")
+        return 2
+    stamp = time.strftime("%Y-%m-%d_%H-%M-%S")
+    sweep = (args.out or ROOT / "outputs" / "slurm-test" / stamp).resolve()
+    sweep.parent.mkdir(parents=True, exist_ok=True)
+    checks = Checks()
+    deadline = time.time() + 60 * args.timeout_min
+
+    if args.only_ddp:
+        check_ddp(checks, sweep.with_name(sweep.name + "_ddp"), deadline, args.timeout_min)
+        return checks.summary()
+    cmd = [PY, "-m", "march.train", "-m", *SWEEP_ARGS, f"hydra.sweep.dir={sweep}"]
+    say("sweep: " + " ".join(cmd[1:]))
+    launcher_log = sweep.parent / f"{sweep.name}.launcher.log"
+    with launcher_log.open("w") as log:
+        launcher = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+
+    # Job 0 (clf): requeue once its first teacher checkpoint exists, while it still runs.
+    requeued, run0_state = requeue_when_checkpointed(sweep, launcher, deadline)
     checks.check(
         requeued is not None,
         f"job 0 requeued with scontrol requeue mid-run (run state was {run0_state or 'none'})",
     )
 
-    while time.time() < deadline and launcher.poll() is None:
-        time.sleep(5)
-    if launcher.poll() is None:
-        say(f"timeout after {args.timeout_min} min: cancelling the sweep")
-        subprocess.run(["scancel", "--user", os.environ.get("USER", "root")], check=False)
-        launcher.terminate()
-        launcher.wait(30)
+    wait_for(launcher, deadline, args.timeout_min)
     checks.check(launcher.returncode == 0, f"sweep launcher exit code {launcher.returncode}")
     if launcher.returncode != 0:
         say(f"launcher log: {launcher_log}")
@@ -243,6 +337,8 @@ def main() -> int:
     ]
     checks.check(len(figs) == 2, f"analysis/figures.py drew {figs} from the sweep")
     say(f"sweep directory: {sweep}")
+    if not args.no_ddp:
+        check_ddp(checks, sweep.with_name(sweep.name + "_ddp"), deadline, args.timeout_min)
     return checks.summary()
 
 

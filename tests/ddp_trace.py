@@ -1,0 +1,63 @@
+"""Test helper: ``march.train`` under torchrun with every update's result dumped per rank.
+
+    MARCH_TRACE_DIR=<dir> torchrun --standalone --nproc_per_node=2 tests/ddp_trace.py <overrides>
+
+After each PPO update and each distillation update, every rank saves (into MARCH_TRACE_DIR)
+``<stage>_<n>_rank<r>.pt``: the networks' state dicts (normaliser buffers included), the
+learning rate, the rollout that update learned from and whether that rank writes run files.
+Nothing else changes: the real entry point, envs, runners and files.
+"""
+
+from __future__ import annotations
+
+import os
+import runpy
+from pathlib import Path
+
+import torch
+from rsl_rl.algorithms import PPO
+
+from march.learn import distributed
+from march.learn.distill import DistillRunner
+
+OUT = Path(os.environ["MARCH_TRACE_DIR"])
+RANK = int(os.environ.get("RANK", "0"))
+_count = {"teacher": 0, "student": 0}
+
+
+def _dump(stage: str, state: dict[str, torch.Tensor], rollout: dict[str, torch.Tensor]) -> None:
+    _count[stage] += 1
+    payload = {"state": state, "rollout": rollout, "writes_files": distributed.writes_files()}
+    torch.save(payload, OUT / f"{stage}_{_count[stage]}_rank{RANK}.pt")
+
+
+_ppo_update = PPO.update
+
+
+def _traced_ppo_update(self: PPO) -> dict[str, float]:
+    rollout = {"actions": self.storage.actions.clone(), "rewards": self.storage.rewards.clone()}
+    losses = _ppo_update(self)
+    state = {f"actor.{k}": v.clone() for k, v in self.actor.state_dict().items()}
+    state |= {f"critic.{k}": v.clone() for k, v in self.critic.state_dict().items()}
+    state["learning_rate"] = torch.tensor(self.learning_rate, dtype=torch.float64)
+    _dump("teacher", state, rollout)
+    return losses
+
+
+_distill_update = DistillRunner._update
+
+
+def _traced_distill_update(self: DistillRunner, steps: list) -> dict[str, float]:
+    rollout = {"proprio": torch.stack([s[0] for s in steps]), "teacher_mean": steps[0][3]}
+    info = _distill_update(self, steps)
+    _dump("student", {k: v.clone() for k, v in self.student.state_dict().items()}, rollout)
+    return info
+
+
+PPO.update = _traced_ppo_update  # type: ignore[method-assign]
+DistillRunner._update = _traced_distill_update  # type: ignore[method-assign]
+
+if __name__ == "__main__":
+    OUT.mkdir(parents=True, exist_ok=True)
+    # As `python -m march.train` (Hydra finds conf/ from the module run as __main__).
+    runpy.run_module("march.train", run_name="__main__", alter_sys=True)
