@@ -23,6 +23,7 @@ from torch.overrides import TorchFunctionMode
 
 ROOT = Path(__file__).resolve().parent.parent
 MARCH_DIR = str(ROOT / "march") + "/"
+TESTS_DIR = str(ROOT / "tests") + "/"
 TORCH_DIR = str(Path(torch.__file__).resolve().parent) + "/"
 
 ALWAYS_SYNC = {
@@ -44,13 +45,27 @@ ALWAYS_SYNC = {
 """Torch functions / tensor methods that always wait for the device's result."""
 
 
+HOST_DATA = {"tensor", "as_tensor", "asarray"}
+"""Factories that build a tensor from host data (a list, a number, a numpy array): on a GPU each
+is a blocking host-to-device copy (``torch.from_numpy`` does not reach a ``TorchFunctionMode``)."""
+
+
+def _items(index: object) -> tuple:
+    return index if isinstance(index, tuple) else (index,)
+
+
 def _has_bool_index(index: object) -> bool:
-    items = index if isinstance(index, tuple) else (index,)
-    return any(isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in items)
+    return any(isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in _items(index))
+
+
+def _has_host_index(index: object) -> bool:
+    """A list or numpy array as an index: torch copies it to the device first."""
+    return any(isinstance(i, list) or type(i).__module__ == "numpy" for i in _items(index))
 
 
 def sync_kind(func: object, args: tuple) -> str | None:
-    """The kind of host sync ``func(*args)`` causes, or None."""
+    """The kind of host sync ``func(*args)`` causes (``h2d ...``: a host-to-device copy of data
+    made on the host), or None."""
     name = getattr(func, "__name__", "")
     if name in ALWAYS_SYNC:
         if name == "repeat_interleave" and not any(isinstance(a, torch.Tensor) for a in args[1:2]):
@@ -58,18 +73,41 @@ def sync_kind(func: object, args: tuple) -> str | None:
         return name
     if name == "where" and len(args) == 1:
         return "where(cond)"
-    if name in ("__getitem__", "__setitem__") and len(args) >= 2 and _has_bool_index(args[1]):
-        return f"{name}[bool mask]"
+    if name in HOST_DATA and args and not isinstance(args[0], torch.Tensor):
+        return f"h2d {name}"
+    if name in ("__getitem__", "__setitem__") and len(args) >= 2:
+        if _has_bool_index(args[1]):
+            return f"{name}[bool mask]"
+        if _has_host_index(args[1]):
+            return f"h2d {name}[host index]"
+    return None
+
+
+def _march_cause(frame: object) -> str | None:
+    """Where march is behind a call: the innermost frame in a ``march/`` file, or a method of a
+    class defined in march (an mjlab method a march term inherits), up to the caller's frame."""
+    while frame is not None:
+        name = frame.f_code.co_filename
+        if name.startswith(MARCH_DIR):
+            return f"{name[len(str(ROOT)) + 1 :]}:{frame.f_lineno}"
+        if name.startswith(TESTS_DIR):
+            return None
+        owner = frame.f_locals.get("self")
+        if owner is not None and type(owner).__module__.startswith("march."):
+            return f"{type(owner).__name__} ({Path(name).name}:{frame.f_lineno})"
+        frame = frame.f_back
     return None
 
 
 class SyncCounter(TorchFunctionMode):
-    """Records ``(kind, file:line)`` of every host sync issued from march's own modules."""
+    """Records every host sync: ``hits`` those issued from a line of march's own modules
+    (``root``), ``every`` all of them as ``(kind, file:line, march cause or None)``."""
 
     def __init__(self, root: str = MARCH_DIR) -> None:
         super().__init__()
         self.root = root
         self.hits: list[tuple[str, str]] = []
+        self.every: list[tuple[str, str, str | None]] = []
 
     def __torch_function__(self, func, types, args=(), kwargs=None):
         kind = sync_kind(func, args)
@@ -77,10 +115,24 @@ class SyncCounter(TorchFunctionMode):
             frame = sys._getframe(1)
             while frame is not None and frame.f_code.co_filename.startswith(TORCH_DIR):
                 frame = frame.f_back
-            if frame is not None and frame.f_code.co_filename.startswith(self.root):
-                where = f"{frame.f_code.co_filename[len(str(ROOT)) + 1 :]}:{frame.f_lineno}"
-                self.hits.append((kind, where))
+            if frame is not None:
+                name = frame.f_code.co_filename
+                where = f"{_short(name)}:{frame.f_lineno}"
+                self.every.append((kind, where, _march_cause(frame)))
+                if name.startswith(self.root):
+                    self.hits.append((kind, f"{name[len(str(ROOT)) + 1 :]}:{frame.f_lineno}"))
         return func(*args, **(kwargs or {}))
+
+    def march_caused(self) -> list[tuple[str, str, str | None]]:
+        return [h for h in self.every if h[2] is not None]
+
+
+def _short(filename: str) -> str:
+    """A file name relative to the repository or to site-packages."""
+    if filename.startswith(str(ROOT)):
+        return filename[len(str(ROOT)) + 1 :]
+    _, _, rest = filename.partition("site-packages/")
+    return rest or filename
 
 
 SYNCING_SNIPPET = """

@@ -45,6 +45,7 @@ from march.env.randomization import apply_dr
 from march.env.reference_command import ReferenceCommandCfg
 from march.env.rewards import REFERENCE_COMMAND, needs_reference, reward_terms
 from march.env.stone_terrain import terrain_entity_cfg
+from march.env.nonfinite import nonfinite_termination
 from march.env.terminations import foot_too_low, planner_infeasible
 
 PURPOSES = ("teacher", "student", "eval")
@@ -201,7 +202,8 @@ Nothing privileged (the planner's verdict, a training-only rule) ends an evaluat
 
 def _terminations(cfg: MarchConfig, purpose: str) -> dict[str, TerminationTermCfg]:
     """Training: time_out, tilt, pelvis_too_low, foot_too_low (both rewards); planner_infeasible
-    when the env runs the planner (reward=clf). Evaluation: only ``EVAL_TERMINATIONS``."""
+    when the env runs the planner (reward=clf); nonfinite (fault resets). Evaluation: only
+    ``EVAL_TERMINATIONS``."""
     terms = {
         "time_out": TerminationTermCfg(func=envs_mdp.time_out, time_out=True),
         "tilt": TerminationTermCfg(
@@ -219,6 +221,9 @@ def _terminations(cfg: MarchConfig, purpose: str) -> dict[str, TerminationTermCf
         terms["planner_infeasible"] = TerminationTermCfg(
             func=planner_infeasible, params={"command_name": REFERENCE_COMMAND}
         )
+    # Training: a non-finite env is reset by mjlab's own reset, without a host sync
+    # (march.env.nonfinite; the runners' fault handling relies on it).
+    terms["nonfinite"] = TerminationTermCfg(func=nonfinite_termination)
     if purpose == "eval":  # an allow-list: a termination added for training never leaks in
         terms = {k: v for k, v in terms.items() if k in EVAL_TERMINATIONS}
     return terms

@@ -185,8 +185,23 @@ class ReferenceCommand(CommandTerm):
         return self.observation()
 
     def compute(self, dt: float | torch.Tensor, env_ids: torch.Tensor | None = None) -> None:
+        """mjlab's ``CommandTerm.compute`` without its resampling timer: this term never
+        resamples on time (``resampling_time_range`` is 1e9 s), and the timer's
+        ``(time_left <= 0).nonzero()`` would be a host sync per step."""
         self._dt = dt  # _update_command advances tau by it (per env on the auto-reset path)
-        super().compute(dt, env_ids)
+        self._update_command(env_ids)
+
+    def reset(self, env_ids: torch.Tensor | slice | None) -> dict[str, torch.Tensor]:
+        """mjlab's ``CommandTerm.reset`` with the episode metrics kept on the device (0-d
+        tensors, not ``.item()``: no host sync per reset)."""
+        assert isinstance(env_ids, torch.Tensor)
+        extras = {}
+        for name, value in self.metrics.items():
+            extras[name] = value[env_ids].mean()
+            value[env_ids] = 0.0
+        self.command_counter[env_ids] = 0
+        self._resample(env_ids)
+        return extras
 
     def _update_metrics(self) -> None:
         pass

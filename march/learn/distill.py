@@ -233,12 +233,11 @@ class DistillRunner:
             obs, reward, terminated, truncated, _ = self.env.step(actions)
             done = terminated | truncated
             bad = self.faults.after_step(obs, reward, bad_actions)
-            if bad is not None:
-                done = done | bad  # reset for a NaN or inf: that episode ends here
+            done = done | bad  # a NaN or inf: that episode ends here
             stats.step(reward, done, before)
-            reward_sum += reward.mean().item()
+            reward_sum = reward_sum + reward.mean()  # on the device: read once below
         self.obs = obs
-        return steps, reward_sum / len(steps)
+        return steps, float(reward_sum) / len(steps)
 
     def _update(self, steps: list[tuple[torch.Tensor, ...]]) -> dict[str, float]:
         d = self.cfg.distill
