@@ -138,9 +138,9 @@ def run_workload(
 
 
 def bench_env(cfg: MarchConfig, opts: dict[str, Any]) -> dict[str, Any]:
-    from march.env.build import bare_env, make_env
-
     import torch
+
+    from march.env.build import bare_env, make_env
 
     device = cfg.compute.device
     n, seed = cfg.compute.num_envs, cfg.seed

@@ -40,12 +40,12 @@ from mjlab.utils.noise import UniformNoiseCfg as Unoise
 from march.config import MarchConfig
 from march.env.course import course_levels
 from march.env.depth import corrupt, depth_camera_cfg, normalize
+from march.env.nonfinite import nonfinite_termination
 from march.env.observations import reference_obs, stones_ahead, terrain_height_scan
 from march.env.randomization import apply_dr
 from march.env.reference_command import ReferenceCommandCfg
 from march.env.rewards import REFERENCE_COMMAND, needs_reference, reward_terms
 from march.env.stone_terrain import terrain_entity_cfg
-from march.env.nonfinite import nonfinite_termination
 from march.env.terminations import foot_too_low, planner_infeasible
 
 PURPOSES = ("teacher", "student", "eval")

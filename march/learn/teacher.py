@@ -289,7 +289,8 @@ class TeacherRunner:
                         extras["time_outs"] = extras["time_outs"] & ~bad
                     tr = self.alg.transition
                     tr.actions_log_prob = torch.where(
-                        bad_actions, self.alg.actor.get_output_log_prob(tr.actions),
+                        bad_actions,
+                        self.alg.actor.get_output_log_prob(tr.actions),
                         tr.actions_log_prob,
                     )
                     obs, rewards, dones = (
