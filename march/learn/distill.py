@@ -216,9 +216,11 @@ class DistillRunner:
         return True
 
     @torch.no_grad()
-    def _rollout(self, stats: EpisodeStats) -> tuple[list[tuple[torch.Tensor, ...]], float]:
+    def _rollout(self, stats: EpisodeStats) -> tuple[list[tuple[torch.Tensor, ...]], torch.Tensor]:
+        """The iteration's steps and the mean teacher reward per step (0-d, on the device: the
+        caller reads it once per iteration)."""
         steps = []
-        reward_sum = 0.0
+        reward_sum = torch.zeros((), device=self.device)
         obs = self.obs
         self.student.eval()
         for _ in range(self.cfg.distill.num_steps_per_env):
@@ -237,7 +239,7 @@ class DistillRunner:
             stats.step(reward, done, before)
             reward_sum = reward_sum + reward.mean()  # on the device: read once below
         self.obs = obs
-        return steps, float(reward_sum) / len(steps)
+        return steps, reward_sum / len(steps)
 
     def _update(self, steps: list[tuple[torch.Tensor, ...]]) -> dict[str, float]:
         d = self.cfg.distill
@@ -290,7 +292,7 @@ class DistillRunner:
                 **stats.pop(),
                 "loss": info.get("loss", float("nan")),
                 "action_error": info.get("action_error", float("nan")),
-                "teacher_reward": teacher_reward,
+                "teacher_reward": float(teacher_reward),
                 "mode_weight_0": info.get("mode_weight_0", float("nan")),
                 "mode_weight_1": info.get("mode_weight_1", float("nan")),
                 "nonfinite_resets": self.faults.pop(),
@@ -303,7 +305,7 @@ class DistillRunner:
                     {
                         "loss": row["loss"],
                         "action_err": row["action_error"],
-                        "teacher_reward": teacher_reward,
+                        "teacher_reward": float(teacher_reward),
                         "ep_len": row["mean_episode_length"],
                     },
                 ),
