@@ -1,5 +1,5 @@
-"""Which envs' physics state holds a NaN or inf: mjlab's ``NanGuard.detect_nans`` (qpos, qvel,
-qacc, warm start, sensors), for the fault handling of the runners (:mod:`march.learn.faults`),
+"""Which envs' physics state holds a NaN or inf (the fields of mjlab's ``NanGuard.detect_nans``:
+qpos, qvel, qacc, warm start, sensors), for the fault handling of the runners (:mod:`march.learn.faults`),
 which import nothing of mjlab themselves.
 
 Faults are reset without a host sync (issue 20): the training envs carry a ``nonfinite``
@@ -15,15 +15,22 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import torch
-from mjlab.utils.nan_guard import NanGuard
 
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv
 
 
 def nonfinite_physics(env: ManagerBasedRlEnv) -> torch.Tensor:
-    """(num_envs,) bool: the env's simulation state holds a NaN or inf."""
-    return NanGuard.detect_nans(env.sim.data)
+    """(num_envs,) bool: the env's simulation state holds a NaN or inf: the fields of mjlab's
+    ``NanGuard.detect_nans`` (qpos, qvel, qacc, warm start, sensors), checked as one
+    concatenated row per env (4 ops instead of 4 per field)."""
+    data = env.sim.data
+    fields = [getattr(data, name)[:] for name in NAN_GUARD_FIELDS]  # plain tensor views
+    return ~torch.isfinite(torch.cat(fields, dim=-1)).all(-1)
+
+
+NAN_GUARD_FIELDS = ("qpos", "qvel", "qacc", "qacc_warmstart", "sensordata")
+"""What ``mjlab.utils.nan_guard.NanGuard.detect_nans`` checks (mjlab 1.6)."""
 
 
 class FaultFlags:

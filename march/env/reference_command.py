@@ -56,7 +56,7 @@ Decisions (documented here once; the README repeats them)
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING
 
 import torch
@@ -84,6 +84,8 @@ if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv
 
 NUM_OUTPUTS = len(CLF_OUTPUT_NAMES)
+STEP_FIELDS = tuple(f.name for f in fields(StepState))
+"""The per-env tensors of a ``StepState``."""
 
 
 class ReferenceCommand(CommandTerm):
@@ -166,9 +168,11 @@ class ReferenceCommand(CommandTerm):
         self.y_ref_pos = torch.zeros(e, NUM_OUTPUTS, device=dev)
         """(E, 29) reference outputs at the current tau (CLF_OUTPUT_NAMES order)."""
         self.y_ref_vel = torch.zeros(e, NUM_OUTPUTS, device=dev)
-        self.y_sim_pos = torch.zeros(e, NUM_OUTPUTS, device=dev)
-        """(E, 29) measured outputs (refreshed with y_ref)."""
-        self.y_sim_vel = torch.zeros(e, NUM_OUTPUTS, device=dev)
+        self._y_sim: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._next_ref: tuple[tuple[int, int], torch.Tensor, torch.Tensor] | None = None
+        """y_ref at ``tau + step_dt``, made with the refresh (what the next step's
+        :meth:`clf_state` asks for), with the key it is valid for (:meth:`_ref_key`)."""
+        self._step_version = 0
         self.v = torch.zeros(e, device=dev)
         """(E,) CLF value V of the last env step (see :meth:`clf_state`)."""
         self.vdot = torch.zeros(e, device=dev)
@@ -219,6 +223,7 @@ class ReferenceCommand(CommandTerm):
         self.footholds.goal_distance[env_ids] = fh.goal_distance
         self.footholds.course_length[env_ids] = fh.course_length
         self.v_history.reset(env_ids)
+        self._step_version += 1
         self.tau[env_ids] = 0.0
         self.plan_feasible[env_ids] = True
 
@@ -344,20 +349,7 @@ class ReferenceCommand(CommandTerm):
             keep = apply.view(-1, *([1] * (value.dim() - 1)))
             target[env_ids] = torch.where(keep, value.to(target.dtype), target[env_ids])
 
-        for name in (
-            "stance_pos",
-            "stance_is_left",
-            "swing_start",
-            "target",
-            "next_target",
-            "duration",
-            "next_duration",
-            "yaw0",
-            "yaw_rate",
-            "axis",
-            "ramp",
-            "ramp_from",
-        ):
+        for name in STEP_FIELDS:
             put(getattr(self.step, name), getattr(st, name))
         put(self.stance_anchor, stance)
         put(self.plan_footholds, plan.footholds)
@@ -366,6 +358,7 @@ class ReferenceCommand(CommandTerm):
         put(self.plan_stalled, plan.stalled)
         put(self.tau, torch.zeros_like(self.tau[env_ids]))
         put(self.step_switched, torch.ones_like(apply))
+        self._step_version += 1
         self.replan_count[env_ids] += apply.long()
         switched = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
         switched[env_ids] = apply
@@ -407,9 +400,42 @@ class ReferenceCommand(CommandTerm):
             self._env, self.cfg.foot_sites, self.cfg.entity_name, self.stance_is_left
         )
 
+    @property
+    def y_sim_pos(self) -> torch.Tensor:
+        """(E, 29) measured outputs at the last refresh (computed when first asked for: the
+        step itself only needs y_sim against V, in :meth:`clf_state`)."""
+        if self._y_sim is None:
+            self._y_sim = self.measured()
+        return self._y_sim[0]
+
+    @property
+    def y_sim_vel(self) -> torch.Tensor:
+        self.y_sim_pos  # noqa: B018 (fills the pair)
+        return self._y_sim[1]
+
+    def _ref_key(self) -> tuple[int, int]:
+        """Changes whenever tau or the step state may have changed (tau in place: its version)."""
+        return (self.tau._version, self._step_version)
+
     def _refresh_outputs(self) -> None:
-        self.y_ref_pos, self.y_ref_vel = self.reference(self.tau)
-        self.y_sim_pos, self.y_sim_vel = self.measured()
+        """y_ref at tau (the observation) and at tau + step_dt (the next step's V) in one
+        batched reference call; y_sim on demand."""
+        e = self.num_envs
+        st = self.step
+        both = StepState(
+            **{
+                name: None if getattr(st, name) is None else torch.cat([getattr(st, name)] * 2)
+                for name in STEP_FIELDS
+            }
+        )
+        tau = torch.cat([self.tau, self.tau + self._env.step_dt])
+        ref = reference_at(
+            both, tau, self.cfg.reference, self.cfg.hlip, num_upper=len(UPPER_BODY_JOINTS)
+        )
+        pos, vel = ref.flatten()
+        self.y_ref_pos, self.y_ref_vel = pos[:e], vel[:e]
+        self._next_ref = (self._ref_key(), pos[e:], vel[e:])
+        self._y_sim = None
 
     def clf_state(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(V, dV/dt, valid), each (E,), for the current env step; computed once per step.
@@ -420,7 +446,11 @@ class ReferenceCommand(CommandTerm):
         step = int(self._env.common_step_counter)
         if step != self._v_step:
             self._v_step = step
-            ref_pos, ref_vel = self.reference(self.tau + self._env.step_dt)
+            cached = self._next_ref
+            if cached is not None and cached[0] == self._ref_key():
+                ref_pos, ref_vel = cached[1], cached[2]
+            else:
+                ref_pos, ref_vel = self.reference(self.tau + self._env.step_dt)
             sim_pos, sim_vel = self.measured()
             eta = tracking_error(sim_pos, ref_pos, self.mask)
             self.v = self.clf.value(eta, sim_vel - ref_vel)
