@@ -338,7 +338,9 @@ def build_env_cfg(
 
     if needs_reference(cfg.reward):
         # Stage (1): planner + HLIP/Bezier reference + CLF state (march.env.reference_command).
-        env_cfg.commands[REFERENCE_COMMAND] = ReferenceCommandCfg(planner_seed=cfg.seed)
+        env_cfg.commands[REFERENCE_COMMAND] = ReferenceCommandCfg(
+            planner_seed=cfg.seed, compile_math=cfg.compute.compile_math
+        )
 
     env_cfg.observations = _observations(cfg, purpose)
     env_cfg.rewards = reward_terms(cfg.reward)

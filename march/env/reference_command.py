@@ -55,22 +55,20 @@ Decisions (documented here once; the README repeats them)
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field, fields
+from dataclasses import fields
 from typing import TYPE_CHECKING
 
 import torch
-from mjlab.managers.command_manager import CommandTerm, CommandTermCfg
+from mjlab.managers.command_manager import CommandTerm
 
-from march.clf.lyapunov import CLF_OUTPUT_NAMES, UPPER_BODY_JOINTS, ClfCfg, ClfModel, VHistory
+from march.clf.lyapunov import CLF_OUTPUT_NAMES, UPPER_BODY_JOINTS, ClfModel, VHistory
 from march.env.clf_outputs import body_masses, measured_outputs, stance_foot_state, yaw_rotate
 from march.env.course import foothold_table
+from march.env.reference_cfg import ReferenceCommandCfg
 from march.env.replan_queue import ReplanQueue
 from march.env.step_cache import site_pos
-from march.reference.hlip import HlipCfg
-from march.reference.planner import Plan, PlannerCfg, course_frame, plan_footsteps
+from march.reference.planner import Plan, course_frame, plan_footsteps
 from march.reference.trajectory import (
-    ReferenceCfg,
     StepState,
     angle_mask,
     reference_at,
@@ -117,6 +115,7 @@ class ReferenceCommand(CommandTerm):
         """The single CLF model of this env (P from CARE, built once)."""
         self.v_history = VHistory(e, env.step_dt, device=dev)
         self.mask = angle_mask(len(UPPER_BODY_JOINTS), device=dev)
+        self._reference_at = compiled_reference() if cfg.compile_math else reference_at
         self.generator = torch.Generator(device=dev)
         self.generator.manual_seed(int(cfg.planner_seed if cfg.planner_seed is not None else 0))
 
@@ -369,7 +368,7 @@ class ReferenceCommand(CommandTerm):
 
     def reference(self, tau: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(E, 29) reference positions and velocities at time ``tau`` into the current step."""
-        ref = reference_at(
+        ref = self._reference_at(
             self.step, tau, self.cfg.reference, self.cfg.hlip, num_upper=len(UPPER_BODY_JOINTS)
         )
         return ref.flatten()
@@ -429,7 +428,7 @@ class ReferenceCommand(CommandTerm):
             }
         )
         tau = torch.cat([self.tau, self.tau + self._env.step_dt])
-        ref = reference_at(
+        ref = self._reference_at(
             both, tau, self.cfg.reference, self.cfg.hlip, num_upper=len(UPPER_BODY_JOINTS)
         )
         pos, vel = ref.flatten()
@@ -483,54 +482,14 @@ class ReferenceCommand(CommandTerm):
         return torch.cat([pos, vel, feet, phase], dim=-1)
 
 
-@dataclass(kw_only=True)
-class ReferenceCommandCfg(CommandTermCfg):
-    """Configuration of the ``reference`` command term (defaults: author values, SPEC §2)."""
+_COMPILED: list = []
 
-    resampling_time_range: tuple[float, float] = (1.0e9, 1.0e9)
-    """Only episode resets restart the term (no timed resampling)."""
-    entity_name: str = "robot"
-    velocity_command: str = "twist"
-    """The velocity command term this one reads (v_D and the yaw rate)."""
-    contact_sensor: str = "feet_ground_contact"
-    foot_bodies: tuple[str, str] = ("left_ankle_roll_link", "right_ankle_roll_link")
-    """Contact-sensor primaries of the left and right foot."""
-    foot_sites: tuple[str, str] = ("left_foot", "right_foot")
-    """Sites tracked as the feet (sole level)."""
-    touchdown_min_fraction: float = 0.6
-    """A swing-foot contact counts as touchdown from tau >= this x planned duration (author 0.6)."""
-    touchdown_timeout_fraction: float = 1.5
-    """No touchdown by tau >= this x planned duration: restart the step from the same stance."""
-    stance_tie_m: float = 0.01
-    """At reset, feet within this along the course count as level (then the left foot stands)."""
-    replan_capacity_fraction: float = 0.125
-    """Share of the envs whose touchdown or timeout can be planned in one update (the fixed
-    size of the per-step planner batch; module docstring, "Replanning without host syncs")."""
-    replan_capacity_min: int = 8
-    """The per-update planner batch holds at least this many envs (or all of them)."""
-    planner_seed: int | None = 0
-    """Seed of the planner's random draws (torch.Generator on the env device)."""
-    planner: PlannerCfg = field(default_factory=PlannerCfg)
-    reference: ReferenceCfg = field(default_factory=ReferenceCfg)
-    hlip: HlipCfg = field(default_factory=HlipCfg)
-    clf: ClfCfg = field(default_factory=lambda: ClfCfg(dclf_clip=1.0))
-    """CLF outputs and normalisers; r_dclf clipped at -1 as in the author's code (module doc)."""
 
-    def capacity(self, num_envs: int) -> int:
-        """Envs planned per update for touchdowns and timeouts, for ``num_envs`` envs."""
-        by_share = math.ceil(self.replan_capacity_fraction * num_envs)
-        return min(num_envs, max(self.replan_capacity_min, by_share))
-
-    def build(self, env: ManagerBasedRlEnv) -> ReferenceCommand:
-        return ReferenceCommand(self, env)
-
-    def __post_init__(self) -> None:
-        if not 0.0 <= self.touchdown_min_fraction < self.touchdown_timeout_fraction:
-            raise ValueError("need 0 <= touchdown_min_fraction < touchdown_timeout_fraction")
-        if not 0.0 < self.replan_capacity_fraction <= 1.0 or self.replan_capacity_min < 1:
-            raise ValueError("need 0 < replan_capacity_fraction <= 1 and replan_capacity_min >= 1")
-        if not math.isclose(self.planner.step_width, self.hlip.step_width):
-            raise ValueError("planner.step_width and hlip.step_width must agree")
+def compiled_reference():
+    """:func:`reference_at` under ``torch.compile`` (dynamic batch size; made once per process)."""
+    if not _COMPILED:
+        _COMPILED.append(torch.compile(reference_at, dynamic=True))
+    return _COMPILED[0]
 
 
 def reference_term(env: ManagerBasedRlEnv, command_name: str = "reference") -> ReferenceCommand:
