@@ -421,56 +421,35 @@ def plan_footsteps(
         invalid = ~valid[:, :, None, :, None]
         ahead = goal_ahead(footholds, px, py)  # (E, R): the progress term applies
         floor, scale = pace_terms(cmd_along, ahead.view(e, r, 1, 1, 1), cfg)
-        scored = []
-        for gx, gy in ((ax_, ay_), (bx_, by_)):
-            clear = torch.minimum(h5x - (gx - c5x).abs(), h5y - (gy - c5y).abs())
-            cost, ok = _step_cost(
-                (px.view(e, r, 1, 1, 1), py.view(e, r, 1, 1, 1)),
-                pz.view(e, r, 1, 1, 1),
-                (gx, gy),
-                cz[:, :, None, :, None],
-                clear.masked_fill(invalid, -1.0),
-                dur,
-                left,
-                (vx, vy),
-                (ax, ay),
-                (lx, ly),
-                (floor, scale),
-                cfg,
-            )
-            scored.append((cost, ok))
-        cost = torch.cat([scored[0][0], scored[1][0]], dim=-1)  # (E, R, T, M, C)
-        flat_cost = cost.reshape(e, r, -1)
+        # One candidate set (E, R, T, M, 2 + K), scored in one call: group (b) does not depend
+        # on dt and is broadcast over T (the same values as scoring the groups apart).
+        gx = torch.cat([ax_, bx_.expand(e, r, nt, m, k)], dim=-1)
+        gy = torch.cat([ay_, by_.expand(e, r, nt, m, k)], dim=-1)
+        clear = torch.minimum(h5x - (gx - c5x).abs(), h5y - (gy - c5y).abs())
+        cost, ok = _step_cost(
+            (px.view(e, r, 1, 1, 1), py.view(e, r, 1, 1, 1)),
+            pz.view(e, r, 1, 1, 1),
+            (gx, gy),
+            cz[:, :, None, :, None],
+            clear.masked_fill(invalid, -1.0),
+            dur,
+            left,
+            (vx, vy),
+            (ax, ay),
+            (lx, ly),
+            (floor, scale),
+            cfg,
+        )
+        flat_cost = cost.reshape(e, r, -1)  # (T, M, C) flattened: C = the 2 + K candidates
         noisy = flat_cost + cfg.explore_temperature * gumbel[i]
         pick = noisy.argmin(-1, keepdim=True)  # (E, R, 1)
         total = total + flat_cost.gather(-1, pick)[..., 0]
-        # Decompose the flat (T, M, C) index and read the chosen point from its group.
-        c_idx = pick[..., 0] % (k + 2)
         m_idx = (pick[..., 0] // (k + 2)) % m
         t_idx = pick[..., 0] // (m * (k + 2))
-        in_a = (t_idx * m + m_idx) * 2 + c_idx.clamp(max=1)
-        in_b = m_idx * k + (c_idx - 2).clamp(min=0)
-        from_a = c_idx < 2
-        # Feasibility of the chosen candidate, read from its group (group b's does not depend
-        # on dt: (E, R, 1, M, K)), so the masks are never expanded and concatenated.
-        ok_a, ok_b = scored[0][1], scored[1][1]
-        ok_b = ok_b.expand(e, r, 1, m, k)
-        feasible = feasible & torch.where(
-            from_a,
-            ok_a.expand(e, r, nt, m, 2).reshape(e, r, -1).gather(-1, in_a[..., None])[..., 0],
-            ok_b.reshape(e, r, -1).gather(-1, in_b[..., None])[..., 0],
-        )
+        feasible = feasible & ok.expand_as(cost).reshape(e, r, -1).gather(-1, pick)[..., 0]
         prev_x, prev_y = px, py
-        px = torch.where(
-            from_a,
-            ax_.reshape(e, r, -1).gather(-1, in_a[..., None])[..., 0],
-            bx_.reshape(e, r, -1).gather(-1, in_b[..., None])[..., 0],
-        )
-        py = torch.where(
-            from_a,
-            ay_.reshape(e, r, -1).gather(-1, in_a[..., None])[..., 0],
-            by_.reshape(e, r, -1).gather(-1, in_b[..., None])[..., 0],
-        )
+        px = gx.reshape(e, r, -1).gather(-1, pick)[..., 0]
+        py = gy.reshape(e, r, -1).gather(-1, pick)[..., 0]
         pz = cz.gather(-1, m_idx[..., None])[..., 0]
         # Stall flag: the chosen step falls short of the pace while the goal lies ahead.
         advance = (px - prev_x) * axis[:, 0:1] + (py - prev_y) * axis[:, 1:2]
