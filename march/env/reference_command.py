@@ -169,8 +169,7 @@ class ReferenceCommand(CommandTerm):
         self.y_ref_vel = torch.zeros(e, NUM_OUTPUTS, device=dev)
         self._y_sim: tuple[torch.Tensor, torch.Tensor] | None = None
         self._next_ref: tuple[tuple[int, int], torch.Tensor, torch.Tensor] | None = None
-        """y_ref at ``tau + step_dt``, made with the refresh (what the next step's
-        :meth:`clf_state` asks for), with the key it is valid for (:meth:`_ref_key`)."""
+        """y_ref at tau + step_dt from the refresh (the next :meth:`clf_state`'s) and its key."""
         self._step_version = 0
         self.v = torch.zeros(e, device=dev)
         """(E,) CLF value V of the last env step (see :meth:`clf_state`)."""
@@ -206,7 +205,7 @@ class ReferenceCommand(CommandTerm):
         self._resample(env_ids)
         return extras
 
-    def _update_metrics(self) -> None:
+    def _update_metrics(self) -> None:  # counted where they happen (_update_command)
         pass
 
     def _resample_command(self, env_ids: torch.Tensor) -> None:
@@ -237,6 +236,7 @@ class ReferenceCommand(CommandTerm):
             active = torch.zeros(e, dtype=torch.bool, device=self.device)
             active[env_ids] = True
         self.step_switched &= ~active
+        self._step_version += 1
         self.tau += active * self._dt  # dt: a float, or per env on mjlab's auto-reset path
 
         resets = self.queue.take_resets()
@@ -409,12 +409,13 @@ class ReferenceCommand(CommandTerm):
 
     @property
     def y_sim_vel(self) -> torch.Tensor:
-        self.y_sim_pos  # noqa: B018 (fills the pair)
-        return self._y_sim[1]
+        return self._y_sim[1] if self._y_sim is not None else (self.y_sim_pos, self._y_sim[1])[1]
 
     def _ref_key(self) -> tuple[int, int]:
-        """Changes whenever tau or the step state may have changed (tau in place: its version)."""
-        return (self.tau._version, self._step_version)
+        """Changes with the term's counter (updates, replans, resets) and with tau's version
+        (any in-place write; an inference-mode tensor has none: the counter alone)."""
+        version = -1 if self.tau.is_inference() else self.tau._version
+        return (version, self._step_version)
 
     def _refresh_outputs(self) -> None:
         """y_ref at tau (the observation) and at tau + step_dt (the next step's V) in one
