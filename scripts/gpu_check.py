@@ -18,6 +18,11 @@ the check goes on with the phases that do not need its output):
    which ends with the evaluation protocol on ``--eval-rollouts`` rollouts -> ``student_curve.csv``,
    ``eval.csv``, ``summary.json``.
 4. ``export``: ``python -m march.export`` of that student -> ``student.onnx``, ``export.txt``.
+5. ``syncs``: ``scripts/sync_check.py`` at 256 envs: a teacher iteration's rollout and a
+   distillation rollout under ``torch.cuda.set_sync_debug_mode("warn")``, each sync's source
+   line (and the march line on its stack) -> ``syncs.tsv`` (at most ``--sync-timeout`` s).
+
+The bench phase also counts compute ops per env step on the GPU (``bench.op_steps``).
 
 ``gpu_check.json`` holds every phase's command, return code, seconds and result files, the
 machine (GPU name, torch/CUDA versions) and the date; ``gpu_check.csv`` one row per phase. Exit
@@ -44,7 +49,8 @@ ROOT = Path(__file__).resolve().parent.parent
 GPU = {
     "compute": ["compute=gpu"],
     "bench": ["compute.num_envs={bench_envs}", "bench.steps=40"]
-    + ["bench.profile_steps=10", "bench.rounds=2"],
+    + ["bench.profile_steps=10", "bench.op_steps=3", "bench.rounds=2"],
+    "syncs": ["compute.num_envs=256", "teacher.num_steps_per_env=8", "distill.num_steps_per_env=8"],
     "teacher": ["compute.num_envs={train_envs}", "compute.eval_num_envs=64"],
     "student": [
         "compute.num_envs={distill_envs}",
@@ -56,7 +62,8 @@ GPU = {
 CPU = {
     "compute": ["compute=smoke"],
     "bench": ["compute.num_envs=2", "bench.steps=1", "bench.warmup=0"]
-    + ["bench.profile_steps=1", "bench.rounds=1"],
+    + ["bench.profile_steps=1", "bench.op_steps=1", "bench.rounds=1", "bench.threads=1"],
+    "syncs": ["compute.num_envs=2", "teacher.num_steps_per_env=2", "distill.num_steps_per_env=2"],
     "teacher": ["compute.num_envs=4", "compute.eval_num_envs=2", "teacher.num_steps_per_env=4"],
     "student": [
         "compute.num_envs=2",
@@ -82,11 +89,15 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument(
         "--deadline",
         type=float,
-        default=540.0,
-        help="whole check [s]: later phases get what is left",
+        default=None,
+        help="whole check [s]: later phases get what is left (540 on a GPU, 1800 with --cpu)",
     )
     p.add_argument("--skip", nargs="*", default=[], help="phases to leave out")
-    return p.parse_args(argv)
+    p.add_argument("--sync-timeout", type=float, default=150.0, help="limit of the syncs phase [s]")
+    args = p.parse_args(argv)
+    if args.deadline is None:  # tiny CPU sizes prove the script; a loaded CPU builds envs slowly
+        args.deadline = 1800.0 if args.cpu else 540.0
+    return args
 
 
 def sizes(args: argparse.Namespace) -> dict[str, list[str]]:
@@ -242,10 +253,10 @@ def main(argv: list[str] | None = None) -> int:
         if ph.run(limit(), stdout_file=out / "bench_env.json"):
             try:
                 bench = json.loads((out / "bench_env.json").read_text())
-                results["bench"] = {
-                    k: bench.get(k)
-                    for k in ("num_envs", "ratio_march_vs_rough_by_workload", "build_s")
-                }
+                keys = ("num_envs", "ratio_march_vs_rough_by_workload", "build_s")
+                keys += ("ops_per_step", "ratio_ops_march_vs_rough", "nonphysics_ms_per_step")
+                keys += ("ratio_nonphysics_march_vs_rough",)
+                results["bench"] = {k: bench.get(k) for k in keys}
                 results["bench"]["steps_per_s"] = {
                     w: v["steps_per_s"] for w, v in bench["workloads"].items()
                 }
@@ -338,6 +349,20 @@ def main(argv: list[str] | None = None) -> int:
         if ph.run(limit(), stdout_file=out / "export.txt") and onnx.is_file():
             ph.files += ["student.onnx", "export.txt"]
             results["export"] = {"onnx_bytes": onnx.stat().st_size}
+
+    if "syncs" not in args.skip:
+        cmd = [py, "scripts/sync_check.py", str(out / "syncs.tsv"), *common, *s["syncs"]]
+        ph = Phase("syncs", cmd, out)
+        phases.append(ph)
+        if ph.run(min(limit(), args.sync_timeout)) and (out / "syncs.tsv").is_file():
+            ph.files.append("syncs.tsv")
+            lines = (out / "syncs.tsv").read_text().splitlines()
+            rows = [ln.split("\t") for ln in lines if ln and not ln.startswith(("#", "phase"))]
+            results["syncs"] = {
+                "recorded": len(rows),
+                "with_march_on_stack": sum(1 for r in rows if len(r) > 2 and r[2] != "-"),
+                "cuda": not lines[0].startswith("# no CUDA"),
+            }
 
     records = [ph.record() for ph in phases]
     ok = bool(records) and all(r["rc"] == 0 for r in records)

@@ -162,9 +162,21 @@ def test_gpu_check_runs_at_tiny_sizes_on_cpu(tmp_path):
     phases = {p["phase"]: p for p in report["phases"]}
     assert res.returncode == 0, (res.stdout[-3000:], phases)
     assert report["ok"] and report["mode"] == "cpu"
-    assert list(phases) == ["bench", "teacher_clf", "teacher_modelfree", "student", "export"]
+    assert list(phases) == [
+        "bench",
+        "teacher_clf",
+        "teacher_modelfree",
+        "student",
+        "export",
+        "syncs",
+    ]
     bench = json.loads((out / "bench_env.json").read_text())
     assert set(bench["workloads"]) == {"random", "standing"}
+    assert set(bench["ops_per_step"]) == {"random", "standing"}
+    assert bench["ops_per_step"]["random"]["march_teacher"] > 0
+    syncs = (out / "syncs.tsv").read_text().splitlines()
+    assert syncs[0].startswith("# no CUDA") and "phase\tsource\tmarch\tmessage" in syncs
+    assert report["results"]["syncs"] == {"recorded": 0, "with_march_on_stack": 0, "cuda": False}
     for arm in ("clf", "modelfree"):
         with (out / f"teacher_{arm}_curve.csv").open() as f:
             rows = list(csv.DictReader(f))

@@ -347,3 +347,34 @@ def test_short_of_pace_steps_as_far_as_it_can_and_flags_a_stall():
     open_ground = make_footholds([[(0.0, 0.0, 0.0, 3.0, 3.0)]], [(-2.0, 0.0)])
     plan = _plan(open_ground, torch.tensor([[0.0, 0.125]]), torch.tensor([True]), _forward(1))
     assert not bool(plan.stalled[0])
+
+
+def test_fused_and_split_candidate_scoring_make_the_same_plans():
+    """PlannerCfg.fuse_candidates (one scoring call for both candidate groups, the GPU default)
+    and the split scoring (the CPU default) agree exactly, over random courses and commands."""
+    from dataclasses import replace
+
+    from march.world.synthetic import synthetic_courses
+
+    for seed in range(6):
+        g = torch.Generator().manual_seed(seed)
+        fh = synthetic_courses(torch.rand(12, generator=g).tolist(), seed=seed)
+        stance = torch.stack(
+            [3.0 * torch.rand(12, generator=g) - 0.2, 0.3 * (torch.rand(12, generator=g) - 0.5)], -1
+        )
+        left = torch.rand(12, generator=g) > 0.5
+        cmd = torch.zeros(12, 3)
+        cmd[:, 0] = 0.2 + 0.7 * torch.rand(12, generator=g)
+        plans = [
+            plan_footsteps(
+                stance,
+                left,
+                cmd,
+                fh,
+                replace(PlannerCfg(), fuse_candidates=fuse),
+                torch.Generator().manual_seed(seed),
+            )
+            for fuse in (True, False)
+        ]
+        for name in ("footholds", "durations", "cost", "feasible", "stalled"):
+            assert torch.equal(getattr(plans[0], name), getattr(plans[1], name)), name

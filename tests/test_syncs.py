@@ -23,6 +23,14 @@ from torch.overrides import TorchFunctionMode
 
 ROOT = Path(__file__).resolve().parent.parent
 MARCH_DIR = str(ROOT / "march") + "/"
+TESTS_DIR = str(ROOT / "tests") + "/"
+ENV_FILE = "mjlab/envs/manager_based_rl_env.py"
+WARP_WRAP = "warp/_src/torch.py"
+"""``warp.to_torch`` wraps a warp array's memory with ``torch.as_tensor`` (the array interface:
+no copy), which is not a host-to-device copy."""
+TRANSPARENT = {"scoped": "march/env/step_cache.py"}
+"""March wrappers that only pass a call through (step_cache's per-compute scope around mjlab's
+reward and observation managers): a sync inside an mjlab term they call is not march's."""
 TORCH_DIR = str(Path(torch.__file__).resolve().parent) + "/"
 
 ALWAYS_SYNC = {
@@ -44,13 +52,27 @@ ALWAYS_SYNC = {
 """Torch functions / tensor methods that always wait for the device's result."""
 
 
+HOST_DATA = {"tensor", "as_tensor", "asarray"}
+"""Factories that build a tensor from host data (a list, a number, a numpy array): on a GPU each
+is a blocking host-to-device copy (``torch.from_numpy`` does not reach a ``TorchFunctionMode``)."""
+
+
+def _items(index: object) -> tuple:
+    return index if isinstance(index, tuple) else (index,)
+
+
 def _has_bool_index(index: object) -> bool:
-    items = index if isinstance(index, tuple) else (index,)
-    return any(isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in items)
+    return any(isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in _items(index))
+
+
+def _has_host_index(index: object) -> bool:
+    """A list or numpy array as an index: torch copies it to the device first."""
+    return any(isinstance(i, list) or type(i).__module__ == "numpy" for i in _items(index))
 
 
 def sync_kind(func: object, args: tuple) -> str | None:
-    """The kind of host sync ``func(*args)`` causes, or None."""
+    """The kind of host sync ``func(*args)`` causes (``h2d ...``: a host-to-device copy of data
+    made on the host), or None."""
     name = getattr(func, "__name__", "")
     if name in ALWAYS_SYNC:
         if name == "repeat_interleave" and not any(isinstance(a, torch.Tensor) for a in args[1:2]):
@@ -58,18 +80,45 @@ def sync_kind(func: object, args: tuple) -> str | None:
         return name
     if name == "where" and len(args) == 1:
         return "where(cond)"
-    if name in ("__getitem__", "__setitem__") and len(args) >= 2 and _has_bool_index(args[1]):
-        return f"{name}[bool mask]"
+    if name in HOST_DATA and args and not isinstance(args[0], torch.Tensor):
+        return f"h2d {name}"
+    if name in ("__getitem__", "__setitem__") and len(args) >= 2:
+        if _has_bool_index(args[1]):
+            return f"{name}[bool mask]"
+        if _has_host_index(args[1]):
+            return f"h2d {name}[host index]"
+    return None
+
+
+def _march_cause(frame: object) -> str | None:
+    """Where march is behind a call: the innermost frame in a ``march/`` file, or a method of a
+    class defined in march (an mjlab method a march term inherits), up to the caller's frame."""
+    while frame is not None:
+        name = frame.f_code.co_filename
+        if name.endswith(ENV_FILE):
+            return None  # mjlab's env step / reset itself: what called it is not the cause
+        if name.startswith(MARCH_DIR) and not name.endswith(
+            TRANSPARENT.get(frame.f_code.co_name, "?")
+        ):
+            return f"{name[len(str(ROOT)) + 1 :]}:{frame.f_lineno}"
+        if name.startswith(TESTS_DIR):
+            return None
+        owner = frame.f_locals.get("self")
+        if owner is not None and type(owner).__module__.startswith("march."):
+            return f"{type(owner).__name__} ({Path(name).name}:{frame.f_lineno})"
+        frame = frame.f_back
     return None
 
 
 class SyncCounter(TorchFunctionMode):
-    """Records ``(kind, file:line)`` of every host sync issued from march's own modules."""
+    """Records every host sync: ``hits`` those issued from a line of march's own modules
+    (``root``), ``every`` all of them as ``(kind, file:line, march cause or None)``."""
 
     def __init__(self, root: str = MARCH_DIR) -> None:
         super().__init__()
         self.root = root
         self.hits: list[tuple[str, str]] = []
+        self.every: list[tuple[str, str, str | None]] = []
 
     def __torch_function__(self, func, types, args=(), kwargs=None):
         kind = sync_kind(func, args)
@@ -77,10 +126,28 @@ class SyncCounter(TorchFunctionMode):
             frame = sys._getframe(1)
             while frame is not None and frame.f_code.co_filename.startswith(TORCH_DIR):
                 frame = frame.f_back
-            if frame is not None and frame.f_code.co_filename.startswith(self.root):
-                where = f"{frame.f_code.co_filename[len(str(ROOT)) + 1 :]}:{frame.f_lineno}"
-                self.hits.append((kind, where))
+            if frame is not None and not (kind.startswith("h2d") and WARP_WRAP in name_of(frame)):
+                name = frame.f_code.co_filename
+                where = f"{_short(name)}:{frame.f_lineno}"
+                self.every.append((kind, where, _march_cause(frame)))
+                if name.startswith(self.root):
+                    self.hits.append((kind, f"{name[len(str(ROOT)) + 1 :]}:{frame.f_lineno}"))
         return func(*args, **(kwargs or {}))
+
+    def march_caused(self) -> list[tuple[str, str, str | None]]:
+        return [h for h in self.every if h[2] is not None]
+
+
+def name_of(frame: object) -> str:
+    return frame.f_code.co_filename
+
+
+def _short(filename: str) -> str:
+    """A file name relative to the repository or to site-packages."""
+    if filename.startswith(str(ROOT)):
+        return filename[len(str(ROOT)) + 1 :]
+    _, _, rest = filename.partition("site-packages/")
+    return rest or filename
 
 
 SYNCING_SNIPPET = """
@@ -199,6 +266,23 @@ def test_episode_stats_window_over_many_random_steps():
 # ---------------------------------------------------------------------------------- real env
 
 
+def _count_env_steps(env, steps: int) -> dict[str, object]:
+    """Host syncs of ``steps`` env steps (random actions, then zeros) after a reset and one
+    step outside the count (lazy first-use set-ups)."""
+    gen = torch.Generator().manual_seed(0)
+    shape = (env.num_envs, env.action_manager.total_action_dim)
+    env.reset()
+    env.step(torch.zeros(shape))
+    resets = torch.zeros((), dtype=torch.long)
+    with torch.no_grad(), SyncCounter() as counter:
+        for i in range(steps):
+            # random actions (falls, resets, replans), then zeros (standing, touchdowns)
+            a = 2 * torch.rand(shape, generator=gen) - 1 if i < steps // 2 else torch.zeros(shape)
+            _, _, terminated, truncated, _ = env.step(a)
+            resets += (terminated | truncated).sum()
+    return {"counter": counter, "resets": int(resets)}
+
+
 def _steps_without_sync(reward: str, steps: int) -> dict[str, object]:
     from march.config.cli import load
     from march.env.build import make_env
@@ -206,40 +290,175 @@ def _steps_without_sync(reward: str, steps: int) -> dict[str, object]:
     cfg = load(["compute=smoke", f"reward={reward}", "dr=paper", "compute.num_envs=8"])
     env = make_env(cfg, "teacher")
     try:
-        gen = torch.Generator().manual_seed(0)
-        shape = (env.num_envs, env.action_manager.total_action_dim)
-        env.reset()
-        resets = 0
-        with torch.no_grad(), SyncCounter() as counter:
-            for i in range(steps):
-                # random actions (falls, resets, replans), then zeros (standing, touchdowns)
-                a = (
-                    2 * torch.rand(shape, generator=gen) - 1
-                    if i < steps // 2
-                    else torch.zeros(shape)
-                )
-                _, _, terminated, truncated, _ = env.step(a)
-                resets += int((terminated | truncated).sum())  # counted only under march/
-        replans = None
+        out = _count_env_steps(env, steps)
         if reward == "clf":
-            replans = int(env.command_manager.get_term("reference").replan_count.sum())
-        return {"hits": counter.hits, "resets": resets, "replans": replans}
+            out["replans"] = int(env.command_manager.get_term("reference").replan_count.sum())
+        return out
+    finally:
+        env.close()
+
+
+STEPS = 60
+
+
+@pytest.fixture(scope="module")
+def rough_syncs() -> int:
+    """Host syncs of mjlab's bare rough G1 over the same steps (8 envs)."""
+    from march.env.build import bare_env
+
+    env = bare_env("Mjlab-Velocity-Rough-Unitree-G1", 8, 0, "cpu")
+    try:
+        return len(_count_env_steps(env, STEPS)["counter"].every)
     finally:
         env.close()
 
 
 @pytest.mark.sim
-@pytest.mark.parametrize(
-    "reward",
-    [
-        "clf",
-        "modelfree",
-    ],
-)
-def test_env_steps_issue_no_host_sync_from_march(reward):
-    out = _steps_without_sync(reward, steps=60)
+@pytest.mark.parametrize("reward", ["clf", "modelfree"])
+def test_env_steps_issue_no_host_sync_from_march(reward, rough_syncs):
+    """Counted over every file: march's step syncs no more than bare rough's, and nothing that
+    syncs is march's (its code, or an mjlab method a march term inherits)."""
+    out = _steps_without_sync(reward, steps=STEPS)
+    counter = out["counter"]
     assert out["resets"] > 0  # the reset path (curriculum, DR events, replans) ran
     if reward == "clf":
         assert out["replans"] > 8  # more plans than the initial ones: resets, touchdowns
-    hits = out["hits"]
+    hits = counter.hits
     assert hits == [], f"{len(hits)} host syncs from march: {sorted(set(hits))[:20]}"
+    caused = counter.march_caused()
+    assert caused == [], f"{len(caused)} host syncs caused by march: {sorted(set(caused))[:20]}"
+    assert 0 < len(counter.every) <= rough_syncs, (len(counter.every), rough_syncs)
+
+
+def test_counter_traces_inherited_methods_and_host_data_to_march():
+    """A sync in a method a march class inherits is march's; a host list as an index or a
+    tensor made from host data is a host-to-device copy."""
+    ns: dict = {"torch": torch}
+    exec(
+        compile("class Base:\n def f(self, x):\n  return x.nonzero()\n", "/lib/base.py", "exec"), ns
+    )
+    Derived = type("Derived", (ns["Base"],), {"__module__": "march.example"})
+    x = torch.arange(4.0)
+    with SyncCounter() as counter:
+        Derived().f(x)
+        ns["Base"]().f(x)
+        exec(
+            compile("x[[0, 1]]\ntorch.tensor([1.0])\nx[torch.arange(2)]", "/lib/h.py", "exec"),
+            {"torch": torch, "x": x},
+        )
+    kinds = [(k, m is not None) for k, _, m in counter.every]
+    assert kinds == [
+        ("nonzero", True),
+        ("nonzero", False),
+        ("h2d __getitem__[host index]", False),
+        ("h2d tensor", False),
+    ]
+    assert counter.every[0][2].startswith("Derived (base.py:")
+
+
+@pytest.mark.sim
+def test_runners_per_step_code_issues_no_host_sync(tmp_path, monkeypatch):
+    """One teacher iteration's rollout and one distillation rollout: every host sync there is
+    mjlab's own (none traced to the runners, their fault handling, or a march term)."""
+    from march.config.cli import load
+    from march.env.build import make_env
+    from march.learn.distill import DistillRunner
+    from march.learn.metrics import MetricsLog
+    from march.learn.teacher import TeacherRunner
+
+    cfg = load(["compute=smoke", "compute.num_envs=8"])
+    env = make_env(cfg, "teacher")
+    log = MetricsLog(tmp_path, cfg.logger, "t")
+    try:
+        runner = TeacherRunner(env, cfg, tmp_path, log)
+        counter = SyncCounter()
+        seen: dict[str, int] = {}
+        real_returns = runner.alg.compute_returns
+
+        def compute_returns(obs):  # the rollout ends here; the update may read values
+            seen.setdefault("rollout", len(counter.every))
+            return real_returns(obs)
+
+        monkeypatch.setattr(runner.alg, "compute_returns", compute_returns)
+        with counter:
+            runner.learn(1)
+        rollout = counter.every[: seen["rollout"]]
+        caused = [h for h in rollout if h[2] is not None]
+        assert caused == [], f"teacher rollout: {sorted(set(caused))[:20]}"
+        assert len(rollout) >= cfg.teacher.num_steps_per_env  # mjlab's own, counted
+        teacher_payload = runner.payload()
+    finally:
+        log.close()
+        env.close()
+    env = make_env(cfg, "student")
+    log = MetricsLog(tmp_path / "s", cfg.logger, "s")
+    try:
+        runner = DistillRunner(env, cfg, tmp_path / "s", log, teacher_payload, "teacher.pt")
+        from march.learn.teacher import EpisodeStats
+
+        stats = EpisodeStats(env.num_envs, cfg.compute.device)
+        with SyncCounter() as counter:
+            _, reward = runner._rollout(stats)
+        caused = counter.march_caused()
+        assert caused == [], f"distillation rollout: {sorted(set(caused))[:20]}"
+        assert torch.isfinite(reward)  # the mean reward, on the device until the row is written
+    finally:
+        log.close()
+        env.close()
+
+
+@pytest.mark.sim
+def test_fault_resets_count_once_and_leave_finite_rows():
+    """A NaN in the physics state is reset in the same step by the ``nonfinite`` termination; a
+    NaN in an observation is zeroed now and the env reset at the next step; each counted once."""
+    import math
+
+    from march.config.cli import load
+    from march.env.build import make_env
+    from march.learn.faults import EnvFaults
+
+    cfg = load(["compute=smoke", "reward=modelfree", "compute.num_envs=4"])
+    env = make_env(cfg, "teacher")
+    try:
+        faults = EnvFaults(env)
+        zeros = torch.zeros(env.num_envs, env.action_manager.total_action_dim)
+        env.reset()
+        with torch.no_grad():
+            env.episode_length_buf[:] = 3
+            env.sim.data.qpos[1, 2] = math.nan
+            obs, reward, term, _, _ = env.step(zeros)
+            obs["actor"][2, 0] = math.nan
+            bad = faults.after_step(obs, reward, None)
+            assert bad.tolist() == [False, True, True, False]
+            assert bool(term[1]) and not bool(term[2])  # env 2 is ended by the runner only
+            assert int(env.episode_length_buf[1]) == 0  # reset in this step
+            assert float(obs["actor"][2].abs().sum()) == 0.0 and float(reward[1]) == 0.0
+            obs, reward, term, _, _ = env.step(zeros)
+            bad = faults.after_step(obs, reward, None)
+            assert bad.tolist() == [False, False, False, False]
+            assert term.tolist() == [False, False, True, False]  # the pending reset
+            assert int(env.episode_length_buf[2]) == 0
+            assert torch.isfinite(env.sim.data.qpos).all()
+        assert faults.pop() == 2 and faults.pop() == 0
+        # march's upright and foot_slip equal mjlab's (index kept on the device)
+        from mjlab.managers.reward_manager import RewardTermCfg
+        from mjlab.managers.scene_entity_config import SceneEntityCfg
+        from mjlab.tasks.velocity import mdp as vel_mdp
+
+        from march.env.rewards import foot_slip, upright
+
+        torso = SceneEntityCfg("robot", body_names=("torso_link",))
+        feet = SceneEntityCfg("robot", site_names=("left_foot", "right_foot"))
+        torso.resolve(env.scene)
+        feet.resolve(env.scene)
+        gen = torch.Generator().manual_seed(1)
+        mj_upright = vel_mdp.upright(RewardTermCfg(func=vel_mdp.upright, weight=1.0), env)
+        for _ in range(6):
+            env.step(2 * torch.rand(zeros.shape, generator=gen) - 1)
+            want = mj_upright(env, std=0.5, asset_cfg=torso)
+            assert torch.allclose(upright(env, 0.5, ("torso_link",)), want, atol=1e-6)
+            want = -vel_mdp.feet_slip(env, "feet_ground_contact", "twist", 0.05, feet)
+            got = foot_slip(env, "feet_ground_contact", "twist", 0.05, ("left_foot", "right_foot"))
+            assert torch.allclose(got, want, atol=1e-6)
+    finally:
+        env.close()

@@ -2,7 +2,8 @@
 
     python -m march.bench env [compute.num_envs=64] [bench.steps=40] [bench.warmup_random=30]
                               [bench.warmup_standing=5]
-                              [bench.profile_steps=20] [bench.rounds=8]
+                              [bench.profile_steps=20] [bench.op_steps=10] [bench.rounds=8]
+                              [bench.threads=1,2]
     python -m march.bench planner [compute.num_envs=64] [bench.steps=100]
 
 Both jobs compose the same config as ``march.train`` (Hydra ``key=value`` overrides). The
@@ -23,6 +24,7 @@ from __future__ import annotations
 import json
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 from march.bench.env_speed import bench_env
 from march.bench.harness import WORKLOADS
@@ -32,7 +34,8 @@ from march.config.cli import fail, run_tool
 USAGE = (
     "usage: python -m march.bench env|planner [compute.num_envs=64] [compute.device=...] "
     "[bench.steps=N] [bench.warmup=N] [bench.warmup_random=N] [bench.warmup_standing=N] "
-    "[bench.profile_steps=N] [bench.rounds=N] [key=value ...]"
+    "[bench.profile_steps=N] [bench.op_steps=N] [bench.rounds=N] [bench.threads=1,2] "
+    "[key=value ...]"
 )
 JOB_DEFAULTS: dict[str, dict[str, int]] = {
     "env": {
@@ -40,12 +43,16 @@ JOB_DEFAULTS: dict[str, dict[str, int]] = {
         "warmup_random": 30,
         "warmup_standing": 5,
         "profile_steps": 20,
+        "op_steps": 10,
         "rounds": 8,
     },
-    "planner": {"steps": 100, "warmup": 10, "profile_steps": 0, "rounds": 1},
+    "planner": {"steps": 100, "warmup": 10, "profile_steps": 0, "op_steps": 0, "rounds": 1},
 }
 """Per job: timed steps (env: per env and workload), untimed warm-up steps after each reset,
-steps of the instrumented profile pass (env only; 0 = none) and interleaved chunks. Sized for a
+steps of the instrumented profile pass (env only; 0 = none), steps of the op-counting pass (env
+only; 0 = none) and interleaved chunks. ``bench.threads=1,2`` (env only) times every listed torch
+thread count in the same interleaved rounds (default on CPU: 1 and 2, whatever
+``compute.torch_threads`` says; on CUDA the current count). Sized for a
 loaded 2-core machine at 64 envs (about 10 minutes)."""
 BENCH_MINIMUM = {
     "steps": 1,
@@ -53,16 +60,18 @@ BENCH_MINIMUM = {
     "warmup_random": 0,
     "warmup_standing": 0,
     "profile_steps": 0,
+    "op_steps": 0,
     "rounds": 1,
+    "threads": 1,
 }
 """Smallest value of each option; ``bench.warmup=N`` sets both workloads' warm-up."""
 
 
-def pop_bench_options(argv: Sequence[str]) -> tuple[list[str], dict[str, int]]:
+def pop_bench_options(argv: Sequence[str]) -> tuple[list[str], dict[str, Any]]:
     """Split ``bench.<option>=N`` off the overrides (they are not config keys); returns the
     remaining overrides and the options given (job defaults: :data:`JOB_DEFAULTS`)."""
     rest: list[str] = []
-    opts: dict[str, int] = {}
+    opts: dict[str, Any] = {}
     for arg in argv:
         if not arg.startswith("bench."):
             rest.append(arg)
@@ -72,16 +81,16 @@ def pop_bench_options(argv: Sequence[str]) -> tuple[list[str], dict[str, int]]:
             known = ", ".join(f"bench.{k}=N" for k in BENCH_MINIMUM)
             fail(f"unknown benchmark option {arg!r}; use {known}")
         try:
-            n = int(value)
+            ns = [int(v) for v in value.split(",")] if key == "threads" else [int(value)]
         except ValueError:
-            fail(f"{arg}: expected an integer")
-        if n < BENCH_MINIMUM[key]:
+            fail(f"{arg}: expected an integer" + (" list (1,2)" if key == "threads" else ""))
+        if min(ns) < BENCH_MINIMUM[key]:
             fail(f"{arg}: bench.{key} must be >= {BENCH_MINIMUM[key]}")
-        opts[key] = n
+        opts[key] = ns if key == "threads" else ns[0]
     return rest, opts
 
 
-def job_options(job: str, given: dict[str, int]) -> dict[str, int]:
+def job_options(job: str, given: dict[str, Any]) -> dict[str, Any]:
     """The job's defaults with the given options over them (``bench.warmup=N``: the warm-up of
     both env workloads, unless one is given by itself)."""
     opts = {**JOB_DEFAULTS.get(job, JOB_DEFAULTS["env"]), **given}

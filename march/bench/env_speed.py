@@ -34,6 +34,7 @@ import time
 from typing import Any
 
 from march.bench.harness import WORKLOADS, Actions, chunks, free, stdout_to_stderr, sync
+from march.bench.ops import count_ops
 from march.bench.profiler import profile_envs
 from march.config import MarchConfig
 
@@ -43,56 +44,109 @@ ENV_NAMES = ("march_teacher", "bare_rough", "bare_flat")
 
 
 def run_workload(
-    envs: dict[str, Any], workload: str, opts: dict[str, int], seed: int, device: str
+    envs: dict[str, Any], workload: str, opts: dict[str, Any], seed: int, device: str
 ) -> dict[str, Any]:
-    """Headline speed (interleaved rounds, no instrumentation) and profile of one workload."""
+    """Headline speed (interleaved rounds over thread counts and envs, no instrumentation),
+    compute ops per step and the profile of one workload."""
     import torch
 
     steps, rounds = opts["steps"], min(opts["rounds"], opts["steps"])
+    threads = list(opts.get("threads") or [torch.get_num_threads()])
     warmup = opts[f"warmup_{workload}"]
     acts = {name: Actions(env, workload, seed) for name, env in envs.items()}
     resets = {name: torch.zeros((), device=device) for name in envs}
-    elapsed = dict.fromkeys(envs, 0.0)
+    elapsed = {t: dict.fromkeys(envs, 0.0) for t in threads}
     with torch.no_grad():
         for name, env in envs.items():
             env.reset()
             for _ in range(warmup):
                 env.step(acts[name]())
         for chunk in chunks(steps, rounds):
-            for name, env in envs.items():
-                sync(device)
-                t0 = time.perf_counter()
-                for _ in range(chunk):
-                    env.step(acts[name]())
-                    resets[name] += env.reset_buf.sum()  # on device: no sync in the loop
-                sync(device)
-                elapsed[name] += time.perf_counter() - t0
-    sps = {name: env.num_envs * steps / elapsed[name] for name, env in envs.items()}
+            for t in threads:
+                torch.set_num_threads(t)
+                for name, env in envs.items():
+                    sync(device)
+                    t0 = time.perf_counter()
+                    for _ in range(chunk):
+                        env.step(acts[name]())
+                        resets[name] += env.reset_buf.sum()  # on device: no sync in the loop
+                    sync(device)
+                    elapsed[t][name] += time.perf_counter() - t0
+    by_threads: dict[str, Any] = {}
+    for t in threads:
+        sps = {name: env.num_envs * steps / elapsed[t][name] for name, env in envs.items()}
+        by_threads[str(t)] = {
+            "steps_per_s": sps,
+            "ms_per_step": {name: 1e3 * elapsed[t][name] / steps for name in envs},
+            "ratio_march_vs_rough": sps["march_teacher"] / sps["bare_rough"],
+            "ratio_march_vs_flat": sps["march_teacher"] / sps["bare_flat"],
+        }
+    first = by_threads[str(threads[0])]
     out: dict[str, Any] = {
-        "steps_per_s": sps,
-        "ms_per_step": {name: 1e3 * elapsed[name] / steps for name in envs},
+        **first,
         "resets_per_env_step": {
-            name: float(resets[name]) / (env.num_envs * steps) for name, env in envs.items()
+            name: float(resets[name]) / (env.num_envs * steps * len(threads))
+            for name, env in envs.items()
         },
-        "ratio_march_vs_rough": sps["march_teacher"] / sps["bare_rough"],
-        "ratio_march_vs_flat": sps["march_teacher"] / sps["bare_flat"],
+        "by_threads": by_threads,
     }
+    torch.set_num_threads(threads[0])
+    if opts["op_steps"] > 0:
+        counted = {
+            name: count_ops(env, workload, opts["op_steps"], warmup, seed)
+            for name, env in envs.items()
+        }
+        out["ops_per_step"] = {name: c["ops_per_step"] for name, c in counted.items()}
+        out["top_ops"] = {name: c["top_ops"] for name, c in counted.items()}
+        out["ratio_ops_march_vs_rough"] = (
+            out["ops_per_step"]["march_teacher"] / out["ops_per_step"]["bare_rough"]
+        )
+        print(
+            f"[bench] {workload} compute ops per step: "
+            + ", ".join(f"{n} {v:.0f}" for n, v in out["ops_per_step"].items())
+            + f"; march/rough {out['ratio_ops_march_vs_rough']:.2f}",
+            flush=True,
+        )
     if opts["profile_steps"] > 0:
-        out["profile"] = profile_envs(envs, workload, opts, seed)
-        for name, prof in out["profile"].items():
-            top = ", ".join(f"{c} {v:.1f}" for c, v in prof["categories_ms"].items())
-            print(f"[bench] {workload} profile {name} (ms/step): {top}", flush=True)
-        march = out["profile"]["march_teacher"]
-        if march["planner_ms_per_step"] is not None:
-            march["planner_share"] = march["planner_ms_per_step"] / march["profiled_ms_per_step"]
+        for t in threads:
+            torch.set_num_threads(t)
+            profile = profile_envs(envs, workload, opts, seed)
+            nonphys = {
+                name: prof["profiled_ms_per_step"] - prof["categories_ms"].get("physics", 0.0)
+                for name, prof in profile.items()
+            }
+            by_threads[str(t)]["profile"] = profile
+            by_threads[str(t)]["nonphysics_ms_per_step"] = nonphys
+            by_threads[str(t)]["ratio_nonphysics_march_vs_rough"] = (
+                nonphys["march_teacher"] / nonphys["bare_rough"]
+            )
+            for name, prof in profile.items():
+                top = ", ".join(f"{c} {v:.1f}" for c, v in prof["categories_ms"].items())
+                print(f"[bench] {workload} {t} thr profile {name} (ms/step): {top}", flush=True)
+            march = profile["march_teacher"]
+            if march["planner_ms_per_step"] is not None:
+                march["planner_share"] = (
+                    march["planner_ms_per_step"] / march["profiled_ms_per_step"]
+                )
+        torch.set_num_threads(threads[0])
+        for key in ("profile", "nonphysics_ms_per_step", "ratio_nonphysics_march_vs_rough"):
+            out[key] = first[key]
+        out["worst_ratio_nonphysics_march_vs_rough"] = max(
+            b["ratio_nonphysics_march_vs_rough"] for b in by_threads.values()
+        )
     return out
 
 
-def bench_env(cfg: MarchConfig, opts: dict[str, int]) -> dict[str, Any]:
+def bench_env(cfg: MarchConfig, opts: dict[str, Any]) -> dict[str, Any]:
+    import torch
+
     from march.env.build import bare_env, make_env
 
     device = cfg.compute.device
     n, seed = cfg.compute.num_envs, cfg.seed
+    if not opts.get("threads"):
+        on_gpu = device.startswith("cuda")
+        opts = {**opts, "threads": [torch.get_num_threads()] if on_gpu else [1, 2]}
     builders = {
         "march_teacher": lambda: make_env(cfg, "teacher"),
         "bare_rough": lambda: bare_env(ROUGH_TASK, n, seed, device),
@@ -112,13 +166,13 @@ def bench_env(cfg: MarchConfig, opts: dict[str, int]) -> dict[str, Any]:
                 build[name] = round(time.perf_counter() - t0, 2)
             for workload in WORKLOADS:
                 results[workload] = run_workload(envs, workload, opts, cfg.seed, device)
-                sps = results[workload]["steps_per_s"]
-                print(
-                    f"[bench] {workload}: "
-                    + ", ".join(f"{n} {v:.1f}" for n, v in sps.items())
-                    + f" env steps/s; march/rough {results[workload]['ratio_march_vs_rough']:.2f}",
-                    flush=True,
-                )
+                for t, b in results[workload]["by_threads"].items():
+                    print(
+                        f"[bench] {workload}, {t} thread(s): "
+                        + ", ".join(f"{n} {v:.1f}" for n, v in b["steps_per_s"].items())
+                        + f" env steps/s; march/rough {b['ratio_march_vs_rough']:.2f}",
+                        flush=True,
+                    )
     finally:
         for env in envs.values():
             env.close()
@@ -134,6 +188,7 @@ def bench_env(cfg: MarchConfig, opts: dict[str, int]) -> dict[str, Any]:
         "profile_steps": opts["profile_steps"],
         "rounds": opts["rounds"],
         "torch_threads": _threads(),
+        "threads": [int(t) for t in results["random"]["by_threads"]],
         "reward": cfg.reward.name,
         "dr": cfg.dr.name,
         # The random workload's numbers at the top level (the keys of earlier versions).
@@ -148,7 +203,14 @@ def bench_env(cfg: MarchConfig, opts: dict[str, int]) -> dict[str, Any]:
         "ratio_march_vs_rough_by_workload": {
             w: results[w]["ratio_march_vs_rough"] for w in WORKLOADS
         },
-        "min_ratio_march_vs_rough": min(results[w]["ratio_march_vs_rough"] for w in WORKLOADS),
+        "ratio_march_vs_rough_by_threads": {
+            t: {w: results[w]["by_threads"][t]["ratio_march_vs_rough"] for w in WORKLOADS}
+            for t in results["random"]["by_threads"]
+        },
+        "min_ratio_march_vs_rough": min(
+            b["ratio_march_vs_rough"] for w in WORKLOADS for b in results[w]["by_threads"].values()
+        ),
+        **_headline(results),
         "workloads": results,
         "build_s": build,
         "units": "steps_per_s = env steps (num_envs x control steps) per wall second, timed "
@@ -159,6 +221,27 @@ def bench_env(cfg: MarchConfig, opts: dict[str, int]) -> dict[str, Any]:
         "= the footstep planner's time in that pass (random workload); resets_per_env_step = "
         "episode ends per env and control step",
     }
+
+
+def _headline(results: dict[str, Any]) -> dict[str, Any]:
+    """Ops and non-physics time per step by workload and env, and march / bare rough's worst
+    (largest) ratio over the workloads (and thread counts, for the time)."""
+    out: dict[str, Any] = {}
+    if all("ops_per_step" in results[w] for w in WORKLOADS):
+        out["ops_per_step"] = {w: results[w]["ops_per_step"] for w in WORKLOADS}
+        out["ratio_ops_march_vs_rough"] = max(
+            results[w]["ratio_ops_march_vs_rough"] for w in WORKLOADS
+        )
+    if all("nonphysics_ms_per_step" in results[w] for w in WORKLOADS):
+        out["nonphysics_ms_per_step"] = {w: results[w]["nonphysics_ms_per_step"] for w in WORKLOADS}
+        out["nonphysics_ms_per_step_by_threads"] = {
+            w: {t: b["nonphysics_ms_per_step"] for t, b in results[w]["by_threads"].items()}
+            for w in WORKLOADS
+        }
+        out["ratio_nonphysics_march_vs_rough"] = max(
+            results[w]["worst_ratio_nonphysics_march_vs_rough"] for w in WORKLOADS
+        )
+    return out
 
 
 def _threads() -> int:

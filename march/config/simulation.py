@@ -42,6 +42,9 @@ class ComputeCfg:
     """Parallel environments for evaluation rollouts (at most eval.num_rollouts are used)."""
     torch_threads: int = 0
     """torch.set_num_threads on CPU; 0 keeps torch's default."""
+    compile_math: bool = False
+    """``torch.compile`` the step reference (HLIP CoM, swing Bezier, pelvis: pure torch) in the
+    ``reference`` command term. Off by default: measured not to win (README, "Speed")."""
 
     def __post_init__(self) -> None:
         _check_shapes("compute", self)

@@ -40,6 +40,7 @@ from mjlab.utils.noise import UniformNoiseCfg as Unoise
 from march.config import MarchConfig
 from march.env.course import course_levels
 from march.env.depth import corrupt, depth_camera_cfg, normalize
+from march.env.nonfinite import nonfinite_termination
 from march.env.observations import reference_obs, stones_ahead, terrain_height_scan
 from march.env.randomization import apply_dr
 from march.env.reference_command import ReferenceCommandCfg
@@ -201,7 +202,8 @@ Nothing privileged (the planner's verdict, a training-only rule) ends an evaluat
 
 def _terminations(cfg: MarchConfig, purpose: str) -> dict[str, TerminationTermCfg]:
     """Training: time_out, tilt, pelvis_too_low, foot_too_low (both rewards); planner_infeasible
-    when the env runs the planner (reward=clf). Evaluation: only ``EVAL_TERMINATIONS``."""
+    when the env runs the planner (reward=clf); nonfinite (fault resets). Evaluation: only
+    ``EVAL_TERMINATIONS``."""
     terms = {
         "time_out": TerminationTermCfg(func=envs_mdp.time_out, time_out=True),
         "tilt": TerminationTermCfg(
@@ -219,6 +221,9 @@ def _terminations(cfg: MarchConfig, purpose: str) -> dict[str, TerminationTermCf
         terms["planner_infeasible"] = TerminationTermCfg(
             func=planner_infeasible, params={"command_name": REFERENCE_COMMAND}
         )
+    # Training: a non-finite env is reset by mjlab's own reset, without a host sync
+    # (march.env.nonfinite; the runners' fault handling relies on it).
+    terms["nonfinite"] = TerminationTermCfg(func=nonfinite_termination)
     if purpose == "eval":  # an allow-list: a termination added for training never leaks in
         terms = {k: v for k, v in terms.items() if k in EVAL_TERMINATIONS}
     return terms
@@ -333,7 +338,9 @@ def build_env_cfg(
 
     if needs_reference(cfg.reward):
         # Stage (1): planner + HLIP/Bezier reference + CLF state (march.env.reference_command).
-        env_cfg.commands[REFERENCE_COMMAND] = ReferenceCommandCfg(planner_seed=cfg.seed)
+        env_cfg.commands[REFERENCE_COMMAND] = ReferenceCommandCfg(
+            planner_seed=cfg.seed, compile_math=cfg.compute.compile_math
+        )
 
     env_cfg.observations = _observations(cfg, purpose)
     env_cfg.rewards = reward_terms(cfg.reward)

@@ -55,22 +55,20 @@ Decisions (documented here once; the README repeats them)
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field
+from dataclasses import fields
 from typing import TYPE_CHECKING
 
 import torch
-from mjlab.managers.command_manager import CommandTerm, CommandTermCfg
+from mjlab.managers.command_manager import CommandTerm
 
-from march.clf.lyapunov import CLF_OUTPUT_NAMES, UPPER_BODY_JOINTS, ClfCfg, ClfModel, VHistory
+from march.clf.lyapunov import CLF_OUTPUT_NAMES, UPPER_BODY_JOINTS, ClfModel, VHistory
 from march.env.clf_outputs import body_masses, measured_outputs, stance_foot_state, yaw_rotate
 from march.env.course import foothold_table
+from march.env.reference_cfg import ReferenceCommandCfg
 from march.env.replan_queue import ReplanQueue
 from march.env.step_cache import site_pos
-from march.reference.hlip import HlipCfg
-from march.reference.planner import Plan, PlannerCfg, course_frame, plan_footsteps
+from march.reference.planner import Plan, course_frame, plan_footsteps
 from march.reference.trajectory import (
-    ReferenceCfg,
     StepState,
     angle_mask,
     reference_at,
@@ -84,6 +82,8 @@ if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv
 
 NUM_OUTPUTS = len(CLF_OUTPUT_NAMES)
+STEP_FIELDS = tuple(f.name for f in fields(StepState))
+"""The per-env tensors of a ``StepState``."""
 
 
 class ReferenceCommand(CommandTerm):
@@ -115,6 +115,7 @@ class ReferenceCommand(CommandTerm):
         """The single CLF model of this env (P from CARE, built once)."""
         self.v_history = VHistory(e, env.step_dt, device=dev)
         self.mask = angle_mask(len(UPPER_BODY_JOINTS), device=dev)
+        self._reference_at = compiled_reference() if cfg.compile_math else reference_at
         self.generator = torch.Generator(device=dev)
         self.generator.manual_seed(int(cfg.planner_seed if cfg.planner_seed is not None else 0))
 
@@ -166,9 +167,10 @@ class ReferenceCommand(CommandTerm):
         self.y_ref_pos = torch.zeros(e, NUM_OUTPUTS, device=dev)
         """(E, 29) reference outputs at the current tau (CLF_OUTPUT_NAMES order)."""
         self.y_ref_vel = torch.zeros(e, NUM_OUTPUTS, device=dev)
-        self.y_sim_pos = torch.zeros(e, NUM_OUTPUTS, device=dev)
-        """(E, 29) measured outputs (refreshed with y_ref)."""
-        self.y_sim_vel = torch.zeros(e, NUM_OUTPUTS, device=dev)
+        self._y_sim: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._next_ref: tuple[tuple[int, int], torch.Tensor, torch.Tensor] | None = None
+        """y_ref at tau + step_dt from the refresh (the next :meth:`clf_state`'s) and its key."""
+        self._step_version = 0
         self.v = torch.zeros(e, device=dev)
         """(E,) CLF value V of the last env step (see :meth:`clf_state`)."""
         self.vdot = torch.zeros(e, device=dev)
@@ -185,10 +187,25 @@ class ReferenceCommand(CommandTerm):
         return self.observation()
 
     def compute(self, dt: float | torch.Tensor, env_ids: torch.Tensor | None = None) -> None:
+        """mjlab's ``CommandTerm.compute`` without its resampling timer: this term never
+        resamples on time (``resampling_time_range`` is 1e9 s), and the timer's
+        ``(time_left <= 0).nonzero()`` would be a host sync per step."""
         self._dt = dt  # _update_command advances tau by it (per env on the auto-reset path)
-        super().compute(dt, env_ids)
+        self._update_command(env_ids)
 
-    def _update_metrics(self) -> None:
+    def reset(self, env_ids: torch.Tensor | slice | None) -> dict[str, torch.Tensor]:
+        """mjlab's ``CommandTerm.reset`` with the episode metrics kept on the device (0-d
+        tensors, not ``.item()``: no host sync per reset)."""
+        assert isinstance(env_ids, torch.Tensor)
+        extras = {}
+        for name, value in self.metrics.items():
+            extras[name] = value[env_ids].mean()
+            value[env_ids] = 0.0
+        self.command_counter[env_ids] = 0
+        self._resample(env_ids)
+        return extras
+
+    def _update_metrics(self) -> None:  # counted where they happen (_update_command)
         pass
 
     def _resample_command(self, env_ids: torch.Tensor) -> None:
@@ -204,6 +221,7 @@ class ReferenceCommand(CommandTerm):
         self.footholds.goal_distance[env_ids] = fh.goal_distance
         self.footholds.course_length[env_ids] = fh.course_length
         self.v_history.reset(env_ids)
+        self._step_version += 1
         self.tau[env_ids] = 0.0
         self.plan_feasible[env_ids] = True
 
@@ -218,6 +236,7 @@ class ReferenceCommand(CommandTerm):
             active = torch.zeros(e, dtype=torch.bool, device=self.device)
             active[env_ids] = True
         self.step_switched &= ~active
+        self._step_version += 1
         self.tau += active * self._dt  # dt: a float, or per env on mjlab's auto-reset path
 
         resets = self.queue.take_resets()
@@ -329,20 +348,7 @@ class ReferenceCommand(CommandTerm):
             keep = apply.view(-1, *([1] * (value.dim() - 1)))
             target[env_ids] = torch.where(keep, value.to(target.dtype), target[env_ids])
 
-        for name in (
-            "stance_pos",
-            "stance_is_left",
-            "swing_start",
-            "target",
-            "next_target",
-            "duration",
-            "next_duration",
-            "yaw0",
-            "yaw_rate",
-            "axis",
-            "ramp",
-            "ramp_from",
-        ):
+        for name in STEP_FIELDS:
             put(getattr(self.step, name), getattr(st, name))
         put(self.stance_anchor, stance)
         put(self.plan_footholds, plan.footholds)
@@ -351,6 +357,7 @@ class ReferenceCommand(CommandTerm):
         put(self.plan_stalled, plan.stalled)
         put(self.tau, torch.zeros_like(self.tau[env_ids]))
         put(self.step_switched, torch.ones_like(apply))
+        self._step_version += 1
         self.replan_count[env_ids] += apply.long()
         switched = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
         switched[env_ids] = apply
@@ -361,7 +368,7 @@ class ReferenceCommand(CommandTerm):
 
     def reference(self, tau: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(E, 29) reference positions and velocities at time ``tau`` into the current step."""
-        ref = reference_at(
+        ref = self._reference_at(
             self.step, tau, self.cfg.reference, self.cfg.hlip, num_upper=len(UPPER_BODY_JOINTS)
         )
         return ref.flatten()
@@ -392,9 +399,43 @@ class ReferenceCommand(CommandTerm):
             self._env, self.cfg.foot_sites, self.cfg.entity_name, self.stance_is_left
         )
 
+    @property
+    def y_sim_pos(self) -> torch.Tensor:
+        """(E, 29) measured outputs at the last refresh (computed when first asked for: the
+        step itself only needs y_sim against V, in :meth:`clf_state`)."""
+        if self._y_sim is None:
+            self._y_sim = self.measured()
+        return self._y_sim[0]
+
+    @property
+    def y_sim_vel(self) -> torch.Tensor:
+        return self._y_sim[1] if self._y_sim is not None else (self.y_sim_pos, self._y_sim[1])[1]
+
+    def _ref_key(self) -> tuple[int, int]:
+        """Changes with the term's counter (updates, replans, resets) and with tau's version
+        (any in-place write; an inference-mode tensor has none: the counter alone)."""
+        version = -1 if self.tau.is_inference() else self.tau._version
+        return (version, self._step_version)
+
     def _refresh_outputs(self) -> None:
-        self.y_ref_pos, self.y_ref_vel = self.reference(self.tau)
-        self.y_sim_pos, self.y_sim_vel = self.measured()
+        """y_ref at tau (the observation) and at tau + step_dt (the next step's V) in one
+        batched reference call; y_sim on demand."""
+        e = self.num_envs
+        st = self.step
+        both = StepState(
+            **{
+                name: None if getattr(st, name) is None else torch.cat([getattr(st, name)] * 2)
+                for name in STEP_FIELDS
+            }
+        )
+        tau = torch.cat([self.tau, self.tau + self._env.step_dt])
+        ref = self._reference_at(
+            both, tau, self.cfg.reference, self.cfg.hlip, num_upper=len(UPPER_BODY_JOINTS)
+        )
+        pos, vel = ref.flatten()
+        self.y_ref_pos, self.y_ref_vel = pos[:e], vel[:e]
+        self._next_ref = (self._ref_key(), pos[e:], vel[e:])
+        self._y_sim = None
 
     def clf_state(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(V, dV/dt, valid), each (E,), for the current env step; computed once per step.
@@ -405,7 +446,11 @@ class ReferenceCommand(CommandTerm):
         step = int(self._env.common_step_counter)
         if step != self._v_step:
             self._v_step = step
-            ref_pos, ref_vel = self.reference(self.tau + self._env.step_dt)
+            cached = self._next_ref
+            if cached is not None and cached[0] == self._ref_key():
+                ref_pos, ref_vel = cached[1], cached[2]
+            else:
+                ref_pos, ref_vel = self.reference(self.tau + self._env.step_dt)
             sim_pos, sim_vel = self.measured()
             eta = tracking_error(sim_pos, ref_pos, self.mask)
             self.v = self.clf.value(eta, sim_vel - ref_vel)
@@ -438,54 +483,14 @@ class ReferenceCommand(CommandTerm):
         return torch.cat([pos, vel, feet, phase], dim=-1)
 
 
-@dataclass(kw_only=True)
-class ReferenceCommandCfg(CommandTermCfg):
-    """Configuration of the ``reference`` command term (defaults: author values, SPEC §2)."""
+_COMPILED: list = []
 
-    resampling_time_range: tuple[float, float] = (1.0e9, 1.0e9)
-    """Only episode resets restart the term (no timed resampling)."""
-    entity_name: str = "robot"
-    velocity_command: str = "twist"
-    """The velocity command term this one reads (v_D and the yaw rate)."""
-    contact_sensor: str = "feet_ground_contact"
-    foot_bodies: tuple[str, str] = ("left_ankle_roll_link", "right_ankle_roll_link")
-    """Contact-sensor primaries of the left and right foot."""
-    foot_sites: tuple[str, str] = ("left_foot", "right_foot")
-    """Sites tracked as the feet (sole level)."""
-    touchdown_min_fraction: float = 0.6
-    """A swing-foot contact counts as touchdown from tau >= this x planned duration (author 0.6)."""
-    touchdown_timeout_fraction: float = 1.5
-    """No touchdown by tau >= this x planned duration: restart the step from the same stance."""
-    stance_tie_m: float = 0.01
-    """At reset, feet within this along the course count as level (then the left foot stands)."""
-    replan_capacity_fraction: float = 0.125
-    """Share of the envs whose touchdown or timeout can be planned in one update (the fixed
-    size of the per-step planner batch; module docstring, "Replanning without host syncs")."""
-    replan_capacity_min: int = 8
-    """The per-update planner batch holds at least this many envs (or all of them)."""
-    planner_seed: int | None = 0
-    """Seed of the planner's random draws (torch.Generator on the env device)."""
-    planner: PlannerCfg = field(default_factory=PlannerCfg)
-    reference: ReferenceCfg = field(default_factory=ReferenceCfg)
-    hlip: HlipCfg = field(default_factory=HlipCfg)
-    clf: ClfCfg = field(default_factory=lambda: ClfCfg(dclf_clip=1.0))
-    """CLF outputs and normalisers; r_dclf clipped at -1 as in the author's code (module doc)."""
 
-    def capacity(self, num_envs: int) -> int:
-        """Envs planned per update for touchdowns and timeouts, for ``num_envs`` envs."""
-        by_share = math.ceil(self.replan_capacity_fraction * num_envs)
-        return min(num_envs, max(self.replan_capacity_min, by_share))
-
-    def build(self, env: ManagerBasedRlEnv) -> ReferenceCommand:
-        return ReferenceCommand(self, env)
-
-    def __post_init__(self) -> None:
-        if not 0.0 <= self.touchdown_min_fraction < self.touchdown_timeout_fraction:
-            raise ValueError("need 0 <= touchdown_min_fraction < touchdown_timeout_fraction")
-        if not 0.0 < self.replan_capacity_fraction <= 1.0 or self.replan_capacity_min < 1:
-            raise ValueError("need 0 < replan_capacity_fraction <= 1 and replan_capacity_min >= 1")
-        if not math.isclose(self.planner.step_width, self.hlip.step_width):
-            raise ValueError("planner.step_width and hlip.step_width must agree")
+def compiled_reference():
+    """:func:`reference_at` under ``torch.compile`` (dynamic batch size; made once per process)."""
+    if not _COMPILED:
+        _COMPILED.append(torch.compile(reference_at, dynamic=True))
+    return _COMPILED[0]
 
 
 def reference_term(env: ManagerBasedRlEnv, command_name: str = "reference") -> ReferenceCommand:

@@ -18,6 +18,7 @@ from mjlab.envs import mdp as envs_mdp
 from mjlab.managers.reward_manager import RewardTermCfg
 from mjlab.managers.scene_entity_config import SceneEntityCfg
 from mjlab.tasks.velocity import mdp as vel_mdp
+from mjlab.utils.lab_api.math import quat_apply_inverse
 
 from march.config import ConfigError, RewardCfg
 from march.env.course import CourseRuler
@@ -42,6 +43,45 @@ def _penalty(func: Callable[..., torch.Tensor]) -> Callable[..., torch.Tensor]:
 
     term.__name__ = f"penalty_{func.__name__}"
     return term
+
+
+def _ids(env: ManagerBasedRlEnv, kind: str, names: tuple[str, ...]) -> torch.Tensor:
+    """(n,) the robot's local body or site ids of ``names`` as a kept device tensor (mjlab's
+    ``SceneEntityCfg`` holds them as a list: an index copied to the device on every call)."""
+
+    def make() -> torch.Tensor:
+        robot = env.scene["robot"]
+        find = robot.find_bodies if kind == "body" else robot.find_sites
+        ids, _ = find(names, preserve_order=True)
+        return torch.tensor(ids, dtype=torch.long, device=env.device)
+
+    return constant(env, ("ids", kind, names), make)
+
+
+def upright(env: ManagerBasedRlEnv, std: float, body_names: tuple[str, ...]) -> torch.Tensor:
+    """mjlab's ``upright`` kernel exp(-|g_xy|^2 / std^2) of the body's projected gravity (flat
+    ground: no terrain sensors), with the body index kept on the device."""
+    robot = env.scene["robot"]
+    quat = robot.data.body_link_quat_w[:, _ids(env, "body", body_names)].squeeze(1)
+    gravity = quat_apply_inverse(quat, robot.data.gravity_vec_w)
+    return torch.exp(-gravity[:, :2].square().sum(1) / std**2)
+
+
+def foot_slip(
+    env: ManagerBasedRlEnv,
+    sensor_name: str,
+    command_name: str,
+    command_threshold: float,
+    site_names: tuple[str, ...],
+) -> torch.Tensor:
+    """-(mjlab's ``feet_slip``): sum over feet in contact of |v_xy|^2 while the command is
+    above the threshold, with the site index kept on the device (its log metric left out)."""
+    command = env.command_manager.get_command(command_name)
+    total = command[:, :2].norm(dim=1) + command[:, 2].abs()
+    active = (total > command_threshold).float()
+    in_contact = (env.scene[sensor_name].data.found > 0).float()
+    vel = env.scene["robot"].data.site_lin_vel_w[:, _ids(env, "site", site_names), :2]
+    return -(vel.norm(dim=-1).square() * in_contact).sum(1) * active
 
 
 def alive(env: ManagerBasedRlEnv) -> torch.Tensor:
@@ -174,23 +214,17 @@ def _builtin_specs() -> dict[str, tuple[Callable[..., torch.Tensor], dict[str, A
             {"command_name": "twist", "std": math.sqrt(0.5)},
         ),
         "forward_progress": (forward_progress, {"command_name": "twist"}),
-        "upright": (
-            vel_mdp.upright,
-            {
-                "std": math.sqrt(0.2),
-                "asset_cfg": SceneEntityCfg("robot", body_names=("torso_link",)),
-            },
-        ),
+        "upright": (upright, {"std": math.sqrt(0.2), "body_names": ("torso_link",)}),
         "torque": (torque_l2, {}),
         "joint_limits": (_penalty(envs_mdp.joint_pos_limits), {}),
         "action_rate": (_penalty(envs_mdp.action_rate_l2), {}),
         "foot_slip": (
-            _penalty(vel_mdp.feet_slip),
+            foot_slip,
             {
                 "sensor_name": "feet_ground_contact",
                 "command_name": "twist",
                 "command_threshold": 0.05,
-                "asset_cfg": SceneEntityCfg("robot", site_names=FOOT_SITES),
+                "site_names": FOOT_SITES,
             },
         ),
         "body_ang_vel": (

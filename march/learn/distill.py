@@ -244,9 +244,11 @@ class DistillRunner:
         return True
 
     @torch.no_grad()
-    def _rollout(self, stats: EpisodeStats) -> tuple[list[tuple[torch.Tensor, ...]], float]:
+    def _rollout(self, stats: EpisodeStats) -> tuple[list[tuple[torch.Tensor, ...]], torch.Tensor]:
+        """The iteration's steps and the mean teacher reward per step (0-d, on the device: the
+        caller reads it once per iteration)."""
         steps = []
-        reward_sum = 0.0
+        reward_sum = torch.zeros((), device=self.device)
         obs = self.obs
         self.student.eval()
         for _ in range(self.cfg.distill.num_steps_per_env):
@@ -261,10 +263,9 @@ class DistillRunner:
             obs, reward, terminated, truncated, _ = self.env.step(actions)
             done = terminated | truncated
             bad = self.faults.after_step(obs, reward, bad_actions)
-            if bad is not None:
-                done = done | bad  # reset for a NaN or inf: that episode ends here
+            done = done | bad  # a NaN or inf: that episode ends here
             stats.step(reward, done, before)
-            reward_sum += reward.mean().item()
+            reward_sum = reward_sum + reward.mean()  # on the device: read once below
         self.obs = obs
         return steps, reward_sum / len(steps)
 
@@ -324,7 +325,7 @@ class DistillRunner:
                 **distributed.mean_over_ranks({"mean_terrain_level": mean_terrain_level(self.env)}),
                 "loss": info.get("loss", float("nan")),
                 "action_error": info.get("action_error", float("nan")),
-                "teacher_reward": teacher_reward,
+                "teacher_reward": float(teacher_reward),
                 "mode_weight_0": info.get("mode_weight_0", float("nan")),
                 "mode_weight_1": info.get("mode_weight_1", float("nan")),
                 "nonfinite_resets": distributed.sum_over_ranks(self.faults.pop()),
@@ -337,7 +338,7 @@ class DistillRunner:
                     {
                         "loss": row["loss"],
                         "action_err": row["action_error"],
-                        "teacher_reward": teacher_reward,
+                        "teacher_reward": float(teacher_reward),
                         "ep_len": row["mean_episode_length"],
                     },
                 ),

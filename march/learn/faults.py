@@ -2,11 +2,12 @@
 
 Shared by the teacher (PPO) and distillation runners, which own their loops:
 
-- :class:`EnvFaults`: an env whose action, physics state (mjlab's ``NanGuard.detect_nans``: qpos,
-  qvel, qacc, warm start, sensors), observation or reward holds a NaN or inf after a step is reset
-  through mjlab's own partial reset (``env.reset(env_ids=...)``), its observation rows replaced by
-  the post-reset ones, its reward zeroed and its episode ended. The run goes on; the runners log
-  the count per iteration (``nonfinite_resets`` in metrics.csv).
+- :class:`EnvFaults`: an env whose physics state (mjlab's ``NanGuard.detect_nans``: qpos, qvel,
+  qacc, warm start, sensors) holds a NaN or inf is reset in the same step by the training envs'
+  ``nonfinite`` termination (mjlab's own reset of terminated envs; :mod:`march.env.nonfinite`);
+  one whose action, observation or reward does gets zeros there, its episode ends, and the
+  termination resets it in the next step. Its reward is zeroed either way. No host sync per
+  step (issue 20); the runners log the count per iteration (``nonfinite_resets``).
 - :class:`UpdateGuard`: an iteration whose update produced a non-finite loss or parameter is
   undone (networks, normalizers and optimizer restored from a copy taken just before it) and
   counted (``nonfinite_updates``). ``limit`` such iterations in a row raise
@@ -23,7 +24,7 @@ from typing import Any
 
 import torch
 
-from march.env.nonfinite import nonfinite_physics
+from march.env.nonfinite import fault_flags
 
 
 class NumericalFault(RuntimeError):
@@ -54,13 +55,16 @@ class EnvFaults:
     """Finds envs with a non-finite action, state, observation or reward and resets them.
 
     Per step: :meth:`actions` before ``env.step`` (non-finite rows are replaced by zeros, in place,
-    so that a stored copy of the action is finite too), :meth:`after_step` after it. One host
-    sync per step (``any()``); mjlab's step already syncs on its own resets.
+    so that a stored copy of the action is finite too), :meth:`after_step` after it. No host
+    sync per step: the resets are the env's ``nonfinite`` termination's, the count stays on the
+    device until :meth:`pop` (once per iteration).
     """
 
     def __init__(self, env: Any) -> None:
+        if "nonfinite" not in env.termination_manager.active_terms:
+            raise ValueError("EnvFaults needs a training env (its 'nonfinite' termination)")
         self.env = env  # the mjlab ManagerBasedRlEnv (unwrapped)
-        self.count = 0  # envs reset since the last pop()
+        self._count = torch.zeros((), dtype=torch.long, device=env.device)  # since pop()
         self.total = 0
 
     def actions(self, actions: torch.Tensor) -> torch.Tensor:
@@ -71,39 +75,42 @@ class EnvFaults:
 
     def after_step(
         self, obs: Any, reward: torch.Tensor, bad_actions: torch.Tensor | None = None
-    ) -> torch.Tensor | None:
-        """Reset the faulty envs after a step; ``obs`` (dict or TensorDict, edited in place) gets
-        their post-reset rows and ``reward`` zeros there. Returns the mask, None if none."""
+    ) -> torch.Tensor:
+        """Mark the faulty envs of a step, without a host sync; returns the (num_envs,) mask.
+
+        An env whose physics state went non-finite was already reset by this step's
+        ``nonfinite`` termination (:mod:`march.env.nonfinite`): its observation is the
+        post-reset one. Any other faulty env (a non-finite action, observation or reward) gets
+        zeros in its observation rows and its reward, its episode ends here (the runners treat
+        the mask as done) and the env is reset at the next step's termination check."""
         env = self.env
-        bad = nonfinite_physics(env) | nonfinite_rows(env.num_envs, obs, reward)
+        bad = nonfinite_rows(env.num_envs, obs, reward)
         if bad_actions is not None:
             bad = bad | bad_actions
-        if not bool(bad.any()):
-            return None
-        ids = bad.nonzero().squeeze(-1)
-        fresh, _ = env.reset(env_ids=ids)
-        _replace_rows(obs, fresh, bad)
+        flags = fault_flags(env)
+        flags.pending |= bad & ~flags.physics
+        _zero_rows(obs, bad)
+        bad = bad | flags.physics
         reward.masked_fill_(bad, 0.0)
-        n = int(ids.numel())
-        self.count += n
-        self.total += n
+        self._count += bad.sum()
         return bad
 
     def pop(self) -> int:
-        n, self.count = self.count, 0
+        """Envs reset for a fault since the last call (one host read, once per iteration)."""
+        n = int(self._count)
+        self._count.zero_()
+        self.total += n
         return n
 
 
-def _replace_rows(obs: Any, fresh: Mapping[str, Any], bad: torch.Tensor) -> None:
+def _zero_rows(obs: Any, bad: torch.Tensor) -> None:
     for k in list(obs.keys()):
-        if k not in fresh:
-            continue
-        old, new = obs[k], fresh[k]
+        old = obs[k]
         if hasattr(old, "keys"):
-            _replace_rows(old, new, bad)
+            _zero_rows(old, bad)
             continue
         mask = bad.view(-1, *([1] * (old.dim() - 1)))
-        obs[k] = torch.where(mask, new.to(old.device), old)
+        obs[k] = old.masked_fill(mask, 0.0)
 
 
 class UpdateGuard:

@@ -302,14 +302,18 @@ class TeacherRunner:
                     bad_actions = self.faults.actions(actions)  # the stored copy too
                     obs, rewards, dones, extras = self.env.step(actions.to(self.env.device))
                     bad = self.faults.after_step(obs, rewards, bad_actions)
-                    if bad is not None:
-                        # A reset env's episode ends here: no bootstrap from its faulty state,
-                        # and the stored log-probability is that of the action actually taken.
-                        dones = torch.where(bad, torch.ones_like(dones), dones)
-                        if "time_outs" in extras:
-                            extras["time_outs"] = extras["time_outs"] & ~bad
-                        tr = self.alg.transition
-                        tr.actions_log_prob = self.alg.actor.get_output_log_prob(tr.actions)
+                    # A faulty env's episode ends here: no bootstrap from its faulty state, and
+                    # the stored log-probability is that of the action actually taken (the
+                    # same as drawn where the action was finite). No host sync: masks only.
+                    dones = torch.where(bad, torch.ones_like(dones), dones)
+                    if "time_outs" in extras:
+                        extras["time_outs"] = extras["time_outs"] & ~bad
+                    tr = self.alg.transition
+                    tr.actions_log_prob = torch.where(
+                        bad_actions,
+                        self.alg.actor.get_output_log_prob(tr.actions),
+                        tr.actions_log_prob,
+                    )
                     obs, rewards, dones = (
                         obs.to(self.device),
                         rewards.to(self.device),

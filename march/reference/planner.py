@@ -61,9 +61,9 @@ from dataclasses import dataclass
 
 import torch
 
+from march.reference.step_cost import _EPS, _step_cost, goal_ahead, pace_terms
 from march.world.footholds import Footholds
 
-_EPS = 1e-5
 """Numerical slack [m] so that clamped footholds pass ``Footholds.contains`` in float32."""
 
 
@@ -106,6 +106,10 @@ class PlannerCfg:
     """M: stones per step nearest to the nominal foothold that are searched."""
     samples_per_stone: int = 4
     """K: random footholds drawn uniformly on each searched stone (with the hard margin)."""
+    fuse_candidates: bool | None = None
+    """Score both candidate groups in one call (fewer, larger ops: kernel launches count on a
+    GPU) or apart (smaller tensors: on CPU they stay under torch's intra-op grain size). The
+    same plans either way; None: fused on CUDA, apart elsewhere."""
     explore_temperature: float = 0.2
     """Softmin temperature of the randomised rollouts [cost units]; 0 makes all rollouts greedy."""
     infeasible_cost: float = 1.0e4
@@ -189,86 +193,6 @@ def locate_on_stones(footholds: Footholds, xy: torch.Tensor) -> tuple[torch.Tens
     return best.reshape(xy.shape[:-1]), z.reshape(xy.shape[:-1])
 
 
-Vec = tuple[torch.Tensor, torch.Tensor]
-"""A 2-D vector field as separate (x, y) tensors: elementwise ops on split components are several
-times faster on CPU than on (..., 2) tensors with broadcasting."""
-
-
-def _step_cost(
-    prev: Vec,
-    prev_z: torch.Tensor,
-    pos: Vec,
-    z: torch.Tensor,
-    clearance: torch.Tensor,
-    duration: torch.Tensor,
-    lands_left: torch.Tensor,
-    v_cmd: Vec,
-    axis: Vec,
-    lat: Vec,
-    pace: tuple[torch.Tensor, torch.Tensor],
-    cfg: PlannerCfg,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Cost and feasibility of one step; all inputs broadcast against each other.
-
-    ``clearance`` is the landing point's distance to the nearest edge of its stone (negative off
-    the stones). The velocity is measured between the feet's nominal lines (module docstring).
-    ``pace`` = (floor, scale) from :func:`pace_terms`: the progress term is
-    scale * max(0, floor - advance / dt).
-    """
-    sx, sy = pos[0] - prev[0], pos[1] - prev[1]
-    along = sx * axis[0] + sy * axis[1]
-    across = sx * lat[0] + sy * lat[1]
-    side = lands_left.to(sx.dtype) * 2.0 - 1.0
-    # Remove the nominal lateral offset (side * width along ``lat``) before dividing by dt.
-    across_v = (across - side * cfg.step_width) / duration
-    along_v = along / duration
-    cmd_along = v_cmd[0] * axis[0] + v_cmd[1] * axis[1]
-    cmd_across = v_cmd[0] * lat[0] + v_cmd[1] * lat[1]
-    c_vel = cfg.w_velocity * ((along_v - cmd_along) ** 2 + (across_v - cmd_across) ** 2)
-    pen = ((cfg.edge_clearance - clearance) / cfg.edge_clearance).clamp(0.0, 1.0)
-    c_edge = cfg.edge_cost * pen**2
-    c_time = cfg.w_time * (duration - cfg.nominal_duration) ** 2
-    floor, scale = pace
-    c_pace = (floor - along_v).clamp_(min=0.0).mul_(scale)
-    signed_lat = side * across
-    feasible = (
-        (clearance >= cfg.stone_margin - 2 * _EPS)
-        & (sx * sx + sy * sy <= cfg.max_step**2)
-        & (along >= cfg.min_step_forward)
-        & (signed_lat >= cfg.min_lateral)
-        & (signed_lat <= cfg.max_lateral)
-        & ((z - prev_z).abs() <= cfg.max_step_height)
-    )
-    # In place on the freshly allocated (full-shape) velocity cost: the summands only broadcast.
-    cost = c_vel.add_(c_edge).add_(c_time).add_(c_pace)
-    return torch.where(feasible, cost, cost + cfg.infeasible_cost), feasible
-
-
-def goal_ahead(footholds: Footholds, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """(E, ...) bool: points (x, y), each (E, ...), lie before the goal platform along the course."""
-    shape = (-1,) + (1,) * (x.dim() - 1)
-    ax, ay = (a.view(shape) for a in footholds.direction.unbind(-1))
-    sx, sy = (a.view(shape) for a in footholds.start_xy.unbind(-1))
-    along = (x - sx) * ax + (y - sy) * ay
-    return along < footholds.goal_distance.view(shape)
-
-
-def pace_terms(
-    cmd_along: torch.Tensor, ahead: torch.Tensor, cfg: PlannerCfg
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """(floor, scale) of the progress term, broadcast from the inputs.
-
-    floor = rho * max(v_D, 0) is the least step velocity along the course that keeps pace [m/s]
-    (an advance of rho v_D dt in a step of duration dt); scale = pace_cost / floor where the term
-    applies (goal ahead and floor > 0), else 0, so that scale * max(0, floor - advance / dt) is
-    pace_cost times the fraction of the required advance rho v_D dt that the step misses.
-    """
-    floor = cfg.pace_fraction * cmd_along.clamp(min=0.0)
-    on = ahead & (floor > 1e-6)
-    scale = torch.where(on, cfg.pace_cost / floor.clamp(min=1e-6), 0.0)
-    return floor, scale
-
-
 def evaluate_plan(
     start_xy: torch.Tensor,
     footholds_xy: torch.Tensor,
@@ -348,6 +272,7 @@ def plan_footsteps(
     m = min(cfg.num_candidate_stones, footholds.center.shape[1])
     k = cfg.samples_per_stone
     durations = cfg.duration_grid(device, dtype)
+    fuse = cfg.fuse_candidates if cfg.fuse_candidates is not None else device.type == "cuda"
     nt = durations.numel()
     axis, lat = course_frame(footholds)
     # Broadcast shapes: per env (E, 1, 1, 1, 1) against (E, R, T, M, C) candidates.
@@ -421,56 +346,48 @@ def plan_footsteps(
         invalid = ~valid[:, :, None, :, None]
         ahead = goal_ahead(footholds, px, py)  # (E, R): the progress term applies
         floor, scale = pace_terms(cmd_along, ahead.view(e, r, 1, 1, 1), cfg)
+        args = ((px.view(e, r, 1, 1, 1), py.view(e, r, 1, 1, 1)), pz.view(e, r, 1, 1, 1))
+        rest = (dur, left, (vx, vy), (ax, ay), (lx, ly), (floor, scale), cfg)
+        if fuse:
+            gx = torch.cat([ax_, bx_.expand(e, r, nt, m, k)], dim=-1)
+            gy = torch.cat([ay_, by_.expand(e, r, nt, m, k)], dim=-1)
+            groups = [(gx, gy)]
+        else:
+            groups = [(ax_, ay_), (bx_, by_)]
         scored = []
-        for gx, gy in ((ax_, ay_), (bx_, by_)):
-            clear = torch.minimum(h5x - (gx - c5x).abs(), h5y - (gy - c5y).abs())
-            cost, ok = _step_cost(
-                (px.view(e, r, 1, 1, 1), py.view(e, r, 1, 1, 1)),
-                pz.view(e, r, 1, 1, 1),
-                (gx, gy),
-                cz[:, :, None, :, None],
-                clear.masked_fill(invalid, -1.0),
-                dur,
-                left,
-                (vx, vy),
-                (ax, ay),
-                (lx, ly),
-                (floor, scale),
-                cfg,
+        for gx_, gy_ in groups:
+            clear = torch.minimum(h5x - (gx_ - c5x).abs(), h5y - (gy_ - c5y).abs())
+            cz5 = cz[:, :, None, :, None]
+            scored.append(
+                _step_cost(*args, (gx_, gy_), cz5, clear.masked_fill(invalid, -1.0), *rest)
             )
-            scored.append((cost, ok))
-        cost = torch.cat([scored[0][0], scored[1][0]], dim=-1)  # (E, R, T, M, C)
+        # (T, M, C) flattened, C = the 2 + K candidates: group (a) first, then group (b)
+        cost = scored[0][0] if fuse else torch.cat([scored[0][0], scored[1][0]], dim=-1)
         flat_cost = cost.reshape(e, r, -1)
         noisy = flat_cost + cfg.explore_temperature * gumbel[i]
         pick = noisy.argmin(-1, keepdim=True)  # (E, R, 1)
         total = total + flat_cost.gather(-1, pick)[..., 0]
-        # Decompose the flat (T, M, C) index and read the chosen point from its group.
-        c_idx = pick[..., 0] % (k + 2)
         m_idx = (pick[..., 0] // (k + 2)) % m
         t_idx = pick[..., 0] // (m * (k + 2))
-        in_a = (t_idx * m + m_idx) * 2 + c_idx.clamp(max=1)
-        in_b = m_idx * k + (c_idx - 2).clamp(min=0)
-        from_a = c_idx < 2
-        # Feasibility of the chosen candidate, read from its group (group b's does not depend
-        # on dt: (E, R, 1, M, K)), so the masks are never expanded and concatenated.
-        ok_a, ok_b = scored[0][1], scored[1][1]
-        ok_b = ok_b.expand(e, r, 1, m, k)
-        feasible = feasible & torch.where(
-            from_a,
-            ok_a.expand(e, r, nt, m, 2).reshape(e, r, -1).gather(-1, in_a[..., None])[..., 0],
-            ok_b.reshape(e, r, -1).gather(-1, in_b[..., None])[..., 0],
-        )
         prev_x, prev_y = px, py
-        px = torch.where(
-            from_a,
-            ax_.reshape(e, r, -1).gather(-1, in_a[..., None])[..., 0],
-            bx_.reshape(e, r, -1).gather(-1, in_b[..., None])[..., 0],
-        )
-        py = torch.where(
-            from_a,
-            ay_.reshape(e, r, -1).gather(-1, in_a[..., None])[..., 0],
-            by_.reshape(e, r, -1).gather(-1, in_b[..., None])[..., 0],
-        )
+        if fuse:
+            ok = scored[0][1].expand_as(cost).reshape(e, r, -1)
+            feasible = feasible & ok.gather(-1, pick)[..., 0]
+            px = gx.reshape(e, r, -1).gather(-1, pick)[..., 0]
+            py = gy.reshape(e, r, -1).gather(-1, pick)[..., 0]
+        else:  # read the chosen point from its group (b's masks are never expanded)
+            c_idx = pick[..., 0] % (k + 2)
+            in_a = ((t_idx * m + m_idx) * 2 + c_idx.clamp(max=1))[..., None]
+            in_b = (m_idx * k + (c_idx - 2).clamp(min=0))[..., None]
+            from_a = c_idx < 2
+
+            def take(a_: torch.Tensor, b_: torch.Tensor, in_a=in_a, in_b=in_b, from_a=from_a):
+                a_ = a_.expand(e, r, nt, m, 2).reshape(e, r, -1).gather(-1, in_a)[..., 0]
+                b_ = b_.expand(e, r, 1, m, k).reshape(e, r, -1).gather(-1, in_b)[..., 0]
+                return torch.where(from_a, a_, b_)
+
+            feasible = feasible & take(scored[0][1], scored[1][1])
+            px, py = take(ax_, bx_), take(ay_, by_)
         pz = cz.gather(-1, m_idx[..., None])[..., 0]
         # Stall flag: the chosen step falls short of the pace while the goal lies ahead.
         advance = (px - prev_x) * axis[:, 0:1] + (py - prev_y) * axis[:, 1:2]

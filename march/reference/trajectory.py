@@ -103,15 +103,27 @@ def bezier(ctrl: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Ten
     """
     deg = ctrl.shape[-2] - 1
     s = s[..., None]
-    k = torch.arange(deg + 1, device=ctrl.device, dtype=ctrl.dtype)
-    binom = torch.tensor([math.comb(deg, j) for j in range(deg + 1)], dtype=ctrl.dtype)
-    basis = binom.to(ctrl.device) * s**k * (1.0 - s) ** (deg - k)  # (..., K+1)
+    k, binom = _bezier_table(deg, ctrl.dtype, ctrl.device)
+    basis = binom * s**k * (1.0 - s) ** (deg - k)  # (..., K+1)
     pos = (basis[..., None] * ctrl).sum(-2)
     diff = deg * (ctrl[..., 1:, :] - ctrl[..., :-1, :])
-    km = k[:-1]
-    binom_d = torch.tensor([math.comb(deg - 1, j) for j in range(deg)], dtype=ctrl.dtype)
-    basis_d = binom_d.to(ctrl.device) * s**km * (1.0 - s) ** (deg - 1 - km)
+    km, binom_d = _bezier_table(deg - 1, ctrl.dtype, ctrl.device)
+    basis_d = binom_d * s**km * (1.0 - s) ** (deg - 1 - km)
     return pos, (basis_d[..., None] * diff).sum(-2)
+
+
+_BEZIER_TABLES: dict[tuple[int, torch.dtype, str], tuple[torch.Tensor, torch.Tensor]] = {}
+
+
+def _bezier_table(deg: int, dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, ...]:
+    """(deg+1,) exponents 0..deg and binomial coefficients C(deg, j), on ``device``: made once
+    per (degree, dtype, device), so a step copies nothing from the host."""
+    key = (deg, dtype, str(device))
+    if key not in _BEZIER_TABLES:
+        k = torch.arange(deg + 1, dtype=dtype, device=device)
+        binom = torch.tensor([math.comb(deg, j) for j in range(deg + 1)], dtype=dtype)
+        _BEZIER_TABLES[key] = (k, binom.to(device))
+    return _BEZIER_TABLES[key]
 
 
 def swing_trajectory(

@@ -1,0 +1,69 @@
+"""Compute ops per env step: what a GPU would launch as kernels, counted on any device.
+
+:class:`OpCounter` is a ``TorchDispatchMode``: it sees every aten op a torch call decomposes
+into, after autograd (the bench steps under ``no_grad``), and counts the ones that compute. Left
+out: view-only ops (``OpOverload.is_view``: ``view``, ``slice``, ``select``, ``expand``,
+``unsqueeze``, ``t``... they change metadata, launch nothing) and pure metadata queries
+(``aten.sym_*``, ``is_nonzero``-free shape lookups do not reach the dispatcher). Everything else
+counts one, so a GPU's eager step launches about this many kernels (a few CPU-only ops such as
+``_local_scalar_dense``, which is a device-to-host copy there, count too). mujoco-warp's physics
+is warp kernels, not torch ops, and is not counted (mjlab captures it in CUDA graphs on a GPU).
+
+:func:`count_ops` runs ``steps`` steps of one workload per env (after a reset and the workload's
+warm-up) under the counter and returns ops per step and the top ops by count.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from typing import Any
+
+from torch.utils._python_dispatch import TorchDispatchMode
+
+from march.bench.harness import Actions
+
+
+def is_compute(func: Any) -> bool:
+    """True for an aten op that launches work (not a view, not a metadata query)."""
+    if getattr(func, "is_view", False):
+        return False
+    name = getattr(func, "__name__", "")
+    return not name.startswith(("sym_", "_sym_"))
+
+
+class OpCounter(TorchDispatchMode):
+    """Counts compute ops by aten name (module docstring)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.counts: Counter[str] = Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        if is_compute(func):
+            self.counts[str(func.overloadpacket.__name__)] += 1
+        return func(*args, **(kwargs or {}))
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+
+def count_ops(env: Any, workload: str, steps: int, warmup: int, seed: int) -> dict[str, Any]:
+    """Compute ops per control step of ``env`` over ``steps`` steps of ``workload`` (the action
+    draw itself is left out: it is the harness's, not the env's)."""
+    import torch
+
+    acts = Actions(env, workload, seed)
+    counter = OpCounter()
+    with torch.no_grad():
+        env.reset()
+        for _ in range(warmup):
+            env.step(acts())
+        for _ in range(steps):
+            a = acts()
+            with counter:
+                env.step(a)
+    return {
+        "ops_per_step": counter.total / steps,
+        "top_ops": {k: round(v / steps, 1) for k, v in counter.counts.most_common(12)},
+    }

@@ -1,0 +1,128 @@
+"""Where a training step still waits for the GPU: one teacher iteration and one distillation
+rollout under ``torch.cuda.set_sync_debug_mode("warn")``, every synchronising call's source line
+written to a file (the ``syncs`` phase of ``scripts/gpu_check.py``).
+
+    python scripts/sync_check.py OUT_FILE [overrides ...]     # e.g. compute=gpu compute.num_envs=256
+
+One line per sync (tab-separated): the phase (``teacher`` or ``distill``), the innermost frame
+outside torch (``file:line``), the innermost frame in march's own code (or ``-``), and CUDA's
+message; then a count per source line at the end of the file. On a machine without CUDA the
+steps run the same and the file says that nothing could be recorded (the tests run it so).
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+import traceback
+import warnings
+from collections import Counter
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))  # run as a script: import this checkout's march
+
+
+def _frames() -> tuple[str, str]:
+    """(innermost frame outside torch, innermost frame in march/) of the current stack."""
+    outside, march = "-", "-"
+    for fr in reversed(traceback.extract_stack()[:-3]):
+        name = fr.filename
+        if "/torch/" in name or "warnings.py" in name or name == __file__:
+            continue
+        if outside == "-":
+            outside = f"{_short(name)}:{fr.lineno}"
+        if "/march/" in name and march == "-":
+            march = f"{_short(name)}:{fr.lineno}"
+            break
+    return outside, march
+
+
+def _short(name: str) -> str:
+    if name.startswith(str(ROOT)):
+        return name[len(str(ROOT)) + 1 :]
+    return name.partition("site-packages/")[2] or name
+
+
+def main(argv: list[str]) -> int:
+    import torch
+
+    from march.config.cli import load
+    from march.env.build import make_env
+    from march.learn.distill import DistillRunner
+    from march.learn.metrics import MetricsLog
+    from march.learn.teacher import EpisodeStats, TeacherRunner
+
+    out = Path(argv[0])
+    cfg = load(["logger=csv", *argv[1:]])
+    cuda = cfg.compute.device.startswith("cuda") and torch.cuda.is_available()
+    hits: list[tuple[str, str, str, str]] = []
+    phase = {"name": ""}
+
+    def record(message, category, filename, lineno, file=None, line=None):
+        text = str(message)
+        if "synchroniz" not in text:
+            return
+        outside, march = _frames()
+        hits.append((phase["name"], outside, march, text.splitlines()[0][:120]))
+
+    run = Path(tempfile.mkdtemp(prefix="sync_check_"))
+    env = make_env(cfg, "teacher")
+    log = MetricsLog(run, cfg.logger, "t")
+    old = warnings.showwarning
+    warnings.showwarning = record
+    warnings.simplefilter("always")
+    try:
+        teacher = TeacherRunner(env, cfg, run, log)
+        teacher.learn(1)  # warm-up: first-use set-ups, lazy buffers
+        real_update = teacher.alg.update
+
+        def update():  # the update may read values: only the rollout is recorded
+            if cuda:
+                torch.cuda.set_sync_debug_mode(0)
+            return real_update()
+
+        teacher.alg.update = update
+        phase["name"] = "teacher"
+        if cuda:
+            torch.cuda.set_sync_debug_mode("warn")
+        teacher.learn(2)
+        payload = teacher.payload()
+    finally:
+        if cuda:
+            torch.cuda.set_sync_debug_mode(0)
+        log.close()
+        env.close()
+    env = make_env(cfg, "student")
+    log = MetricsLog(run / "s", cfg.logger, "s")
+    try:
+        student = DistillRunner(env, cfg, run / "s", log, payload, "teacher.pt")
+        stats = EpisodeStats(env.num_envs, cfg.compute.device)
+        student._rollout(stats)  # warm-up
+        phase["name"] = "distill"
+        if cuda:
+            torch.cuda.synchronize()
+            torch.cuda.set_sync_debug_mode("warn")
+        student._rollout(stats)
+    finally:
+        if cuda:
+            torch.cuda.set_sync_debug_mode(0)
+        warnings.showwarning = old
+        log.close()
+        env.close()
+    with out.open("w") as f:
+        if not cuda:
+            f.write("# no CUDA device: torch.cuda.set_sync_debug_mode recorded nothing\n")
+        f.write("phase\tsource\tmarch\tmessage\n")
+        for h in hits:
+            f.write("\t".join(h) + "\n")
+        f.write("# count\tphase\tsource\tmarch\n")
+        for (ph, src, march), n in Counter((h[0], h[1], h[2]) for h in hits).most_common():
+            f.write(f"# {n}\t{ph}\t{src}\t{march}\n")
+    n_march = sum(1 for h in hits if h[2] != "-")
+    print(f"[syncs] {len(hits)} syncs recorded ({n_march} with march code on the stack) -> {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
