@@ -35,6 +35,7 @@ RESUME_SAFE = (
     "teacher.max_nonfinite_updates",
     "distill.max_nonfinite_updates",
     "compute.torch_threads",  # speed only
+    "compute.compile_math",  # speed only (agrees with eager within 1e-4)
     "figures",  # what the figures compare: labels only
     "compute.device",  # where it runs: every saved state is carried to the new device
     "logger",  # every logger.* field and the logger=<choice> group
