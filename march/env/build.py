@@ -45,7 +45,7 @@ from march.env.randomization import apply_dr
 from march.env.reference_command import ReferenceCommandCfg
 from march.env.rewards import REFERENCE_COMMAND, needs_reference, reward_terms
 from march.env.stone_terrain import terrain_entity_cfg
-from march.env.terminations import foot_too_low, planner_infeasible
+from march.env.terminations import foot_too_low, goal_reached, planner_infeasible
 
 PURPOSES = ("teacher", "student", "eval")
 COURSE_HEADING = 0.0
@@ -194,9 +194,12 @@ def pelvis_too_low(env: ManagerBasedRlEnv, min_height: float) -> torch.Tensor:
     return robot.data.root_link_pos_w[:, 2] - env.scene.env_origins[:, 2] < min_height
 
 
-EVAL_TERMINATIONS = ("time_out", "tilt", "pelvis_too_low", "foot_too_low")
-"""The evaluation protocol's terminations, the same for every arm: the time-out and the falls.
-Nothing privileged (the planner's verdict, a training-only rule) ends an evaluation rollout."""
+EVAL_TERMINATIONS = ("time_out", "goal_reached", "tilt", "pelvis_too_low", "foot_too_low")
+"""The evaluation protocol's terminations, the same for every arm: the time-out, the success
+(``goal_reached``: the pelvis over the goal platform, a ``time_out`` term so it is no failure)
+and the falls. Nothing privileged (the planner's verdict, a training-only rule) ends an
+evaluation rollout."""
+SUCCESS_TERMINATION = "goal_reached"
 
 
 def _terminations(cfg: MarchConfig, purpose: str) -> dict[str, TerminationTermCfg]:
@@ -220,7 +223,8 @@ def _terminations(cfg: MarchConfig, purpose: str) -> dict[str, TerminationTermCf
             func=planner_infeasible, params={"command_name": REFERENCE_COMMAND}
         )
     if purpose == "eval":  # an allow-list: a termination added for training never leaks in
-        terms = {k: v for k, v in terms.items() if k in EVAL_TERMINATIONS}
+        terms[SUCCESS_TERMINATION] = TerminationTermCfg(func=goal_reached, time_out=True)
+        terms = {k: terms[k] for k in EVAL_TERMINATIONS}
     return terms
 
 
@@ -241,15 +245,17 @@ def _reset_events(base: dict[str, EventTermCfg]) -> dict[str, EventTermCfg]:
 
 def _terrain(cfg: MarchConfig, purpose: str) -> TerrainEntityCfg:
     """Training: curriculum rows (levels) of stone courses (flat rows first for flat_first).
-    Evaluation: the stone courses of every level (whatever the training curriculum; the
-    evaluation assigns rollouts to cells, ``march.env.course.eval_cells``); or the hardware
-    course."""
+    Evaluation: held-out stone courses of every level, drawn with ``eval.terrain_seed``
+    (whatever the training curriculum; the evaluation assigns rollouts to cells,
+    ``march.env.course.eval_cells``); or the hardware course."""
     c = cfg.curriculum
     common = {"num_rows": c.num_levels, "num_cols": c.num_cols, "seed": c.terrain_seed}
     if purpose == "eval":
         if cfg.eval.course == "hardware":
             return terrain_entity_cfg("hardware", cfg.terrain, max_init_terrain_level=None)
-        return terrain_entity_cfg("stones", cfg.terrain, max_init_terrain_level=None, **common)
+        # Held-out courses: the evaluation's own seed, the same for every arm and curriculum.
+        held_out = {**common, "seed": cfg.eval.terrain_seed}
+        return terrain_entity_cfg("stones", cfg.terrain, max_init_terrain_level=None, **held_out)
     if c.name == "flat_first":
         return terrain_entity_cfg(
             "flat_first",
@@ -386,6 +392,23 @@ def make_env(
             flush=True,
         )
     return env
+
+
+def reseed_env(env: ManagerBasedRlEnv, seed: int) -> None:
+    """Seed the random states the env owns besides torch's global one, and drop work left
+    pending from before: each command term's own generator (the reference command's planner)
+    restarts from ``seed`` and the resets its replan queue has not planned yet are forgotten
+    (the caller resets every env next, which queues them again). Called at the start of every
+    evaluation, so that it runs the same whatever the env did before (built, trained beside,
+    evaluated)."""
+    for name in env.command_manager.active_terms:
+        term = env.command_manager.get_term(name)
+        generator = getattr(term, "generator", None)
+        if isinstance(generator, torch.Generator):
+            generator.manual_seed(int(seed))
+        queue = getattr(term, "queue", None)
+        if queue is not None:
+            queue.take_resets()
 
 
 def bare_env(task: str, num_envs: int, seed: int, device: str) -> ManagerBasedRlEnv:
