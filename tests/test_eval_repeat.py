@@ -82,7 +82,7 @@ def test_evaluations_of_one_clf_teacher_are_bit_identical(tmp_path):
             "stage=eval",
             "eval.policy=teacher",
             f"teacher_ckpt={ckpt}",
-            f"out={fresh}",
+            f"hydra.run.dir={fresh}",
         ],
         cwd=ROOT,
         capture_output=True,

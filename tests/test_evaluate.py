@@ -444,7 +444,9 @@ def test_goal_reachable_with_a_quarter_of_the_episode_to_spare(preset):
     for kind, seed in seeds.items():
         gen = "stones" if kind == "eval" else kind
         table = foothold_table(
-            terrain_generator_cfg(gen, course, num_rows=c.num_levels, num_cols=c.num_cols, seed=seed)
+            terrain_generator_cfg(
+                gen, course, num_rows=c.num_levels, num_cols=c.num_cols, seed=seed
+            )
         )
         assert float(table.goal_distance.max()) <= goal_max + 1e-5, kind
         # The success termination fires on the goal platform: it has room along the course.

@@ -395,12 +395,18 @@ def make_env(
 
 
 def reseed_env(env: ManagerBasedRlEnv, seed: int) -> None:
-    """Seed the random states the env owns besides torch's global one, and drop work left
-    pending from before: each command term's own generator (the reference command's planner)
-    restarts from ``seed`` and the resets its replan queue has not planned yet are forgotten
-    (the caller resets every env next, which queues them again). Called at the start of every
-    evaluation, so that it runs the same whatever the env did before (built, trained beside,
-    evaluated)."""
+    """Put the env's own state where a full reset makes it independent of the env's past, and
+    seed the random states it owns besides torch's global one. Called at the start of every
+    evaluation, before torch is seeded and every env is reset, so that an evaluation runs the
+    same whatever the env did before (just built, trained beside, evaluated):
+
+    - the observation buffers are initialised (one observation pass): mjlab's first pass after a
+      build pushes a frame and draws the delay lags where every later reset only backfills, so
+      a first evaluation would otherwise run one delay draw ahead of the others;
+    - each command term's own generator (the reference command's planner) restarts from
+      ``seed``, and the resets its replan queue has not planned yet are forgotten (the caller's
+      reset queues every env again)."""
+    env.observation_manager.compute(update_history=True)
     for name in env.command_manager.active_terms:
         term = env.command_manager.get_term(name)
         generator = getattr(term, "generator", None)

@@ -225,8 +225,8 @@ def rollout_metrics(
     total = 0
     seed = int(env.cfg.seed or 0)
     with _eval_rng(env):
+        reseed_env(env, seed)  # first: its observation pass may draw from torch's generator
         torch.manual_seed(seed)
-        reseed_env(env, seed)
         while total < num_rollouts:
             assign_eval_cells(env, total)
             per = _wave(env, policy, ruler)
