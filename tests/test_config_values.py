@@ -131,6 +131,7 @@ BAD: dict[str, list[Any]] = {
     "eval.course": ["moon"],
     "eval.command_vx": [0.0, 0.9],  # outside env.command_vx = [0.3, 0.8]
     "eval.policy": ["expert"],
+    "eval.terrain_seed": [-1, SEED_MAX + 1],
     "logger.name": ["mlflow"],
     "logger.project": [""],
     "dr.name": ["strong"],
@@ -181,6 +182,7 @@ FREE: dict[str, str] = {
 GOOD: dict[str, list[Any]] = {
     "seed": [0, SEED_MAX],
     "curriculum.terrain_seed": [SEED_MAX],
+    "eval.terrain_seed": [1, SEED_MAX],
     "curriculum.promote_fraction": [1.0, 0.31],  # above demote_fraction (0.3)
     "curriculum.demote_fraction": [0.0, 0.99],
     "curriculum.max_init_level": [9],
@@ -335,6 +337,8 @@ def test_float_tuples_refuse_nan(base):
         ((("depth.fovy", 1.5),), "dr.camera_fov_deg=2.0"),
         ((("student.log_std_max", -3.0),), "student.log_std_min=-3.0"),
         ((("curriculum.name", "flat_first"), ("curriculum.flat_levels", 0)), "flat_levels=0"),
+        # Held-out evaluation courses: the eval seed may not be the training terrain's.
+        ((("eval.terrain_seed", 0),), "eval.terrain_seed=0"),
     ],
 )
 def test_cross_field_domains(base, extra, needle):

@@ -33,6 +33,7 @@ def _traj(t_len: int, e: int = 1):
         "progress": torch.zeros(t_len, e),
         "goal_distance": torch.zeros(e),
         "dt": DT,
+        "reached": torch.zeros(t_len, e, dtype=torch.bool),
     }
 
 
@@ -69,23 +70,95 @@ def test_jerk_hand_values_on_all_axes():
 @pytest.mark.parametrize(
     ("reached", "terminated", "truncated", "success"),
     [
-        (True, False, True, 1.0),  # goal reached, time-out: success
-        (True, True, False, 0.0),  # goal reached, then fell: failure
-        (True, True, True, 0.0),  # a fall at the time-out step is still a fall
+        (True, False, True, 1.0),  # the success termination (the env reports it truncated too)
+        (True, False, False, 1.0),  # reached, whatever the env's truncated flag
+        (True, True, True, 0.0),  # the goal and a fall in one step count as a fall
         (False, False, True, 0.0),  # time-out short of the goal
-        (False, True, False, 0.0),
+        (False, True, False, 0.0),  # a fall
     ],
 )
 def test_success_rule(reached, terminated, truncated, success):
     tr = _traj(6)
     tr["goal_distance"][:] = 3.0
-    # Pre-step progress; the episode ends at step 3, so its distance is progress[3].
-    tr["progress"][:, 0] = torch.tensor([0.0, 1.0, 2.0, 3.5 if reached else 2.9, 0.0, 0.0])
+    # Pre-step progress; the episode ends at step 3.
+    tr["progress"][:, 0] = torch.tensor([0.0, 1.0, 2.0, 2.9, 0.0, 0.0])
+    tr["reached"][3, 0] = reached
     tr["terminated"][3, 0] = terminated
     tr["truncated"][3, 0] = truncated
     m = episode_metrics(**tr)
     assert m["success_rate"].item() == success
-    assert m["distance_m"].item() == pytest.approx(3.5 if reached else 2.9)
+    # A success is scored at the goal distance, anything else at its last pre-step progress.
+    assert m["distance_m"].item() == pytest.approx(3.0 if success else 2.9)
+    assert m["episode_steps"].item() == 4
+
+
+def _case(t_len: int = 8):
+    """One env, goal at 2.0 m, torque t + 1 and reward 2^t at step t, progress 0.5 t (pre-step),
+    angular velocity x = t^2 (second difference 2 everywhere: jerk (2/3) / dt^2)."""
+    tr = _traj(t_len)
+    steps = torch.arange(t_len, dtype=torch.float32)
+    tr["goal_distance"][:] = 2.0
+    tr["torque"][:, 0] = steps + 1
+    tr["reward"][:, 0] = 2.0**steps
+    tr["progress"][:, 0] = 0.5 * steps
+    tr["ang_vel"][:, 0, 0] = steps**2
+    return tr
+
+
+def test_reach_then_fall_off_is_a_success_measured_up_to_the_goal():
+    """The pelvis is over the goal platform after step 4 (success termination), and the same
+    robot would have stepped off the far end at step 6: the rollout ended at step 4."""
+    tr = _case()
+    tr["reached"][4, 0] = True
+    tr["truncated"][4, 0] = True
+    tr["terminated"][6, 0] = True  # the next episode's business: never looked at
+    m = episode_metrics(**tr)
+    assert m["success_rate"].item() == 1.0
+    assert m["distance_m"].item() == 2.0  # the goal distance
+    assert m["episode_steps"].item() == 5
+    assert m["reward"].item() == 1 + 2 + 4 + 8 + 16  # steps 0..4
+    assert m["abs_torque_nm"].item() == pytest.approx((1 + 2 + 3 + 4) / 4)  # live steps 0..3
+    assert m["abs_ang_jerk"].item() == pytest.approx((2.0 / 3.0) / DT**2)  # t = 2, 3
+
+
+def test_fall_before_reaching_is_a_failure():
+    tr = _case()
+    tr["terminated"][2, 0] = True  # fell at step 2 (progress 1.0 before it)
+    tr["reached"][5, 0] = True  # never happens in one episode: ignored
+    m = episode_metrics(**tr)
+    assert m["success_rate"].item() == 0.0
+    assert m["distance_m"].item() == 1.0
+    assert m["reward"].item() == 1 + 2 + 4
+    assert m["abs_torque_nm"].item() == pytest.approx((1 + 2) / 2)
+    assert math.isnan(m["abs_ang_jerk"].item())  # only 2 live steps
+
+
+def test_time_out_on_the_stones_is_a_failure():
+    tr = _case(4)  # progress 0, 0.5, 1.0, 1.5: the goal (2.0) never reached
+    tr["truncated"][3, 0] = True
+    m = episode_metrics(**tr)
+    assert m["success_rate"].item() == 0.0
+    assert m["distance_m"].item() == 1.5
+    assert m["reward"].item() == 1 + 2 + 4 + 8
+    assert m["abs_torque_nm"].item() == pytest.approx((1 + 2 + 3) / 3)
+    assert m["abs_ang_jerk"].item() == pytest.approx((2.0 / 3.0) / DT**2)  # t = 2 only
+
+
+def test_reach_at_the_last_step_is_a_success():
+    """The goal is reached on the time-out step itself (both terminations fire): a success."""
+    tr = _case(5)
+    tr["reached"][4, 0] = True
+    tr["truncated"][4, 0] = True
+    m = episode_metrics(**tr)
+    assert m["success_rate"].item() == 1.0
+    assert m["distance_m"].item() == 2.0
+    assert m["reward"].item() == 1 + 2 + 4 + 8 + 16
+    assert m["abs_torque_nm"].item() == pytest.approx((1 + 2 + 3 + 4) / 4)
+    # Still running at the horizon without a flag: timed out there, no success.
+    tr = _case(5)
+    m = episode_metrics(**tr)
+    assert m["success_rate"].item() == 0.0 and m["distance_m"].item() == 2.0
+    assert m["episode_steps"].item() == 5
 
 
 def test_return_counts_the_final_step_not_the_next_episode():
@@ -112,13 +185,14 @@ def test_short_rollouts_are_left_out_and_counted():
     assert math.isnan(m["abs_ang_jerk"][1])
     assert m["abs_torque_nm"][2].item() == pytest.approx(2.0)  # steps 0, 1, 2
     assert m["abs_ang_jerk"][2].item() == pytest.approx((1.0 / 3.0) / DT**2)  # t=2: 1-0+0
-    # Never ended: live steps 0..4, the last step is its time-out, success by distance 5 >= 4.
+    # Never ended: live steps 0..4, the last step is its time-out; no success termination, so
+    # no success, and the distance stops at the goal (4.0).
     assert m["abs_torque_nm"][3].item() == pytest.approx(3.0)
-    assert m["success_rate"][3].item() == 1.0 and m["distance_m"][3].item() == 5.0
+    assert m["success_rate"][3].item() == 0.0 and m["distance_m"][3].item() == 4.0
     s = summarise(m)
     assert (s["n_torque"], s["n_jerk"]) == (3, 3 - 1)
     assert s["mean_abs_torque_nm"] == pytest.approx((1.5 + 2.0 + 3.0) / 3)
-    assert s["mean_success_rate"] == pytest.approx(0.25)  # success counts every rollout
+    assert s["mean_success_rate"] == 0.0  # success counts every rollout
 
 
 def test_standard_errors_against_hand_values():
@@ -143,18 +217,23 @@ def _naive(tr) -> dict[str, list[float]]:
     t_len, e = tr["reward"].shape
     out: dict[str, list[float]] = {k: [] for k in EVAL_METRICS}
     for i in range(e):
-        done = [bool(tr["terminated"][t, i] or tr["truncated"][t, i]) for t in range(t_len)]
+        done = [
+            bool(tr["terminated"][t, i] or tr["truncated"][t, i] or tr["reached"][t, i])
+            for t in range(t_len)
+        ]
         end = done.index(True) if any(done) else t_len - 1
         fell = bool(tr["terminated"][end, i]) and any(done)
+        won = bool(tr["reached"][end, i]) and any(done) and not fell
         tq = [float(tr["torque"][t, i]) for t in range(end)]
         w = tr["ang_vel"][:, i].double()
         jk = [
             float((w[t] - 2 * w[t - 1] + w[t - 2]).abs().mean() / tr["dt"] ** 2)
             for t in range(2, end)
         ]
-        dist = float(tr["progress"][end, i])
+        goal = float(tr["goal_distance"][i])
+        dist = goal if won else min(float(tr["progress"][end, i]), goal)
         out["distance_m"].append(dist)
-        out["success_rate"].append(float(dist >= float(tr["goal_distance"][i]) and not fell))
+        out["success_rate"].append(float(won))
         out["abs_torque_nm"].append(sum(tq) / len(tq) if tq else math.nan)
         out["abs_ang_jerk"].append(sum(jk) / len(jk) if jk else math.nan)
         out["reward"].append(float(tr["reward"][: end + 1, i].double().sum()))
@@ -172,6 +251,7 @@ def test_matches_a_plain_loop_on_random_trajectories(seed):
     tr["reward"] = torch.randn(t_len, e, generator=g)
     tr["terminated"] = torch.rand(t_len, e, generator=g) < 0.05
     tr["truncated"] = torch.rand(t_len, e, generator=g) < 0.05
+    tr["reached"] = torch.rand(t_len, e, generator=g) < 0.05
     tr["progress"] = torch.rand(t_len, e, generator=g) * 6
     tr["goal_distance"] = torch.rand(e, generator=g) * 6
     got = episode_metrics(**tr)
@@ -229,7 +309,10 @@ def test_eval_env_is_the_same_for_every_arm():
         what = f"reward={reward} curriculum={curriculum}"
         assert tuple(env_cfg.terminations) == EVAL_TERMINATIONS, what
         assert env_cfg.terminations["time_out"].time_out
-        assert not any(t.time_out for k, t in env_cfg.terminations.items() if k != "time_out")
+        # The success termination is no failure (truncated, not terminated); the falls are.
+        assert env_cfg.terminations["goal_reached"].time_out
+        non_falls = ("time_out", "goal_reached")
+        assert not any(t.time_out for k, t in env_cfg.terminations.items() if k not in non_falls)
         # The same stone courses over every level, whatever the training curriculum.
         gen = env_cfg.scene.terrain.terrain_generator
         assert gen == ref.scene.terrain.terrain_generator, what
@@ -249,6 +332,87 @@ def test_eval_env_is_the_same_for_every_arm():
     # Training keeps the planner's verdict for clf: only evaluation drops it.
     clf_cfg = arms[("clf", "stones")][0]
     assert "planner_infeasible" in build_env_cfg(clf_cfg, "teacher").terminations
+    # ... and only evaluation ends an episode at the goal.
+    for cfg, _ in arms.values():
+        for purpose in ("teacher", "student"):
+            assert "goal_reached" not in build_env_cfg(cfg, purpose).terminations
+
+
+def _rects(table) -> set[tuple[float, ...]]:
+    """Every course of a foothold table as the set of its stone rectangles (top-face centre
+    relative to the spawn point, half sizes; in micrometres), one frozen set per course."""
+    courses = set()
+    for row in table.layouts:
+        for lay in row:
+            rel = lay.center - lay.origin
+            boxes = np.concatenate([rel, lay.half_size], axis=1)
+            courses.add(frozenset(tuple(np.round(b * 1e6).astype(int).tolist()) for b in boxes))
+    return courses
+
+
+@pytest.mark.parametrize("preset", ("smoke", "cpu"))
+def test_eval_courses_are_held_out_and_the_same_for_every_arm(preset):
+    """At the default seeds no evaluation course equals a training course of either curriculum
+    (compared as stone rectangles), and the clf / modelfree arms of both curricula evaluate on
+    identical foothold tables."""
+    from march.env.build import build_env_cfg
+    from march.env.stone_terrain import foothold_table
+
+    tables, training = {}, set()
+    for reward in ("clf", "modelfree"):
+        for curriculum in ("stones", "flat_first"):
+            cfg = load([f"compute={preset}", f"reward={reward}", f"curriculum={curriculum}"])
+            assert cfg.eval.terrain_seed != cfg.curriculum.terrain_seed
+            train_gen = build_env_cfg(cfg, "teacher").scene.terrain.terrain_generator
+            eval_gen = build_env_cfg(cfg, "eval").scene.terrain.terrain_generator
+            assert eval_gen.seed == cfg.eval.terrain_seed
+            training |= {c for c in _rects(foothold_table(train_gen)) if len(c) > 1}
+            tables[(reward, curriculum)] = foothold_table(eval_gen)
+    ref = tables[("clf", "stones")]
+    held_out = _rects(ref)
+    assert len(held_out) == ref.shape[0] * ref.shape[1]  # every eval course is different
+    assert not held_out & training
+    for key, table in tables.items():
+        for name in ("center", "half_size", "valid", "goal_distance", "origins", "direction"):
+            assert torch.equal(getattr(table, name), getattr(ref, name)), (key, name)
+
+
+def test_progress_is_measured_in_the_course_frame():
+    """A course laid out along +x and the same course rotated by 0.7 rad about its spawn point
+    (stones, direction and the walker's positions rotated alike) give the same progress, the
+    same goal verdict and the same clipping at both ends."""
+    from march.env.course import course_progress
+    from march.world.footholds import FootholdTable
+
+    course = CourseCfg(size=(6.0, 4.0))
+    lay = generate_course(0.5, course, np.random.default_rng(3))
+    origin = np.array([[[10.0, -2.0, 0.3]]])
+    straight = FootholdTable.from_layouts([[lay]], origin)
+    a = 0.7
+    rot = torch.tensor([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    turned = FootholdTable.from_layouts([[lay]], origin)
+    turned.center[..., :2] = turned.center[..., :2] @ rot.T
+    turned.direction = straight.direction @ rot.T
+    # A walker along the course and sideways: before the start, on it, past its end.
+    along = torch.tensor([-0.5, 0.0, 0.8, 1.7, lay.goal_distance, lay.course_length + 1.0])
+    side = torch.tensor([0.1, -0.3, 0.2, 0.0, 0.4, -0.2])
+    rel = torch.stack([along, side], -1)
+    o = torch.as_tensor(origin[0], dtype=torch.float32).expand(len(along), 3)
+    zeros = torch.zeros(len(along), dtype=torch.long)
+    pos_straight = torch.cat([o[:, :2] + rel, o[:, 2:]], -1)
+    pos_turned = torch.cat([o[:, :2] + rel @ rot.T, o[:, 2:]], -1)
+    p0 = course_progress(straight, zeros, zeros, o, pos_straight)
+    p1 = course_progress(turned, zeros, zeros, o, pos_turned)
+    want = along.clamp(0.0, lay.course_length)
+    torch.testing.assert_close(p0, want)
+    torch.testing.assert_close(p1, want, atol=1e-5, rtol=0)
+    goal = straight.goal_distance[0, 0]
+    assert torch.equal(p0 >= goal, p1 >= goal - 1e-6)
+    # The rotated course's own footholds say the same (the frame the planner plans in).
+    fh = turned.for_envs(zeros, zeros, o)
+    torch.testing.assert_close(fh.progress(pos_turned[:, :2]), want, atol=1e-5, rtol=0)
+    # Measured along world x instead, the rotated course would read short:
+    assert float(((pos_turned[3, :2] - o[3, :2]) * torch.tensor([1.0, 0.0])).sum()) < 1.5
 
 
 # ------------------------------------------------------------------ success is reachable
@@ -276,15 +440,20 @@ def test_goal_reachable_with_a_quarter_of_the_episode_to_spare(preset):
     # (flat_first) sits on it, and drawn courses come within one gap of it.
     assert _generated_goal_max(course) <= goal_max + 1e-9
     assert _generated_goal_max(course) >= goal_max - course.gap_hard[1]
-    for kind in ("stones", "flat_first"):
+    seeds = {"stones": c.terrain_seed, "flat_first": c.terrain_seed, "eval": cfg.eval.terrain_seed}
+    for kind, seed in seeds.items():
+        gen = "stones" if kind == "eval" else kind
         table = foothold_table(
             terrain_generator_cfg(
-                kind, course, num_rows=c.num_levels, num_cols=c.num_cols, seed=c.terrain_seed
+                gen, course, num_rows=c.num_levels, num_cols=c.num_cols, seed=seed
             )
         )
         assert float(table.goal_distance.max()) <= goal_max + 1e-5, kind
-    # Evaluation: walking at the evaluation command, the farthest goal is reached with at least
-    # 25% of the episode to spare.
+        # The success termination fires on the goal platform: it has room along the course.
+        assert float((table.course_length - table.goal_distance).min()) >= course.goal_length - 1e-5
+    # Evaluation (the held-out courses): walking at the evaluation command, the pelvis is over
+    # the farthest goal platform (the success termination) with at least 25% of the episode to
+    # spare; the rollout ends there, so walking on can no longer turn it into a failure.
     t_goal = goal_max / cfg.eval.command_vx
     assert t_goal <= 0.75 * cfg.eval.episode_length_s, (preset, t_goal)
     # Training: promotion (progress >= promote_fraction x goal distance within an episode) is

@@ -139,6 +139,11 @@ class MarchConfig:
                 f"[x, y] with x >= {length:.3g}: "
                 "the hardware course (eval.course=hardware) is that long",
             )
+        if self.eval.course == "stones" and self.eval.terrain_seed == self.curriculum.terrain_seed:
+            raise ConfigError(
+                f"eval.terrain_seed={self.eval.terrain_seed} equals curriculum.terrain_seed: "
+                "the evaluation would run on training courses; choose another seed"
+            )
         lo, hi = self.env.command_vx
         if not lo <= self.eval.command_vx <= hi:
             raise ConfigError(

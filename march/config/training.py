@@ -18,6 +18,7 @@ from march.config.checks import (
     IMAGE_ENCODERS,
     LOGGERS,
     RSL_ACTIVATIONS,
+    SEED_MAX,
     ConfigError,
     _at_least,
     _check_shapes,
@@ -264,10 +265,15 @@ class EvalCfg:
     """Episodes rolled out per evaluation; rollout i runs on course cell (level i mod L,
     column (i // L + i mod L) mod C), so every level gets num_rollouts / L rollouts (+-1)."""
     episode_length_s: float = 20.0
-    """Fixed episode length [s]; the farthest goal platform must be reached at command_vx
-    with >= 25% of it to spare (tests/test_evaluate.py checks every compute preset)."""
+    """Episode length [s] (a rollout ends earlier on reaching the goal platform or a fall); the
+    farthest goal platform must be reached at command_vx with >= 25% of it to spare
+    (tests/test_evaluate.py checks every compute preset)."""
     course: str = "stones"
     """stones (every level x column of the stone courses) or hardware (4 alternating stones)."""
+    terrain_seed: int = 104729
+    """Seed of the evaluation's stone courses: held out, the same for every arm and curriculum,
+    and unlike curriculum.terrain_seed (default 0) so that no evaluation course is a training
+    course (tests/test_evaluate.py compares the stone rectangles)."""
     command_vx: float = 0.7
     """Forward velocity command along the course during evaluation [m/s], inside
     env.command_vx: 0.7 m/s reaches the 12 m course's farthest goal (9.25 m) in 13.2 s of 20."""
@@ -283,6 +289,7 @@ class EvalCfg:
         _positive("eval", "num_rollouts", self.num_rollouts)
         _positive("eval", "episode_length_s", self.episode_length_s)
         _one_of("eval", "course", self.course, COURSES)
+        _interval("eval", "terrain_seed", self.terrain_seed, 0, SEED_MAX)
         _one_of("eval", "policy", self.policy, ("student", "teacher"))
         _positive("eval", "command_vx", self.command_vx)
 

@@ -46,7 +46,7 @@ from march.env.randomization import apply_dr
 from march.env.reference_command import ReferenceCommandCfg
 from march.env.rewards import REFERENCE_COMMAND, needs_reference, reward_terms
 from march.env.stone_terrain import terrain_entity_cfg
-from march.env.terminations import foot_too_low, planner_infeasible
+from march.env.terminations import foot_too_low, goal_reached, planner_infeasible
 
 PURPOSES = ("teacher", "student", "eval")
 COURSE_HEADING = 0.0
@@ -195,9 +195,12 @@ def pelvis_too_low(env: ManagerBasedRlEnv, min_height: float) -> torch.Tensor:
     return robot.data.root_link_pos_w[:, 2] - env.scene.env_origins[:, 2] < min_height
 
 
-EVAL_TERMINATIONS = ("time_out", "tilt", "pelvis_too_low", "foot_too_low")
-"""The evaluation protocol's terminations, the same for every arm: the time-out and the falls.
-Nothing privileged (the planner's verdict, a training-only rule) ends an evaluation rollout."""
+EVAL_TERMINATIONS = ("time_out", "goal_reached", "tilt", "pelvis_too_low", "foot_too_low")
+"""The evaluation protocol's terminations, the same for every arm: the time-out, the success
+(``goal_reached``: the pelvis over the goal platform, a ``time_out`` term so it is no failure)
+and the falls. Nothing privileged (the planner's verdict, a training-only rule) ends an
+evaluation rollout."""
+SUCCESS_TERMINATION = "goal_reached"
 
 
 def _terminations(cfg: MarchConfig, purpose: str) -> dict[str, TerminationTermCfg]:
@@ -225,7 +228,8 @@ def _terminations(cfg: MarchConfig, purpose: str) -> dict[str, TerminationTermCf
     # (march.env.nonfinite; the runners' fault handling relies on it).
     terms["nonfinite"] = TerminationTermCfg(func=nonfinite_termination)
     if purpose == "eval":  # an allow-list: a termination added for training never leaks in
-        terms = {k: v for k, v in terms.items() if k in EVAL_TERMINATIONS}
+        terms[SUCCESS_TERMINATION] = TerminationTermCfg(func=goal_reached, time_out=True)
+        terms = {k: terms[k] for k in EVAL_TERMINATIONS}
     return terms
 
 
@@ -246,15 +250,17 @@ def _reset_events(base: dict[str, EventTermCfg]) -> dict[str, EventTermCfg]:
 
 def _terrain(cfg: MarchConfig, purpose: str) -> TerrainEntityCfg:
     """Training: curriculum rows (levels) of stone courses (flat rows first for flat_first).
-    Evaluation: the stone courses of every level (whatever the training curriculum; the
-    evaluation assigns rollouts to cells, ``march.env.course.eval_cells``); or the hardware
-    course."""
+    Evaluation: held-out stone courses of every level, drawn with ``eval.terrain_seed``
+    (whatever the training curriculum; the evaluation assigns rollouts to cells,
+    ``march.env.course.eval_cells``); or the hardware course."""
     c = cfg.curriculum
     common = {"num_rows": c.num_levels, "num_cols": c.num_cols, "seed": c.terrain_seed}
     if purpose == "eval":
         if cfg.eval.course == "hardware":
             return terrain_entity_cfg("hardware", cfg.terrain, max_init_terrain_level=None)
-        return terrain_entity_cfg("stones", cfg.terrain, max_init_terrain_level=None, **common)
+        # Held-out courses: the evaluation's own seed, the same for every arm and curriculum.
+        held_out = {**common, "seed": cfg.eval.terrain_seed}
+        return terrain_entity_cfg("stones", cfg.terrain, max_init_terrain_level=None, **held_out)
     if c.name == "flat_first":
         return terrain_entity_cfg(
             "flat_first",
@@ -393,6 +399,29 @@ def make_env(
             flush=True,
         )
     return env
+
+
+def reseed_env(env: ManagerBasedRlEnv, seed: int) -> None:
+    """Put the env's own state where a full reset makes it independent of the env's past, and
+    seed the random states it owns besides torch's global one. Called at the start of every
+    evaluation, before torch is seeded and every env is reset, so that an evaluation runs the
+    same whatever the env did before (just built, trained beside, evaluated):
+
+    - the observation buffers are initialised (one observation pass): mjlab's first pass after a
+      build pushes a frame and draws the delay lags where every later reset only backfills, so
+      a first evaluation would otherwise run one delay draw ahead of the others;
+    - each command term's own generator (the reference command's planner) restarts from
+      ``seed``, and the resets its replan queue has not planned yet are forgotten (the caller's
+      reset queues every env again)."""
+    env.observation_manager.compute(update_history=True)
+    for name in env.command_manager.active_terms:
+        term = env.command_manager.get_term(name)
+        generator = getattr(term, "generator", None)
+        if isinstance(generator, torch.Generator):
+            generator.manual_seed(int(seed))
+        queue = getattr(term, "queue", None)
+        if queue is not None:
+            queue.take_resets()
 
 
 def bare_env(task: str, num_envs: int, seed: int, device: str) -> ManagerBasedRlEnv:

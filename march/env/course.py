@@ -2,9 +2,11 @@
 
 Every env's course comes from the foothold table of the compiled terrain
 (:func:`march.env.stone_terrain.terrain_foothold_table`), built once per env and cached on it. Progress
-is the pelvis displacement along the course direction (+x) from the env's spawn origin on the
-start platform, clipped to [0, course length]; the goal is reached when progress passes the
-start of the goal platform.
+is the pelvis displacement along the course's own direction (``FootholdTable.direction``, the
+``Footholds.direction`` the planner plans along; +x for the generated courses) from the env's
+spawn origin on the start platform, clipped to [0, course length]; the goal is reached when
+progress passes the start of the goal platform. The ruler, the level curriculum and the
+evaluation's success termination all measure with :func:`course_progress`.
 """
 
 from __future__ import annotations
@@ -25,6 +27,20 @@ def foothold_table(env: ManagerBasedRlEnv) -> FootholdTable:
         table = terrain_foothold_table(env.scene.terrain, device=env.device)
         setattr(env, _TABLE_ATTR, table)
     return table
+
+
+def course_progress(
+    table: FootholdTable,
+    levels: torch.Tensor,
+    types: torch.Tensor,
+    origins: torch.Tensor,
+    pos_w: torch.Tensor,
+) -> torch.Tensor:
+    """(E,) progress [m] of world points ``pos_w`` (E, >= 2) along the course of cell
+    (levels[e], types[e]) spawned at ``origins[e]`` (E, 3): the displacement from the spawn
+    point projected on the course direction, clipped to [0, course length]."""
+    along = ((pos_w[:, :2] - origins[:, :2]) * table.direction[levels, types]).sum(-1)
+    return torch.minimum(along.clamp(min=0.0), table.course_length[levels, types])
 
 
 class CourseRuler:
@@ -53,8 +69,9 @@ class CourseRuler:
 
     def progress(self) -> torch.Tensor:
         """(E,) pelvis progress along the course from the start [m], clipped to [0, length]."""
-        along = self.robot.data.root_link_pos_w[:, 0] - self.env.scene.env_origins[:, 0]
-        return torch.minimum(along.clamp(min=0.0), self.course_length)
+        levels, types = self._cell()
+        pos = self.robot.data.root_link_pos_w
+        return course_progress(self.table, levels, types, self.env.scene.env_origins, pos)
 
     def reached_goal(self, progress: torch.Tensor) -> torch.Tensor:
         return progress >= self.goal_distance
@@ -104,7 +121,8 @@ def course_levels(
     table = foothold_table(env)
     levels, types = terrain.terrain_levels[env_ids], terrain.terrain_types[env_ids]
     robot = env.scene["robot"]
-    along = robot.data.root_link_pos_w[env_ids, 0] - env.scene.env_origins[env_ids, 0]
+    pos, origins = robot.data.root_link_pos_w[env_ids], env.scene.env_origins[env_ids]
+    along = course_progress(table, levels, types, origins, pos)
     goal = table.goal_distance[levels, types]
     move_up = along >= promote_fraction * goal
     move_down = (along < demote_fraction * goal) & ~move_up

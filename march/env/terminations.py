@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from mjlab.envs import ManagerBasedRlEnv
 
+from march.env.course import CourseRuler
 from march.env.reference_command import reference_term
 from march.env.step_cache import site_pos
 
@@ -23,3 +24,12 @@ def planner_infeasible(env: ManagerBasedRlEnv, command_name: str = "reference") 
     """The footstep plan made at the last touchdown (or reset) violates a planner constraint:
     no safe sequence of N footholds exists from where the robot stands (reward=clf only)."""
     return ~reference_term(env, command_name).plan_feasible
+
+
+def goal_reached(env: ManagerBasedRlEnv) -> torch.Tensor:
+    """The pelvis is over the goal platform: its progress along the course (the course frame,
+    :func:`march.env.course.course_progress`) has passed the goal platform's start. The
+    evaluation env's success termination (``time_out=True``: not a failure); training never
+    ends an episode on it."""
+    ruler = CourseRuler(env)
+    return ruler.reached_goal(ruler.progress())

@@ -1,23 +1,29 @@
-"""Evaluation protocol (SPEC §2): fixed-length rollouts, honest metrics measured from them.
+"""Evaluation protocol (SPEC §2): rollouts that end at the goal, honest metrics measured from them.
 
 One protocol for every arm (reward=clf and reward=modelfree, either curriculum, teacher or
-student): the eval env (``march.env.build``, purpose ``eval``) ends a rollout only by time-out or
-a fall (``EVAL_TERMINATIONS``), runs the stone courses of every difficulty level with DR and depth
-corruption as in training and the forward command ``eval.command_vx`` along the course.
+student): the eval env (``march.env.build``, purpose ``eval``) ends a rollout by success (the
+first control step the pelvis is over the goal platform, ``goal_reached``), a fall, or the
+time-out (``EVAL_TERMINATIONS``); it runs held-out stone courses of every difficulty level
+(``eval.terrain_seed``, no training course of either curriculum) with DR and depth corruption
+as in training and the forward command ``eval.command_vx`` along the course.
 
 Sampling: rollout i runs on course cell (level i mod L, column (i // L + i mod L) mod C)
 (:func:`march.env.course.eval_cells`), in waves of ``env.num_envs``; each env contributes the
 first episode of its wave. Every level gets floor(n/L) or ceil(n/L) of the n rollouts, so the plain
-mean over rollouts weights the levels (nearly) equally. The torch random state is forked and
-seeded with the env's seed for every evaluation: its randomization starts from the same seed
-whatever training drew before it, and training's random stream is left untouched (a run with
-more or fewer evaluations trains the same way).
+mean over rollouts weights the levels (nearly) equally.
 
-Per rollout (one episode of ``eval.episode_length_s``, or until a fall), computed from per-step
-tensors by :func:`episode_metrics`:
-- ``distance_m``: pelvis progress along the course from the start, clipped at the course end,
-  taken at the last control step before the episode ended.
-- ``success_rate``: 1 if the goal was reached and the episode ended by time-out, not by a fall.
+Seeding: every evaluation starts from the run's seed (``env.cfg.seed``), whatever ran before
+it: torch's random state is forked and seeded (DR, noise, corruption), and every random state
+the env owns besides it (the planner's generator, :func:`march.env.build.reseed_env`) is reseeded
+and its pending work dropped. Two evaluations of one checkpoint give bit-identical rows, the
+first after the env is built as later ones, and training's random stream is left untouched.
+
+Per rollout (its env's first episode, up to its end: success, fall or time-out), computed from
+per-step tensors by :func:`episode_metrics`:
+- ``success_rate``: 1 if the episode ended by the success termination and not by a fall in the
+  same step (a fall and the goal in one step count as a fall).
+- ``distance_m``: pelvis progress along the course from the start: the goal distance for a
+  success, else the progress at the last control step before the episode ended.
 - ``abs_torque_nm``: mean over the episode's live control steps (those whose post-step state
   still belongs to it) and joints of |actuator force| [N m]; undefined with no live step.
 - ``abs_ang_jerk``: mean over live control steps and the three body axes of |d^2 omega / dt^2|,
@@ -40,6 +46,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from march.config import MarchConfig
+from march.env.build import SUCCESS_TERMINATION, reseed_env
 from march.env.course import CourseRuler, assign_eval_cells
 from march.learn.checkpoint import write_json_atomic
 from march.learn.distributed import eval_share, gather_rollouts
@@ -76,6 +83,7 @@ def episode_metrics(
     progress: torch.Tensor,
     goal_distance: torch.Tensor,
     dt: float,
+    reached: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
     """Per-rollout metrics of E rollouts from T recorded control steps (pure tensor arithmetic).
 
@@ -83,13 +91,16 @@ def episode_metrics(
     ``ang_vel[t]`` (E, 3) the pelvis angular velocity (body frame) read after ``env.step`` (the
     post-step state, which is the next episode's after an auto-reset); ``reward[t]``,
     ``terminated[t]``, ``truncated[t]`` as the step returned them; ``progress[t]`` the progress
-    along the course [m] read *before* the step. ``goal_distance`` (E,) [m]; ``dt`` the control
-    step [s].
+    along the course [m] read *before* the step; ``reached[t]`` the success termination of the
+    step (the pelvis over the goal platform in the post-step state; the env also reports it as
+    truncated). ``goal_distance`` (E,) [m]; ``dt`` the control step [s].
 
-    Rollout e is its env's first episode: steps 0..end_e, end_e the first step with terminated or
-    truncated (a rollout still running at step T-1 counts as timed out there). Its live steps are
-    t < end_e. Returns (E,) tensors keyed by ``EVAL_METRICS`` (torque NaN with no live step,
-    jerk with fewer than 3) and ``episode_steps`` (end_e + 1, the control steps of the episode).
+    Rollout e is its env's first episode: steps 0..end_e, end_e the first step with terminated,
+    truncated or reached (a rollout still running at step T-1 counts as timed out there). Its
+    live steps are t < end_e. Success: reached at end_e and not terminated (a fall) there.
+    Distance: the goal distance for a success, else ``progress[end_e]`` (never past the goal).
+    Returns (E,) tensors keyed by ``EVAL_METRICS`` (torque NaN with no live step, jerk with
+    fewer than 3) and ``episode_steps`` (end_e + 1, the control steps of the episode).
     """
     t_len, e = reward.shape
     if torque.shape != (t_len, e) or ang_vel.shape != (t_len, e, 3):
@@ -98,7 +109,11 @@ def episode_metrics(
             f"reward {(t_len, e)} (want (T, E) and (T, E, 3))"
         )
     dev = reward.device
-    done = terminated.bool() | truncated.bool()
+    if reached is None:
+        reached = torch.zeros_like(terminated, dtype=torch.bool)
+    if reached.shape != (t_len, e):
+        raise ValueError(f"reached {tuple(reached.shape)} does not match reward {(t_len, e)}")
+    done = terminated.bool() | truncated.bool() | reached.bool()
     ended = done.any(0)
     end = torch.where(
         ended, done.int().argmax(0), torch.full_like(ended, t_len - 1, dtype=torch.long)
@@ -122,12 +137,14 @@ def episode_metrics(
     abs_jerk = torch.where(n_jerk > 0, jerk_sum / n_jerk.clamp(min=1), nan)
 
     idx = end[None]
-    last_progress = progress.double().gather(0, idx).squeeze(0)
+    goal = goal_distance.double()
     fell = terminated.bool().gather(0, idx).squeeze(0) & ended
-    success = (last_progress >= goal_distance.double()) & ~fell
+    success = reached.bool().gather(0, idx).squeeze(0) & ended & ~fell
+    last_progress = torch.minimum(progress.double().gather(0, idx).squeeze(0), goal)
+    distance = torch.where(success, goal, last_progress)
     ret = torch.where(in_episode, reward.double(), 0.0).sum(0)
     return {
-        "distance_m": last_progress,
+        "distance_m": distance,
         "success_rate": success.double(),
         "abs_torque_nm": abs_torque,
         "abs_ang_jerk": abs_jerk,
@@ -158,9 +175,8 @@ def _wave(env: ManagerBasedRlEnv, policy: Policy, ruler: CourseRuler) -> dict[st
     robot = env.scene["robot"]
     obs, _ = env.reset()
     goal = ruler.goal_distance.clone()
-    rec: dict[str, list[torch.Tensor]] = {
-        k: [] for k in ("torque", "ang_vel", "reward", "terminated", "truncated", "progress")
-    }
+    keys = ("torque", "ang_vel", "reward", "terminated", "truncated", "progress", "reached")
+    rec: dict[str, list[torch.Tensor]] = {k: [] for k in keys}
     finished = torch.zeros(env.num_envs, dtype=torch.bool, device=env.device)
     for _ in range(int(env.max_episode_length) + 1):
         rec["progress"].append(ruler.progress())
@@ -171,6 +187,7 @@ def _wave(env: ManagerBasedRlEnv, policy: Policy, ruler: CourseRuler) -> dict[st
         rec["reward"].append(reward.clone())
         rec["terminated"].append(terminated.clone())
         rec["truncated"].append(truncated.clone())
+        rec["reached"].append(env.termination_manager.get_term(SUCCESS_TERMINATION).clone())
         finished |= terminated | truncated
         if finished.all():
             break
@@ -186,6 +203,7 @@ def _wave(env: ManagerBasedRlEnv, policy: Policy, ruler: CourseRuler) -> dict[st
         s["progress"],
         goal,
         env.step_dt,
+        s["reached"],
     )
 
 
@@ -207,8 +225,10 @@ def rollout_metrics(
     ruler = CourseRuler(env)
     collected: dict[str, list[torch.Tensor]] = {}
     total = 0
+    seed = int(env.cfg.seed or 0)
     with _eval_rng(env):
-        torch.manual_seed(int(env.cfg.seed or 0))
+        reseed_env(env, seed)  # first: its observation pass may draw from torch's generator
+        torch.manual_seed(seed)
         while total < num_rollouts:
             assign_eval_cells(env, first + total)
             per = _wave(env, policy, ruler)

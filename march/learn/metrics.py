@@ -34,6 +34,9 @@ METRIC_COLUMNS = (
     "mode_weight_1",
     "nonfinite_resets",  # envs reset for a NaN or inf in their state, observation, action or reward
     "nonfinite_updates",  # updates undone for a non-finite loss or parameter (march.learn.faults)
+    "touchdowns",  # teacher, reward=clf: touchdowns in the iteration (all envs)
+    "deferred_replans",  # teacher, reward=clf: env-steps a due touchdown / timeout waited for
+    # the planner batch in the iteration (>= the replans deferred; march.env.replan_queue)
 )
 
 EVAL_METRICS = ("distance_m", "success_rate", "abs_torque_nm", "abs_ang_jerk", "reward")

@@ -15,6 +15,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 from rsl_rl.algorithms import PPO
 from rsl_rl.models import MLPModel
@@ -161,6 +162,48 @@ class EpisodeStats:
         return {"mean_reward": ret, "mean_episode_length": length, "mean_distance_m": dist}
 
 
+def stagger_episodes(env: ManagerBasedRlEnv, seed: int, iteration: int) -> torch.Tensor:
+    """Start every env at a seeded random episode step in [0, max episode length), as rsl-rl's
+    ``init_at_random_ep_len``: time-outs, and with them resets and touchdowns, spread over the
+    episode instead of running in lockstep. The draw comes from its own generator seeded with
+    (seed, iteration), so a resumed run staggers the same way again and the global random
+    stream is untouched. Returns the new episode steps (E,)."""
+    buf = env.episode_length_buf
+    g = torch.Generator().manual_seed(
+        int(np.random.SeedSequence([seed, iteration]).generate_state(1, np.uint64)[0])
+    )
+    steps = torch.randint(0, int(env.max_episode_length), tuple(buf.shape), generator=g)
+    buf.copy_(steps.to(buf.device, buf.dtype))
+    return steps
+
+
+class ReplanReadout:
+    """Touchdowns and deferred replans of the reference command per iteration (reward=clf; NaN
+    without a reference command). Reads the term's counters once per iteration (a sync there
+    is fine); nothing on the per-step path."""
+
+    def __init__(self, env: ManagerBasedRlEnv) -> None:
+        manager = env.command_manager
+        self.term = manager.get_term("reference") if "reference" in manager.active_terms else None
+        self.last = self._totals()
+
+    def _totals(self) -> tuple[int, int]:
+        if self.term is None:
+            return 0, 0
+        sums = torch.stack(
+            [self.term.touchdown_count.sum(), self.term.queue.deferred_count.sum()]
+        ).tolist()
+        return int(sums[0]), int(sums[1])
+
+    def pop(self) -> dict[str, float]:
+        if self.term is None:
+            return {"touchdowns": float("nan"), "deferred_replans": float("nan")}
+        now = self._totals()
+        touchdowns, deferred = now[0] - self.last[0], now[1] - self.last[1]
+        self.last = now
+        return {"touchdowns": touchdowns, "deferred_replans": deferred}
+
+
 class TeacherRunner:
     """PPO on the teacher env; checkpoints in ``<run>/teacher/``; resumes by itself.
 
@@ -184,6 +227,7 @@ class TeacherRunner:
         self.env = rsl_rl_env(env)
         self.ruler = CourseRuler(env)
         self.ckpt_dir = run_dir / "teacher"
+        self.clocks_restored = False  # a resume put the episode clocks back (no re-stagger)
         self.train_cfg = ppo_train_cfg(cfg.teacher, distributed.ppo_multi_gpu())
         obs = self.env.get_observations()
         self.layout = teacher_layout(obs, self.env.num_actions)
@@ -259,6 +303,7 @@ class TeacherRunner:
         self.wall_s = float(payload.get("wall_s", 0.0))
         # Levels, episode clocks and random streams last: the env's reset here draws from them.
         notes = restore_state(self.env.unwrapped, payload, self.device, self.cfg.seed, where)
+        self.clocks_restored = "episode" in payload
         # N processes: rank r > 0 then takes its own torch stream (rank 0's was just restored).
         if note := distributed.restore_rank_states(payload):
             notes.append(note)
@@ -288,9 +333,15 @@ class TeacherRunner:
 
     def learn(self, total_iterations: int) -> Path:
         t = self.cfg.teacher
+        # Episodes start at seeded random steps: at the start, and after a resume from a
+        # checkpoint without episode clocks (an older one); clocks a resume restored go on as
+        # they were, so a resumed run continues the uninterrupted one's schedule.
+        if not self.clocks_restored:
+            stagger_episodes(self.env.unwrapped, self.cfg.seed, self.iteration)
         obs = self.env.get_observations().to(self.device)
         self.alg.train_mode()
         stats = EpisodeStats(self.env.num_envs, self.device)
+        replans = ReplanReadout(self.env.unwrapped)
         progress = Progress("teacher", self.iteration, total_iterations)
         last = distributed.agree(latest_checkpoint(self.ckpt_dir))  # rank 0 owns the files
         for it in range(self.iteration, total_iterations):
@@ -346,6 +397,7 @@ class TeacherRunner:
                 "action_std": self.alg.get_policy().output_std.mean().item(),
                 "nonfinite_resets": distributed.sum_over_ranks(self.faults.pop()),
                 "nonfinite_updates": self.guard.pop(),
+                **replans.pop(),
             }
             self.log.log(row)
             print(

@@ -108,10 +108,12 @@ def _footholds(
     goal: torch.Tensor,
     length: torch.Tensor,
     origins: torch.Tensor,
+    direction: torch.Tensor | None = None,
 ) -> Footholds:
     e = origins.shape[0]
-    direction = torch.zeros(e, 2, device=origins.device)
-    direction[:, 0] = 1.0
+    if direction is None:  # the generated courses run along +x
+        direction = torch.zeros(e, 2, device=origins.device)
+        direction[:, 0] = 1.0
     return Footholds(
         center=center_rel + origins[:, None, :],
         half_size=half,
@@ -173,6 +175,9 @@ class FootholdTable:
     """(R, C, 3) world spawn origin of each cell (equals TerrainEntity.terrain_origins)."""
     difficulty: torch.Tensor
     """(R, C) difficulty each cell was generated at."""
+    direction: torch.Tensor | None = None
+    """(R, C, 2) unit vector along which each cell's course runs (world xy); None = +x (every
+    generated course), filled in at construction."""
     layouts: list[list[CourseLayout]] = field(default_factory=list, repr=False)
     """The layouts themselves, [row][col] (numpy, local frame) - for plots and checks."""
 
@@ -204,6 +209,12 @@ class FootholdTable:
             difficulty=t(p["difficulty"]),
             layouts=[list(row) for row in grid],
         )
+
+    def __post_init__(self) -> None:
+        if self.direction is None:
+            rows, cols = self.goal_distance.shape
+            self.direction = torch.zeros(rows, cols, 2, device=self.center.device)
+            self.direction[..., 0] = 1.0
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -238,4 +249,5 @@ class FootholdTable:
             self.goal_distance[lv, ty],
             self.course_length[lv, ty],
             o,
+            self.direction[lv, ty],
         )
