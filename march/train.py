@@ -355,8 +355,9 @@ def main(dcfg: DictConfig) -> float | None:
             fail(str(err))
         raise
     finally:
-        distributed.shutdown()
-    _write_status(run_dir, "done", stage=cfg.stage)
+        distributed.shutdown()  # after this every process reads as rank 0: decide before
+    if dist.main:
+        _write_status(run_dir, "done", stage=cfg.stage)
     # What a sweeper optimises: the final evaluation's objective (None without one).
     return None if summary is None else float(summary[cfg.objective])
 

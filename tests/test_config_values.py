@@ -64,7 +64,7 @@ BAD: dict[str, list[Any]] = {
     "depth.noise_scale": [-0.1],
     "depth.dropout": [1.0, -0.05],
     "depth.delay_steps": [[2, 1], [-1, 0], [0, 1, 2]],
-    "reward.name": ["dense"],
+    "reward.name": ["dense reward", "1arm", ""],  # a name labels dirs and figures
     "reward.terms": [{"anything": INF}],
     "reward.tilt_limit_deg": [0.0, 181.0],
     "reward.min_base_height_m": [-0.1],
@@ -77,7 +77,13 @@ BAD: dict[str, list[Any]] = {
     "curriculum.terrain_seed": [-1, SEED_MAX + 1],
     "curriculum.promote_fraction": [2.0, 1.01, 0.0, -0.5],
     "curriculum.demote_fraction": [-0.1, 1.0],  # must stay below promote_fraction (1.0)
-    "student.variant": ["big"],
+    "student.variant": ["big net", ""],
+    "student.image": ["rgb"],
+    "student.fusion": ["attention"],
+    "student.head": ["gmm"],
+    "figures.compare": [["clf"], ["clf:clf"], ["a:b:c"]],
+    "figures.reference_variant": ["no variant"],
+    "figures.ablation_teacher": [""],
     "student.cnn_channels": [[], [24, 0, 48, 64]],
     "student.cnn_kernels": [[5, 0, 3, 3], [5, 3, 3]],
     "student.cnn_strides": [[1, 0, 2, 1]],
@@ -176,12 +182,21 @@ BAD: dict[str, list[Any]] = {
 FREE: dict[str, str] = {
     "eval.corruption": "a bool",
     "eval.randomization": "a bool",
+    "compute.compile_math": "a bool",
+    "reward.label": "display text for the figures",
+    "reward.color": "display only; analysis replaces an invalid or taken colour (noted)",
+    "reward.order": "any int: legend position",
+    "student.label": "display text for the figures",
+    "student.color": "display only; analysis replaces an invalid or taken colour (noted)",
+    "student.order": "any int: legend position",
 }
 
 # Values on the edge of their domain that must still be accepted.
 GOOD: dict[str, list[Any]] = {
     "seed": [0, SEED_MAX],
     "curriculum.terrain_seed": [SEED_MAX],
+    "reward.name": ["dense"],  # a new arm's name: a label (its terms define it)
+    "student.variant": ["big"],  # a new variant's name: its parts are the composed ones
     "eval.terrain_seed": [1, SEED_MAX],
     "curriculum.promote_fraction": [1.0, 0.31],  # above demote_fraction (0.3)
     "curriculum.demote_fraction": [0.0, 0.99],
