@@ -18,10 +18,12 @@ from pathlib import Path
 import pytest
 import torch
 from omegaconf import OmegaConf
+from saved_runs import resume as _resume
+from saved_runs import saved_run as _saved_run
 
 from march.config import ConfigError
 from march.config.cli import load
-from march.config.resume import RESUME_SAFE, resume_config
+from march.config.resume import RESUME_SAFE
 from march.learn.checkpoint import (
     CheckpointError,
     ensure_model_file,
@@ -241,19 +243,6 @@ def test_a_run_on_a_full_disk_stops_with_one_line_and_keeps_its_checkpoint(tmp_p
 
 
 # ------------------------------------------------------------------ resume with overrides
-
-
-def _saved_run(tmp_path: Path, *overrides: str) -> Path:
-    run = tmp_path / "run"
-    run.mkdir()
-    cfg = load(["compute=smoke", *overrides])
-    OmegaConf.save(OmegaConf.structured(cfg), run / "config.yaml")
-    return run
-
-
-def _resume(run: Path, *overrides: str):
-    ovs = [*overrides, f"resume={run}"]
-    return resume_config(run, load(["compute=auto", *ovs]), ovs)
 
 
 def test_resume_applies_safe_overrides_and_says_so(tmp_path):

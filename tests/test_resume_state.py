@@ -17,10 +17,11 @@ import numpy as np
 import pytest
 import torch
 from omegaconf import OmegaConf
+from saved_runs import resume as _resume
+from saved_runs import saved_run as _saved_run
 
 from march.config import ConfigError
 from march.config.cli import load
-from march.config.resume import resume_config
 from march.learn.checkpoint import (
     CheckpointError,
     load_checkpoint,
@@ -137,19 +138,6 @@ def test_streams_survive_a_checkpoint_and_stay_on_the_cpu(tmp_path):
 
 
 # ------------------------------------------------------------------ the resumed config is data
-
-
-def _saved_run(tmp_path: Path, *overrides: str) -> Path:
-    run = tmp_path / "run"
-    run.mkdir()
-    cfg = load(["compute=smoke", *overrides])
-    OmegaConf.save(OmegaConf.structured(cfg), run / "config.yaml")
-    return run
-
-
-def _resume(run: Path, *overrides: str):
-    ovs = [*overrides, f"resume={run}"]
-    return resume_config(run, load(["compute=auto", *ovs]), ovs)
 
 
 @pytest.mark.parametrize(
