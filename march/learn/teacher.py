@@ -185,23 +185,20 @@ class ReplanReadout:
     def __init__(self, env: ManagerBasedRlEnv) -> None:
         manager = env.command_manager
         self.term = manager.get_term("reference") if "reference" in manager.active_terms else None
-        self.last = self._totals()
+        self.last = self._totals()  # on the device: the only host read is in pop()
 
-    def _totals(self) -> tuple[int, int]:
+    def _totals(self) -> torch.Tensor | None:
         if self.term is None:
-            return 0, 0
-        sums = torch.stack(
-            [self.term.touchdown_count.sum(), self.term.queue.deferred_count.sum()]
-        ).tolist()
-        return int(sums[0]), int(sums[1])
+            return None
+        return torch.stack([self.term.touchdown_count.sum(), self.term.queue.deferred_count.sum()])
 
     def pop(self) -> dict[str, float]:
         if self.term is None:
             return {"touchdowns": float("nan"), "deferred_replans": float("nan")}
         now = self._totals()
-        touchdowns, deferred = now[0] - self.last[0], now[1] - self.last[1]
+        touchdowns, deferred = (now - self.last).tolist()  # once per iteration
         self.last = now
-        return {"touchdowns": touchdowns, "deferred_replans": deferred}
+        return {"touchdowns": int(touchdowns), "deferred_replans": int(deferred)}
 
 
 class TeacherRunner:
