@@ -11,7 +11,6 @@ from __future__ import annotations
 import os
 import sys
 from collections.abc import Callable, Sequence
-from pathlib import Path
 
 import hydra
 from hydra.core.override_parser.overrides_parser import OverridesParser
@@ -21,9 +20,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 import march.config  # noqa: F401  (registers the schema)
 from march.config import ConfigError, MarchConfig, to_march_config
-
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
-SWEEPS_DIR = Path(__file__).resolve().parents[2] / "sweeps"
+from march.config.registry import CONF_DIR
 
 
 def cuda_available() -> bool:

@@ -26,6 +26,8 @@ from omegaconf import OmegaConf
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 """The repository's config tree (``conf/``)."""
+SWEEPS_DIR = Path(__file__).resolve().parents[2] / "sweeps"
+"""The paper's experiments (``sweeps/``), each the option ``+sweep=<name>``."""
 
 NAME_KEY = {"reward": "name", "student": "variant"}
 """The key inside each group's YAML that names the option."""
@@ -48,7 +50,7 @@ class Option:
     """The option's YAML as plain data (e.g. a student variant's ``image``/``fusion``/``head``)."""
 
 
-def _read(group: str, path: Path) -> dict:
+def _read(path: Path) -> dict:
     node = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
     return node if isinstance(node, dict) else {}
 
@@ -58,7 +60,7 @@ def _options(group: str, conf_dirs: tuple[Path, ...]) -> tuple[Option, ...]:
     found: dict[str, Option] = {}
     for conf in conf_dirs:
         for path in sorted((conf / group).glob("*.yaml")):
-            data = _read(group, path)
+            data = _read(path)
             name = str(data.get(NAME_KEY.get(group, "name")) or path.stem)
             found[name] = Option(
                 group=group,

@@ -13,7 +13,6 @@ Pure data: no simulator import.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
@@ -27,6 +26,7 @@ from march.config.checks import (
     _need,
     cnn_output_hw,
 )
+from march.config.registry import SWEEPS_DIR
 from march.config.simulation import (
     ComputeCfg,
     CurriculumCfg,
@@ -150,9 +150,6 @@ class MarchConfig:
                 f"eval.command_vx={self.eval.command_vx} lies outside the training range "
                 f"env.command_vx=[{lo}, {hi}]: evaluate at a command the policy was trained on"
             )
-
-
-SWEEPS_DIR = Path(__file__).resolve().parents[2] / "sweeps"
 
 
 def register_schema() -> None:

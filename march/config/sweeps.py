@@ -16,7 +16,8 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-SWEEPS_DIR = Path(__file__).resolve().parents[2] / "sweeps"
+from march.config.registry import SWEEPS_DIR
+
 MULTIRUN_FLAGS = ("-m", "--multirun")
 PINNED_GROUPS = ("compute",)
 
