@@ -20,6 +20,7 @@ import torch
 from omegaconf import OmegaConf
 from saved_runs import resume as _resume
 from saved_runs import saved_run as _saved_run
+from saved_runs import train_cli as _train
 
 from march.config import ConfigError
 from march.config.cli import load
@@ -310,18 +311,6 @@ def test_resume_refuses_a_config_with_an_interpolation(tmp_path):
 
 
 # ------------------------------------------------------------------ CLI: one line, no simulation
-
-
-def _train(*args: str) -> subprocess.CompletedProcess:
-    env = dict(os.environ, HYDRA_FULL_ERROR="0")
-    return subprocess.run(
-        [sys.executable, "-m", "march.train", *args],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env=env,
-    )
 
 
 def _one_line_before_simulation(out: subprocess.CompletedProcess, *needles: str) -> str:

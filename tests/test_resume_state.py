@@ -9,8 +9,6 @@ import csv
 import os
 import random
 import stat
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +17,7 @@ import torch
 from omegaconf import OmegaConf
 from saved_runs import resume as _resume
 from saved_runs import saved_run as _saved_run
+from saved_runs import train_cli
 
 from march.config import ConfigError
 from march.config.cli import load
@@ -296,18 +295,6 @@ def test_decisions_say_one_order_of_the_checkpoint_files():
 # ------------------------------------------------------------------ sim: a CUDA run dir on CPU
 
 
-def _train(*args: str, timeout: int = 900) -> subprocess.CompletedProcess:
-    env = dict(os.environ, HYDRA_FULL_ERROR="0")
-    return subprocess.run(
-        [sys.executable, "-m", "march.train", *args],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        env=env,
-    )
-
-
 def craft_cuda_run(run: Path) -> Path:
     """A CPU teacher run rewritten as a ``cuda:0`` run leaves its directory: config.yaml on
     cuda:0, checkpoints whose generator states are CUDA ones (16 bytes) and a CUDA stream."""
@@ -327,17 +314,23 @@ def craft_cuda_run(run: Path) -> Path:
 @pytest.mark.sim
 def test_a_cuda_run_directory_resumes_on_the_cpu_with_the_override(tmp_path):
     run = tmp_path / "run"
-    first = _train(
-        "compute=smoke", "stage=teacher", "teacher.max_iterations=1", f"hydra.run.dir={run}"
+    first = train_cli(
+        "compute=smoke",
+        "stage=teacher",
+        "teacher.max_iterations=1",
+        f"hydra.run.dir={run}",
+        timeout=900,
     )
     assert first.returncode == 0, first.stdout[-2000:] + first.stderr[-2000:]
     craft_cuda_run(run)
-    refused = _train(f"resume={run}")
+    refused = train_cli(f"resume={run}", timeout=900)
     err = refused.stderr.strip().splitlines()
     assert refused.returncode == 2 and len(err) == 1, refused.stderr
     assert "saved on cuda:0" in err[0] and "compute.device=cpu" in err[0]
     assert "[env]" not in refused.stdout and "Traceback" not in refused.stderr
-    resumed = _train(f"resume={run}", "compute.device=cpu", "teacher.max_iterations=2")
+    resumed = train_cli(
+        f"resume={run}", "compute.device=cpu", "teacher.max_iterations=2", timeout=900
+    )
     out = resumed.stdout
     assert resumed.returncode == 0, out[-3000:] + resumed.stderr[-3000:]
     assert "[resume] compute.device: cuda:0 -> cpu" in out
