@@ -290,22 +290,13 @@ def test_delays_match_the_mjlab_env_with_the_same_delays(bundle, smoke_run):
     from mjlab.envs import ManagerBasedRlEnv
     from mjlab.managers.event_manager import EventTermCfg
     from mjlab.managers.scene_entity_config import SceneEntityCfg
+    from smoke_student import hardware_eval_cfg
 
-    from march.config.cli import load
-    from march.env.build import build_env_cfg
     from march.env.dr_terms import install_control_delay, sample_control_delay
-    from march.learn.checkpoint import load_checkpoint
-    from march.learn.provenance import apply_checkpoint_config
     from march.sim2sim.deploy_bundle import Bundle
     from march.sim2sim.runner import Delays, Sim2Sim, policy_session
 
-    ckpt = str(smoke_run / "student" / "latest.pt")
-    overrides = ["eval.randomization=false", "eval.corruption=false", "eval.course=hardware"]
-    cfg = apply_checkpoint_config(
-        load(overrides), load_checkpoint(ckpt, "student"), overrides, ckpt, "student"
-    )
-    env_cfg = build_env_cfg(cfg, "eval", num_envs=1)
-    env_cfg.observations["student"].enable_corruption = False
+    cfg, env_cfg = hardware_eval_cfg(smoke_run)
     ms = (20.0, 20.0)
     install_control_delay(env_cfg, replace(cfg.dr, control_delay_ms=ms))
     env_cfg.events["control_delay"] = EventTermCfg(

@@ -308,22 +308,12 @@ def test_agreement_with_the_mjlab_eval_env(bundle, smoke_run):
     off, hardware course) against the plain-MuJoCo loop, over the first 0.5 s."""
     import torch
     from mjlab.envs import ManagerBasedRlEnv
+    from smoke_student import hardware_eval_cfg
 
-    from march.config.cli import load
-    from march.env.build import build_env_cfg
-    from march.learn.checkpoint import load_checkpoint
-    from march.learn.provenance import apply_checkpoint_config
     from march.sim2sim.deploy_bundle import Bundle
     from march.sim2sim.runner import Sim2Sim, policy_session
 
-    ckpt = str(smoke_run / "student" / "latest.pt")
-    overrides = ["eval.randomization=false", "eval.corruption=false", "eval.course=hardware"]
-    cfg = apply_checkpoint_config(
-        load(overrides), load_checkpoint(ckpt, "student"), overrides, ckpt, "student"
-    )
-    env_cfg = build_env_cfg(cfg, "eval", num_envs=1)
-    # eval.corruption covers the depth image; the proprioception noise is switched off here
-    env_cfg.observations["student"].enable_corruption = False
+    cfg, env_cfg = hardware_eval_cfg(smoke_run)
     env = ManagerBasedRlEnv(cfg=env_cfg, device="cpu")
     b = Bundle.load(bundle)
     sim = Sim2Sim(b, "hardware")
