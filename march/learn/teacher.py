@@ -166,8 +166,9 @@ def stagger_episodes(env: ManagerBasedRlEnv, seed: int, iteration: int) -> torch
     """Start every env at a seeded random episode step in [0, max episode length), as rsl-rl's
     ``init_at_random_ep_len``: time-outs, and with them resets and touchdowns, spread over the
     episode instead of running in lockstep. The draw comes from its own generator seeded with
-    (seed, iteration), so a resumed run staggers the same way again and the global random
-    stream is untouched. Returns the new episode steps (E,)."""
+    (seed, iteration), so the global random stream is untouched (a resume restores the saved
+    clocks instead; only a checkpoint without them is staggered again). Returns the new
+    episode steps (E,)."""
     buf = env.episode_length_buf
     g = torch.Generator().manual_seed(
         int(np.random.SeedSequence([seed, iteration]).generate_state(1, np.uint64)[0])
@@ -198,7 +199,11 @@ class ReplanReadout:
         now = self._totals()
         touchdowns, deferred = (now - self.last).tolist()  # once per iteration
         self.last = now
-        return {"touchdowns": int(touchdowns), "deferred_replans": int(deferred)}
+        # N processes: every rank's envs count, as for the other episode statistics
+        return {
+            "touchdowns": distributed.sum_over_ranks(int(touchdowns)),
+            "deferred_replans": distributed.sum_over_ranks(int(deferred)),
+        }
 
 
 class TeacherRunner:
