@@ -288,7 +288,7 @@ def test_ramp_is_per_env():
 def test_compiled_reference_agrees_with_eager():
     """compute.compile_math: torch.compile of reference_at equals the eager path within 1e-4
     (float32 rounding of fused kernels; measured max difference 1.2e-5) over random steps."""
-    from march.env.reference_command import compiled_reference
+    from march.fusion import fused
     from march.reference.trajectory import StepState, reference_at
 
     g = torch.Generator().manual_seed(5)
@@ -296,7 +296,7 @@ def test_compiled_reference_agrees_with_eager():
     def r(*shape):
         return torch.rand(*shape, generator=g)
 
-    fn = compiled_reference()
+    fn = fused(reference_at)
     for e in (16, 40):
         st = StepState(
             stance_pos=r(e, 3),

@@ -43,6 +43,26 @@ class OpCounter(TorchDispatchMode):
             self.counts[str(func.overloadpacket.__name__)] += 1
         return func(*args, **(kwargs or {}))
 
+    def count_fused(self, compiled: Any, args: tuple, kwargs: dict) -> Any:
+        """Run a ``march.fusion.fused`` call outside this mode (under it the call would run
+        eagerly) and count what it launches, read from the profiler: every generated kernel
+        (inductor's ``cpp_fused_*`` / ``triton_*``) and every top-level aten op the compiled
+        code calls (extern kernels, and any op left outside the graph)."""
+        from torch.profiler import ProfilerActivity, profile
+        from torch.utils._python_dispatch import _disable_current_modes
+
+        with _disable_current_modes(), profile(activities=[ProfilerActivity.CPU]) as prof:
+            out = compiled(*args, **kwargs)
+        for event in prof.events():
+            name = event.name
+            if "cpp_fused" in name or name.startswith("triton_"):
+                self.counts["fused_kernel"] += 1
+            elif name.startswith("aten::"):
+                parent = event.cpu_parent
+                if parent is None or not parent.name.startswith("aten::"):
+                    self.counts[name[len("aten::") :]] += 1
+        return out
+
     @property
     def total(self) -> int:
         return sum(self.counts.values())

@@ -118,10 +118,14 @@ PROPRIO_TERMS = tuple(_proprio_terms(noisy=False))
 """Per-step term order of proprioception (the student's ``student`` group; ONNX metadata)."""
 
 
-def _privileged_terrain_term() -> ObservationTermCfg:
+def _privileged_terrain_term(cfg: MarchConfig) -> ObservationTermCfg:
     # The G1 task's terrain_scan (17 x 11 points, 5 m range) computed from the course boxes:
     # the same numbers without ray casting through the scene every step (issue 11).
-    return ObservationTermCfg(func=terrain_height_scan, scale=1 / 5.0)
+    return ObservationTermCfg(
+        func=terrain_height_scan,
+        scale=1 / 5.0,
+        params={"compiled": cfg.compute.compile_math},
+    )
 
 
 def _privileged_teacher_terms(cfg: MarchConfig) -> dict[str, ObservationTermCfg]:
@@ -140,7 +144,7 @@ def _teacher_terms(cfg: MarchConfig, noisy: bool) -> dict[str, ObservationTermCf
     terms = _proprio_terms(noisy=noisy)
     for term in terms.values():
         term.history_length = cfg.env.history_length
-    terms["height_scan"] = _privileged_terrain_term()
+    terms["height_scan"] = _privileged_terrain_term(cfg)
     terms.update(_privileged_teacher_terms(cfg))
     return terms
 

@@ -25,6 +25,7 @@ import torch
 from mjlab.utils.lab_api.math import euler_xyz_from_quat, quat_apply_inverse, quat_from_matrix
 
 from march.env.step_cache import site_state, site_xmat
+from march.fusion import maybe_fused
 
 if TYPE_CHECKING:
     from mjlab.entity import Entity
@@ -83,35 +84,64 @@ def measured_outputs(
     upper_ids: torch.Tensor,
     masses: tuple[torch.Tensor, torch.Tensor],
     stance_is_left: torch.Tensor,
+    compiled: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(E, 29) measured outputs y_sim (positions) and their rates (module docstring).
 
     ``robot`` is the robot entity (``entity_name`` in the scene), ``foot_sites`` its left and
     right foot sites, ``root_body`` its root body id, ``upper_ids`` the upper-body joints
     (``UPPER_BODY_JOINTS`` order), ``masses`` from :func:`body_masses` and ``stance_is_left``
-    (E,) the stance mask (the swing foot is the other one).
+    (E,) the stance mask (the swing foot is the other one); ``compiled``: the maths
+    (:func:`outputs_from_state`) under ``torch.compile`` (``compute.compile_math``).
     """
     data = robot.data
-    com = env.sim.data.subtree_com[:, root_body]
-    mass, mass_sum = masses
-    com_vel = (data.body_com_lin_vel_w * mass[..., None]).sum(1) / mass_sum
-    quat = data.root_link_quat_w
-    pelvis = euler_zyx(quat)
-    pelvis_rate = euler_rates(pelvis, data.root_link_ang_vel_b)
-    # The two foot sites only (step_cache): same values as data.site_*_w of the swing site.
     names = tuple(foot_sites)
     pos, lin, ang = site_state(env, names, entity_name)
-    mat = site_xmat(env, names, entity_name)
-    swing_left = ~stance_is_left  # the swing foot is the other one
-    pick = swing_left[:, None]
+    outputs = maybe_fused(outputs_from_state, compiled)
+    return outputs(
+        env.sim.data.subtree_com[:, root_body],
+        data.body_com_lin_vel_w,
+        masses,
+        data.root_link_quat_w,
+        data.root_link_ang_vel_b,
+        (pos, lin, ang, site_xmat(env, names, entity_name)),
+        stance_is_left,
+        (data.joint_pos, data.default_joint_pos, data.joint_vel),
+        upper_ids,
+    )
+
+
+def outputs_from_state(
+    com: torch.Tensor,
+    body_com_vel: torch.Tensor,
+    masses: tuple[torch.Tensor, torch.Tensor],
+    quat: torch.Tensor,
+    ang_vel_b: torch.Tensor,
+    feet: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
+    stance_is_left: torch.Tensor,
+    joints: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    upper_ids: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The maths of :func:`measured_outputs` on the state read from the sim (pure torch):
+    ``com`` (E, 3) root subtree CoM, ``body_com_vel`` (E, B, 3), ``masses`` (W|1, B) and their
+    sums, pelvis ``quat`` (E, 4) and body-frame rate (E, 3), ``feet`` = position, linear and
+    angular velocity (E, 2, 3) and rotation matrix (E, 2, 3, 3) of the two foot sites, the stance
+    mask and ``joints`` = joint positions, default positions and velocities (E, J)."""
+    mass, mass_sum = masses
+    com_vel = (body_com_vel * mass[..., None]).sum(1) / mass_sum
+    pelvis = euler_zyx(quat)
+    pelvis_rate = euler_rates(pelvis, ang_vel_b)
+    pos, lin, ang, mat = feet
+    pick = (~stance_is_left)[:, None]  # the swing foot is the other one
     swing_pos = torch.where(pick, pos[:, 0], pos[:, 1])
     swing_vel = torch.where(pick, lin[:, 0], lin[:, 1])
     swing_quat = quat_from_matrix(torch.where(pick[..., None], mat[:, 0], mat[:, 1]))
     swing_ori = euler_zyx(swing_quat)
     swing_omega_b = quat_apply_inverse(swing_quat, torch.where(pick, ang[:, 0], ang[:, 1]))
     swing_rate = euler_rates(swing_ori, swing_omega_b)
-    upper = data.joint_pos[:, upper_ids] - data.default_joint_pos[:, upper_ids]
-    upper_vel = data.joint_vel[:, upper_ids]
+    joint_pos, default_pos, joint_vel = joints
+    upper = joint_pos[:, upper_ids] - default_pos[:, upper_ids]
+    upper_vel = joint_vel[:, upper_ids]
     pos = torch.cat([com, pelvis, swing_pos, swing_ori, upper], dim=-1)
     vel = torch.cat([com_vel, pelvis_rate, swing_vel, swing_rate, upper_vel], dim=-1)
     return pos, vel

@@ -14,6 +14,7 @@ from march.env.course import CourseRuler, foothold_table
 from march.env.reference_command import reference_term
 from march.env.step_cache import constant, shared
 from march.env.stone_terrain import max_boxes_in_reach, terrain_boxes
+from march.fusion import maybe_fused
 
 NUM_STONES = 5
 """K: stones observed ahead of the robot."""
@@ -43,6 +44,7 @@ def terrain_height_scan(
     size: tuple[float, float] = SCAN_SIZE,
     resolution: float = SCAN_RESOLUTION,
     max_distance: float = SCAN_MAX_DISTANCE,
+    compiled: bool = False,
 ) -> torch.Tensor:
     """(E, N) height of the pelvis above the terrain at the points of a yaw-aligned grid around
     it: what mjlab's ``terrain_scan`` ray-cast sensor + ``height_scan`` observation give
@@ -52,12 +54,13 @@ def terrain_height_scan(
     rays through the scene. The robot's own geoms are not terrain (geom groups 2 and 3; the
     sensor scans group 0 only), so the two agree; a box whose top lies above the pelvis is
     skipped (the pelvis inside a stone is not a state a rollout reaches). Shared by the actor
-    and critic groups within one observation compute.
+    and critic groups within one observation compute. ``compiled``: the maths
+    (:func:`scan_heights`) under ``torch.compile`` (``compute.compile_math``).
     """
     return shared(
         env,
         ("terrain_height_scan", size, resolution, max_distance),
-        lambda: _terrain_height_scan(env, size, resolution, max_distance),
+        lambda: _terrain_height_scan(env, size, resolution, max_distance, compiled),
     )
 
 
@@ -75,7 +78,11 @@ def _scan_table(env: ManagerBasedRlEnv, reach: float) -> tuple[torch.Tensor, tor
 
 
 def _terrain_height_scan(
-    env: ManagerBasedRlEnv, size: tuple[float, float], resolution: float, max_distance: float
+    env: ManagerBasedRlEnv,
+    size: tuple[float, float],
+    resolution: float,
+    max_distance: float,
+    compiled: bool,
 ) -> torch.Tensor:
     offsets = constant(
         env, ("scan_offsets", size, resolution), lambda: scan_offsets(size, resolution, env.device)
@@ -87,10 +94,35 @@ def _terrain_height_scan(
         lambda: _scan_table(env, float(offsets.norm(dim=-1).max()) + 1e-3),
     )
     terrain = env.scene.terrain
-    num_cols = terrain.terrain_origins.shape[1]
-    cell = terrain.terrain_levels.long() * num_cols + terrain.terrain_types.long()  # (E,)
     data = env.scene["robot"].data
-    base = data.root_link_pos_w
+    heights = maybe_fused(scan_heights, compiled)
+    return heights(
+        data.root_link_pos_w,
+        data.heading_w,
+        terrain.terrain_levels,
+        terrain.terrain_types,
+        terrain.terrain_origins.shape[1],
+        (extent, packed, k_near),
+        offsets,
+        max_distance,
+    )
+
+
+def scan_heights(
+    base: torch.Tensor,
+    yaw: torch.Tensor,
+    levels: torch.Tensor,
+    types: torch.Tensor,
+    num_cols: int,
+    table: tuple[torch.Tensor, torch.Tensor, int],
+    offsets: torch.Tensor,
+    max_distance: float,
+) -> torch.Tensor:
+    """The maths of :func:`terrain_height_scan` (pure torch): pelvis position ``base`` (E, 3) and
+    heading ``yaw`` (E,), each env's terrain cell (level, type; ``num_cols`` types), the cells'
+    boxes (``_scan_table``) and the scan grid ``offsets`` (N, 2) -> (E, N) heights [m]."""
+    extent, packed, k_near = table
+    cell = levels.long() * num_cols + types.long()  # (E,)
     # Only boxes whose x-extent comes within reach of the pelvis can be hit, and no scan reaches
     # more than k_near boxes: the k_near nearest along x include every box that can be hit.
     ext = extent.index_select(0, cell)  # (E, K, 2)
@@ -100,7 +132,6 @@ def _terrain_height_scan(
     k_all = extent.shape[1]
     boxes = packed.index_select(0, (cell[:, None] * k_all + near).flatten())
     boxes = boxes.view(base.shape[0], k_near, 6)
-    yaw = data.heading_w
     c, s = torch.cos(yaw)[:, None], torch.sin(yaw)[:, None]
     ox, oy = offsets[:, 0], offsets[:, 1]
     px = base[:, 0:1] + c * ox - s * oy  # (E, N) scan points, world

@@ -67,6 +67,7 @@ from march.env.course import foothold_table
 from march.env.reference_cfg import ReferenceCommandCfg
 from march.env.replan_queue import ReplanQueue
 from march.env.step_cache import site_pos
+from march.fusion import maybe_fused
 from march.reference.planner import Plan, course_frame, plan_footsteps
 from march.reference.trajectory import (
     StepState,
@@ -115,7 +116,7 @@ class ReferenceCommand(CommandTerm):
         """The single CLF model of this env (P from CARE, built once)."""
         self.v_history = VHistory(e, env.step_dt, device=dev)
         self.mask = angle_mask(len(UPPER_BODY_JOINTS), device=dev)
-        self._reference_at = compiled_reference() if cfg.compile_math else reference_at
+        self._reference_at = maybe_fused(reference_at, cfg.compile_math)
         self.generator = torch.Generator(device=dev)
         self.generator.manual_seed(int(cfg.planner_seed if cfg.planner_seed is not None else 0))
 
@@ -329,7 +330,13 @@ class ReferenceCommand(CommandTerm):
         fh = self.footholds.index(env_ids)
         cmd = self._world_command(env_ids, fh)
         plan = plan_footsteps(
-            stance[:, :2].contiguous(), left, cmd, fh, self.cfg.planner, self.generator
+            stance[:, :2].contiguous(),
+            left,
+            cmd,
+            fh,
+            self.cfg.planner,
+            self.generator,
+            compiled=self.cfg.compile_math,
         )
         axis, _ = course_frame(fh)
         com = self._env.sim.data.subtree_com[env_ids, self._root_body, :2]
@@ -391,6 +398,7 @@ class ReferenceCommand(CommandTerm):
             self._upper_ids,
             self._masses(),
             self.stance_is_left,
+            compiled=self.cfg.compile_math,
         )
 
     def stance_foot(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -481,16 +489,6 @@ class ReferenceCommand(CommandTerm):
         dur = self.step.duration
         phase = torch.stack([(self.tau / dur).clamp(max=2.0), dur], dim=-1)
         return torch.cat([pos, vel, feet, phase], dim=-1)
-
-
-_COMPILED: list = []
-
-
-def compiled_reference():
-    """:func:`reference_at` under ``torch.compile`` (dynamic batch size; made once per process)."""
-    if not _COMPILED:
-        _COMPILED.append(torch.compile(reference_at, dynamic=True))
-    return _COMPILED[0]
 
 
 def reference_term(env: ManagerBasedRlEnv, command_name: str = "reference") -> ReferenceCommand:

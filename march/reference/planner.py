@@ -61,6 +61,7 @@ from dataclasses import dataclass
 
 import torch
 
+from march.fusion import fused
 from march.reference.step_cost import _EPS, _step_cost, goal_ahead, pace_terms
 from march.world.footholds import Footholds
 
@@ -259,14 +260,57 @@ def plan_footsteps(
     footholds: Footholds,
     cfg: PlannerCfg | None = None,
     generator: torch.Generator | None = None,
+    compiled: bool = False,
 ) -> Plan:
     """Plan N footsteps for every env by random shooting with greedy rollouts.
 
     stance_xy: (E, 2) current stance foot [m], world frame; stance_is_left: (E,) bool;
     command: (E, 3) [vx, vy, yaw_rate] in the world frame [m/s, m/s, rad/s] (yaw rate unused
     here); footholds: the envs' stones. Deterministic for a seeded ``generator``.
+    ``compiled``: run the search (everything but the random draws) under ``torch.compile``
+    (:func:`march.fusion.fused`): the same plans, fused into a few kernels.
     """
     cfg = cfg or PlannerCfg()
+    m = min(cfg.num_candidate_stones, footholds.center.shape[1])
+    unit, gumbel = planner_draws(cfg, m, generator, stance_xy.device, stance_xy.dtype)
+    search = fused(_search) if compiled else _search
+    return search(stance_xy, stance_is_left, command, footholds, unit, gumbel, cfg)
+
+
+def planner_draws(
+    cfg: PlannerCfg,
+    m: int,
+    generator: torch.Generator | None,
+    device: torch.device,
+    dtype: torch.dtype,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The shared random draws of one plan (shapes independent of E; module docstring): unit
+    points (N, 2, R, M, K) in [-1, 1] (rollout 0's a fixed ring) and Gumbel noise
+    (N, R, T * M * (K + 2)) (rollout 0's zero)."""
+    r, n, k, nt = cfg.num_rollouts, cfg.num_steps, cfg.samples_per_stone, cfg.num_durations
+    gen_device = generator.device if generator is not None else device
+    unit = torch.rand((n, 2, r, m, k), generator=generator, device=gen_device).to(device, dtype)
+    unit = 2.0 * unit - 1.0
+    # Rollout 0 is deterministic: a fixed ring of points at half the stone's usable extent.
+    theta = 2.0 * torch.pi * (torch.arange(k, device=device, dtype=dtype) + 0.5) / max(k, 1)
+    ring = 0.5 * torch.stack([torch.cos(theta), torch.sin(theta)])  # (2, K)
+    unit[:, :, 0] = ring[None, :, None, :]
+    u = torch.rand((n, r, nt * m * (k + 2)), generator=generator, device=gen_device)
+    gumbel = -torch.log(-torch.log(u.clamp(1e-12, 1.0 - 1e-7))).to(device, dtype)
+    gumbel[:, 0] = 0.0  # rollout 0 is plain greedy
+    return unit, gumbel
+
+
+def _search(
+    stance_xy: torch.Tensor,
+    stance_is_left: torch.Tensor,
+    command: torch.Tensor,
+    footholds: Footholds,
+    unit: torch.Tensor,
+    gumbel: torch.Tensor,
+    cfg: PlannerCfg,
+) -> Plan:
+    """The greedy random-shooting search of :func:`plan_footsteps` on given draws (pure)."""
     device, dtype = stance_xy.device, stance_xy.dtype
     e, r, n = stance_xy.shape[0], cfg.num_rollouts, cfg.num_steps
     m = min(cfg.num_candidate_stones, footholds.center.shape[1])
@@ -281,18 +325,6 @@ def plan_footsteps(
     vx, vy = (a.view(e, 1, 1, 1, 1) for a in command[:, :2].unbind(-1))
     dur = durations.view(1, 1, nt, 1, 1)
     cmd_along = vx * ax + vy * ay
-
-    # Shared random draws (shape independent of E; see module docstring).
-    gen_device = generator.device if generator is not None else device
-    unit = torch.rand((n, 2, r, m, k), generator=generator, device=gen_device).to(device, dtype)
-    unit = 2.0 * unit - 1.0
-    # Rollout 0 is deterministic: a fixed ring of points at half the stone's usable extent.
-    theta = 2.0 * torch.pi * (torch.arange(k, device=device, dtype=dtype) + 0.5) / max(k, 1)
-    ring = 0.5 * torch.stack([torch.cos(theta), torch.sin(theta)])  # (2, K)
-    unit[:, :, 0] = ring[None, :, None, :]
-    u = torch.rand((n, r, nt * m * (k + 2)), generator=generator, device=gen_device)
-    gumbel = -torch.log(-torch.log(u.clamp(1e-12, 1.0 - 1e-7))).to(device, dtype)
-    gumbel[:, 0] = 0.0  # rollout 0 is plain greedy
 
     _, z0 = locate_on_stones(footholds, stance_xy)
     px = stance_xy[:, 0:1].expand(e, r).contiguous()
