@@ -17,6 +17,38 @@ import sys  # noqa: E402
 import pytest  # noqa: E402
 from filelock import FileLock  # noqa: E402
 
+# The slowest files first, the many quick ones after them, so that with
+# ``--dist loadfile`` the two workers start on the two longest chains and the quick files even
+# out the end: longest processing time first. The first holds the session's smoke run and
+# bundle; the second (no smoke run) runs beside it instead of waiting on its lock.
+SLOW_FILES = (
+    "test_sim2sim_agreement.py",
+    "test_sweeps.py",
+    "test_evaluate.py",
+    "test_eval_repeat.py",
+    "test_env_teacher.py",
+    "test_pipeline.py",
+    "test_distributed.py",
+    "test_reliability.py",
+    "test_resume_state.py",
+    "test_distill.py",
+    "test_extending.py",
+    "test_syncs.py",
+    "test_optuna_sweep.py",
+)
+
+
+def pytest_configure(config) -> None:
+    # pytest-xdist orders files by their number of tests unless told not to; keep ours.
+    if hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    rank = {name: i for i, name in enumerate(SLOW_FILES)}
+    # A stable sort: each file's tests stay together and in their order (module fixtures).
+    items.sort(key=lambda item: rank.get(item.path.name, len(SLOW_FILES)))
+
 
 def shared_dir(tmp_path_factory, name: str, build) -> Path:
     """A directory ``build(path)`` fills once per test session, also when pytest-xdist runs the

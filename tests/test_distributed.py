@@ -204,6 +204,7 @@ SMALL = [
     "compute=smoke",
     "compute.eval_num_envs=1",
     "eval.num_rollouts=2",
+    "eval.episode_length_s=0.5",
     "teacher.eval_interval=0",
     "distill.eval_interval=0",
 ]

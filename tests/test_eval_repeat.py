@@ -52,7 +52,9 @@ def test_evaluations_of_one_clf_teacher_are_bit_identical(tmp_path):
     from march.learn.checkpoint import load_checkpoint
     from march.train import run_pipeline
 
-    common = ["compute=smoke", "reward=clf", "eval.num_rollouts=6"]  # 4 envs: two waves
+    # 6 rollouts on 4 envs: two waves; 1 s episodes (the smoke teacher falls after ~1.2 s, so
+    # the waves run to the horizon and cross the planner's replans).
+    common = ["compute=smoke", "reward=clf", "eval.num_rollouts=6", "eval.episode_length_s=1.0"]
     cfg = load([*common, "stage=teacher", "teacher.max_iterations=1"])
     train_dir = tmp_path / "train"
     run_pipeline(cfg, train_dir)

@@ -516,6 +516,7 @@ def test_teacher_rows_during_training_and_resume_without_duplicates(tmp_path):
                 f"teacher.max_iterations={iterations}",
                 "teacher.eval_interval=2",
                 "eval.num_rollouts=6",  # more rollouts than the 4 eval envs: two waves
+                "eval.episode_length_s=0.5",  # 25-step waves: the rows, not the walking, count
             ]
         )
         run_pipeline(cfg, tmp_path)

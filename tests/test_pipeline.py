@@ -89,7 +89,15 @@ def test_student_checkpoint_rejects_other_variant(smoke_run):
 
 
 def _teacher_only(run_dir: Path, iterations: int):
-    cfg = load(["compute=smoke", "stage=teacher", f"teacher.max_iterations={iterations}"])
+    # Short evaluation episodes: these tests read the training rows and weights only.
+    cfg = load(
+        [
+            "compute=smoke",
+            "stage=teacher",
+            f"teacher.max_iterations={iterations}",
+            "eval.episode_length_s=0.5",
+        ]
+    )
     run_pipeline(cfg, run_dir)
     return _rows(run_dir / "metrics.csv")
 
@@ -173,6 +181,7 @@ def test_eval_of_a_modelfree_teacher_runs_the_modelfree_env(modelfree_teacher, t
         "stage=eval",
         "eval.policy=teacher",
         f"teacher_ckpt={modelfree_teacher}",
+        "eval.episode_length_s=0.5",  # the env and its labels are checked, not the walking
     ]
     # An explicit clf is one line naming both, before anything is built.
     out = _train(*common, "reward=clf", f"hydra.run.dir={tmp_path / 'clf'}")

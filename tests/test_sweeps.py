@@ -12,12 +12,15 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 pytestmark = pytest.mark.sim
 
-# Episodes of 0.1 s end inside one 8-step iteration, so every curve has points.
+# Episodes of 0.1 s end inside one 8-step iteration, so every curve has points; evaluation
+# episodes of 0.5 s: the sweeps' plumbing is tested here, not the walking.
+SHORT_EVAL = "eval.episode_length_s=0.5"
 QUICK = [
     "compute=smoke",
     "teacher.max_iterations=2",
     "distill.max_iterations=1",
     "env.episode_length_s=0.1",
+    SHORT_EVAL,
 ]
 
 
@@ -51,6 +54,7 @@ def sweeps(tmp_path_factory) -> dict[str, Path]:
             "hydra/launcher=submitit_local",
             "compute=smoke",
             "stage=eval",
+            SHORT_EVAL,
             f"student_ckpt={student}",
             f"hydra.sweep.dir={local}",
         ]
@@ -67,6 +71,7 @@ def sweeps(tmp_path_factory) -> dict[str, Path]:
             "-m",
             "compute=smoke",
             "stage=eval",
+            SHORT_EVAL,
             f"student_ckpt={student},{broken}",
             f"hydra.sweep.dir={crash}",
         ]
