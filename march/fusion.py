@@ -1,8 +1,8 @@
 """``torch.compile`` for the pure-math parts of a step (``compute.compile_math``).
 
 On a GPU every eager torch op of a step is one kernel launch; the footstep planner's search, the
-step reference and the measured CLF outputs are fixed-size, sync-free tensor maths, so inductor
-fuses each into a handful of kernels. :func:`fused` compiles a function once per process (dynamic
+step reference, the measured CLF outputs and the height scan are fixed-size, sync-free tensor
+maths, so inductor fuses each into a handful of kernels. :func:`fused` compiles a function once per process (dynamic
 batch size) and keeps the launch count measurable: under an op counter that defines
 ``count_fused`` (``march.bench.ops.OpCounter``), the compiled call is handed to the counter,
 which counts the kernels it launches (a ``TorchDispatchMode`` alone would make it run eagerly).
