@@ -253,10 +253,10 @@ def test_resume_applies_safe_overrides_and_says_so(tmp_path):
         "teacher.max_iterations=9",
         "distill.eval_interval=3",
         "logger=tensorboard",
-        "compute.torch_threads=1",
+        "compute.torch_threads=2",  # the smoke preset's is 1
     )
     assert cfg.teacher.max_iterations == 9 and cfg.distill.eval_interval == 3
-    assert cfg.logger.name == "tensorboard" and cfg.compute.torch_threads == 1
+    assert cfg.logger.name == "tensorboard" and cfg.compute.torch_threads == 2
     assert cfg.seed == 7 and cfg.compute.name == "smoke"  # the rest is the run's own
     assert cfg.resume == str(run)
     assert "[resume] teacher.max_iterations: 4 -> 9" in notes and len(notes) == 4
