@@ -53,15 +53,10 @@ from typing import Any
 
 from march.config import MarchConfig
 from march.config.cli import fail, run_tool
-from march.env.build import PROPRIO_TERMS
-from march.env.g1 import course_scene, g1_action_layout, g1_joint_names
-from march.export.deploy_spec import (
-    course_cells,
-    deployment_spec,
-    layout_problem,
-    proprio_term_dims,
-)
 from march.export.deploy_terms import portable_path
+
+# march.env (and with it mjlab, ~9 s of imports) is imported where a bundle is built, not here:
+# a bad command line or checkpoint gets its one line in a few seconds.
 
 USAGE = (
     "usage: python -m march.export student_ckpt=<file> [out=<folder> | out=<file>.onnx] "
@@ -77,6 +72,10 @@ def _one_line(err: BaseException, limit: int = 400) -> str:
 
 def metadata(payload: dict[str, Any]) -> dict[str, str]:
     """The ONNX ``metadata_props`` for a student checkpoint (str -> str)."""
+    from march.env.build import PROPRIO_TERMS
+    from march.env.g1 import g1_action_layout
+    from march.export.deploy_spec import proprio_term_dims
+
     lay = payload["layout"]
     cfg = payload.get("config", {})
     depth = cfg.get("depth", {})
@@ -193,6 +192,9 @@ def write_bundle(
 
     import mujoco
 
+    from march.env.g1 import course_scene, g1_joint_names
+    from march.export.deploy_spec import course_cells, deployment_spec, layout_problem
+
     files = bundle_files(onnx_path)
     free = mujoco.mjtJoint.mjJNT_FREE
     # a cheap look before any scene is built
@@ -233,7 +235,6 @@ def write_bundle(
 
 def export(cfg: MarchConfig, overrides: Sequence[str] = ()) -> dict[str, Any]:
     from march.config import ConfigError
-    from march.export.onnx_graph import export_student_onnx
     from march.learn.checkpoint import CheckpointError, load_checkpoint
     from march.learn.provenance import apply_checkpoint_config
 
@@ -256,6 +257,8 @@ def export(cfg: MarchConfig, overrides: Sequence[str] = ()) -> dict[str, Any]:
         out = Path(cfg.out) / DEFAULT_NAME  # a folder: the bundle goes inside
     if out.exists() and not out.is_file():
         fail(f"out={cfg.out}: {out} exists and is not a file")
+    from march.export.onnx_graph import export_student_onnx  # torch, rsl-rl, onnx: after the checks
+
     policy = rebuild_student(payload, path, cfg.student)
     meta = metadata(payload)
     meta["deployment"] = bundle_files(out)["json"].name
