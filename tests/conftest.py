@@ -12,7 +12,8 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 if os.environ.get("PYTEST_XDIST_WORKER"):
     # One worker per core: a second torch / OpenMP thread per worker (or per run a test starts)
     # only competes for the other worker's core, and OpenMP's fork/join waits on a busy core
-    # made such steps several times slower. Runs a test starts inherit the variable.
+    # made such steps several times slower. torch reads it when first imported (after this
+    # file), and the runs a test starts inherit it.
     os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
@@ -20,10 +21,6 @@ import subprocess  # noqa: E402
 import sys  # noqa: E402
 
 import pytest  # noqa: E402
-import torch  # noqa: E402
-
-if os.environ.get("PYTEST_XDIST_WORKER"):
-    torch.set_num_threads(1)
 from filelock import FileLock  # noqa: E402
 
 # The slowest files first, the many quick ones after them, so that with
