@@ -224,7 +224,14 @@ def run_pipeline(
 
         def eval_policy(policy, stage: str, iteration: int, env_steps: int) -> dict[str, Any]:
             row = evaluate(
-                eval_env, policy, cfg.eval.num_rollouts, run_dir, stage, iteration, env_steps
+                eval_env,
+                policy,
+                cfg.eval.num_rollouts,
+                run_dir,
+                stage,
+                iteration,
+                env_steps,
+                sees_depth=stage == "student",
             )
             print(
                 f"[eval] {stage} it {iteration}: distance {row['mean_distance_m']:.3g} m, success "
@@ -285,6 +292,7 @@ def run_pipeline(
                 cfg.eval.policy,
                 int(payload["iteration"]),
                 int(payload["env_steps"]),
+                sees_depth=kind == "student",
             )
         eval_env.close()
         write_summary(summary, run_dir, extra)

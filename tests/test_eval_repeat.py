@@ -4,6 +4,8 @@ The sim test trains a one-iteration clf teacher (smoke preset; the run evaluates
 an eval env built before the teacher env and stepped beside it), evaluates its checkpoint
 twice on one freshly built eval env in this process, and once more in a fresh process
 (``python -m march.train stage=eval``): the four eval rows must be identical, digit for digit.
+One of the four renders the eval env's depth camera, which the teacher does not see; the
+others pause it (``march.env.depth.camera_paused``), as the pipeline does for a teacher.
 """
 
 from __future__ import annotations
@@ -68,9 +70,11 @@ def test_evaluations_of_one_clf_teacher_are_bit_identical(tmp_path):
         payload = load_checkpoint(str(ckpt), "teacher", "cpu")
         policy = policy_from_checkpoint(env, cfg, "teacher", payload, str(ckpt))
         torch.manual_seed(999)  # whatever the caller's random state, the rows repeat
-        first = evaluate(env, policy, 6, here, "teacher", 1, 0)
+        first = evaluate(env, policy, 6, here, "teacher", 1, 0, sees_depth=False)
         torch.rand(17)
-        second = evaluate(env, policy, 6, here, "teacher", 1, 0)
+        # With the depth camera rendered (the run and the fresh process pause it for a teacher):
+        # the render changes no number.
+        second = evaluate(env, policy, 6, here, "teacher", 1, 0, sees_depth=True)
     finally:
         env.close()
 

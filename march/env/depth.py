@@ -19,6 +19,8 @@ global RNG, which march seeds from the run's ``seed``.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import TYPE_CHECKING
 
 import torch
@@ -100,3 +102,28 @@ def corrupt(
         drop = torch.rand(depth.shape, generator=generator, device=depth.device) < dropout
         out = torch.where(drop, torch.zeros_like(out), out)
     return out
+
+
+@contextmanager
+def camera_paused(env) -> Iterator[None]:
+    """Skip the depth render (mjlab's ``Simulation.sense``) of ``env`` inside the block.
+
+    For rollouts of a policy that does not see the depth image (the privileged teacher on the
+    evaluation env, whose scene carries the student's camera): the render was a quarter of a
+    4-env CPU evaluation step and buys nothing there. Physics, rewards, terminations and every
+    random draw are untouched, so the rollout's numbers are exactly those with the render on
+    (tests/test_eval_repeat.py); only the env's depth observation holds a stale frame, which
+    the teacher never reads. mjlab 1.6.0's ``sense()`` does nothing without a sensor context
+    (also on a GPU, where it would launch the captured sense graph); a context that also serves
+    ray-cast sensors is left alone, as their readings may be observed.
+    """
+    sim = env.unwrapped.sim if hasattr(env, "unwrapped") else env.sim
+    ctx = sim._sensor_context
+    if ctx is None or ctx.has_raycasts:
+        yield
+        return
+    sim._sensor_context = None
+    try:
+        yield
+    finally:
+        sim._sensor_context = ctx
