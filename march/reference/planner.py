@@ -62,7 +62,15 @@ from dataclasses import dataclass
 import torch
 
 from march.fusion import fused
-from march.reference.step_cost import _EPS, _step_cost, goal_ahead, pace_terms
+from march.reference.step_cost import (
+    _EPS,
+    _step_cost,
+    goal_ahead,
+    height_ok,
+    pace_floor,
+    pace_terms,
+    step_terms,
+)
 from march.world.footholds import Footholds
 
 """Numerical slack [m] so that clamped footholds pass ``Footholds.contains`` in float32."""
@@ -213,44 +221,33 @@ def evaluate_plan(
     prev_xy = torch.cat([start_xy[:, None], footholds_xy[:, :-1]], dim=1)
     prev_z = torch.cat([z_start[:, None], z[:, :-1]], dim=1)
     ahead = goal_ahead(footholds, prev_xy[..., 0], prev_xy[..., 1])
-    cmd_along = (command[:, :2] * axis).sum(-1, keepdim=True)
-    cost, ok = _step_cost(
-        prev_xy.unbind(-1),
-        prev_z,
-        footholds_xy.unbind(-1),
-        z,
-        clear,
+    terms = step_terms(
         durations,
         lands_left,
         command[:, None, :2].unbind(-1),
         axis[:, None].unbind(-1),
         lat[:, None].unbind(-1),
-        pace_terms(cmd_along, ahead, cfg),
+        cfg,
+    )
+    cost, ok = _step_cost(
+        prev_xy.unbind(-1),
+        footholds_xy.unbind(-1),
+        clear,
+        height_ok(prev_z, z, cfg),
+        terms,
+        pace_terms(terms.cmd[0], ahead, cfg),
         cfg,
     )
     return cost.sum(-1), ok.all(-1)
 
 
-def _nearest_stones(footholds: Footholds, x: torch.Tensor, y: torch.Tensor, m: int):
-    """Centre x, y, z, half sizes x, y (each (E, R, M)) and validity of the M stones whose
-    rectangles are nearest to the points (x, y), each (E, R)."""
-    cx, cy, cz = footholds.center.unbind(-1)  # (E, S)
-    hx, hy = footholds.half_size.unbind(-1)
-    dx = ((x[..., None] - cx[:, None]).abs() - hx[:, None]).clamp(min=0.0)
-    dy = ((y[..., None] - cy[:, None]).abs() - hy[:, None]).clamp(min=0.0)
-    dist = (dx * dx + dy * dy).masked_fill(~footholds.valid[:, None], float("inf"))
-    dist, idx = dist.topk(m, dim=-1, largest=False)  # (E, R, M)
-    flat = idx.flatten(1)
-
-    def take(t: torch.Tensor) -> torch.Tensor:
-        return torch.gather(t, 1, flat).view_as(idx)
-
-    return take(cx), take(cy), take(cz), take(hx), take(hy), torch.isfinite(dist)
-
-
-def _clamp_into(target: torch.Tensor, center: torch.Tensor, half: torch.Tensor) -> torch.Tensor:
-    """Clamp target (E, R, T, 1) into [center - half, center + half] (E, R, 1, M)."""
-    return torch.minimum(torch.maximum(target, center - half), center + half)
+def _clearance(stones: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Edge clearance of points (x, y) on the stones ``stones`` (rows of :func:`_stone_table`,
+    broadcast against the points): negative off the stone, -inf on an unusable one."""
+    return torch.minimum(
+        stones[..., 13:14] - (x - stones[..., 0:1]).abs(),
+        stones[..., 14:15] - (y - stones[..., 1:2]).abs(),
+    )
 
 
 def plan_footsteps(
@@ -301,6 +298,33 @@ def planner_draws(
     return unit, gumbel
 
 
+def _stone_table(footholds: Footholds, cfg: PlannerCfg) -> torch.Tensor:
+    """(E, S, 15) what the search reads of each stone, built once per plan so that a step gathers
+    its M stones' rows in one op: centre x, y, z (0:3); the lower (3:7) and upper (7:11) bounds of
+    a foothold clamped into the stone, in the order x hard, x soft, y hard, y soft (hard: with the
+    hard margin, soft: with margin + edge clearance); the half extents with the hard margin
+    (11:13), over which group (b)'s points spread; the half sizes the clearance is measured
+    against (13:15): -inf on a padding entry or a stone too small for the hard margin, so that
+    every point on it is off the stones."""
+    half = footholds.half_size
+    hard = half - cfg.stone_margin - _EPS
+    usable = footholds.valid & (hard >= 0.0).all(-1)
+    hard = hard.clamp(min=0.0)
+    soft = (half - cfg.stone_margin - cfg.edge_clearance).clamp(min=0.0)
+    extent = torch.stack([hard, soft], dim=-1)  # (E, S, 2 axes, 2 margins)
+    xy = footholds.center[..., :2, None]
+    return torch.cat(
+        [
+            footholds.center,
+            (xy - extent).flatten(-2),
+            (xy + extent).flatten(-2),
+            hard,
+            torch.where(usable[..., None], half, float("-inf")),
+        ],
+        dim=-1,
+    )
+
+
 def _search(
     stance_xy: torch.Tensor,
     stance_is_left: torch.Tensor,
@@ -310,7 +334,11 @@ def _search(
     gumbel: torch.Tensor,
     cfg: PlannerCfg,
 ) -> Plan:
-    """The greedy random-shooting search of :func:`plan_footsteps` on given draws (pure)."""
+    """The greedy random-shooting search of :func:`plan_footsteps` on given draws (pure).
+
+    Everything that does not depend on the rollouts' stance feet (the command and course frame
+    terms, the per-duration costs, the stones' clamp bounds, the scaled noise) is computed once
+    before the step loop; the chosen points are stacked and the stall flags computed after it."""
     device, dtype = stance_xy.device, stance_xy.dtype
     e, r, n = stance_xy.shape[0], cfg.num_rollouts, cfg.num_steps
     m = min(cfg.num_candidate_stones, footholds.center.shape[1])
@@ -319,97 +347,79 @@ def _search(
     fuse = cfg.fuse_candidates if cfg.fuse_candidates is not None else device.type == "cuda"
     nt = durations.numel()
     axis, lat = course_frame(footholds)
-    # Broadcast shapes: per env (E, 1, 1, 1, 1) against (E, R, T, M, C) candidates.
+    lands_left = torch.stack(
+        [~stance_is_left if i % 2 == 0 else stance_is_left for i in range(n)], dim=1
+    )
+    # Broadcast shapes: per env (E, 1, 1, 1, 1) against (E, R, T, M, C) candidates; the landing
+    # side per env and step (E, N, 1, 1, 1), read at step i as (E, 1, 1, 1, 1).
     ax, ay = (a.view(e, 1, 1, 1, 1) for a in axis.unbind(-1))
     lx, ly = (a.view(e, 1, 1, 1, 1) for a in lat.unbind(-1))
     vx, vy = (a.view(e, 1, 1, 1, 1) for a in command[:, :2].unbind(-1))
     dur = durations.view(1, 1, nt, 1, 1)
-    cmd_along = vx * ax + vy * ay
+    terms = step_terms(dur, lands_left.view(e, n, 1, 1, 1), (vx, vy), (ax, ay), (lx, ly), cfg)
+    # Nominal foothold offsets from the stance foot, (E, N, T, 1, 1): width offset + v_D dt.
+    nom_dx = terms.offset * lx + vx * dur
+    nom_dy = terms.offset * ly + vy * dur
+    floor, scale_ahead = pace_floor(terms.cmd[0], cfg)
+    table = _stone_table(footholds, cfg)
+    # The nearest-stone search: padding entries get half sizes of -inf (infinitely far).
+    centers = footholds.center[:, None, :, :2]  # (E, 1, S, 2)
+    halves = torch.where(footholds.valid[..., None], footholds.half_size, float("-inf"))[:, None]
+    noise = cfg.explore_temperature * gumbel
 
     _, z0 = locate_on_stones(footholds, stance_xy)
-    px = stance_xy[:, 0:1].expand(e, r).contiguous()
-    py = stance_xy[:, 1:2].expand(e, r).contiguous()
-    pz = z0[:, None].expand(e, r).contiguous()
-    out_xyz = torch.zeros(e, r, n, 3, dtype=dtype, device=device)
-    out_t = torch.zeros(e, r, n, dtype=dtype, device=device)
-    total = torch.zeros(e, r, dtype=dtype, device=device)
-    feasible = torch.ones(e, r, dtype=torch.bool, device=device)
-    stalled = torch.zeros(e, r, dtype=torch.bool, device=device)
-    lands_left = torch.stack(
-        [~stance_is_left if i % 2 == 0 else stance_is_left for i in range(n)], dim=1
-    )
-
+    px, py = (c.expand(e, r) for c in stance_xy[:, :, None].unbind(1))
+    pz = z0[:, None].expand(e, r)
+    points, t_picks, aheads = [px, py, pz], [], []
     for i in range(n):
-        left = lands_left[:, i].view(e, 1, 1, 1, 1)
-        side = left.to(dtype) * 2.0 - 1.0
+        step = terms._replace(side=terms.side[:, i : i + 1], offset=terms.offset[:, i : i + 1])
         # Nominal foothold for each duration, (E, R, T, 1): stance + width offset + v_D dt.
-        nom_x = px.view(e, r, 1, 1) + (side * cfg.step_width * lx + vx * dur)[..., 0]
-        nom_y = py.view(e, r, 1, 1) + (side * cfg.step_width * ly + vy * dur)[..., 0]
-        cx, cy, cz, hx, hy, valid = _nearest_stones(
-            footholds, nom_x[:, :, nt // 2, 0], nom_y[:, :, nt // 2, 0], m
-        )
-        hard_x, hard_y = hx - cfg.stone_margin - _EPS, hy - cfg.stone_margin - _EPS
-        valid = valid & (hard_x >= 0.0) & (hard_y >= 0.0)
-        hard_x, hard_y = hard_x.clamp(min=0.0), hard_y.clamp(min=0.0)
-        soft_x = (hx - cfg.stone_margin - cfg.edge_clearance).clamp(min=0.0)
-        soft_y = (hy - cfg.stone_margin - cfg.edge_clearance).clamp(min=0.0)
-        c4x, c4y = cx[:, :, None], cy[:, :, None]  # (E, R, 1, M)
+        nom_x = px[:, :, None, None] + nom_dx[:, i : i + 1, :, :, 0]
+        nom_y = py[:, :, None, None] + nom_dy[:, i : i + 1, :, :, 0]
+        # The M stones whose rectangles are nearest to the middle duration's nominal foothold.
+        mid = torch.stack([nom_x[:, :, nt // 2, 0], nom_y[:, :, nt // 2, 0]], dim=-1)
+        d = ((mid[:, :, None] - centers).abs() - halves).clamp(min=0.0)  # (E, R, S, 2)
+        near = (d * d).sum(-1).topk(m, dim=-1, largest=False).indices  # (E, R, M)
+        rows = torch.gather(table, 1, near.flatten(1)[..., None].expand(-1, -1, table.shape[-1]))
+        rows = rows.view(e, r, m, -1)
+        st = rows[:, :, None]  # (E, R, 1, M, 15)
         # Two candidate groups, scored separately because only the first depends on dt:
         # (a) the nominal foothold clamped into each stone (hard and soft margins), (E, R, T, M, 2);
         # (b) random points on each stone, (E, R, 1, M, K).
-        ax_ = torch.stack(
-            [
-                _clamp_into(nom_x, c4x, hard_x[:, :, None]),
-                _clamp_into(nom_x, c4x, soft_x[:, :, None]),
-            ],
-            dim=-1,
-        )
-        ay_ = torch.stack(
-            [
-                _clamp_into(nom_y, c4y, hard_y[:, :, None]),
-                _clamp_into(nom_y, c4y, soft_y[:, :, None]),
-            ],
-            dim=-1,
-        )
-        bx_ = (cx[..., None] + unit[i, 0] * hard_x[..., None])[:, :, None]
-        by_ = (cy[..., None] + unit[i, 1] * hard_y[..., None])[:, :, None]
-        c5x, c5y = c4x[..., None], c4y[..., None]
-        h5x, h5y = hx[:, :, None, :, None], hy[:, :, None, :, None]
-        invalid = ~valid[:, :, None, :, None]
+        ax_ = torch.clamp(nom_x[..., None], st[..., 3:5], st[..., 7:9])
+        ay_ = torch.clamp(nom_y[..., None], st[..., 5:7], st[..., 9:11])
+        bx_ = (rows[..., 0:1] + unit[i, 0] * rows[..., 11:12])[:, :, None]
+        by_ = (rows[..., 1:2] + unit[i, 1] * rows[..., 12:13])[:, :, None]
         ahead = goal_ahead(footholds, px, py)  # (E, R): the progress term applies
-        floor, scale = pace_terms(cmd_along, ahead.view(e, r, 1, 1, 1), cfg)
-        args = ((px.view(e, r, 1, 1, 1), py.view(e, r, 1, 1, 1)), pz.view(e, r, 1, 1, 1))
-        rest = (dur, left, (vx, vy), (ax, ay), (lx, ly), (floor, scale), cfg)
+        scale = scale_ahead * ahead.view(e, r, 1, 1, 1)  # (0 where the goal is behind)
+        prev = (px.view(e, r, 1, 1, 1), py.view(e, r, 1, 1, 1))
+        height = height_ok(pz.view(e, r, 1, 1, 1), st[..., 2:3], cfg)  # (E, R, 1, M, 1)
+        pace = (floor, scale)
         if fuse:
             gx = torch.cat([ax_, bx_.expand(e, r, nt, m, k)], dim=-1)
             gy = torch.cat([ay_, by_.expand(e, r, nt, m, k)], dim=-1)
-            groups = [(gx, gy)]
+            cost, ok = _step_cost(prev, (gx, gy), _clearance(st, gx, gy), height, step, pace, cfg)
         else:
-            groups = [(ax_, ay_), (bx_, by_)]
-        scored = []
-        for gx_, gy_ in groups:
-            clear = torch.minimum(h5x - (gx_ - c5x).abs(), h5y - (gy_ - c5y).abs())
-            cz5 = cz[:, :, None, :, None]
-            scored.append(
-                _step_cost(*args, (gx_, gy_), cz5, clear.masked_fill(invalid, -1.0), *rest)
+            cost_a, ok_a = _step_cost(
+                prev, (ax_, ay_), _clearance(st, ax_, ay_), height, step, pace, cfg
             )
+            cost_b, ok_b = _step_cost(
+                prev, (bx_, by_), _clearance(st, bx_, by_), height, step, pace, cfg
+            )
+            cost = torch.cat([cost_a, cost_b], dim=-1)
         # (T, M, C) flattened, C = the 2 + K candidates: group (a) first, then group (b)
-        cost = scored[0][0] if fuse else torch.cat([scored[0][0], scored[1][0]], dim=-1)
         flat_cost = cost.reshape(e, r, -1)
-        noisy = flat_cost + cfg.explore_temperature * gumbel[i]
-        pick = noisy.argmin(-1, keepdim=True)  # (E, R, 1)
-        total = total + flat_cost.gather(-1, pick)[..., 0]
-        m_idx = (pick[..., 0] // (k + 2)) % m
-        t_idx = pick[..., 0] // (m * (k + 2))
-        prev_x, prev_y = px, py
+        pick = (flat_cost + noise[i]).argmin(-1, keepdim=True)  # (E, R, 1)
+        chosen = flat_cost.gather(-1, pick)[..., 0]
+        tm = pick[..., 0] // (k + 2)  # t_idx * M + m_idx
+        t_idx, m_idx = tm // m, tm % m
         if fuse:
-            ok = scored[0][1].expand_as(cost).reshape(e, r, -1)
-            feasible = feasible & ok.gather(-1, pick)[..., 0]
+            ok = ok.expand_as(cost).reshape(e, r, -1).gather(-1, pick)[..., 0]
             px = gx.reshape(e, r, -1).gather(-1, pick)[..., 0]
             py = gy.reshape(e, r, -1).gather(-1, pick)[..., 0]
         else:  # read the chosen point from its group (b's masks are never expanded)
             c_idx = pick[..., 0] % (k + 2)
-            in_a = ((t_idx * m + m_idx) * 2 + c_idx.clamp(max=1))[..., None]
+            in_a = (tm * 2 + c_idx.clamp(max=1))[..., None]
             in_b = (m_idx * k + (c_idx - 2).clamp(min=0))[..., None]
             from_a = c_idx < 2
 
@@ -418,23 +428,32 @@ def _search(
                 b_ = b_.expand(e, r, 1, m, k).reshape(e, r, -1).gather(-1, in_b)[..., 0]
                 return torch.where(from_a, a_, b_)
 
-            feasible = feasible & take(scored[0][1], scored[1][1])
+            ok = take(ok_a, ok_b)
             px, py = take(ax_, bx_), take(ay_, by_)
-        pz = cz.gather(-1, m_idx[..., None])[..., 0]
-        # Stall flag: the chosen step falls short of the pace while the goal lies ahead.
-        advance = (px - prev_x) * axis[:, 0:1] + (py - prev_y) * axis[:, 1:2]
-        need = floor.view(e, 1) * durations[t_idx]
-        stalled = stalled | (ahead & (advance < need - _EPS))
-        out_xyz[:, :, i] = torch.stack([px, py, pz], dim=-1)
-        out_t[:, :, i] = durations[t_idx]
+        if i == 0:
+            total, feasible = chosen, ok
+        else:
+            total, feasible = total + chosen, feasible & ok
+        pz = rows[..., 2].gather(-1, m_idx[..., None])[..., 0]
+        points += [px, py, pz]
+        t_picks.append(t_idx)
+        aheads.append(ahead)
+
+    path = torch.stack(points, dim=-1).view(e, r, n + 1, 3)  # the stance foot, then the N steps
+    t_idx = torch.stack(t_picks, dim=-1)  # (E, R, N)
+    # Stall flag: a chosen step falls short of the pace while the goal lies ahead.
+    step_xy = path[..., 1:, :2] - path[..., :-1, :2]
+    advance = step_xy[..., 0] * axis[:, 0, None, None] + step_xy[..., 1] * axis[:, 1, None, None]
+    need = (floor.view(e, 1) * durations - _EPS).gather(1, t_idx.flatten(1)).view(e, r, n)
+    stalled = (torch.stack(aheads, dim=-1) & (advance < need)).any(-1)
 
     # Best rollout: feasible ones first, then the lowest noise-free cost.
     rank = total + torch.where(feasible, 0.0, float("inf"))
     best = torch.where(feasible.any(-1), rank.argmin(-1), total.argmin(-1))
     env = torch.arange(e, device=device)
     return Plan(
-        footholds=out_xyz[env, best],
-        durations=out_t[env, best],
+        footholds=path[env, best, 1:],
+        durations=durations[t_idx[env, best]],
         lands_left=lands_left,
         cost=total[env, best],
         feasible=feasible[env, best],
