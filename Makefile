@@ -16,13 +16,13 @@ endif
 
 .PHONY: install train smoke test test-all lint figures gpu-check test-slurm kill-trials
 
-# --no-compile: pip byte-compiles every module of every wheel, torch's thousands (measured on
-# 2 cores from the local wheels: 74 s with, 32 s without); Python compiles the few it imports
-# on first use.
+# pip byte-compiles every module it installs (74 s of the install here, 32 s with --no-compile).
+# Kept: where PYTHONDONTWRITEBYTECODE is set (it is on this machine) nothing else writes .pyc,
+# and without them every process of the test suite compiled its imports again (+7 min of CPU).
 $(VENV)/.installed: pyproject.toml constraints-cpu.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet --no-compile $(CONSTRAINTS) -e '.[dev,optuna]'
+	$(PY) -m pip install --quiet $(CONSTRAINTS) -e '.[dev,optuna]'
 	touch $@
 
 install: $(VENV)/.installed

@@ -26,9 +26,15 @@ from filelock import FileLock  # noqa: E402
 # The slowest files first, the many quick ones after them, so that with
 # ``--dist loadfile`` the two workers start on the two longest chains and the quick files even
 # out the end: longest processing time first. The first holds the session's smoke run and
-# bundle; the second (no smoke run) runs beside it instead of waiting on its lock.
+# bundle; the second worker meanwhile runs three files that never step a simulator (CLI errors,
+# config values, figures from synthetic runs, ~80 s): on a fresh clone the first run compiles
+# warp's kernels (~30 s of one core), and a second simulation started beside it compiled the
+# same kernels again (the cache has no lock). Then the sweeps, on a warm cache.
 SLOW_FILES = (
     "test_sim2sim_agreement.py",
+    "test_config.py",
+    "test_config_values.py",
+    "test_figures.py",
     "test_sweeps.py",
     "test_evaluate.py",
     "test_eval_repeat.py",
