@@ -16,13 +16,17 @@ endif
 
 .PHONY: install train smoke test test-all lint figures gpu-check test-slurm kill-trials
 
-# pip byte-compiles every module it installs (74 s of the install here, 32 s with --no-compile).
-# Kept: where PYTHONDONTWRITEBYTECODE is set (it is on this machine) nothing else writes .pyc,
-# and without them every process of the test suite compiled its imports again (+7 min of CPU).
+# Byte code: pip would compile every module of every wheel, torch's thousands (74 s of the
+# install here; 32 s with --no-compile). Instead Python writes the .pyc of what is imported, on
+# first import, under .venv/pycache, also where the shell sets PYTHONDONTWRITEBYTECODE (it is
+# set on this machine: without any .pyc every process of the test suite compiled its imports
+# again, +7 min of CPU). The repository's own tree stays free of __pycache__.
+export PYTHONDONTWRITEBYTECODE :=
+export PYTHONPYCACHEPREFIX ?= $(CURDIR)/$(VENV)/pycache
 $(VENV)/.installed: pyproject.toml constraints-cpu.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet $(CONSTRAINTS) -e '.[dev,optuna]'
+	$(PY) -m pip install --quiet --no-compile $(CONSTRAINTS) -e '.[dev,optuna]'
 	touch $@
 
 install: $(VENV)/.installed
