@@ -303,7 +303,7 @@ def shadow(
                 err["action_out"] = max(
                     err["action_out"], float(np.abs(action - s.action[k]).max())
                 )
-                if until is not None and not err[until] <= TOLERANCE[until]:
+                if until is not None and until in violations(err):
                     return err
         finally:
             _remove(sim)

@@ -117,7 +117,7 @@ def camera_paused(env) -> Iterator[None]:
     (also on a GPU, where it would launch the captured sense graph); a context that also serves
     ray-cast sensors is left alone, as their readings may be observed.
     """
-    sim = env.unwrapped.sim if hasattr(env, "unwrapped") else env.sim
+    sim = env.unwrapped.sim  # (mjlab: ``unwrapped`` is the env itself, or a wrapper's env)
     ctx = sim._sensor_context
     if ctx is None or ctx.has_raycasts:
         yield

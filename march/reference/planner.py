@@ -241,12 +241,20 @@ def evaluate_plan(
     return cost.sum(-1), ok.all(-1)
 
 
+# Columns of a :func:`_stone_table` row, each a slice that keeps the last dim (see there).
+_CX, _CY, _CZ = slice(0, 1), slice(1, 2), slice(2, 3)
+_LOWER_X, _LOWER_Y = slice(3, 5), slice(5, 7)
+_UPPER_X, _UPPER_Y = slice(7, 9), slice(9, 11)
+_SPREAD_X, _SPREAD_Y = slice(11, 12), slice(12, 13)
+_HALF_X, _HALF_Y = slice(13, 14), slice(14, 15)
+
+
 def _clearance(stones: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """Edge clearance of points (x, y) on the stones ``stones`` (rows of :func:`_stone_table`,
     broadcast against the points): negative off the stone, -inf on an unusable one."""
     return torch.minimum(
-        stones[..., 13:14] - (x - stones[..., 0:1]).abs(),
-        stones[..., 14:15] - (y - stones[..., 1:2]).abs(),
+        stones[..., _HALF_X] - (x - stones[..., _CX]).abs(),
+        stones[..., _HALF_Y] - (y - stones[..., _CY]).abs(),
     )
 
 
@@ -300,12 +308,12 @@ def planner_draws(
 
 def _stone_table(footholds: Footholds, cfg: PlannerCfg) -> torch.Tensor:
     """(E, S, 15) what the search reads of each stone, built once per plan so that a step gathers
-    its M stones' rows in one op: centre x, y, z (0:3); the lower (3:7) and upper (7:11) bounds of
-    a foothold clamped into the stone, in the order x hard, x soft, y hard, y soft (hard: with the
-    hard margin, soft: with margin + edge clearance); the half extents with the hard margin
-    (11:13), over which group (b)'s points spread; the half sizes the clearance is measured
-    against (13:15): -inf on a padding entry or a stone too small for the hard margin, so that
-    every point on it is off the stones."""
+    its M stones' rows in one op: centre x, y, z (``_CX``, ``_CY``, ``_CZ``); the lower
+    (``_LOWER_X``, ``_LOWER_Y``) and upper (``_UPPER_*``) bounds of a foothold clamped into the
+    stone, each (hard, soft) (hard: with the hard margin, soft: with margin + edge clearance);
+    the half extents with the hard margin (``_SPREAD_*``), over which group (b)'s points spread;
+    the half sizes the clearance is measured against (``_HALF_*``): -inf on a padding entry or a
+    stone too small for the hard margin, so that every point on it is off the stones."""
     half = footholds.half_size
     hard = half - cfg.stone_margin - _EPS
     usable = footholds.valid & (hard >= 0.0).all(-1)
@@ -386,14 +394,14 @@ def _search(
         # Two candidate groups, scored separately because only the first depends on dt:
         # (a) the nominal foothold clamped into each stone (hard and soft margins), (E, R, T, M, 2);
         # (b) random points on each stone, (E, R, 1, M, K).
-        ax_ = torch.clamp(nom_x[..., None], st[..., 3:5], st[..., 7:9])
-        ay_ = torch.clamp(nom_y[..., None], st[..., 5:7], st[..., 9:11])
-        bx_ = (rows[..., 0:1] + unit[i, 0] * rows[..., 11:12])[:, :, None]
-        by_ = (rows[..., 1:2] + unit[i, 1] * rows[..., 12:13])[:, :, None]
+        ax_ = torch.clamp(nom_x[..., None], st[..., _LOWER_X], st[..., _UPPER_X])
+        ay_ = torch.clamp(nom_y[..., None], st[..., _LOWER_Y], st[..., _UPPER_Y])
+        bx_ = (rows[..., _CX] + unit[i, 0] * rows[..., _SPREAD_X])[:, :, None]
+        by_ = (rows[..., _CY] + unit[i, 1] * rows[..., _SPREAD_Y])[:, :, None]
         ahead = goal_ahead(footholds, px, py)  # (E, R): the progress term applies
         scale = scale_ahead * ahead.view(e, r, 1, 1, 1)  # (0 where the goal is behind)
         prev = (px.view(e, r, 1, 1, 1), py.view(e, r, 1, 1, 1))
-        height = height_ok(pz.view(e, r, 1, 1, 1), st[..., 2:3], cfg)  # (E, R, 1, M, 1)
+        height = height_ok(pz.view(e, r, 1, 1, 1), st[..., _CZ], cfg)  # (E, R, 1, M, 1)
         pace = (floor, scale)
         if fuse:
             gx = torch.cat([ax_, bx_.expand(e, r, nt, m, k)], dim=-1)
@@ -434,7 +442,7 @@ def _search(
             total, feasible = chosen, ok
         else:
             total, feasible = total + chosen, feasible & ok
-        pz = rows[..., 2].gather(-1, m_idx[..., None])[..., 0]
+        pz = rows[..., _CZ][..., 0].gather(-1, m_idx[..., None])[..., 0]
         points += [px, py, pz]
         t_picks.append(t_idx)
         aheads.append(ahead)
