@@ -56,13 +56,10 @@ def euler_zyx(quat: torch.Tensor) -> torch.Tensor:
 def yaw_rotate(vec: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
     """Rotate the xy part of (E, ..., 2|3) vectors by -yaw (world -> yaw-aligned base frame)."""
     c, s = torch.cos(yaw), torch.sin(yaw)
-    while c.dim() < vec.dim() - 1:
+    while c.dim() < vec.dim():
         c, s = c[..., None], s[..., None]
-    x, y = vec[..., 0], vec[..., 1]
-    out = vec.clone()
-    out[..., 0] = c * x + s * y
-    out[..., 1] = -s * x + c * y
-    return out
+    x, y = vec[..., 0:1], vec[..., 1:2]
+    return torch.cat([c * x + s * y, -s * x + c * y, vec[..., 2:]], dim=-1)  # one op, no copies
 
 
 def body_masses(

@@ -85,6 +85,16 @@ if TYPE_CHECKING:
 NUM_OUTPUTS = len(CLF_OUTPUT_NAMES)
 STEP_FIELDS = tuple(f.name for f in fields(StepState))
 """The per-env tensors of a ``StepState``."""
+PLAN_STATE = (
+    "stance_anchor",
+    "plan_footholds",
+    "plan_durations",
+    "plan_feasible",
+    "plan_stalled",
+    "tau",
+    "step_switched",
+)
+"""The term's own per-env tensors a new step sets (besides the ``StepState``)."""
 
 
 class ReferenceCommand(CommandTerm):
@@ -179,6 +189,17 @@ class ReferenceCommand(CommandTerm):
         self._v_step = -1
         self.metrics["touchdowns"] = torch.zeros(e, device=dev)
         self.metrics["timeouts"] = torch.zeros(e, device=dev)
+        self._spare: dict[str, torch.Tensor] = {}
+        """What :meth:`_new_step` writes, by name: each an (E + 1, ...) tensor whose first E rows
+        are the attribute itself (``step.<field>`` for the step state)."""
+        for name in (*(f"step.{f}" for f in STEP_FIELDS), *PLAN_STATE):
+            owner, attr = (self.step, name[5:]) if name.startswith("step.") else (self, name)
+            value = getattr(owner, attr)
+            if value is None:
+                continue
+            base = torch.cat([value, value[:1]])
+            self._spare[name] = base
+            setattr(owner, attr, base[:e])
 
     # ---------------------------------------------------------------- mjlab interface
 
@@ -250,10 +271,11 @@ class ReferenceCommand(CommandTerm):
         sel, serve, flip = self.queue.serve(touchdown, timeout, active)
         forced = serve & ~flip
         self.stance_is_left[sel] = self.stance_is_left[sel] ^ flip
-        self.touchdown_count[sel] += flip.long()
-        self.forced_count[sel] += forced.long()
-        self.metrics["touchdowns"][sel] += flip.float()
-        self.metrics["timeouts"][sel] += forced.float()
+        # sel holds distinct envs: index_add_ is the gather + add + index_put it replaces
+        self.touchdown_count.index_add_(0, sel, flip.long())
+        self.forced_count.index_add_(0, sel, forced.long())
+        self.metrics["touchdowns"].index_add_(0, sel, flip.float())
+        self.metrics["timeouts"].index_add_(0, sel, forced.float())
 
         if resets.numel():
             self._start_episode(resets)
@@ -351,19 +373,21 @@ class ReferenceCommand(CommandTerm):
         )
         st.ramp = torch.zeros_like(apply) if ramp is None else ramp
 
-        def put(target: torch.Tensor, value: torch.Tensor) -> None:
-            keep = apply.view(-1, *([1] * (value.dim() - 1)))
-            target[env_ids] = torch.where(keep, value.to(target.dtype), target[env_ids])
-
-        for name in STEP_FIELDS:
-            put(getattr(self.step, name), getattr(st, name))
-        put(self.stance_anchor, stance)
-        put(self.plan_footholds, plan.footholds)
-        put(self.plan_durations, plan.durations)
-        put(self.plan_feasible, plan.feasible)
-        put(self.plan_stalled, plan.stalled)
-        put(self.tau, torch.zeros_like(self.tau[env_ids]))
-        put(self.step_switched, torch.ones_like(apply))
+        # The rows not applied are written to each tensor's spare row E (never read): one
+        # index_put per tensor instead of a gather, a where and an index_put.
+        rows = torch.where(apply, env_ids, self.num_envs)
+        values = {f"step.{name}": getattr(st, name) for name in STEP_FIELDS}
+        values.update(
+            stance_anchor=stance,
+            plan_footholds=plan.footholds,
+            plan_durations=plan.durations,
+            plan_feasible=plan.feasible,
+            plan_stalled=plan.stalled,
+            tau=self.tau.new_zeros(n),
+            step_switched=torch.ones_like(apply),
+        )
+        for name, target in self._spare.items():
+            target[rows] = values[name].to(target.dtype)
         self._step_version += 1
         self.replan_count[env_ids] += apply.long()
         switched = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
@@ -479,16 +503,35 @@ class ReferenceCommand(CommandTerm):
         data = self.robot.data
         base = data.root_link_pos_w
         yaw = data.heading_w
-        pos, vel = self.y_ref_pos.clone(), self.y_ref_vel.clone()
-        for k in (0, 6):  # com_xyz, swing_xyz
-            pos[:, k : k + 3] = yaw_rotate(pos[:, k : k + 3] - base, yaw)
-            vel[:, k : k + 3] = yaw_rotate(vel[:, k : k + 3], yaw)
-        for k in (5, 11):  # pelvis_yaw, swing_yaw
-            pos[:, k] = wrap_to_pi(pos[:, k] - yaw)
-        feet = yaw_rotate(self.plan_footholds - base[:, None], yaw).flatten(1)
+        pos, vel = self.y_ref_pos, self.y_ref_vel
+        n = self.plan_footholds.shape[1]
+        # One rotation for every vector the observation turns into the base frame: the CoM and
+        # swing-foot positions and the N footholds relative to the base, then the CoM and
+        # swing-foot velocities (five rotations and their copies before: ~75 more ops a step).
+        points = torch.cat([pos[:, None, 0:3], pos[:, None, 6:9], self.plan_footholds], 1)
+        rates = torch.stack([vel[:, 0:3], vel[:, 6:9]], dim=1)
+        turned = yaw_rotate(torch.cat([points - base[:, None], rates], dim=1), yaw)
+        yaws = wrap_to_pi(torch.stack([pos[:, 5], pos[:, 11]], dim=-1) - yaw[:, None])
         dur = self.step.duration
-        phase = torch.stack([(self.tau / dur).clamp(max=2.0), dur], dim=-1)
-        return torch.cat([pos, vel, feet, phase], dim=-1)
+        return torch.cat(
+            [
+                turned[:, 0],  # com_xyz
+                pos[:, 3:5],
+                yaws[:, 0:1],  # pelvis_yaw
+                turned[:, 1],  # swing_xyz
+                pos[:, 9:11],
+                yaws[:, 1:2],  # swing_yaw
+                pos[:, 12:],
+                turned[:, n + 2],  # com velocity
+                vel[:, 3:6],
+                turned[:, n + 3],  # swing-foot velocity
+                vel[:, 9:],
+                turned[:, 2 : n + 2].flatten(1),  # footholds
+                (self.tau / dur).clamp(max=2.0)[:, None],
+                dur[:, None],
+            ],
+            dim=-1,
+        )
 
 
 def reference_term(env: ManagerBasedRlEnv, command_name: str = "reference") -> ReferenceCommand:
