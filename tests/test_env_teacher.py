@@ -66,6 +66,44 @@ def test_reward_sets_differ_in_the_documented_terms():
         assert "stones" in ft
 
 
+def _feet_sensor(sensors):
+    (feet,) = [s for s in sensors if s.name == "feet_ground_contact"]
+    return feet
+
+
+def test_air_time_is_tracked_only_where_a_term_reads_it():
+    """mjlab's G1 task tracks the feet's air time for terms neither arm has; a term that reads
+    it (mjlab's own feet_air_time reward, or a user's function naming the timers) keeps the
+    tracking, in every purpose's env."""
+    from dataclasses import replace
+
+    from mjlab.managers.reward_manager import RewardTermCfg
+    from mjlab.tasks.velocity import mdp as vel_mdp
+    from mjlab.tasks.velocity.config.g1.env_cfgs import unitree_g1_rough_env_cfg
+
+    from march.env.build import _air_time_if_read
+
+    def reads_timers(env, sensor_name: str = "feet_ground_contact"):
+        return env.scene[sensor_name].data.current_air_time.sum(-1)
+
+    mjlab_cfg = unitree_g1_rough_env_cfg()
+    assert _feet_sensor(mjlab_cfg.scene.sensors).track_air_time  # what mjlab asks for
+    assert _feet_sensor(_air_time_if_read(mjlab_cfg)).track_air_time  # its terms read it
+    for reward in ("clf", "modelfree"):
+        cfg = load(["compute=smoke", f"reward={reward}"])
+        for purpose in ("teacher", "student", "eval"):
+            env_cfg = build_env_cfg(cfg, purpose)
+            assert not _feet_sensor(env_cfg.scene.sensors).track_air_time, (reward, purpose)
+            env_cfg.scene.sensors = tuple(
+                replace(s, track_air_time=True) if s.name == "feet_ground_contact" else s
+                for s in env_cfg.scene.sensors
+            )
+            assert not _feet_sensor(_air_time_if_read(env_cfg)).track_air_time
+            for func in (vel_mdp.feet_air_time, reads_timers):
+                env_cfg.rewards["extra"] = RewardTermCfg(func=func, weight=1.0, params={})
+                assert _feet_sensor(_air_time_if_read(env_cfg)).track_air_time, func.__name__
+
+
 def test_no_placeholders_left_for_the_teacher():
     from march.env.build import PLACEHOLDERS
 

@@ -16,6 +16,7 @@ student and evaluation always see the same world:
 from __future__ import annotations
 
 import contextlib
+import inspect
 import math
 import time
 from collections.abc import Iterator
@@ -31,6 +32,7 @@ from mjlab.managers.event_manager import EventTermCfg
 from mjlab.managers.observation_manager import ObservationGroupCfg, ObservationTermCfg
 from mjlab.managers.termination_manager import TerminationTermCfg
 from mjlab.rl.vecenv_wrapper import RslRlVecEnvWrapper
+from mjlab.sensor import ContactSensorCfg
 from mjlab.tasks.velocity import mdp as vel_mdp
 from mjlab.tasks.velocity.config.g1.env_cfgs import unitree_g1_rough_env_cfg
 from mjlab.tasks.velocity.mdp import UniformVelocityCommandCfg
@@ -360,7 +362,40 @@ def build_env_cfg(
     dr = cfg.dr if purpose != "eval" or cfg.eval.randomization else replace(cfg.dr, name="none")
     apply_dr(env_cfg, dr, camera=camera)
     env_cfg.metrics = {}
+    env_cfg.scene.sensors = _air_time_if_read(env_cfg)
     return env_cfg
+
+
+AIR_TIME_READS = ("air_time", "first_contact", "first_air")
+"""What a term's source names when it reads a contact sensor's air / contact timers."""
+
+
+def _reads_air_time(func: object) -> bool:
+    try:
+        source = inspect.getsource(func)  # a function or a class term
+    except (OSError, TypeError):
+        return True  # source unknown: keep the timers
+    return any(name in source for name in AIR_TIME_READS)
+
+
+def _air_time_if_read(env_cfg: ManagerBasedRlEnvCfg) -> tuple:
+    """The scene's sensors with contact air-time tracking only where a term can read it.
+
+    mjlab's G1 task tracks the feet's air and contact times (92 ops a step at 16 envs, eager
+    also on a GPU) for its ``feet_air_time`` reward and ``foot_air_time`` observation; neither
+    arm of march reads them. A term whose source names them (``AIR_TIME_READS``) keeps the
+    tracking, so a user's arm that adds such a term needs nothing else."""
+    groups = (env_cfg.observations or {}).values()
+    terms = [t for g in groups for t in g.terms.values()]
+    for table in (env_cfg.rewards, env_cfg.terminations, env_cfg.events, env_cfg.curriculum):
+        terms += list((table or {}).values())
+    read = any(_reads_air_time(t.func) for t in terms if t is not None)
+    return tuple(
+        replace(s, track_air_time=False)
+        if isinstance(s, ContactSensorCfg) and s.track_air_time and not read
+        else s
+        for s in env_cfg.scene.sensors or ()
+    )
 
 
 @contextlib.contextmanager
