@@ -4,7 +4,7 @@
 their rates from the simulator state; :func:`stance_foot_state` the stance foot's site position
 and velocities for the holonomic terms. Plain functions of the env, the robot entity, the foot
 site names, the body masses and the stance mask, called by the ``reference`` command term
-(``march.env.reference_command``); :func:`yaw_rotate` also serves its base-relative observation.
+(``march.env.reference_command``); :func:`reference_in_base_frame` builds its base-relative observation.
 
 Decisions (``march.env.reference_command`` lists the others)
 - **CoM.** Whole-body CoM: ``subtree_com`` of the robot's root body (MuJoCo's mass-weighted CoM of
@@ -26,6 +26,7 @@ from mjlab.utils.lab_api.math import euler_xyz_from_quat, quat_apply_inverse, qu
 
 from march.env.step_cache import site_state, site_xmat
 from march.fusion import maybe_fused
+from march.reference.trajectory import wrap_to_pi
 
 if TYPE_CHECKING:
     from mjlab.entity import Entity
@@ -60,6 +61,53 @@ def yaw_rotate(vec: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
         c, s = c[..., None], s[..., None]
     x, y = vec[..., 0:1], vec[..., 1:2]
     return torch.cat([c * x + s * y, -s * x + c * y, vec[..., 2:]], dim=-1)  # one op, no copies
+
+
+def reference_in_base_frame(
+    reference: tuple[torch.Tensor, torch.Tensor],
+    footholds: torch.Tensor,
+    phase: tuple[torch.Tensor, torch.Tensor],
+    base: tuple[torch.Tensor, torch.Tensor],
+) -> torch.Tensor:
+    """The privileged reference observation, relative to the base (yaw-aligned pelvis frame),
+    from the y_ref positions and velocities ``reference`` (E, 29) each, the plan's ``footholds``
+    (E, N, 3), ``phase`` = (tau, step duration) (E,) each and ``base`` = the pelvis position
+    (E, 3) and heading (E,).
+
+    Layout (E, 29 + 29 + 3N + 2): y_ref positions, y_ref velocities, the N planned footholds
+    (dx, dy, dz from the pelvis), then tau / duration and duration [s]. Position-like outputs
+    (CoM, swing foot) are taken relative to the pelvis and rotated by -heading, their velocities
+    rotated by -heading; the pelvis and swing-foot yaw references are given relative to the
+    heading (wrapped); roll, pitch and joints as they are.
+
+    One rotation for every vector turned into the base frame: the CoM and swing-foot positions
+    and the N footholds relative to the base, then the CoM and swing-foot velocities (five
+    rotations and their copies before: ~75 more ops a step)."""
+    (pos, vel), (tau, duration), (base, yaw) = reference, phase, base
+    n = footholds.shape[1]
+    points = torch.cat([pos[:, None, 0:3], pos[:, None, 6:9], footholds], 1)
+    rates = torch.stack([vel[:, 0:3], vel[:, 6:9]], dim=1)
+    turned = yaw_rotate(torch.cat([points - base[:, None], rates], dim=1), yaw)
+    yaws = wrap_to_pi(torch.stack([pos[:, 5], pos[:, 11]], dim=-1) - yaw[:, None])
+    return torch.cat(
+        [
+            turned[:, 0],  # com_xyz
+            pos[:, 3:5],
+            yaws[:, 0:1],  # pelvis_yaw
+            turned[:, 1],  # swing_xyz
+            pos[:, 9:11],
+            yaws[:, 1:2],  # swing_yaw
+            pos[:, 12:],
+            turned[:, n + 2],  # com velocity
+            vel[:, 3:6],
+            turned[:, n + 3],  # swing-foot velocity
+            vel[:, 9:],
+            turned[:, 2 : n + 2].flatten(1),  # footholds
+            (tau / duration).clamp(max=2.0)[:, None],
+            duration[:, None],
+        ],
+        dim=-1,
+    )
 
 
 def body_masses(

@@ -38,10 +38,7 @@ Decisions (documented here once; the README repeats them)
   foot is, ``tau`` restarts and ``step_switched`` is set (counted in ``forced_count``).
 - **CoM and outputs**: the measured outputs y_sim are documented with their code in
   :mod:`march.env.clf_outputs`.
-- **r_dclf clip.** ``ClfCfg.dclf_clip = 1.0`` (the author's ``clip(., 0, 1)``; the paper prints
-  no clip): unclipped, under the initial policy's action noise (std 1) the weighted r_dclf
-  averages about -22 per step against +3.7 for the weighted r_clf (8 envs, 150 steps), so the
-  decrease term swamps every other signal; clipped it averages about -0.5.
+- **r_dclf clip**: :attr:`march.env.reference_cfg.ReferenceCommandCfg.clf`.
 - **Replanning without host syncs** (issue 11): resets are planned as mjlab's batch of reset
   envs, touchdowns and timeouts in one fixed-size planner batch per update
   (:mod:`march.env.replan_queue`).
@@ -62,8 +59,14 @@ import torch
 from mjlab.managers.command_manager import CommandTerm
 
 from march.clf.lyapunov import CLF_OUTPUT_NAMES, UPPER_BODY_JOINTS, ClfModel, VHistory
-from march.env.clf_outputs import body_masses, measured_outputs, stance_foot_state, yaw_rotate
+from march.env.clf_outputs import (
+    body_masses,
+    measured_outputs,
+    reference_in_base_frame,
+    stance_foot_state,
+)
 from march.env.course import foothold_table
+from march.env.masked_rows import MaskedRows
 from march.env.reference_cfg import ReferenceCommandCfg
 from march.env.replan_queue import ReplanQueue
 from march.env.step_cache import site_pos
@@ -75,7 +78,6 @@ from march.reference.trajectory import (
     reference_at,
     step_state_from_plan,
     tracking_error,
-    wrap_to_pi,
 )
 from march.world.footholds import Footholds
 
@@ -189,17 +191,9 @@ class ReferenceCommand(CommandTerm):
         self._v_step = -1
         self.metrics["touchdowns"] = torch.zeros(e, device=dev)
         self.metrics["timeouts"] = torch.zeros(e, device=dev)
-        self._spare: dict[str, torch.Tensor] = {}
-        """What :meth:`_new_step` writes, by name: each an (E + 1, ...) tensor whose first E rows
-        are the attribute itself (``step.<field>`` for the step state)."""
-        for name in (*(f"step.{f}" for f in STEP_FIELDS), *PLAN_STATE):
-            owner, attr = (self.step, name[5:]) if name.startswith("step.") else (self, name)
-            value = getattr(owner, attr)
-            if value is None:
-                continue
-            base = torch.cat([value, value[:1]])
-            self._spare[name] = base
-            setattr(owner, attr, base[:e])
+        # What _new_step writes: one index_put per tensor (march.env.masked_rows).
+        owners = {f"step.{f}": (self.step, f) for f in STEP_FIELDS}
+        self._rows = MaskedRows(e, {**owners, **{name: (self, name) for name in PLAN_STATE}})
 
     # ---------------------------------------------------------------- mjlab interface
 
@@ -373,9 +367,6 @@ class ReferenceCommand(CommandTerm):
         )
         st.ramp = torch.zeros_like(apply) if ramp is None else ramp
 
-        # The rows not applied are written to each tensor's spare row E (never read): one
-        # index_put per tensor instead of a gather, a where and an index_put.
-        rows = torch.where(apply, env_ids, self.num_envs)
         values = {f"step.{name}": getattr(st, name) for name in STEP_FIELDS}
         values.update(
             stance_anchor=stance,
@@ -386,8 +377,7 @@ class ReferenceCommand(CommandTerm):
             tau=self.tau.new_zeros(n),
             step_switched=torch.ones_like(apply),
         )
-        for name, target in self._spare.items():
-            target[rows] = values[name].to(target.dtype)
+        self._rows.write(env_ids, apply, values)
         self._step_version += 1
         self.replan_count[env_ids] += apply.long()
         switched = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
@@ -492,45 +482,14 @@ class ReferenceCommand(CommandTerm):
     # ---------------------------------------------------------------- observation
 
     def observation(self) -> torch.Tensor:
-        """Privileged reference observation, relative to the base (yaw-aligned pelvis frame).
-
-        Layout (E, 29 + 29 + 3N + 2): y_ref positions, y_ref velocities, the N planned footholds
-        (dx, dy, dz from the pelvis), then tau / duration and duration [s]. Position-like
-        outputs (CoM, swing foot) are taken relative to the pelvis and rotated by -heading,
-        their velocities rotated by -heading; the pelvis and swing-foot yaw references are
-        given relative to the heading (wrapped); roll, pitch and joints as they are.
-        """
+        """Privileged reference observation (E, 2*29 + 3N + 2), relative to the base (layout:
+        :func:`march.env.clf_outputs.reference_in_base_frame`)."""
         data = self.robot.data
-        base = data.root_link_pos_w
-        yaw = data.heading_w
-        pos, vel = self.y_ref_pos, self.y_ref_vel
-        n = self.plan_footholds.shape[1]
-        # One rotation for every vector the observation turns into the base frame: the CoM and
-        # swing-foot positions and the N footholds relative to the base, then the CoM and
-        # swing-foot velocities (five rotations and their copies before: ~75 more ops a step).
-        points = torch.cat([pos[:, None, 0:3], pos[:, None, 6:9], self.plan_footholds], 1)
-        rates = torch.stack([vel[:, 0:3], vel[:, 6:9]], dim=1)
-        turned = yaw_rotate(torch.cat([points - base[:, None], rates], dim=1), yaw)
-        yaws = wrap_to_pi(torch.stack([pos[:, 5], pos[:, 11]], dim=-1) - yaw[:, None])
-        dur = self.step.duration
-        return torch.cat(
-            [
-                turned[:, 0],  # com_xyz
-                pos[:, 3:5],
-                yaws[:, 0:1],  # pelvis_yaw
-                turned[:, 1],  # swing_xyz
-                pos[:, 9:11],
-                yaws[:, 1:2],  # swing_yaw
-                pos[:, 12:],
-                turned[:, n + 2],  # com velocity
-                vel[:, 3:6],
-                turned[:, n + 3],  # swing-foot velocity
-                vel[:, 9:],
-                turned[:, 2 : n + 2].flatten(1),  # footholds
-                (self.tau / dur).clamp(max=2.0)[:, None],
-                dur[:, None],
-            ],
-            dim=-1,
+        return reference_in_base_frame(
+            (self.y_ref_pos, self.y_ref_vel),
+            self.plan_footholds,
+            (self.tau, self.step.duration),
+            (data.root_link_pos_w, data.heading_w),
         )
 
 
