@@ -76,8 +76,15 @@ def height_ok(prev_z: torch.Tensor, z: torch.Tensor, cfg: PlannerCfg) -> torch.T
 
 def all_of(*masks: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
     """The elementwise AND of ``masks`` (broadcast), in two ops however many there are (a stack
-    and a reduction, where a chain of ``&`` takes one op per mask); into ``out`` if given."""
-    return torch.all(torch.stack(torch.broadcast_tensors(*masks)), 0, out=out)
+    and a reduction, where a chain of ``&`` takes one op per mask); into ``out`` if given.
+
+    The reduction is a min over the masks' bytes (bool is one byte, 0 or 1): on CPU torch.all
+    over the stacked dim is about 7x slower than the min (and than the ``&`` chain)."""
+    stacked = torch.stack(torch.broadcast_tensors(*masks)).view(torch.uint8)
+    if out is None:
+        return stacked.amin(0).view(torch.bool)
+    torch.amin(stacked, 0, out=out.view(torch.uint8))
+    return out
 
 
 def _step_cost(
