@@ -255,7 +255,8 @@ def _clearance(center: XY, half: XY, xy: XY) -> torch.Tensor:
     """Edge clearance of points ``xy`` on the stones of centres ``center`` and half sizes
     ``half`` (rows of :func:`_stone_table`, broadcast against the points): negative off the
     stone, -inf on an unusable one."""
-    inside = half - (xy - center).abs()
+    off = (xy - center).abs_()
+    inside = torch.sub(half, off, out=off)  # (in place: a fresh temporary of the points' shape)
     return torch.minimum(inside[0], inside[1])
 
 
@@ -427,11 +428,10 @@ def _search(
         split = nt * m * 2
         cand = torch.empty(2, e, r, split + m * k, device=device, dtype=dtype)
         ok_buf = torch.empty(e, r, split + m * k, device=device, dtype=torch.bool)
-        cost_buf = torch.empty(e, r, nt, m, c, device=device, dtype=dtype)
         pos_a = cand[..., :split].view(2, e, r, nt, m, 2)
         pos_b = cand[..., split:].view(2, e, r, 1, m, k)
-        out_a = (cost_buf[..., :2], ok_buf[..., :split].view(e, r, nt, m, 2))
-        out_b = (cost_buf[..., 2:], ok_buf[..., split:].view(e, r, 1, m, k))
+        ok_a = ok_buf[..., :split].view(e, r, nt, m, 2)
+        ok_b = ok_buf[..., split:].view(e, r, 1, m, k)
 
     _, z0 = locate_on_stones(footholds, stance_xy)
     p = stance_xy.T[:, :, None].expand(2, e, r)  # the rollouts' stance feet
@@ -471,9 +471,11 @@ def _search(
         else:
             torch.add(center.view(2, e, r, m, 1), spread_b, out=pos_b.view(2, e, r, m, k))
             clear_a, clear_b = (_clearance(center, half, pos) for pos in (pos_a, pos_b))
-            _step_cost(prev, pos_a, clear_a, height, step, pace, cfg, out=out_a)
-            _step_cost(prev, pos_b, clear_b, height, step, pace, cfg, out=out_b)
-            cost, flat_ok = cost_buf, ok_buf
+            # The costs are joined by cat, not written into a buffer: a where(out=) into the
+            # (T, M, 2 + K) interleaved layout runs 2-4 element inner loops, slower on CPU.
+            cost_a, _ = _step_cost(prev, pos_a, clear_a, height, step, pace, cfg, ok_a)
+            cost_b, _ = _step_cost(prev, pos_b, clear_b, height, step, pace, cfg, ok_b)
+            cost, flat_ok = torch.cat([cost_a, cost_b], dim=-1), ok_buf
         # (T, M, C) flattened, C = the 2 + K candidates: group (a) first, then group (b)
         flat_cost = cost.view(e, r, -1)
         pick = (flat_cost + noise[i]).argmin(-1, keepdim=True)  # (E, R, 1)

@@ -95,7 +95,7 @@ def _step_cost(
     terms: StepTerms,
     pace: tuple[torch.Tensor, torch.Tensor],
     cfg: PlannerCfg,
-    out: tuple[torch.Tensor, torch.Tensor] | None = None,
+    feasible_out: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Cost and feasibility of a step from ``prev`` to ``pos``; all inputs broadcast.
 
@@ -103,23 +103,25 @@ def _step_cost(
     the stones), ``height`` the step's :func:`height_ok`, ``terms`` its :func:`step_terms`. The
     velocity is measured between the feet's nominal lines (module docstring). ``pace`` = (floor,
     scale) from :func:`pace_terms`: the progress term is scale * max(0, floor - advance / dt).
-    ``out``: (cost, feasible) tensors of the broadcast shape to write the results into (the
-    planner's candidate buffers).
+    ``feasible_out``: a bool tensor of the broadcast shape to write the feasibility into (the
+    planner's candidate buffer).
     """
+    # In place where an op's output is a fresh tensor of its input's shape: the same values,
+    # fewer and smaller live temporaries (the stacks are twice a component's size).
     step = pos - prev
-    course = step[0] * terms.to_course[0] + step[1] * terms.to_course[1]  # (along, across)
+    course = (step[0] * terms.to_course[0]).add_(step[1] * terms.to_course[1])  # along, across
     # Remove the nominal lateral offset (side * width along ``lat``) before dividing by dt.
     vel = (course - terms.nominal) / terms.duration
-    err = (vel - terms.cmd) ** 2
+    err = (vel - terms.cmd).pow_(2)
     c_vel = err[0] + err[1]
     if cfg.w_velocity != 1.0:  # (the paper's weight 1 is exact without the op)
         c_vel = c_vel.mul_(cfg.w_velocity)
-    pen = ((cfg.edge_clearance - clearance) / cfg.edge_clearance).clamp(0.0, 1.0)
-    c_edge = cfg.edge_cost * pen**2
+    pen = (cfg.edge_clearance - clearance).div_(cfg.edge_clearance).clamp_(0.0, 1.0)
+    c_edge = pen.pow_(2).mul_(cfg.edge_cost)
     floor, scale = pace
     c_pace = (floor - vel[0]).clamp_(min=0.0).mul_(scale)
     signed_lat = terms.side * course[1]
-    sq = step * step
+    sq = step.mul_(step)
     feasible = all_of(
         clearance >= cfg.stone_margin - 2 * _EPS,
         sq[0] + sq[1] <= cfg.max_step**2,
@@ -127,12 +129,11 @@ def _step_cost(
         signed_lat >= cfg.min_lateral,
         signed_lat <= cfg.max_lateral,
         height,
-        out=None if out is None else out[1],
+        out=feasible_out,
     )
     # In place on the freshly allocated (full-shape) velocity cost: the summands only broadcast.
     cost = c_vel.add_(c_edge).add_(terms.c_time).add_(c_pace)
-    into = None if out is None else out[0]
-    return torch.where(feasible, cost, cost + cfg.infeasible_cost, out=into), feasible
+    return torch.where(feasible, cost, cost + cfg.infeasible_cost), feasible
 
 
 def goal_ahead(footholds: Footholds, xy: XY) -> torch.Tensor:
