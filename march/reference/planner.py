@@ -403,8 +403,8 @@ def _search(
     not_left = ~stance_is_left
     lands_left = torch.stack([not_left if i % 2 == 0 else stance_is_left for i in range(n)], 1)
     # Broadcast shapes: per env (2, E, 1, 1, 1, 1) x-y stacks against (2, E, R, T, M, C)
-    # candidates; the landing side per env and step (E, N, 1, 1, 1), read at step i as
-    # (E, 1, 1, 1, 1) against a (E, R, T, M, C) score.
+    # candidates; the landing side's terms per env and step (2, E, N, 1, 1, 1), read at step i
+    # as (2, E, 1, 1, 1, 1).
     vel, axis_, lat_ = (a.T.reshape(2, e, 1, 1, 1, 1) for a in (command[:, :2], axis, lat))
     dur = durations.view(1, 1, nt, 1, 1)
     terms = step_terms(dur, lands_left.view(e, n, 1, 1, 1), vel, axis_, lat_, cfg)
@@ -438,7 +438,9 @@ def _search(
     pz = z0[:, None].expand(e, r)
     points, t_picks, aheads = [p[0], p[1], pz], [], []
     for i in range(n):
-        step = terms._replace(side=terms.side[:, i : i + 1], nominal=terms.nominal[:, :, i : i + 1])
+        step = terms._replace(
+            own_side=terms.own_side[:, :, i : i + 1], nominal=terms.nominal[:, :, i : i + 1]
+        )
         # Nominal foothold for each duration, (2, E, R, T, 1): stance + width offset + v_D dt.
         nom = p[:, :, :, None, None] + nom_d[:, :, i : i + 1, :, :, 0]
         # The M stones whose rectangles are nearest to the middle duration's nominal foothold.

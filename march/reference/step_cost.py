@@ -30,8 +30,12 @@ class StepTerms(NamedTuple):
 
     duration: torch.Tensor
     """dt [s]."""
-    side: torch.Tensor
-    """+1 where the left foot lands, -1 where the right one does."""
+    own_side: XY
+    """(1, side), side = +1 where the left foot lands and -1 where the right one does: times a
+    course-frame (along, across) step, (along, across toward the landing foot's own side)."""
+    lower: XY
+    """(min_step_forward, min_lateral): the lower bounds of that own-side step [m], one
+    comparison for both (the scalar comparisons are float32 too: the same masks)."""
     offset: torch.Tensor
     """side * step_width: the landing foot's nominal lateral offset along ``lat`` [m]."""
     nominal: XY
@@ -55,12 +59,17 @@ def step_terms(
 ) -> StepTerms:
     """:class:`StepTerms` of steps of ``duration`` landing on the left where ``lands_left``, under
     the command ``v_cmd`` (world frame) in the course frame (axis, lat); all broadcast."""
-    side = lands_left.to(duration.dtype) * 2.0 - 1.0
-    offset = side * cfg.step_width
+    own_side = torch.stack([torch.ones_like(lands_left), lands_left]).to(duration.dtype)
+    own_side = own_side * 2.0 - 1.0
+    offset = own_side[1] * cfg.step_width
     to_course = torch.stack([axis, lat], dim=1)
+    lower = torch.tensor(
+        [cfg.min_step_forward, cfg.min_lateral], device=duration.device, dtype=duration.dtype
+    )
     return StepTerms(
         duration=duration,
-        side=side,
+        own_side=own_side,
+        lower=lower.view((2,) + (1,) * (own_side.dim() - 1)),
         offset=offset,
         nominal=torch.stack([torch.zeros_like(offset), offset]),
         cmd=v_cmd[0] * to_course[0] + v_cmd[1] * to_course[1],
@@ -120,14 +129,13 @@ def _step_cost(
     c_edge = pen.pow_(2).mul_(cfg.edge_cost)
     floor, scale = pace
     c_pace = (floor - vel[0]).clamp_(min=0.0).mul_(scale)
-    signed_lat = terms.side * course[1]
+    own = course * terms.own_side  # (along, signed lateral distance)
     sq = step.mul_(step)
     feasible = all_of(
         clearance >= cfg.stone_margin - 2 * _EPS,
         sq[0] + sq[1] <= cfg.max_step**2,
-        course[0] >= cfg.min_step_forward,
-        signed_lat >= cfg.min_lateral,
-        signed_lat <= cfg.max_lateral,
+        *(own >= terms.lower).unbind(0),
+        own[1] <= cfg.max_lateral,
         height,
         out=feasible_out,
     )
