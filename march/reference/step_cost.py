@@ -61,17 +61,21 @@ def step_terms(
     the command ``v_cmd`` (world frame) in the course frame (axis, lat); all broadcast."""
     own_side = torch.stack([torch.ones_like(lands_left), lands_left]).to(duration.dtype)
     own_side = own_side * 2.0 - 1.0
-    offset = own_side[1] * cfg.step_width
     to_course = torch.stack([axis, lat], dim=1)
-    lower = torch.tensor(
-        [cfg.min_step_forward, cfg.min_lateral], device=duration.device, dtype=duration.dtype
-    )
+    # Row 0: the lower bounds; row 1: (0, step_width), whose product with (1, side) is the
+    # nominal offset (+0.0, side * step_width) (float32 products, as with scalar operands).
+    consts = torch.tensor(
+        [[cfg.min_step_forward, cfg.min_lateral], [0.0, cfg.step_width]],
+        device=duration.device,
+        dtype=duration.dtype,
+    ).view((2, 2) + (1,) * (own_side.dim() - 1))
+    nominal = own_side * consts[1]
     return StepTerms(
         duration=duration,
         own_side=own_side,
-        lower=lower.view((2,) + (1,) * (own_side.dim() - 1)),
-        offset=offset,
-        nominal=torch.stack([torch.zeros_like(offset), offset]),
+        lower=consts[0],
+        offset=nominal[1],
+        nominal=nominal,
         cmd=v_cmd[0] * to_course[0] + v_cmd[1] * to_course[1],
         c_time=cfg.w_time * (duration - cfg.nominal_duration) ** 2,
         to_course=to_course,
