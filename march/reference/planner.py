@@ -405,11 +405,11 @@ def _search(
     # Broadcast shapes: per env (2, E, 1, 1, 1, 1) x-y stacks against (2, E, R, T, M, C)
     # candidates; the landing side's terms per env and step (2, E, N, 1, 1, 1), read at step i
     # as (2, E, 1, 1, 1, 1).
-    vel, axis_, lat_ = (a.T.reshape(2, e, 1, 1, 1, 1) for a in (command[:, :2], axis, lat))
+    v_cmd, axis_, lat_ = (a.T.reshape(2, e, 1, 1, 1, 1) for a in (command[:, :2], axis, lat))
     dur = durations.view(1, 1, nt, 1, 1)
-    terms = step_terms(dur, lands_left.view(e, n, 1, 1, 1), vel, axis_, lat_, cfg)
+    terms = step_terms(dur, lands_left.view(e, n, 1, 1, 1), v_cmd, axis_, lat_, cfg)
     # Nominal foothold offsets from the stance foot, (2, E, N, T, 1, 1): width offset + v_D dt.
-    nom_d = terms.offset * lat_ + vel * dur
+    nom_d = terms.offset * lat_ + v_cmd * dur
     floor, scale_ahead = pace_floor(terms.cmd[0], cfg)
     table = _stone_table(footholds, cfg)
     # The nearest-stone search: padding entries get half sizes of -inf (infinitely far).
