@@ -64,6 +64,7 @@ import torch
 from march.fusion import fused
 from march.reference.step_cost import (
     _EPS,
+    XY,
     _step_cost,
     goal_ahead,
     height_ok,
@@ -220,18 +221,19 @@ def evaluate_plan(
     clear, z = locate_on_stones(footholds, footholds_xy)
     prev_xy = torch.cat([start_xy[:, None], footholds_xy[:, :-1]], dim=1)
     prev_z = torch.cat([z_start[:, None], z[:, :-1]], dim=1)
-    ahead = goal_ahead(footholds, prev_xy[..., 0], prev_xy[..., 1])
+    prev = prev_xy.movedim(-1, 0)  # (2, E, N): the step cost's stacked x-y layout
+    ahead = goal_ahead(footholds, prev)
     terms = step_terms(
         durations,
         lands_left,
-        command[:, None, :2].unbind(-1),
-        axis[:, None].unbind(-1),
-        lat[:, None].unbind(-1),
+        command[:, None, :2].movedim(-1, 0),
+        axis[:, None].movedim(-1, 0),
+        lat[:, None].movedim(-1, 0),
         cfg,
     )
     cost, ok = _step_cost(
-        prev_xy.unbind(-1),
-        footholds_xy.unbind(-1),
+        prev,
+        footholds_xy.movedim(-1, 0),
         clear,
         height_ok(prev_z, z, cfg),
         terms,
@@ -241,21 +243,21 @@ def evaluate_plan(
     return cost.sum(-1), ok.all(-1)
 
 
-# Columns of a :func:`_stone_table` row, each a slice that keeps the last dim (see there).
-_CX, _CY, _CZ = slice(0, 1), slice(1, 2), slice(2, 3)
-_LOWER_X, _LOWER_Y = slice(3, 5), slice(5, 7)
-_UPPER_X, _UPPER_Y = slice(7, 9), slice(9, 11)
-_SPREAD_X, _SPREAD_Y = slice(11, 12), slice(12, 13)
-_HALF_X, _HALF_Y = slice(13, 14), slice(14, 15)
+# Rows of :func:`_stone_table` (its first dim), slices where a row pair is read as a (2, ...)
+# x-y stack: the centre x, y and z; the lower and upper clamp bounds, each (2 axes, 2 margins);
+# the half extents over which group (b)'s points spread; the half sizes of the clearance.
+_CENTER_XY, _CZ = slice(0, 2), 2
+_LOWER, _UPPER = slice(3, 7), slice(7, 11)
+_SPREAD, _HALF = slice(11, 13), slice(13, 15)
 
 
-def _clearance(stones: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """Edge clearance of points (x, y) on the stones ``stones`` (rows of :func:`_stone_table`,
-    broadcast against the points): negative off the stone, -inf on an unusable one."""
-    return torch.minimum(
-        stones[..., _HALF_X] - (x - stones[..., _CX]).abs(),
-        stones[..., _HALF_Y] - (y - stones[..., _CY]).abs(),
-    )
+def _clearance(center: XY, half: XY, xy: XY) -> torch.Tensor:
+    """Edge clearance of points ``xy`` on the stones of centres ``center`` and half sizes
+    ``half`` (rows of :func:`_stone_table`, broadcast against the points): negative off the
+    stone, -inf on an unusable one."""
+    off = (xy - center).abs_()
+    inside = torch.sub(half, off, out=off)  # (in place: a fresh temporary of the points' shape)
+    return torch.minimum(inside[0], inside[1])
 
 
 def plan_footsteps(
@@ -282,6 +284,22 @@ def plan_footsteps(
     return search(stance_xy, stance_is_left, command, footholds, unit, gumbel, cfg)
 
 
+_RINGS: dict[tuple, torch.Tensor] = {}
+"""Rollout 0's unit points by (K, device, dtype): the same every plan, so built once."""
+
+
+def _ring(k: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    """(2, K) rollout 0's fixed ring of points at half the stone's usable extent."""
+    key = (k, torch.device(device), dtype)
+    ring = _RINGS.get(key)
+    if ring is None:
+        theta = 2.0 * torch.pi * (torch.arange(k, device=device, dtype=dtype) + 0.5) / max(k, 1)
+        ring = 0.5 * torch.stack([torch.cos(theta), torch.sin(theta)])
+        if not torch.compiler.is_compiling():  # (a traced tensor must not outlive its graph)
+            _RINGS[key] = ring
+    return ring
+
+
 def planner_draws(
     cfg: PlannerCfg,
     m: int,
@@ -296,10 +314,8 @@ def planner_draws(
     gen_device = generator.device if generator is not None else device
     unit = torch.rand((n, 2, r, m, k), generator=generator, device=gen_device).to(device, dtype)
     unit = 2.0 * unit - 1.0
-    # Rollout 0 is deterministic: a fixed ring of points at half the stone's usable extent.
-    theta = 2.0 * torch.pi * (torch.arange(k, device=device, dtype=dtype) + 0.5) / max(k, 1)
-    ring = 0.5 * torch.stack([torch.cos(theta), torch.sin(theta)])  # (2, K)
-    unit[:, :, 0] = ring[None, :, None, :]
+    # Rollout 0 is deterministic.
+    unit[:, :, 0] = _ring(k, device, dtype)[None, :, None, :]
     u = torch.rand((n, r, nt * m * (k + 2)), generator=generator, device=gen_device)
     gumbel = -torch.log(-torch.log(u.clamp(1e-12, 1.0 - 1e-7))).to(device, dtype)
     gumbel[:, 0] = 0.0  # rollout 0 is plain greedy
@@ -307,30 +323,58 @@ def planner_draws(
 
 
 def _stone_table(footholds: Footholds, cfg: PlannerCfg) -> torch.Tensor:
-    """(E, S, 15) what the search reads of each stone, built once per plan so that a step gathers
-    its M stones' rows in one op: centre x, y, z (``_CX``, ``_CY``, ``_CZ``); the lower
-    (``_LOWER_X``, ``_LOWER_Y``) and upper (``_UPPER_*``) bounds of a foothold clamped into the
-    stone, each (hard, soft) (hard: with the hard margin, soft: with margin + edge clearance);
-    the half extents with the hard margin (``_SPREAD_*``), over which group (b)'s points spread;
-    the half sizes the clearance is measured against (``_HALF_*``): -inf on a padding entry or a
-    stone too small for the hard margin, so that every point on it is off the stones."""
-    half = footholds.half_size
+    """(15, E, S) what the search reads of each stone, built once per plan so that a step gathers
+    its M stones' rows in one op; rows (first dim, so that an x-y pair of rows is a (2, ...)
+    stack): centre x, y (``_CENTER_XY``), z (``_CZ``); the lower (``_LOWER``) and upper
+    (``_UPPER``) bounds of a foothold clamped into the stone, (2 axes, 2 margins) each (hard:
+    with the hard margin, soft: with margin + edge clearance); the half extents with the hard
+    margin (``_SPREAD``), over which group (b)'s points spread; the half sizes the clearance is
+    measured against (``_HALF``): -inf on a padding entry or a stone too small for the hard
+    margin, so that every point on it is off the stones."""
+    half = footholds.half_size.movedim(-1, 0)  # (2, E, S)
     hard = half - cfg.stone_margin - _EPS
-    usable = footholds.valid & (hard >= 0.0).all(-1)
+    usable = footholds.valid & (hard >= 0.0).all(0)
     hard = hard.clamp(min=0.0)
     soft = (half - cfg.stone_margin - cfg.edge_clearance).clamp(min=0.0)
-    extent = torch.stack([hard, soft], dim=-1)  # (E, S, 2 axes, 2 margins)
-    xy = footholds.center[..., :2, None]
+    extent = torch.stack([hard, soft], dim=1)  # (2 axes, 2 margins, E, S)
+    center = footholds.center.movedim(-1, 0)  # (3, E, S)
+    xy = center[:2, None]
     return torch.cat(
         [
-            footholds.center,
-            (xy - extent).flatten(-2),
-            (xy + extent).flatten(-2),
+            center,
+            (xy - extent).flatten(0, 1),
+            (xy + extent).flatten(0, 1),
             hard,
-            torch.where(usable[..., None], half, float("-inf")),
+            torch.where(usable, half, float("-inf")),
         ],
-        dim=-1,
+        dim=0,
     )
+
+
+_PICK_TABLES: dict[tuple, torch.Tensor] = {}
+""":func:`_pick_table` by its arguments: they are the planner's config, so built once."""
+
+
+def _pick_table(nt: int, m: int, k: int, fuse: bool, device: torch.device) -> torch.Tensor:
+    """(3, T * M * (K + 2)) int64: for a candidate's flat index in the (T, M, K + 2) score order
+    (group (a)'s 2 points, then group (b)'s K, per duration and stone), its slot in the search's
+    candidate buffer, its duration index and its stone index, so that one lookup replaces the
+    index arithmetic of every step. The buffer is the score order itself when the groups are
+    fused; apart, it holds group (a), (T, M, 2), then group (b), (M, K), once for all T."""
+    key = (nt, m, k, fuse, torch.device(device))
+    table = _PICK_TABLES.get(key)
+    if table is None:
+        flat = torch.arange(nt * m * (k + 2), device=device)
+        tm, c = flat // (k + 2), flat % (k + 2)  # tm = t_idx * M + m_idx; c the candidate
+        t_idx, m_idx = tm // m, tm % m
+        if fuse:
+            slot = flat
+        else:
+            slot = torch.where(c < 2, tm * 2 + c, nt * m * 2 + m_idx * k + (c - 2))
+        table = torch.stack([slot, t_idx, m_idx])
+        if not torch.compiler.is_compiling():  # (a traced tensor must not outlive its graph)
+            _PICK_TABLES[key] = table
+    return table
 
 
 def _search(
@@ -345,8 +389,9 @@ def _search(
     """The greedy random-shooting search of :func:`plan_footsteps` on given draws (pure).
 
     Everything that does not depend on the rollouts' stance feet (the command and course frame
-    terms, the per-duration costs, the stones' clamp bounds, the scaled noise) is computed once
-    before the step loop; the chosen points are stacked and the stall flags computed after it."""
+    terms, the per-duration costs, the stones' clamp bounds, the scaled noise, the candidate
+    buffers) is computed or allocated once before the step loop; the chosen points are stacked
+    and the stall flags computed after it. Points are (2, ...) x-y stacks (step_cost.XY)."""
     device, dtype = stance_xy.device, stance_xy.dtype
     e, r, n = stance_xy.shape[0], cfg.num_rollouts, cfg.num_steps
     m = min(cfg.num_candidate_stones, footholds.center.shape[1])
@@ -355,108 +400,110 @@ def _search(
     fuse = cfg.fuse_candidates if cfg.fuse_candidates is not None else device.type == "cuda"
     nt = durations.numel()
     axis, lat = course_frame(footholds)
-    lands_left = torch.stack(
-        [~stance_is_left if i % 2 == 0 else stance_is_left for i in range(n)], dim=1
-    )
-    # Broadcast shapes: per env (E, 1, 1, 1, 1) against (E, R, T, M, C) candidates; the landing
-    # side per env and step (E, N, 1, 1, 1), read at step i as (E, 1, 1, 1, 1).
-    ax, ay = (a.view(e, 1, 1, 1, 1) for a in axis.unbind(-1))
-    lx, ly = (a.view(e, 1, 1, 1, 1) for a in lat.unbind(-1))
-    vx, vy = (a.view(e, 1, 1, 1, 1) for a in command[:, :2].unbind(-1))
+    not_left = ~stance_is_left
+    lands_left = torch.stack([not_left if i % 2 == 0 else stance_is_left for i in range(n)], 1)
+    # Broadcast shapes: per env (2, E, 1, 1, 1, 1) x-y stacks against (2, E, R, T, M, C)
+    # candidates; the landing side's terms per env and step (2, E, N, 1, 1, 1), read at step i
+    # as (2, E, 1, 1, 1, 1).
+    v_cmd, axis_, lat_ = (a.T.reshape(2, e, 1, 1, 1, 1) for a in (command[:, :2], axis, lat))
     dur = durations.view(1, 1, nt, 1, 1)
-    terms = step_terms(dur, lands_left.view(e, n, 1, 1, 1), (vx, vy), (ax, ay), (lx, ly), cfg)
-    # Nominal foothold offsets from the stance foot, (E, N, T, 1, 1): width offset + v_D dt.
-    nom_dx = terms.offset * lx + vx * dur
-    nom_dy = terms.offset * ly + vy * dur
+    terms = step_terms(dur, lands_left.view(e, n, 1, 1, 1), v_cmd, axis_, lat_, cfg)
+    # Nominal foothold offsets from the stance foot, (2, E, N, T, 1, 1): width offset + v_D dt.
+    nom_d = terms.offset * lat_ + v_cmd * dur
     floor, scale_ahead = pace_floor(terms.cmd[0], cfg)
     table = _stone_table(footholds, cfg)
     # The nearest-stone search: padding entries get half sizes of -inf (infinitely far).
-    centers = footholds.center[:, None, :, :2]  # (E, 1, S, 2)
-    halves = torch.where(footholds.valid[..., None], footholds.half_size, float("-inf"))[:, None]
+    centers = table[_CENTER_XY, :, None]  # (2, E, 1, S)
+    halves = torch.where(footholds.valid, footholds.half_size.movedim(-1, 0), float("-inf"))
+    halves = halves[:, :, None]
     noise = cfg.explore_temperature * gumbel
+    picks = _pick_table(nt, m, k, fuse, device)
+    # Candidate buffers, rewritten every step (what a step reads of them it gathers first).
+    c = k + 2
+    if fuse:  # one (T, M, C) group
+        cand = torch.empty(2, e, r, nt * m * c, device=device, dtype=dtype)
+        full = cand.view(2, e, r, nt, m, c)
+        pos_a = full[..., :2]
+    else:  # group (a), (T, M, 2), then group (b), (1, M, K): see _pick_table
+        split = nt * m * 2
+        cand = torch.empty(2, e, r, split + m * k, device=device, dtype=dtype)
+        ok_buf = torch.empty(e, r, split + m * k, device=device, dtype=torch.bool)
+        pos_a = cand[..., :split].view(2, e, r, nt, m, 2)
+        pos_b = cand[..., split:].view(2, e, r, 1, m, k)
+        ok_a = ok_buf[..., :split].view(e, r, nt, m, 2)
+        ok_b = ok_buf[..., split:].view(e, r, 1, m, k)
 
     _, z0 = locate_on_stones(footholds, stance_xy)
-    px, py = (c.expand(e, r) for c in stance_xy[:, :, None].unbind(1))
+    p = stance_xy.T[:, :, None].expand(2, e, r)  # the rollouts' stance feet
     pz = z0[:, None].expand(e, r)
-    points, t_picks, aheads = [px, py, pz], [], []
+    points, t_picks, aheads = [p[0], p[1], pz], [], []
     for i in range(n):
-        step = terms._replace(side=terms.side[:, i : i + 1], offset=terms.offset[:, i : i + 1])
-        # Nominal foothold for each duration, (E, R, T, 1): stance + width offset + v_D dt.
-        nom_x = px[:, :, None, None] + nom_dx[:, i : i + 1, :, :, 0]
-        nom_y = py[:, :, None, None] + nom_dy[:, i : i + 1, :, :, 0]
+        step = terms._replace(
+            own_side=terms.own_side[:, :, i : i + 1], nominal=terms.nominal[:, :, i : i + 1]
+        )
+        # Nominal foothold for each duration, (2, E, R, T, 1): stance + width offset + v_D dt.
+        nom = p[:, :, :, None, None] + nom_d[:, :, i : i + 1, :, :, 0]
         # The M stones whose rectangles are nearest to the middle duration's nominal foothold.
-        mid = torch.stack([nom_x[:, :, nt // 2, 0], nom_y[:, :, nt // 2, 0]], dim=-1)
-        d = ((mid[:, :, None] - centers).abs() - halves).clamp(min=0.0)  # (E, R, S, 2)
-        near = (d * d).sum(-1).topk(m, dim=-1, largest=False).indices  # (E, R, M)
-        rows = torch.gather(table, 1, near.flatten(1)[..., None].expand(-1, -1, table.shape[-1]))
-        rows = rows.view(e, r, m, -1)
-        st = rows[:, :, None]  # (E, R, 1, M, 15)
+        d = ((nom[:, :, :, nt // 2, 0, None] - centers).abs() - halves).clamp(min=0.0)
+        d = d * d  # (2, E, R, S)
+        near = (d[0] + d[1]).topk(m, dim=-1, largest=False).indices  # (E, R, M)
+        rows = table.gather(2, near.view(1, e, r * m).expand(table.shape[0], -1, -1))
+        rows = rows.view(-1, e, r, m)
+        center, half = (rows[s].view(2, e, r, 1, m, 1) for s in (_CENTER_XY, _HALF))
         # Two candidate groups, scored separately because only the first depends on dt:
-        # (a) the nominal foothold clamped into each stone (hard and soft margins), (E, R, T, M, 2);
-        # (b) random points on each stone, (E, R, 1, M, K).
-        ax_ = torch.clamp(nom_x[..., None], st[..., _LOWER_X], st[..., _UPPER_X])
-        ay_ = torch.clamp(nom_y[..., None], st[..., _LOWER_Y], st[..., _UPPER_Y])
-        bx_ = (rows[..., _CX] + unit[i, 0] * rows[..., _SPREAD_X])[:, :, None]
-        by_ = (rows[..., _CY] + unit[i, 1] * rows[..., _SPREAD_Y])[:, :, None]
-        ahead = goal_ahead(footholds, px, py)  # (E, R): the progress term applies
+        # (a) the nominal foothold clamped into each stone (hard and soft margins), (T, M, 2);
+        # (b) random points on each stone, (1, M, K).
+        lower, upper = (
+            rows[s].view(2, 2, e, r, m).permute(0, 2, 3, 4, 1)[:, :, :, None]
+            for s in (_LOWER, _UPPER)
+        )  # (2 axes, E, R, 1, M, 2 margins)
+        torch.clamp(nom[..., None], lower, upper, out=pos_a)
+        spread_b = unit[i][:, None] * rows[_SPREAD].view(2, e, r, m, 1)
+        ahead = goal_ahead(footholds, p)  # (E, R): the progress term applies
         scale = scale_ahead * ahead.view(e, r, 1, 1, 1)  # (0 where the goal is behind)
-        prev = (px.view(e, r, 1, 1, 1), py.view(e, r, 1, 1, 1))
-        height = height_ok(pz.view(e, r, 1, 1, 1), st[..., _CZ], cfg)  # (E, R, 1, M, 1)
+        prev = p.view(2, e, r, 1, 1, 1)
+        height = height_ok(pz.view(e, r, 1, 1, 1), rows[_CZ].view(e, r, 1, m, 1), cfg)
         pace = (floor, scale)
         if fuse:
-            gx = torch.cat([ax_, bx_.expand(e, r, nt, m, k)], dim=-1)
-            gy = torch.cat([ay_, by_.expand(e, r, nt, m, k)], dim=-1)
-            cost, ok = _step_cost(prev, (gx, gy), _clearance(st, gx, gy), height, step, pace, cfg)
+            full[..., 2:].copy_((center.view(2, e, r, m, 1) + spread_b)[:, :, :, None])
+            cost, ok = _step_cost(
+                prev, full, _clearance(center, half, full), height, step, pace, cfg
+            )
+            flat_ok = ok.expand_as(cost).reshape(e, r, -1)
         else:
-            cost_a, ok_a = _step_cost(
-                prev, (ax_, ay_), _clearance(st, ax_, ay_), height, step, pace, cfg
-            )
-            cost_b, ok_b = _step_cost(
-                prev, (bx_, by_), _clearance(st, bx_, by_), height, step, pace, cfg
-            )
-            cost = torch.cat([cost_a, cost_b], dim=-1)
+            torch.add(center.view(2, e, r, m, 1), spread_b, out=pos_b.view(2, e, r, m, k))
+            clear_a, clear_b = (_clearance(center, half, pos) for pos in (pos_a, pos_b))
+            # The costs are joined by cat, not written into a buffer: a where(out=) into the
+            # (T, M, 2 + K) interleaved layout runs 2-4 element inner loops, slower on CPU.
+            cost_a, _ = _step_cost(prev, pos_a, clear_a, height, step, pace, cfg, ok_a)
+            cost_b, _ = _step_cost(prev, pos_b, clear_b, height, step, pace, cfg, ok_b)
+            cost, flat_ok = torch.cat([cost_a, cost_b], dim=-1), ok_buf
         # (T, M, C) flattened, C = the 2 + K candidates: group (a) first, then group (b)
-        flat_cost = cost.reshape(e, r, -1)
+        flat_cost = cost.view(e, r, -1)
         pick = (flat_cost + noise[i]).argmin(-1, keepdim=True)  # (E, R, 1)
         chosen = flat_cost.gather(-1, pick)[..., 0]
-        tm = pick[..., 0] // (k + 2)  # t_idx * M + m_idx
-        t_idx, m_idx = tm // m, tm % m
-        if fuse:
-            ok = ok.expand_as(cost).reshape(e, r, -1).gather(-1, pick)[..., 0]
-            px = gx.reshape(e, r, -1).gather(-1, pick)[..., 0]
-            py = gy.reshape(e, r, -1).gather(-1, pick)[..., 0]
-        else:  # read the chosen point from its group (b's masks are never expanded)
-            c_idx = pick[..., 0] % (k + 2)
-            in_a = (tm * 2 + c_idx.clamp(max=1))[..., None]
-            in_b = (m_idx * k + (c_idx - 2).clamp(min=0))[..., None]
-            from_a = c_idx < 2
-
-            def take(a_: torch.Tensor, b_: torch.Tensor, in_a=in_a, in_b=in_b, from_a=from_a):
-                a_ = a_.expand(e, r, nt, m, 2).reshape(e, r, -1).gather(-1, in_a)[..., 0]
-                b_ = b_.expand(e, r, 1, m, k).reshape(e, r, -1).gather(-1, in_b)[..., 0]
-                return torch.where(from_a, a_, b_)
-
-            ok = take(ok_a, ok_b)
-            px, py = take(ax_, bx_), take(ay_, by_)
+        slot, t_idx, m_idx = picks[:, pick[..., 0]]  # each (E, R)
+        ok = flat_ok.gather(-1, slot[..., None])[..., 0]
+        p = cand.gather(-1, slot.view(1, e, r, 1).expand(2, e, r, 1))[..., 0]
         if i == 0:
             total, feasible = chosen, ok
         else:
             total, feasible = total + chosen, feasible & ok
-        pz = rows[..., _CZ][..., 0].gather(-1, m_idx[..., None])[..., 0]
-        points += [px, py, pz]
+        pz = rows[_CZ].gather(-1, m_idx[..., None])[..., 0]
+        points += [p[0], p[1], pz]
         t_picks.append(t_idx)
         aheads.append(ahead)
 
     path = torch.stack(points, dim=-1).view(e, r, n + 1, 3)  # the stance foot, then the N steps
     t_idx = torch.stack(t_picks, dim=-1)  # (E, R, N)
     # Stall flag: a chosen step falls short of the pace while the goal lies ahead.
-    step_xy = path[..., 1:, :2] - path[..., :-1, :2]
-    advance = step_xy[..., 0] * axis[:, 0, None, None] + step_xy[..., 1] * axis[:, 1, None, None]
+    step_xy = (path[..., 1:, :2] - path[..., :-1, :2]) * axis[:, None, None]
+    advance = step_xy[..., 0] + step_xy[..., 1]
     need = (floor.view(e, 1) * durations - _EPS).gather(1, t_idx.flatten(1)).view(e, r, n)
     stalled = (torch.stack(aheads, dim=-1) & (advance < need)).any(-1)
 
     # Best rollout: feasible ones first, then the lowest noise-free cost.
-    rank = total + torch.where(feasible, 0.0, float("inf"))
+    rank = total.masked_fill(~feasible, float("inf"))
     best = torch.where(feasible.any(-1), rank.argmin(-1), total.argmin(-1))
     env = torch.arange(e, device=device)
     return Plan(

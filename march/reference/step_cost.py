@@ -14,9 +14,13 @@ if TYPE_CHECKING:
 _EPS = 1e-5
 """Slack of the margin tests [m]."""
 
-Vec = tuple[torch.Tensor, torch.Tensor]
-"""A 2-D vector field as separate (x, y) tensors: elementwise ops on split components are several
-times faster on CPU than on (..., 2) tensors with broadcasting."""
+XY = torch.Tensor
+"""A 2-D vector field as one (2, ...) tensor, x (or the along component) at [0] and y (or the
+across one) at [1]: one elementwise op computes both components (the op count is what a GPU
+launches), and each component stays a contiguous block (elementwise ops on (..., 2) tensors
+with broadcasting are several times slower on CPU). Only elementwise ops act on the stack, and
+the two components are added explicitly (``a[0] + a[1]``), so every value is the one the
+component-wise expression gives, bit for bit."""
 
 
 class StepTerms(NamedTuple):
@@ -26,39 +30,55 @@ class StepTerms(NamedTuple):
 
     duration: torch.Tensor
     """dt [s]."""
-    side: torch.Tensor
-    """+1 where the left foot lands, -1 where the right one does."""
+    own_side: XY
+    """(1, side), side = +1 where the left foot lands and -1 where the right one does: times a
+    course-frame (along, across) step, (along, across toward the landing foot's own side)."""
+    lower: XY
+    """(min_step_forward, min_lateral): the lower bounds of that own-side step [m], one
+    comparison for both (the scalar comparisons are float32 too: the same masks)."""
     offset: torch.Tensor
     """side * step_width: the landing foot's nominal lateral offset along ``lat`` [m]."""
-    cmd: Vec
+    nominal: XY
+    """(0, offset): the landing foot's nominal offset in the course frame (along, across) [m]."""
+    cmd: XY
     """The velocity command's components (along, across) the course [m/s]."""
     c_time: torch.Tensor
     """w_time (dt - T_nom)^2."""
-    axis: Vec
-    """Unit vector along the course."""
-    lat: Vec
-    """Unit vector across the course (to the left)."""
+    to_course: torch.Tensor
+    """(2, 2, ...): [j] the course-frame (along, across) components of the world's unit vector
+    along x (j = 0) or y (j = 1), so that a world vector s maps to s[0] * [0] + s[1] * [1]."""
 
 
 def step_terms(
     duration: torch.Tensor,
     lands_left: torch.Tensor,
-    v_cmd: Vec,
-    axis: Vec,
-    lat: Vec,
+    v_cmd: XY,
+    axis: XY,
+    lat: XY,
     cfg: PlannerCfg,
 ) -> StepTerms:
     """:class:`StepTerms` of steps of ``duration`` landing on the left where ``lands_left``, under
     the command ``v_cmd`` (world frame) in the course frame (axis, lat); all broadcast."""
-    side = lands_left.to(duration.dtype) * 2.0 - 1.0
+    own_side = torch.stack([torch.ones_like(lands_left), lands_left]).to(duration.dtype)
+    own_side = own_side * 2.0 - 1.0
+    to_course = torch.stack([axis, lat], dim=1)
+    # Row 0: the lower bounds; row 1: (0, step_width), whose product with (1, side) is the
+    # nominal offset (+0.0, side * step_width) (float32 products, as with scalar operands).
+    consts = torch.tensor(
+        [[cfg.min_step_forward, cfg.min_lateral], [0.0, cfg.step_width]],
+        device=duration.device,
+        dtype=duration.dtype,
+    ).view((2, 2) + (1,) * (own_side.dim() - 1))
+    nominal = own_side * consts[1]
     return StepTerms(
         duration=duration,
-        side=side,
-        offset=side * cfg.step_width,
-        cmd=(v_cmd[0] * axis[0] + v_cmd[1] * axis[1], v_cmd[0] * lat[0] + v_cmd[1] * lat[1]),
+        own_side=own_side,
+        lower=consts[0],
+        offset=nominal[1],
+        nominal=nominal,
+        cmd=v_cmd[0] * to_course[0] + v_cmd[1] * to_course[1],
         c_time=cfg.w_time * (duration - cfg.nominal_duration) ** 2,
-        axis=axis,
-        lat=lat,
+        to_course=to_course,
     )
 
 
@@ -67,14 +87,28 @@ def height_ok(prev_z: torch.Tensor, z: torch.Tensor, cfg: PlannerCfg) -> torch.T
     return (z - prev_z).abs() <= cfg.max_step_height
 
 
+def all_of(*masks: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+    """The elementwise AND of ``masks`` (broadcast), in two ops however many there are (a stack
+    and a reduction, where a chain of ``&`` takes one op per mask); into ``out`` if given.
+
+    The reduction is a min over the masks' bytes (bool is one byte, 0 or 1): on CPU torch.all
+    over the stacked dim is about 7x slower than the min (and than the ``&`` chain)."""
+    stacked = torch.stack(torch.broadcast_tensors(*masks)).view(torch.uint8)
+    if out is None:
+        return stacked.amin(0).view(torch.bool)
+    torch.amin(stacked, 0, out=out.view(torch.uint8))
+    return out
+
+
 def _step_cost(
-    prev: Vec,
-    pos: Vec,
+    prev: XY,
+    pos: XY,
     clearance: torch.Tensor,
     height: torch.Tensor,
     terms: StepTerms,
     pace: tuple[torch.Tensor, torch.Tensor],
     cfg: PlannerCfg,
+    feasible_out: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Cost and feasibility of a step from ``prev`` to ``pos``; all inputs broadcast.
 
@@ -82,48 +116,50 @@ def _step_cost(
     the stones), ``height`` the step's :func:`height_ok`, ``terms`` its :func:`step_terms`. The
     velocity is measured between the feet's nominal lines (module docstring). ``pace`` = (floor,
     scale) from :func:`pace_terms`: the progress term is scale * max(0, floor - advance / dt).
+    ``feasible_out``: a bool tensor of the broadcast shape to write the feasibility into (the
+    planner's candidate buffer).
     """
-    sx, sy = pos[0] - prev[0], pos[1] - prev[1]
-    (ax, ay), (lx, ly) = terms.axis, terms.lat
-    along = sx * ax + sy * ay
-    across = sx * lx + sy * ly
+    # In place where an op's output is a fresh tensor of its input's shape: the same values,
+    # fewer and smaller live temporaries (the stacks are twice a component's size).
+    step = pos - prev
+    course = (step[0] * terms.to_course[0]).add_(step[1] * terms.to_course[1])  # along, across
     # Remove the nominal lateral offset (side * width along ``lat``) before dividing by dt.
-    across_v = (across - terms.offset) / terms.duration
-    along_v = along / terms.duration
-    c_vel = (along_v - terms.cmd[0]) ** 2 + (across_v - terms.cmd[1]) ** 2
+    vel = (course - terms.nominal) / terms.duration
+    err = (vel - terms.cmd).pow_(2)
+    c_vel = err[0] + err[1]
     if cfg.w_velocity != 1.0:  # (the paper's weight 1 is exact without the op)
         c_vel = c_vel.mul_(cfg.w_velocity)
-    pen = ((cfg.edge_clearance - clearance) / cfg.edge_clearance).clamp(0.0, 1.0)
-    c_edge = cfg.edge_cost * pen**2
+    pen = (cfg.edge_clearance - clearance).div_(cfg.edge_clearance).clamp_(0.0, 1.0)
+    c_edge = pen.pow_(2).mul_(cfg.edge_cost)
     floor, scale = pace
-    c_pace = (floor - along_v).clamp_(min=0.0).mul_(scale)
-    signed_lat = terms.side * across
-    feasible = (
-        (clearance >= cfg.stone_margin - 2 * _EPS)
-        & (sx * sx + sy * sy <= cfg.max_step**2)
-        & (along >= cfg.min_step_forward)
-        & (signed_lat >= cfg.min_lateral)
-        & (signed_lat <= cfg.max_lateral)
-        & height
+    c_pace = (floor - vel[0]).clamp_(min=0.0).mul_(scale)
+    own = course * terms.own_side  # (along, signed lateral distance)
+    sq = step.mul_(step)
+    feasible = all_of(
+        clearance >= cfg.stone_margin - 2 * _EPS,
+        sq[0] + sq[1] <= cfg.max_step**2,
+        *(own >= terms.lower).unbind(0),
+        own[1] <= cfg.max_lateral,
+        height,
+        out=feasible_out,
     )
     # In place on the freshly allocated (full-shape) velocity cost: the summands only broadcast.
     cost = c_vel.add_(c_edge).add_(terms.c_time).add_(c_pace)
     return torch.where(feasible, cost, cost + cfg.infeasible_cost), feasible
 
 
-def goal_ahead(footholds: Footholds, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """(E, ...) bool: points (x, y), each (E, ...), lie before the goal platform along the course."""
-    shape = (-1,) + (1,) * (x.dim() - 1)
-    ax, ay = (a.view(shape) for a in footholds.direction.unbind(-1))
-    sx, sy = (a.view(shape) for a in footholds.start_xy.unbind(-1))
-    along = (x - sx) * ax + (y - sy) * ay
-    return along < footholds.goal_distance.view(shape)
+def goal_ahead(footholds: Footholds, xy: XY) -> torch.Tensor:
+    """(E, ...) bool: points ``xy``, (2, E, ...), lie before the goal platform along the course."""
+    shape = (2, -1) + (1,) * (xy.dim() - 2)
+    rel = (xy - footholds.start_xy.T.reshape(shape)) * footholds.direction.T.reshape(shape)
+    return rel[0] + rel[1] < footholds.goal_distance.view(shape[1:])
 
 
 def pace_floor(cmd_along: torch.Tensor, cfg: PlannerCfg) -> tuple[torch.Tensor, torch.Tensor]:
     """(floor, scale) of the progress term while the goal lies ahead (:func:`pace_terms`)."""
     floor = cfg.pace_fraction * cmd_along.clamp(min=0.0)
-    scale = torch.where(floor > 1e-6, cfg.pace_cost / floor.clamp(min=1e-6), 0.0)
+    # Times the mask, not torch.where: x * False is 0.0 and x * True is x exactly (x is finite).
+    scale = (cfg.pace_cost / floor.clamp(min=1e-6)) * (floor > 1e-6)
     return floor, scale
 
 
@@ -139,4 +175,4 @@ def pace_terms(
     planner takes :func:`pace_floor` once per plan and applies ``ahead`` per step.
     """
     floor, scale = pace_floor(cmd_along, cfg)
-    return floor, torch.where(ahead, scale, 0.0)
+    return floor, scale * ahead  # (as in pace_floor: exactly 0 where the goal is behind)
