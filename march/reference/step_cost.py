@@ -64,11 +64,11 @@ def step_terms(
     to_course = torch.stack([axis, lat], dim=1)
     # Row 0: the lower bounds; row 1: (0, step_width), whose product with (1, side) is the
     # nominal offset (+0.0, side * step_width) (float32 products, as with scalar operands).
-    consts = torch.tensor(
-        [[cfg.min_step_forward, cfg.min_lateral], [0.0, cfg.step_width]],
-        device=duration.device,
-        dtype=duration.dtype,
-    ).view((2, 2) + (1,) * (own_side.dim() - 1))
+    # Filled on the device from Python scalars (a tensor made from a host list would be a
+    # host-to-device copy per call on a GPU).
+    shape = (2, 2) + (1,) * (own_side.dim() - 1)
+    consts = torch.zeros(shape, device=duration.device, dtype=duration.dtype)
+    consts[0, 0], consts[0, 1], consts[1, 1] = cfg.min_step_forward, cfg.min_lateral, cfg.step_width
     nominal = own_side * consts[1]
     return StepTerms(
         duration=duration,
