@@ -69,6 +69,7 @@ from march.reference.step_cost import (
     _step_cost,
     goal_ahead,
     height_ok,
+    into,
     pace_floor,
     pace_terms,
     step_terms,
@@ -257,7 +258,7 @@ def _clearance(center: XY, half: XY, xy: XY) -> torch.Tensor:
     ``half`` (rows of :func:`_stone_table`, broadcast against the points): negative off the
     stone, -inf on an unusable one."""
     off = (xy - center).abs_()
-    inside = torch.sub(half, off, out=off)  # (in place: a fresh temporary of the points' shape)
+    inside = into(off, torch.sub, half, off)  # (in place: a fresh temporary of the points' shape)
     return torch.minimum(inside[0], inside[1])
 
 
@@ -394,7 +395,7 @@ def _search(
             rows[s].view(2, 2, e, r, m).permute(0, 2, 3, 4, 1)[:, :, :, None]
             for s in (_LOWER, _UPPER)
         )  # (2 axes, E, R, 1, M, 2 margins)
-        torch.clamp(nom[..., None], lower, upper, out=pos_a)
+        into(pos_a, torch.clamp, nom[..., None], lower, upper)
         spread_b = unit[i][:, None] * rows[_SPREAD].view(2, e, r, m, 1)
         ahead = goal_ahead(footholds, p)  # (E, R): the progress term applies
         scale = scale_ahead * ahead.view(e, r, 1, 1, 1)  # (0 where the goal is behind)
@@ -408,7 +409,7 @@ def _search(
             )
             flat_ok = ok.expand_as(cost).reshape(e, r, -1)
         else:
-            torch.add(center.view(2, e, r, m, 1), spread_b, out=pos_b.view(2, e, r, m, k))
+            into(pos_b.view(2, e, r, m, k), torch.add, center.view(2, e, r, m, 1), spread_b)
             clear_a, clear_b = (_clearance(center, half, pos) for pos in (pos_a, pos_b))
             # The costs are joined by cat, not written into a buffer: a where(out=) into the
             # (T, M, 2 + K) interleaved layout runs 2-4 element inner loops, slower on CPU.

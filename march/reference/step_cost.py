@@ -3,7 +3,8 @@ scoring of :mod:`march.reference.planner` (its module docstring states the cost)
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import torch
 
@@ -87,6 +88,15 @@ def height_ok(prev_z: torch.Tensor, z: torch.Tensor, cfg: PlannerCfg) -> torch.T
     return (z - prev_z).abs() <= cfg.max_step_height
 
 
+def into(out: torch.Tensor, op: Callable[..., torch.Tensor], *args: Any) -> torch.Tensor:
+    """``op(*args, out=out)``: eagerly one op and no new tensor; under ``torch.compile``, whose
+    tracer breaks the graph at an ``out=`` into a view (20 breaks per plan: the compiled search
+    fell apart into ~480 ops), the value computed and copied in, which inductor fuses."""
+    if torch.compiler.is_compiling():
+        return out.copy_(op(*args))
+    return op(*args, out=out)
+
+
 def all_of(*masks: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
     """The elementwise AND of ``masks`` (broadcast), in two ops however many there are (a stack
     and a reduction, where a chain of ``&`` takes one op per mask); into ``out`` if given.
@@ -96,7 +106,7 @@ def all_of(*masks: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tenso
     stacked = torch.stack(torch.broadcast_tensors(*masks)).view(torch.uint8)
     if out is None:
         return stacked.amin(0).view(torch.bool)
-    torch.amin(stacked, 0, out=out.view(torch.uint8))
+    into(out.view(torch.uint8), torch.amin, stacked, 0)
     return out
 
 
