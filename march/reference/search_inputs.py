@@ -9,6 +9,7 @@ configuration and device and kept. Plain torch.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import torch
@@ -16,20 +17,30 @@ import torch
 if TYPE_CHECKING:
     from march.reference.planner import PlannerCfg
 
-_RINGS: dict[tuple, torch.Tensor] = {}
-"""Rollout 0's unit points by (K, device, dtype): the same every plan, so built once."""
+_KEPT: dict[tuple, torch.Tensor] = {}
+"""The fixed tensors of :func:`_ring` and :func:`pick_table` by name and arguments (the
+planner's config and device): the same every plan, so built once."""
 
 
-def ring(k: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+def _kept(key: tuple, make: Callable[[], torch.Tensor]) -> torch.Tensor:
+    """``make()`` the first time ``key`` is asked for, the kept tensor afterwards; under
+    ``torch.compile`` nothing is kept (a traced tensor must not outlive its graph)."""
+    value = _KEPT.get(key)
+    if value is None:
+        value = make()
+        if not torch.compiler.is_compiling():
+            _KEPT[key] = value
+    return value
+
+
+def _ring(k: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
     """(2, K) rollout 0's fixed ring of points at half the stone's usable extent."""
-    key = (k, torch.device(device), dtype)
-    ring = _RINGS.get(key)
-    if ring is None:
+
+    def make() -> torch.Tensor:
         theta = 2.0 * torch.pi * (torch.arange(k, device=device, dtype=dtype) + 0.5) / max(k, 1)
-        ring = 0.5 * torch.stack([torch.cos(theta), torch.sin(theta)])
-        if not torch.compiler.is_compiling():  # (a traced tensor must not outlive its graph)
-            _RINGS[key] = ring
-    return ring
+        return 0.5 * torch.stack([torch.cos(theta), torch.sin(theta)])
+
+    return _kept(("ring", k, torch.device(device), dtype), make)
 
 
 def planner_draws(
@@ -47,15 +58,11 @@ def planner_draws(
     unit = torch.rand((n, 2, r, m, k), generator=generator, device=gen_device).to(device, dtype)
     unit = 2.0 * unit - 1.0
     # Rollout 0 is deterministic.
-    unit[:, :, 0] = ring(k, device, dtype)[None, :, None, :]
+    unit[:, :, 0] = _ring(k, device, dtype)[None, :, None, :]
     u = torch.rand((n, r, nt * m * (k + 2)), generator=generator, device=gen_device)
     gumbel = -torch.log(-torch.log(u.clamp(1e-12, 1.0 - 1e-7))).to(device, dtype)
     gumbel[:, 0] = 0.0  # rollout 0 is plain greedy
     return unit, gumbel
-
-
-_PICK_TABLES: dict[tuple, torch.Tensor] = {}
-""":func:`pick_table` by its arguments: they are the planner's config, so built once."""
 
 
 def pick_table(nt: int, m: int, k: int, fuse: bool, device: torch.device) -> torch.Tensor:
@@ -64,9 +71,8 @@ def pick_table(nt: int, m: int, k: int, fuse: bool, device: torch.device) -> tor
     candidate buffer, its duration index and its stone index, so that one lookup replaces the
     index arithmetic of every step. The buffer is the score order itself when the groups are
     fused; apart, it holds group (a), (T, M, 2), then group (b), (M, K), once for all T."""
-    key = (nt, m, k, fuse, torch.device(device))
-    table = _PICK_TABLES.get(key)
-    if table is None:
+
+    def make() -> torch.Tensor:
         flat = torch.arange(nt * m * (k + 2), device=device)
         tm, c = flat // (k + 2), flat % (k + 2)  # tm = t_idx * M + m_idx; c the candidate
         t_idx, m_idx = tm // m, tm % m
@@ -74,7 +80,6 @@ def pick_table(nt: int, m: int, k: int, fuse: bool, device: torch.device) -> tor
             slot = flat
         else:
             slot = torch.where(c < 2, tm * 2 + c, nt * m * 2 + m_idx * k + (c - 2))
-        table = torch.stack([slot, t_idx, m_idx])
-        if not torch.compiler.is_compiling():  # (a traced tensor must not outlive its graph)
-            _PICK_TABLES[key] = table
-    return table
+        return torch.stack([slot, t_idx, m_idx])
+
+    return _kept(("pick", nt, m, k, fuse, torch.device(device)), make)
