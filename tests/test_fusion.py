@@ -72,6 +72,61 @@ def test_compiled_planner_makes_the_eager_plans():
             assert torch.equal(getattr(plans[0], name), getattr(plans[1], name)), name
 
 
+def _outputs_args(e: int, g: torch.Generator) -> tuple:
+    """Random arguments of outputs_from_state for ``e`` envs (quaternions, proper rotation
+    matrices, stance masks)."""
+
+    def r(*shape):
+        return torch.rand(*shape, generator=g)
+
+    quat = torch.nn.functional.normalize(r(e, 4) - 0.5, dim=-1)
+    mat = torch.linalg.qr(r(e, 2, 3, 3) - 0.5)[0]
+    mat = mat * torch.linalg.det(mat)[..., None, None].sign()  # proper rotations
+    return (
+        r(e, 3),
+        r(e, 30, 3),
+        (r(1, 30), r(1, 1) + 30.0),
+        quat,
+        r(e, 3),
+        (r(e, 2, 3), r(e, 2, 3), r(e, 2, 3), mat),
+        r(e) > 0.5,
+        (r(e, 29), r(e, 29), r(e, 29)),
+        torch.arange(3, 17),
+    )
+
+
+def _scan_args(e: int, g: torch.Generator) -> tuple:
+    """Random arguments of scan_heights: 4 cells of 6 boxes, ``e`` pelvis poses among them."""
+
+    def r(*shape):
+        return torch.rand(*shape, generator=g)
+
+    k, cells = 6, 4
+    center = torch.cat([4.0 * r(cells, k, 2), 0.3 * r(cells, k, 1)], -1)
+    half = 0.1 + 0.4 * r(cells, k, 2)
+    valid = r(cells, k) > 0.2
+    lo = (center[..., 0] - half[..., 0]).masked_fill(~valid, float("inf"))
+    hi = (center[..., 0] + half[..., 0]).masked_fill(~valid, -float("inf"))
+    extent = torch.stack([lo, hi], -1)
+    packed = torch.cat([center, half, valid[..., None].float()], -1).reshape(-1, 6)
+    base = torch.cat([4.0 * r(e, 2), 0.5 + 0.5 * r(e, 1)], -1)
+    yaw = 6.28 * r(e)
+    offsets = torch.stack(
+        torch.meshgrid(torch.linspace(-0.8, 0.8, 17), torch.linspace(-0.5, 0.5, 11), indexing="ij"),
+        -1,
+    )
+    return (
+        base,
+        yaw,
+        torch.randint(0, 2, (e,), generator=g),
+        torch.randint(0, 2, (e,), generator=g),
+        2,
+        (extent, packed, 4),
+        offsets.reshape(-1, 2),
+        5.0,
+    )
+
+
 @pytest.mark.slow
 def test_compiled_outputs_and_height_scan_equal_the_eager_maths():
     """outputs_from_state and scan_heights compiled equal eager within 1e-5 on random states
@@ -81,58 +136,69 @@ def test_compiled_outputs_and_height_scan_equal_the_eager_maths():
 
     for e in (8, 21):
         g = torch.Generator().manual_seed(e)
-
-        def r(*shape, g=g):
-            return torch.rand(*shape, generator=g)
-
-        quat = torch.nn.functional.normalize(r(e, 4) - 0.5, dim=-1)
-        mat = torch.linalg.qr(r(e, 2, 3, 3) - 0.5)[0]
-        mat = mat * torch.linalg.det(mat)[..., None, None].sign()  # proper rotations
-        args = (
-            r(e, 3),
-            r(e, 30, 3),
-            (r(1, 30), r(1, 1) + 30.0),
-            quat,
-            r(e, 3),
-            (r(e, 2, 3), r(e, 2, 3), r(e, 2, 3), mat),
-            r(e) > 0.5,
-            (r(e, 29), r(e, 29), r(e, 29)),
-            torch.arange(3, 17),
-        )
+        args = _outputs_args(e, g)
         for got, want in zip(
             fused(outputs_from_state)(*args), outputs_from_state(*args), strict=True
         ):
             assert torch.allclose(got, want, atol=1e-5, rtol=0.0)
-        # Height scan: 4 cells of 6 boxes, random pelvis poses among them.
-        k, cells = 6, 4
-        center = torch.cat([4.0 * r(cells, k, 2), 0.3 * r(cells, k, 1)], -1)
-        half = 0.1 + 0.4 * r(cells, k, 2)
-        valid = r(cells, k) > 0.2
-        lo = (center[..., 0] - half[..., 0]).masked_fill(~valid, float("inf"))
-        hi = (center[..., 0] + half[..., 0]).masked_fill(~valid, -float("inf"))
-        extent = torch.stack([lo, hi], -1)
-        packed = torch.cat([center, half, valid[..., None].float()], -1).reshape(-1, 6)
-        base = torch.cat([4.0 * r(e, 2), 0.5 + 0.5 * r(e, 1)], -1)
-        yaw = 6.28 * r(e)
-        offsets = torch.stack(
-            torch.meshgrid(
-                torch.linspace(-0.8, 0.8, 17), torch.linspace(-0.5, 0.5, 11), indexing="ij"
-            ),
-            -1,
-        )
-        args = (
-            base,
-            yaw,
-            torch.randint(0, 2, (e,), generator=g),
-            torch.randint(0, 2, (e,), generator=g),
-            2,
-            (extent, packed, 4),
-            offsets.reshape(-1, 2),
-            5.0,
-        )
+        args = _scan_args(e, g)
         got, want = fused(scan_heights)(*args), scan_heights(*args)
         assert (want < 5.0).any() and (want == 5.0).any()  # both hits and misses are tested
         assert torch.allclose(got, want, atol=1e-5, rtol=0.0)
+
+
+@pytest.mark.parametrize("name", ["outputs_from_state", "scan_heights", "reference_at"])
+def test_the_other_compiled_maths_traces_into_one_graph(name):
+    """Like the planner search below: each function compute.compile_math compiles must trace
+    into one graph (a break leaves the ops around it eager, one launch each on a GPU),
+    reference_at also on its first trace in a fresh process (empty Bezier store). Dynamo only
+    (seconds)."""
+    import torch._dynamo as dynamo
+
+    from march.env.clf_outputs import outputs_from_state
+    from march.env.observations import scan_heights
+    from march.reference import trajectory
+
+    g = torch.Generator().manual_seed(1)
+    if name == "reference_at":
+        saved = dict(trajectory._BEZIER_TABLES)
+        trajectory._BEZIER_TABLES.clear()  # the first trace of a fresh process
+        fn, args = trajectory.reference_at, (_random_step(16, g), torch.rand(16, generator=g))
+    else:
+        saved = None
+        fn = {"outputs_from_state": outputs_from_state, "scan_heights": scan_heights}[name]
+        args = (_outputs_args if name == "outputs_from_state" else _scan_args)(8, g)
+    try:
+        with torch.no_grad():
+            ex = dynamo.explain(fn)(*args)
+    finally:
+        if saved is not None:
+            trajectory._BEZIER_TABLES.update(saved)
+    assert ex.graph_break_count == 0, [r.reason[:200] for r in ex.break_reasons]
+    assert ex.graph_count == 1
+
+
+def _random_step(e: int, g: torch.Generator):
+    """A random StepState of ``e`` envs (ramps, both stance feet)."""
+    from march.reference.trajectory import StepState
+
+    def r(*shape):
+        return torch.rand(*shape, generator=g)
+
+    return StepState(
+        stance_pos=r(e, 3),
+        stance_is_left=r(e) > 0.5,
+        swing_start=r(e, 3),
+        target=r(e, 3) + 0.3,
+        next_target=r(e, 3) + 0.6,
+        duration=0.45 + 0.25 * r(e),
+        next_duration=0.45 + 0.25 * r(e),
+        yaw0=r(e),
+        yaw_rate=torch.zeros(e),
+        axis=torch.nn.functional.normalize(r(e, 2), dim=-1),
+        ramp=r(e) > 0.7,
+        ramp_from=r(e, 2),
+    )
 
 
 @pytest.mark.parametrize("fuse", [False, True])
@@ -164,3 +230,70 @@ def test_the_planner_search_traces_into_one_graph(fuse):
         ex = dynamo.explain(planner._search)(fh.start_xy, left, cmd, fh, unit, gumbel, cfg)
     assert ex.graph_break_count == 0, [r.reason[:200] for r in ex.break_reasons]
     assert ex.graph_count == 1
+
+
+def _bezier_of(ctrl: torch.Tensor, s: torch.Tensor):
+    from march.reference.trajectory import bezier
+
+    return bezier(ctrl, s)
+
+
+def _pick_of(x: torch.Tensor) -> torch.Tensor:
+    from march.reference.search_inputs import pick_table
+
+    return x + pick_table(7, 8, 4, False, x.device).sum(0)
+
+
+@pytest.mark.parametrize("case", ["bezier", "pick_table"])
+def test_compiled_maths_does_not_recompile_when_an_eager_call_fills_a_kept_table(case):
+    """The fixed tables (Bezier binomials, the planner's pick table) are kept in module stores
+    for eager calls. A graph that read a store was guarded on its keys: compiled before the
+    first eager call filled it, it compiled again after (a second multi-minute compile on the
+    gpu preset, found with TORCH_LOGS=recompiles). Dynamo only (backend eager: seconds)."""
+    import torch._dynamo as dynamo
+
+    from march.reference import search_inputs, trajectory
+
+    g = torch.Generator().manual_seed(3)
+    if case == "bezier":
+        fn, args, store = (
+            _bezier_of,
+            (torch.randn(9, 5, 2, generator=g), torch.rand(9, generator=g)),
+            trajectory._BEZIER_TABLES,
+        )
+    else:
+        fn, args, store = _pick_of, (torch.zeros(7 * 8 * 6, dtype=torch.long),), search_inputs._KEPT
+    saved = dict(store)
+    store.clear()  # as in a fresh process: the graph is traced before any eager call
+    try:
+        compiled = torch.compile(fn, backend="eager", dynamic=True)
+        first = compiled(*args)
+        want = fn(*args)  # eager: fills the store
+        assert store, "the eager call keeps its table"
+        with dynamo.config.patch(error_on_recompile=True):
+            again = compiled(*args)
+    finally:
+        store.clear()
+        store.update(saved)
+    for got in (first, again):
+        for a, b in zip(
+            got if isinstance(got, tuple) else (got,),
+            want if isinstance(want, tuple) else (want,),
+            strict=True,
+        ):
+            assert torch.equal(a, b)
+
+
+@pytest.mark.slow
+def test_compiled_reference_agrees_with_eager():
+    """compute.compile_math: torch.compile of reference_at equals the eager path within 1e-4
+    (float32 rounding of fused kernels; measured max difference 1.2e-5) over random steps."""
+    from march.reference.trajectory import reference_at
+
+    g = torch.Generator().manual_seed(5)
+    fn = fused(reference_at)
+    for e in (16, 40):
+        st = _random_step(e, g)
+        tau = 1.2 * torch.rand(e, generator=g)  # past the duration too
+        for got, want in zip(fn(st, tau).flatten(), reference_at(st, tau).flatten(), strict=True):
+            assert torch.allclose(got, want, atol=1e-4, rtol=0.0)

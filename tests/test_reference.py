@@ -282,36 +282,3 @@ def test_ramp_is_per_env():
     pos, vel = _com(step, 0.0)
     assert vel[0].abs().max() < 1e-12
     assert float(vel[1, 0]) == pytest.approx(_orbit_x(0.0)[1], abs=1e-12)
-
-
-@pytest.mark.slow
-def test_compiled_reference_agrees_with_eager():
-    """compute.compile_math: torch.compile of reference_at equals the eager path within 1e-4
-    (float32 rounding of fused kernels; measured max difference 1.2e-5) over random steps."""
-    from march.fusion import fused
-    from march.reference.trajectory import StepState, reference_at
-
-    g = torch.Generator().manual_seed(5)
-
-    def r(*shape):
-        return torch.rand(*shape, generator=g)
-
-    fn = fused(reference_at)
-    for e in (16, 40):
-        st = StepState(
-            stance_pos=r(e, 3),
-            stance_is_left=r(e) > 0.5,
-            swing_start=r(e, 3),
-            target=r(e, 3) + 0.3,
-            next_target=r(e, 3) + 0.6,
-            duration=0.45 + 0.25 * r(e),
-            next_duration=0.45 + 0.25 * r(e),
-            yaw0=r(e),
-            yaw_rate=torch.zeros(e),
-            axis=torch.nn.functional.normalize(r(e, 2), dim=-1),
-            ramp=r(e) > 0.7,
-            ramp_from=r(e, 2),
-        )
-        tau = 1.2 * r(e)  # past the duration too
-        for got, want in zip(fn(st, tau).flatten(), reference_at(st, tau).flatten(), strict=True):
-            assert torch.allclose(got, want, atol=1e-4, rtol=0.0)

@@ -23,13 +23,15 @@ planner's config and device): the same every plan, so built once."""
 
 
 def _kept(key: tuple, make: Callable[[], torch.Tensor]) -> torch.Tensor:
-    """``make()`` the first time ``key`` is asked for, the kept tensor afterwards; under
-    ``torch.compile`` nothing is kept (a traced tensor must not outlive its graph)."""
+    """``make()`` the first time ``key`` is asked for, the kept tensor afterwards. Under
+    ``torch.compile`` the store is not touched at all: a traced tensor must not outlive its
+    graph, and a graph that read the store would be guarded on its keys and recompile whenever
+    an eager call adds one."""
+    if torch.compiler.is_compiling():
+        return make()
     value = _KEPT.get(key)
     if value is None:
-        value = make()
-        if not torch.compiler.is_compiling():
-            _KEPT[key] = value
+        value = _KEPT[key] = make()
     return value
 
 

@@ -117,7 +117,16 @@ _BEZIER_TABLES: dict[tuple[int, torch.dtype, str], tuple[torch.Tensor, torch.Ten
 
 def _bezier_table(deg: int, dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, ...]:
     """(deg+1,) exponents 0..deg and binomial coefficients C(deg, j), on ``device``: made once
-    per (degree, dtype, device), so a step copies nothing from the host."""
+    per (degree, dtype, device), so a step copies nothing from the host. Under
+    ``torch.compile`` the store is not touched (a graph that read it was guarded on its keys and
+    compiled twice: once before the first call filled it, once after); the graph makes the
+    table itself from device ops."""
+    if torch.compiler.is_compiling():
+        k = torch.arange(deg + 1, dtype=dtype, device=device)
+        # C(deg, j) from lgamma, rounded: exact integers, and nothing in the graph is built
+        # from Python data (which could mean a host-to-device copy per call)
+        log_binom = math.lgamma(deg + 1) - torch.lgamma(k + 1) - torch.lgamma(deg - k + 1)
+        return k, torch.round(torch.exp(log_binom))
     key = (deg, dtype, str(device))
     if key not in _BEZIER_TABLES:
         k = torch.arange(deg + 1, dtype=dtype, device=device)
