@@ -11,13 +11,21 @@ Results equal the eager path's within float32 rounding (tests/test_fusion.py).
 
 from __future__ import annotations
 
+import dataclasses
+import time
 from collections.abc import Callable
 from typing import Any
 
 import torch
+from torch._dynamo.utils import counters
 from torch.utils._python_dispatch import _get_current_dispatch_mode
 
 _COMPILED: dict[Callable, Callable] = {}
+
+COMPILES: dict[str, list[float]] = {}
+"""Wall seconds of every call that compiled a graph, by compiled function name (its first call,
+and any recompile): what ``compute.compile_math`` costs a process. ``python -m march.bench env``
+reports them (:func:`compile_report`)."""
 
 INDUCTOR_OPTIONS = {"cpp.enable_kernel_profile": True}
 """Each generated CPU kernel records a profiler event, so its launches can be counted (one
@@ -28,22 +36,72 @@ def fused(fn: Callable) -> Callable:
     """``fn`` under ``torch.compile(dynamic=True)``, made once per process and function.
 
     Python floats (config values) stay constants of the graph (``specialize_float``): left
-    dynamic, each would be wrapped in a tensor on every call, three host-built ops apiece."""
+    dynamic, each would be wrapped in a tensor on every call, three host-built ops apiece.
+
+    Few graphs per function: dynamo guards the grad mode and each input's dispatch keys, which
+    differ between the env's construction (grad on), the teacher's rollouts (``inference_mode``,
+    inference tensors) and evaluation or distillation (``no_grad``, normal tensors, and the
+    teacher env's inference tensors read outside inference mode), so a smoke training run
+    compiled 11 graphs for 4 functions (``TORCH_LOGS=recompiles``; on the gpu preset minutes
+    each, some in the middle of the run). The compiled code therefore always runs under
+    ``inference_mode``: the grad mode is always the same and inputs differ only in being normal
+    or inference tensors (8 graphs in the same run: 2 per function). A caller outside inference
+    mode gets the outputs cloned into normal tensors (an inference tensor may not be updated in
+    place there): one copy per output tensor, on those paths only."""
     if fn not in _COMPILED:
         compiled = torch.compile(fn, dynamic=True, options=INDUCTOR_OPTIONS)
 
-        def call(*args: Any, **kwargs: Any) -> Any:
+        def run(*args: Any, **kwargs: Any) -> Any:
             count = getattr(_get_current_dispatch_mode(), "count_fused", None)
             with torch._dynamo.config.patch(specialize_float=True):
                 if count is not None:
                     return count(compiled, args, kwargs)
                 return compiled(*args, **kwargs)
 
+        def call(*args: Any, **kwargs: Any) -> Any:
+            graphs, t0 = counters["stats"]["unique_graphs"], time.perf_counter()
+            if torch.is_inference_mode_enabled():
+                out = run(*args, **kwargs)
+            else:
+                with torch.inference_mode():
+                    out = run(*args, **kwargs)
+                out = _normal_tensors(out)
+            if counters["stats"]["unique_graphs"] != graphs:  # this call compiled (host clock)
+                COMPILES.setdefault(fn.__name__, []).append(time.perf_counter() - t0)
+            return out
+
         call.__wrapped__ = fn  # type: ignore[attr-defined]
         _COMPILED[fn] = call
     return _COMPILED[fn]
 
 
+def _normal_tensors(out: Any) -> Any:
+    """``out`` with every inference tensor in it (tensors, tuples, named tuples, dataclasses)
+    cloned outside inference mode, which makes it a normal tensor."""
+    if isinstance(out, torch.Tensor):
+        return out.clone() if out.is_inference() else out
+    if isinstance(out, tuple):
+        items = [_normal_tensors(x) for x in out]
+        return type(out)(*items) if hasattr(out, "_fields") else tuple(items)
+    if dataclasses.is_dataclass(out) and not isinstance(out, type):
+        changes = {f.name: _normal_tensors(getattr(out, f.name)) for f in dataclasses.fields(out)}
+        return dataclasses.replace(out, **changes)
+    return out
+
+
 def maybe_fused(fn: Callable, compile_math: bool) -> Callable:
     """:func:`fused` ``fn`` when ``compile_math`` is set, else ``fn`` itself."""
     return fused(fn) if compile_math else fn
+
+
+def compile_report() -> dict[str, Any]:
+    """What this process compiled so far: graphs and wall seconds per compiled function, their
+    totals, and ``recompiles`` (graphs beyond one per function: each a stall of the run, and
+    torch falls back to eager after ``torch._dynamo.config.recompile_limit`` of them)."""
+    graphs = {name: len(times) for name, times in COMPILES.items()}
+    return {
+        "graphs": graphs,
+        "seconds": {name: round(sum(times), 2) for name, times in COMPILES.items()},
+        "total_s": round(sum(sum(times) for times in COMPILES.values()), 2),
+        "recompiles": sum(graphs.values()) - len(graphs),
+    }

@@ -6,6 +6,8 @@ the measured CLF outputs and the height scan: they are marked slow (``make test-
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -41,6 +43,28 @@ def test_the_counter_counts_a_compiled_call_as_its_kernels():
     assert compiled.counts["fused_kernel"] >= 1
     # Config floats are graph constants: no per-call tensors built on the host.
     assert "lift_fresh" not in compiled.counts, dict(compiled.counts)
+
+
+def test_the_compile_report_times_each_compile_and_counts_recompiles():
+    """march.fusion records the calls that compiled (the bench's ``compile`` figure): one per
+    graph, none for a cached call, and a recompile (here forced by a new dtype) is counted."""
+    from march.fusion import COMPILES, compile_report
+
+    def _report_probe(x: torch.Tensor) -> torch.Tensor:
+        return (x * 3.0).sin().sum(-1)
+
+    fn = fused(_report_probe)
+    x = torch.rand(5, 7)
+    fn(x)
+    fn(x)
+    fn(torch.rand(9, 7))  # another batch size: dynamic, no new graph
+    assert len(COMPILES["_report_probe"]) == 1 and COMPILES["_report_probe"][0] > 0.0
+    before = compile_report()["recompiles"]
+    fn(x.double())  # a dtype is guarded: a second graph
+    report = compile_report()
+    assert report["graphs"]["_report_probe"] == 2
+    assert report["recompiles"] == before + 1
+    assert report["total_s"] >= report["seconds"]["_report_probe"] > 0.0
 
 
 @pytest.mark.slow
@@ -230,6 +254,51 @@ def test_the_planner_search_traces_into_one_graph(fuse):
         ex = dynamo.explain(planner._search)(fh.start_xy, left, cmd, fh, unit, gumbel, cfg)
     assert ex.graph_break_count == 0, [r.reason[:200] for r in ex.break_reasons]
     assert ex.graph_count == 1
+
+
+@dataclasses.dataclass
+class _Pair:
+    twice: torch.Tensor
+    flag: torch.Tensor
+
+
+def _modes_probe(x: torch.Tensor, y: torch.Tensor) -> tuple[_Pair, torch.Tensor]:
+    return _Pair(twice=2.0 * x + y, flag=x > y), (x - y).abs().amax(-1)
+
+
+def test_grad_modes_add_no_graphs_and_tensor_kinds_at_most_one():
+    """A run calls the compiled maths with grad on (env construction), under inference_mode
+    on inference tensors (teacher rollouts) and under no_grad on normal or inference tensors
+    (evaluation, distillation). Dynamo guards the grad mode and each input's dispatch keys, so
+    these four callers made four graphs (planted: the plain compiled call gives 4). Now the grad
+    mode never matters and only the tensor kind does (normal or inference: 2 graphs), the
+    results are the eager ones, and a caller outside inference_mode gets normal tensors it may
+    update in place (dataclass and tuple outputs)."""
+    from march.fusion import COMPILES
+
+    fn = fused(_modes_probe)
+    g = torch.Generator().manual_seed(2)
+    x, y = torch.rand(6, 5, generator=g), torch.rand(6, 5, generator=g)
+    with torch.inference_mode():
+        xi, yi = x.clone(), y.clone()  # inference tensors, as a rollout makes them
+    want, want_max = _modes_probe(x, y)
+    calls = [  # normal tensors first (one graph), then inference tensors (the second)
+        (torch.enable_grad, x, y, 1),
+        (torch.no_grad, x, y, 1),
+        (torch.inference_mode, xi, yi, 2),
+        (torch.no_grad, xi, yi, 2),
+    ]
+    for mode, a, b, graphs in calls:
+        with mode():
+            pair, amax = fn(a, b)
+            inside = torch.is_inference_mode_enabled()
+        assert torch.allclose(pair.twice, want.twice, atol=1e-6, rtol=0.0)
+        assert torch.equal(pair.flag, want.flag) and torch.allclose(amax, want_max, atol=1e-6)
+        if not inside:
+            for out in (pair.twice, pair.flag, amax):
+                assert not out.is_inference()
+            pair.twice.add_(1.0)  # an inference tensor would refuse this here
+        assert len(COMPILES["_modes_probe"]) == graphs, (mode, COMPILES["_modes_probe"])
 
 
 def _bezier_of(ctrl: torch.Tensor, s: torch.Tensor):

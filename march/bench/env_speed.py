@@ -30,6 +30,7 @@ command and event term) largest first.
 
 from __future__ import annotations
 
+import sys
 import time
 from typing import Any
 
@@ -56,11 +57,18 @@ def run_workload(
     acts = {name: Actions(env, workload, seed) for name, env in envs.items()}
     resets = {name: torch.zeros((), device=device) for name in envs}
     elapsed = {t: dict.fromkeys(envs, 0.0) for t in threads}
-    with torch.no_grad():
+    with torch.inference_mode():
         for name, env in envs.items():
             env.reset()
             for _ in range(warmup):
                 env.step(acts[name]())
+        if opts.get("compiled") and len(threads) > 1:
+            # inductor's CPU code is guarded on the thread count: compile for each count here,
+            # not in a timed round
+            for t in threads:
+                torch.set_num_threads(t)
+                for name, env in envs.items():
+                    env.step(acts[name]())
         for chunk in chunks(steps, rounds):
             for t in threads:
                 torch.set_num_threads(t)
@@ -141,12 +149,14 @@ def bench_env(cfg: MarchConfig, opts: dict[str, Any]) -> dict[str, Any]:
     import torch
 
     from march.env.build import bare_env, make_env
+    from march.fusion import compile_report
 
     device = cfg.compute.device
     n, seed = cfg.compute.num_envs, cfg.seed
     if not opts.get("threads"):
         on_gpu = device.startswith("cuda")
         opts = {**opts, "threads": [torch.get_num_threads()] if on_gpu else [1, 2]}
+    opts = {**opts, "compiled": cfg.compute.compile_math}
     builders = {
         "march_teacher": lambda: make_env(cfg, "teacher"),
         "bare_rough": lambda: bare_env(ROUGH_TASK, n, seed, device),
@@ -180,6 +190,15 @@ def bench_env(cfg: MarchConfig, opts: dict[str, Any]) -> dict[str, Any]:
         free(device)
     rnd = results["random"]
     march_profile = rnd.get("profile", {}).get("march_teacher", {})
+    compiled = compile_report() if cfg.compute.compile_math else None
+    if compiled is not None:
+        per_fn = ", ".join(f"{f} {s:.0f} s" for f, s in compiled["seconds"].items())
+        print(
+            f"[bench] compile_math: {sum(compiled['graphs'].values())} graphs compiled in "
+            f"{compiled['total_s']:.0f} s ({per_fn}); recompiles {compiled['recompiles']}",
+            file=sys.stderr,
+            flush=True,
+        )
     return {
         "device": device,
         "num_envs": cfg.compute.num_envs,
@@ -213,13 +232,16 @@ def bench_env(cfg: MarchConfig, opts: dict[str, Any]) -> dict[str, Any]:
         **_headline(results),
         "workloads": results,
         "build_s": build,
+        "compile": compiled,
         "units": "steps_per_s = env steps (num_envs x control steps) per wall second, timed "
         "without instrumentation in interleaved rounds; ms_per_step = one batched control step; "
         "profile.*_ms = exclusive ms per control step in a separate instrumented pass "
         "(categories: physics, actions, commands incl. commands/planner, rewards, observations, "
         "terminations, events, resets, curriculum, other = mjlab glue); march_teacher_planner_* "
         "= the footstep planner's time in that pass (random workload); resets_per_env_step = "
-        "episode ends per env and control step",
+        "episode ends per env and control step; compile (compute.compile_math only) = graphs and "
+        "wall seconds of the calls that compiled, per compiled function, and recompiles (graphs "
+        "beyond one per function)",
     }
 
 

@@ -1,9 +1,10 @@
 """Compute ops per env step: what a GPU would launch as kernels, counted on any device.
 
 :class:`OpCounter` is a ``TorchDispatchMode``: it sees every aten op a torch call decomposes
-into, after autograd (the bench steps under ``no_grad``), and counts the ones that compute. Left
-out: view-only ops (``OpOverload.is_view``: ``view``, ``slice``, ``select``, ``expand``,
-``unsqueeze``, ``t``... they change metadata, launch nothing) and pure metadata queries
+into, after autograd (the bench steps under ``inference_mode``, as the teacher's rollouts do),
+and counts the ones that compute. Left out: view-only ops (``OpOverload.is_view``: ``view``,
+``slice``, ``select``, ``expand``, ``unsqueeze``, ``t``... they change metadata, launch
+nothing) and pure metadata queries
 (``aten.sym_*``, ``is_nonzero``-free shape lookups do not reach the dispatcher). Everything else
 counts one, so a GPU's eager step launches about this many kernels (a few CPU-only ops such as
 ``_local_scalar_dense``, which is a device-to-host copy there, count too). mujoco-warp's physics
@@ -75,7 +76,7 @@ def count_ops(env: Any, workload: str, steps: int, warmup: int, seed: int) -> di
 
     acts = Actions(env, workload, seed)
     counter = OpCounter()
-    with torch.no_grad():
+    with torch.inference_mode():
         env.reset()
         for _ in range(warmup):
             env.step(acts())

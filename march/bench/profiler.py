@@ -168,7 +168,7 @@ def profile_envs(
     steps, rounds = opts["profile_steps"], min(opts["rounds"], opts["profile_steps"])
     acts = {name: Actions(env, workload, seed) for name, env in envs.items()}
     profs = {name: StepProfiler(str(env.device)) for name, env in envs.items()}
-    with torch.no_grad():
+    with torch.inference_mode():
         for name, env in envs.items():
             env.reset()
             for _ in range(opts[f"warmup_{workload}"]):
