@@ -22,7 +22,9 @@ the check goes on with the phases that do not need its output):
    distillation rollout under ``torch.cuda.set_sync_debug_mode("warn")``, each sync's source
    line (and the march line on its stack) -> ``syncs.tsv`` (at most ``--sync-timeout`` s).
 
-The bench phase also counts compute ops per env step on the GPU (``bench.op_steps``).
+The bench phase also counts compute ops per env step on the GPU (``bench.op_steps``) and, with
+the gpu preset's ``compute.compile_math``, records what compiling cost: graphs and seconds per
+compiled function and the recompiles (``compile`` in ``bench_env.json`` and ``gpu_check.json``).
 
 ``gpu_check.json`` holds every phase's command, return code, seconds and result files, the
 machine (GPU name, torch/CUDA versions) and the date; ``gpu_check.csv`` one row per phase. Exit
@@ -255,7 +257,7 @@ def main(argv: list[str] | None = None) -> int:
                 bench = json.loads((out / "bench_env.json").read_text())
                 keys = ("num_envs", "ratio_march_vs_rough_by_workload", "build_s")
                 keys += ("ops_per_step", "ratio_ops_march_vs_rough", "nonphysics_ms_per_step")
-                keys += ("ratio_nonphysics_march_vs_rough",)
+                keys += ("ratio_nonphysics_march_vs_rough", "compile")
                 results["bench"] = {k: bench.get(k) for k in keys}
                 results["bench"]["steps_per_s"] = {
                     w: v["steps_per_s"] for w, v in bench["workloads"].items()
