@@ -4,11 +4,11 @@
 into, after autograd (the bench steps under ``inference_mode``, as the teacher's rollouts do),
 and counts the ones that compute. Left out: view-only ops (``OpOverload.is_view``: ``view``,
 ``slice``, ``select``, ``expand``, ``unsqueeze``, ``t``... they change metadata, launch
-nothing) and pure metadata queries
-(``aten.sym_*``, ``is_nonzero``-free shape lookups do not reach the dispatcher). Everything else
-counts one, so a GPU's eager step launches about this many kernels (a few CPU-only ops such as
-``_local_scalar_dense``, which is a device-to-host copy there, count too). mujoco-warp's physics
-is warp kernels, not torch ops, and is not counted (mjlab captures it in CUDA graphs on a GPU).
+nothing) and pure metadata queries (``aten.sym_*``, ``is_nonzero``-free shape lookups do not
+reach the dispatcher). Everything else counts one, so a GPU's eager step launches about this
+many kernels (a few CPU-only ops such as ``_local_scalar_dense``, which is a device-to-host copy
+there, count too). mujoco-warp's physics is warp kernels, not torch ops, and is not counted
+(mjlab captures it in CUDA graphs on a GPU).
 
 :func:`count_ops` runs ``steps`` steps of one workload per env (after a reset and the workload's
 warm-up) under the counter and returns ops per step and the top ops by count.
