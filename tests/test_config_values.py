@@ -421,6 +421,7 @@ def test_cli_bad_value_is_one_line_exit_2(tmp_path, override, needle):
     assert len(lines) == 1 and lines[0].startswith("error: ") and needle in lines[0], lines
     assert "Traceback" not in out.stdout + out.stderr
     assert not (tmp_path / "run" / "teacher").exists()  # nothing started
+    assert not (tmp_path / "run").exists()  # and no run directory is left behind
 
 
 def test_resume_of_a_run_directory_with_only_its_config_is_accepted(tmp_path):
