@@ -45,9 +45,10 @@ class ComputeCfg:
     compile_math: bool = False
     """``torch.compile`` the pure maths of a step (``march.fusion``): the footstep planner's
     search, the step reference, the measured CLF outputs and the height scan. On in the gpu
-    preset, where it cut the eager step's ~2,650 kernel launches to ~1,060 (measured before the
-    planner's eager ops fell from ~1,150 to ~730 per call, which leaves ~2,230); off elsewhere: on
-    CPU it does not make the step faster and compiling takes minutes (README, "Speed")."""
+    preset, where it cuts the teacher step's kernel launches from 1,751 (eager) to 812, against
+    bare mjlab rough's 760-795 (64 envs, 2026-12-03); off elsewhere: on CPU it makes the step
+    slower (inductor's CPU kernels for the planner) and compiling takes minutes (README,
+    "Speed"; ``python -m march.bench env`` reports the compile time)."""
 
     def __post_init__(self) -> None:
         _check_shapes("compute", self)
