@@ -13,6 +13,7 @@ import torch
 
 from march.bench.ops import OpCounter
 from march.fusion import fused
+from march.reference.kept import STORE
 
 torch.set_num_threads(1)
 
@@ -185,8 +186,8 @@ def test_the_other_compiled_maths_traces_into_one_graph(name):
 
     g = torch.Generator().manual_seed(1)
     if name == "reference_at":
-        saved = dict(trajectory._BEZIER_TABLES)
-        trajectory._BEZIER_TABLES.clear()  # the first trace of a fresh process
+        saved = dict(STORE)
+        STORE.clear()  # the first trace of a fresh process: no Bezier table kept yet
         fn, args = trajectory.reference_at, (_random_step(16, g), torch.rand(16, generator=g))
     else:
         saved = None
@@ -197,7 +198,7 @@ def test_the_other_compiled_maths_traces_into_one_graph(name):
             ex = dynamo.explain(fn)(*args)
     finally:
         if saved is not None:
-            trajectory._BEZIER_TABLES.update(saved)
+            STORE.update(saved)
     assert ex.graph_break_count == 0, [r.reason[:200] for r in ex.break_reasons]
     assert ex.graph_count == 1
 
@@ -315,23 +316,18 @@ def _pick_of(x: torch.Tensor) -> torch.Tensor:
 
 @pytest.mark.parametrize("case", ["bezier", "pick_table"])
 def test_compiled_maths_does_not_recompile_when_an_eager_call_fills_a_kept_table(case):
-    """The fixed tables (Bezier binomials, the planner's pick table) are kept in module stores
-    for eager calls. A graph that read a store was guarded on its keys: compiled before the
+    """The fixed tables (Bezier binomials, the planner's pick table) are kept in one store
+    (march.reference.kept) for eager calls. A graph that read the store was guarded on its keys: compiled before the
     first eager call filled it, it compiled again after (a second multi-minute compile on the
     gpu preset, found with TORCH_LOGS=recompiles). Dynamo only (backend eager: seconds)."""
     import torch._dynamo as dynamo
 
-    from march.reference import search_inputs, trajectory
-
     g = torch.Generator().manual_seed(3)
     if case == "bezier":
-        fn, args, store = (
-            _bezier_of,
-            (torch.randn(9, 5, 2, generator=g), torch.rand(9, generator=g)),
-            trajectory._BEZIER_TABLES,
-        )
+        fn, args = _bezier_of, (torch.randn(9, 5, 2, generator=g), torch.rand(9, generator=g))
     else:
-        fn, args, store = _pick_of, (torch.zeros(7 * 8 * 6, dtype=torch.long),), search_inputs._KEPT
+        fn, args = _pick_of, (torch.zeros(7 * 8 * 6, dtype=torch.long),)
+    store = STORE
     saved = dict(store)
     store.clear()  # as in a fresh process: the graph is traced before any eager call
     try:

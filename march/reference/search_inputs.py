@@ -4,35 +4,19 @@ one plan and the cached index table of its candidates (:mod:`march.reference.pla
 Both are independent of the number of envs. The draws stay outside ``torch.compile``
 (``plan_footsteps`` makes them eagerly, so the generator is not traced and the compiled plans
 are the eager ones); the fixed parts (rollout 0's ring, the pick table) are built once per
-configuration and device and kept. Plain torch.
+configuration and device and kept (:mod:`march.reference.kept`). Plain torch.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import torch
 
+from march.reference.kept import kept
+
 if TYPE_CHECKING:
     from march.reference.planner import PlannerCfg
-
-_KEPT: dict[tuple, torch.Tensor] = {}
-"""The fixed tensors of :func:`_ring` and :func:`pick_table` by name and arguments (the
-planner's config and device): the same every plan, so built once."""
-
-
-def _kept(key: tuple, make: Callable[[], torch.Tensor]) -> torch.Tensor:
-    """``make()`` the first time ``key`` is asked for, the kept tensor afterwards. Under
-    ``torch.compile`` the store is not touched at all: a traced tensor must not outlive its
-    graph, and a graph that read the store would be guarded on its keys and recompile whenever
-    an eager call adds one."""
-    if torch.compiler.is_compiling():
-        return make()
-    value = _KEPT.get(key)
-    if value is None:
-        value = _KEPT[key] = make()
-    return value
 
 
 def _ring(k: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
@@ -42,7 +26,7 @@ def _ring(k: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
         theta = 2.0 * torch.pi * (torch.arange(k, device=device, dtype=dtype) + 0.5) / max(k, 1)
         return 0.5 * torch.stack([torch.cos(theta), torch.sin(theta)])
 
-    return _kept(("ring", k, torch.device(device), dtype), make)
+    return kept(("ring", k, torch.device(device), dtype), make)
 
 
 def planner_draws(
@@ -84,4 +68,4 @@ def pick_table(nt: int, m: int, k: int, fuse: bool, device: torch.device) -> tor
             slot = torch.where(c < 2, tm * 2 + c, nt * m * 2 + m_idx * k + (c - 2))
         return torch.stack([slot, t_idx, m_idx])
 
-    return _kept(("pick", nt, m, k, fuse, torch.device(device)), make)
+    return kept(("pick", nt, m, k, fuse, torch.device(device)), make)

@@ -42,6 +42,7 @@ from dataclasses import dataclass, fields
 import torch
 
 from march.reference.hlip import HlipCfg, hlip_com_state
+from march.reference.kept import kept
 from march.reference.planner import Plan
 
 ANGLE_OUTPUTS = (
@@ -112,27 +113,18 @@ def bezier(ctrl: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Ten
     return pos, (basis_d[..., None] * diff).sum(-2)
 
 
-_BEZIER_TABLES: dict[tuple[int, torch.dtype, str], tuple[torch.Tensor, torch.Tensor]] = {}
-
-
 def _bezier_table(deg: int, dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, ...]:
     """(deg+1,) exponents 0..deg and binomial coefficients C(deg, j), on ``device``: made once
-    per (degree, dtype, device), so a step copies nothing from the host. Under
-    ``torch.compile`` the store is not touched (a graph that read it was guarded on its keys and
-    compiled twice: once before the first call filled it, once after); the graph makes the
-    table itself from device ops."""
-    if torch.compiler.is_compiling():
+    per (degree, dtype, device) (:func:`march.reference.kept.kept`), so a step copies nothing
+    from the host."""
+
+    def make() -> tuple[torch.Tensor, torch.Tensor]:
         k = torch.arange(deg + 1, dtype=dtype, device=device)
-        # C(deg, j) from lgamma, rounded: exact integers, and nothing in the graph is built
-        # from Python data (which could mean a host-to-device copy per call)
+        # C(deg, j) from lgamma, rounded: exact integers, made on the device
         log_binom = math.lgamma(deg + 1) - torch.lgamma(k + 1) - torch.lgamma(deg - k + 1)
         return k, torch.round(torch.exp(log_binom))
-    key = (deg, dtype, str(device))
-    if key not in _BEZIER_TABLES:
-        k = torch.arange(deg + 1, dtype=dtype, device=device)
-        binom = torch.tensor([math.comb(deg, j) for j in range(deg + 1)], dtype=dtype)
-        _BEZIER_TABLES[key] = (k, binom.to(device))
-    return _BEZIER_TABLES[key]
+
+    return kept(("bezier", deg, dtype, torch.device(device)), make)
 
 
 def swing_trajectory(
