@@ -412,10 +412,31 @@ def _rank_argv(argv: list[str]) -> list[str]:
     return [*argv, f"hydra.run.dir={tmp}", "hydra.output_subdir=null"]
 
 
+def _resume_argv(argv: list[str]) -> list[str]:
+    """A resumed run keeps Hydra's job log in its own directory. ``resume=<run>`` of a march run
+    (a directory holding ``config.yaml``) runs with ``hydra.run.dir=<run>``: Hydra's job log
+    appends to the run's ``train.log``, and ``hydra.output_subdir=null`` leaves the run's
+    ``.hydra/`` as its first launch wrote it. Otherwise every resume left a new folder under
+    ``outputs/`` holding a job log and a ``.hydra/`` of its own. Left alone: sweeps (``-m``),
+    a command that sets the Hydra directory itself (ranks > 0 of a torchrun job, tests), and a
+    ``resume=`` that names no march run (refused later with one line, nothing created)."""
+    from march.config.sweeps import MULTIRUN_FLAGS
+
+    args = [a.lstrip("+") for a in argv[1:]]
+    if any(a in MULTIRUN_FLAGS for a in args):
+        return argv
+    if any(a.startswith(("hydra.run.dir=", "hydra.output_subdir=")) for a in args):
+        return argv
+    runs = [a.split("=", 1)[1] for a in args if a.startswith("resume=")]
+    if not runs or not (Path(runs[-1]) / "config.yaml").is_file():
+        return argv
+    return [*argv, f"hydra.run.dir={runs[-1]}", "hydra.output_subdir=null"]
+
+
 if __name__ == "__main__":
     from march.config.sweeps import sweep_problem
 
     if problem := sweep_problem(sys.argv[1:]):
         fail(problem)
-    sys.argv = _rank_argv(sys.argv)
+    sys.argv = _resume_argv(_rank_argv(sys.argv))
     main()

@@ -404,6 +404,58 @@ def test_resume_cli_refuses_an_unsafe_override_and_writes_a_safe_one(tmp_path, c
     assert saved.distill.max_iterations == 7 and saved.seed == 0
 
 
+def test_a_resume_writes_its_job_log_into_the_run_and_leaves_no_other_folder(tmp_path, ckpts):
+    """A resumed run's Hydra job log goes into the run's own train.log; no new folder appears
+    under outputs/, and the run gets no .hydra/ of the resume's (run from an empty working
+    directory, so that any folder Hydra made is seen). Before, every resume left one behind."""
+    run, cwd = tmp_path / "run", tmp_path / "cwd"
+    run.mkdir()
+    cwd.mkdir()
+    cfg = replace(load(["compute=smoke"]), stage="student", teacher_ckpt=str(ckpts["truncated"]))
+    OmegaConf.save(OmegaConf.structured(cfg), run / "config.yaml")
+    (run / "train.log").write_text("first launch\n")
+    out = subprocess.run(
+        [sys.executable, "-m", "march.train", f"resume={run}", "distill.max_iterations=7"],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=dict(os.environ, HYDRA_FULL_ERROR="0"),
+    )
+    _one_line_before_simulation(out, "not a readable checkpoint")  # it ran inside the pipeline
+    assert list(cwd.iterdir()) == []
+    assert not (run / ".hydra").exists()
+    assert (run / "train.log").read_text().startswith("first launch\n")
+
+
+@pytest.mark.parametrize(
+    "argv,run_dir",
+    [
+        (["resume={run}"], "{run}"),
+        (["+resume={run}", "distill.max_iterations=7"], "{run}"),
+        (["resume={empty}"], None),  # no config.yaml: refused later, nothing redirected
+        (["resume={run}/nope"], None),
+        (["-m", "resume={run}"], None),  # a sweep's jobs keep their own directories
+        (["resume={run}", "hydra.run.dir=/tmp/x"], None),  # set by the caller (ranks > 0)
+        (["reward=clf"], None),
+    ],
+)
+def test_only_a_resume_of_a_march_run_is_pointed_at_the_run(tmp_path, argv, run_dir):
+    from march.train import _resume_argv
+
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "config.yaml").write_text("seed: 0\n")
+    (tmp_path / "empty").mkdir()
+    names = {"run": tmp_path / "run", "empty": tmp_path / "empty"}
+    argv = ["march.train", *[a.format(**names) for a in argv]]
+    got = _resume_argv(argv)
+    if run_dir is None:
+        assert got == argv
+    else:
+        extra = [f"hydra.run.dir={run_dir.format(**names)}", "hydra.output_subdir=null"]
+        assert got == [*argv, *extra]
+
+
 # ------------------------------------------------------------------ env faults (real smoke env)
 
 
