@@ -68,12 +68,8 @@ def test_the_compile_report_times_each_compile_and_counts_recompiles():
     assert report["total_s"] >= report["seconds"]["_report_probe"] > 0.0
 
 
-@pytest.mark.slow
-def test_compiled_planner_makes_the_eager_plans():
-    """plan_footsteps(compiled=True) equals the eager planner over random courses, stances,
-    commands and batch sizes (one compile, dynamic batch): footholds within 1e-5 m, the same
-    durations, feasibility and stall flags (measured: identical)."""
-    from march.reference.planner import PlannerCfg, plan_footsteps
+def _planner_cases():
+    """(stance, left, cmd, footholds, seed) of random courses, stances, commands and batch sizes."""
     from march.world.synthetic import synthetic_courses
 
     for seed, e in enumerate((12, 7, 30, 12)):
@@ -85,16 +81,57 @@ def test_compiled_planner_makes_the_eager_plans():
         left = torch.rand(e, generator=g) > 0.5
         cmd = torch.zeros(e, 3)
         cmd[:, 0] = 0.2 + 0.7 * torch.rand(e, generator=g)
-        plans = [
+        yield stance, left, cmd, fh, seed
+
+
+def _assert_same_plans(eager, compiled) -> None:
+    """Footholds within 1e-5 m, costs within float32 rounding, the same durations, feasibility
+    and stall flags."""
+    assert torch.allclose(eager.footholds, compiled.footholds, atol=1e-5, rtol=0.0)
+    assert torch.allclose(eager.cost, compiled.cost, atol=1e-3, rtol=1e-5)
+    for name in ("durations", "feasible", "stalled"):
+        assert torch.equal(getattr(eager, name), getattr(compiled, name)), name
+
+
+@pytest.mark.slow
+def test_compiled_planner_makes_the_eager_plans():
+    """plan_footsteps(compiled=True) equals the eager planner over random courses, stances,
+    commands and batch sizes (one compile, dynamic batch; measured: identical)."""
+    from march.reference.planner import PlannerCfg, plan_footsteps
+
+    for stance, left, cmd, fh, seed in _planner_cases():
+        eager, compiled = (
             plan_footsteps(
                 stance, left, cmd, fh, PlannerCfg(), torch.Generator().manual_seed(seed), compiled=c
             )
             for c in (False, True)
-        ]
-        assert torch.allclose(plans[0].footholds, plans[1].footholds, atol=1e-5, rtol=0.0)
-        assert torch.allclose(plans[0].cost, plans[1].cost, atol=1e-3, rtol=1e-5)
-        for name in ("durations", "feasible", "stalled"):
-            assert torch.equal(getattr(plans[0], name), getattr(plans[1], name)), name
+        )
+        _assert_same_plans(eager, compiled)
+
+
+@pytest.mark.slow
+def test_the_gpu_presets_planner_path_makes_the_eager_plans():
+    """The planner as the gpu preset runs it (both candidate groups fused, compiled) equals the
+    eager CPU planner (groups apart) on the same cases: the GPU's first run needs no new maths.
+    Compiled here as scalar C++ (``cpp.simdlen=0``): inductor's vectorised CPU code for the
+    fused groups does not compile in torch 2.13 (``Vectorized<bool>::cast``), and on a GPU it is
+    Triton anyway; the graph and its lowering are the same. Measured: identical plans."""
+    from dataclasses import replace
+
+    import torch._inductor.config as inductor_config
+
+    from march.reference.planner import PlannerCfg, plan_footsteps
+
+    fused_cfg = replace(PlannerCfg(), fuse_candidates=True)
+    with inductor_config.patch({"cpp.simdlen": 0}):
+        for stance, left, cmd, fh, seed in _planner_cases():
+            eager, gpu_path = (
+                plan_footsteps(
+                    stance, left, cmd, fh, cfg, torch.Generator().manual_seed(seed), compiled=c
+                )
+                for cfg, c in ((PlannerCfg(), False), (fused_cfg, True))
+            )
+            _assert_same_plans(eager, gpu_path)
 
 
 def _outputs_args(e: int, g: torch.Generator) -> tuple:
