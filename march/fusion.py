@@ -17,6 +17,7 @@ from collections.abc import Callable
 from typing import Any
 
 import torch
+import torch._dynamo.config as dynamo_config
 from torch._dynamo.utils import counters
 from torch.utils._python_dispatch import _get_current_dispatch_mode
 
@@ -53,10 +54,15 @@ def fused(fn: Callable) -> Callable:
 
         def run(*args: Any, **kwargs: Any) -> Any:
             count = getattr(_get_current_dispatch_mode(), "count_fused", None)
-            with torch._dynamo.config.patch(specialize_float=True):
+            # Set and restored by hand: ``config.patch`` costs ~15 us a call (4 us this way),
+            # and the setting only matters when a call compiles.
+            before, dynamo_config.specialize_float = dynamo_config.specialize_float, True
+            try:
                 if count is not None:
                     return count(compiled, args, kwargs)
                 return compiled(*args, **kwargs)
+            finally:
+                dynamo_config.specialize_float = before
 
         def call(*args: Any, **kwargs: Any) -> Any:
             graphs, t0 = counters["stats"]["unique_graphs"], time.perf_counter()
