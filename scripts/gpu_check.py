@@ -9,6 +9,9 @@ the check goes on with the phases that do not need its output):
 
 1. ``bench``: ``python -m march.bench env`` at ``--bench-envs`` (4096) envs: the march teacher
    env against bare mjlab rough and flat, both workloads, with the profile -> ``bench_env.json``.
+   The bench rewrites ``bench_env.partial.json`` after each workload (``bench.partial``): a
+   bench stopped by its time limit (warp's and inductor's first compiles are minutes on a cold
+   machine) still reports the workloads it finished (``completed_workloads``).
 2. ``teacher_clf``, ``teacher_modelfree``: ``march.train stage=teacher`` of each arm, stopped
    once its training time (the ``wall_s`` of ``metrics.csv``, which leaves out the env build and
    warp's kernel compilation) passes ``--teacher-seconds``; a checkpoint every iteration, so
@@ -221,6 +224,42 @@ def number(text: str | None) -> float | None:
         return None
 
 
+BENCH_KEYS = (
+    "num_envs",
+    "ratio_march_vs_rough_by_workload",
+    "build_s",
+    "ops_per_step",
+    "ratio_ops_march_vs_rough",
+    "nonphysics_ms_per_step",
+    "ratio_nonphysics_march_vs_rough",
+    "compile",
+)
+"""What ``gpu_check.json`` keeps of the bench's JSON (and ``steps_per_s`` per workload)."""
+
+
+def bench_results(out: Path, finished: bool) -> tuple[dict[str, Any] | None, list[str], str]:
+    """The bench phase's figures for ``gpu_check.json``, its result files and a note. From
+    ``bench_env.json`` when the phase finished; otherwise (failed, or stopped by its time
+    limit) from ``bench_env.partial.json``, which the bench rewrites after each workload, so a
+    first GPU run that runs out of time still reports the workloads it finished."""
+    for name, usable in (("bench_env.json", finished), ("bench_env.partial.json", True)):
+        path = out / name
+        if not usable or not path.is_file():
+            continue
+        try:
+            bench = json.loads(path.read_text())
+            summary = {k: bench.get(k) for k in BENCH_KEYS}
+            summary["steps_per_s"] = {w: v["steps_per_s"] for w, v in bench["workloads"].items()}
+        except (json.JSONDecodeError, KeyError, TypeError, AttributeError) as err:
+            return None, [], f"unreadable {name}: {err}"
+        if name == "bench_env.json":
+            return summary, [name], ""
+        done = bench.get("completed_workloads", [])
+        summary["completed_workloads"] = done
+        return summary, [name], f"partial results: {', '.join(done) or 'no workload'} finished"
+    return None, [], ""
+
+
 def teacher_budget_reached(run: Path, seconds: float) -> Any:
     """True once the teacher's training time (``wall_s`` of ``metrics.csv``) passed ``seconds``
     and the checkpoint of that iteration is on disk (the row is logged before the save)."""
@@ -250,21 +289,17 @@ def main(argv: list[str] | None = None) -> int:
         return min(args.phase_timeout, args.deadline - (time.time() - t_start))
 
     if "bench" not in args.skip:
-        ph = Phase("bench", [py, "-m", "march.bench", "env", *common[:1], *s["bench"]], out)
+        partial = out / "bench_env.partial.json"
+        partial.unlink(missing_ok=True)
+        cmd = [py, "-m", "march.bench", "env", *common[:1], *s["bench"], f"bench.partial={partial}"]
+        ph = Phase("bench", cmd, out)
         phases.append(ph)
-        if ph.run(limit(), stdout_file=out / "bench_env.json"):
-            try:
-                bench = json.loads((out / "bench_env.json").read_text())
-                keys = ("num_envs", "ratio_march_vs_rough_by_workload", "build_s")
-                keys += ("ops_per_step", "ratio_ops_march_vs_rough", "nonphysics_ms_per_step")
-                keys += ("ratio_nonphysics_march_vs_rough", "compile")
-                results["bench"] = {k: bench.get(k) for k in keys}
-                results["bench"]["steps_per_s"] = {
-                    w: v["steps_per_s"] for w, v in bench["workloads"].items()
-                }
-                ph.files.append("bench_env.json")
-            except (json.JSONDecodeError, KeyError) as err:
-                ph.note = f"unreadable JSON: {err}"
+        done = ph.run(limit(), stdout_file=out / "bench_env.json")
+        results["bench"], files, note = bench_results(out, done)
+        ph.files += files
+        ph.note = "; ".join(n for n in (ph.note, note) if n)
+        if results["bench"] is None:
+            del results["bench"]
 
     teacher_ckpt: dict[str, Path] = {}
     for arm in ("clf", "modelfree"):

@@ -38,10 +38,62 @@ def test_bench_options_are_popped_and_checked():
     opts = job_options("env", {"warmup": 2, "warmup_random": 9})  # ... unless one is given
     assert (opts["warmup_random"], opts["warmup_standing"]) == (9, 2)
     assert JOB_DEFAULTS["env"]["warmup_random"] > JOB_DEFAULTS["env"]["warmup_standing"]
-    for bad in ("bench.steps=0", "bench.bogus=1", "bench.rounds=0", "bench.steps=x"):
+    _, given = pop_bench_options(["bench.partial=out/b.json", "bench.steps=3"])
+    assert given == {"partial": "out/b.json", "steps": 3}  # a path, not a number
+    for bad in (
+        "bench.steps=0",
+        "bench.bogus=1",
+        "bench.rounds=0",
+        "bench.steps=x",
+        "bench.partial=",
+    ):
         with pytest.raises(SystemExit) as exc:
             pop_bench_options([bad])
         assert exc.value.code == 2
+
+
+def _gpu_check():
+    """scripts/gpu_check.py as a module (a script, not a package module)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("gpu_check", ROOT / "scripts" / "gpu_check.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _bench_json(workloads: list[str], **extra) -> dict:
+    """A bench JSON of the keys the GPU check reads, for the given finished workloads."""
+    work = {
+        w: {"steps_per_s": {"march_teacher": 10.0 + i, "bare_rough": 9.0}}
+        for i, w in enumerate(workloads)
+    }
+    return {"num_envs": 4096, "ratio_ops_march_vs_rough": 1.07, "workloads": work, **extra}
+
+
+def test_the_gpu_check_keeps_a_stopped_benchs_finished_workloads(tmp_path):
+    """A bench phase stopped by its time limit (the first GPU run: warp and inductor compile
+    cold) still reports the workloads it finished, from the partial file the bench rewrites
+    after each; a finished phase reports its final JSON; nothing readable, nothing reported."""
+    bench_results = _gpu_check().bench_results
+    assert bench_results(tmp_path, finished=False) == (None, [], "")
+    partial = _bench_json(["random"], partial=True, completed_workloads=["random"])
+    (tmp_path / "bench_env.partial.json").write_text(json.dumps(partial))
+    summary, files, note = bench_results(tmp_path, finished=False)
+    assert files == ["bench_env.partial.json"] and note == "partial results: random finished"
+    assert summary["completed_workloads"] == ["random"]
+    assert summary["steps_per_s"] == {"random": {"march_teacher": 10.0, "bare_rough": 9.0}}
+    assert summary["ratio_ops_march_vs_rough"] == 1.07 and summary["num_envs"] == 4096
+    (tmp_path / "bench_env.json").write_text(json.dumps(_bench_json(["random", "standing"])))
+    summary, files, note = bench_results(tmp_path, finished=True)
+    assert files == ["bench_env.json"] and note == "" and "completed_workloads" not in summary
+    assert set(summary["steps_per_s"]) == {"random", "standing"}
+    (tmp_path / "bench_env.json").write_text("")  # a phase killed while it printed
+    summary, files, _ = bench_results(tmp_path, finished=False)
+    assert files == ["bench_env.partial.json"]  # an unfinished phase's stdout is not read
+    (tmp_path / "bench_env.partial.json").write_text('{"workloads": ')
+    summary, files, note = bench_results(tmp_path, finished=False)
+    assert summary is None and files == [] and note.startswith("unreadable bench_env.partial")
 
 
 class _Thing:
@@ -98,7 +150,7 @@ def test_profiler_names_sections_from_the_call():
 
 
 @pytest.mark.slow
-def test_bench_env_prints_one_json_object_with_both_workloads_and_a_profile():
+def test_bench_env_prints_one_json_object_with_both_workloads_and_a_profile(tmp_path):
     res = run_module(
         "march.bench",
         "env",
@@ -108,9 +160,14 @@ def test_bench_env_prints_one_json_object_with_both_workloads_and_a_profile():
         "bench.warmup=1",
         "bench.profile_steps=2",
         "bench.rounds=2",
+        f"bench.partial={tmp_path / 'partial.json'}",
     )
     assert res.returncode == 0, res.stderr[-2000:]
     result = json.loads(res.stdout)  # stdout is the JSON object and nothing else
+    partial = json.loads((tmp_path / "partial.json").read_text())  # after the last workload
+    assert partial["completed_workloads"] == ["random", "standing"] and not partial["partial"]
+    assert partial["workloads"] == result["workloads"]
+    assert partial["ratio_nonphysics_march_vs_rough"] == result["ratio_nonphysics_march_vs_rough"]
     assert result["num_envs"] == 2 and result["steps"] == 2
     for key in ("march_teacher_steps_per_s", "bare_rough_steps_per_s", "bare_flat_steps_per_s"):
         assert result[key] > 0
@@ -172,6 +229,7 @@ def test_gpu_check_runs_at_tiny_sizes_on_cpu(tmp_path):
     ]
     bench = json.loads((out / "bench_env.json").read_text())
     assert set(bench["workloads"]) == {"random", "standing"}
+    assert phases["bench"]["files"] == ["bench_env.json"] and phases["bench"]["note"] == ""
     assert set(bench["ops_per_step"]) == {"random", "standing"}
     assert bench["ops_per_step"]["random"]["march_teacher"] > 0
     syncs = (out / "syncs.tsv").read_text().splitlines()

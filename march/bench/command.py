@@ -3,7 +3,7 @@
     python -m march.bench env [compute.num_envs=64] [bench.steps=40] [bench.warmup_random=30]
                               [bench.warmup_standing=5]
                               [bench.profile_steps=20] [bench.op_steps=10] [bench.rounds=8]
-                              [bench.threads=1,2]
+                              [bench.threads=1,2] [bench.partial=FILE]
     python -m march.bench planner [compute.num_envs=64] [bench.steps=100]
 
 Both jobs compose the same config as ``march.train`` (Hydra ``key=value`` overrides). The
@@ -12,7 +12,7 @@ before the config is composed: ``bench.steps`` (timed steps per env and workload
 ``bench.warmup_random`` / ``bench.warmup_standing`` (untimed steps after each reset;
 ``bench.warmup`` sets both), ``bench.profile_steps`` (steps of the separate
 instrumented pass, 0 = none) and ``bench.rounds`` (how many interleaved chunks the timed steps are
-split into). Everything mjlab and warp print while building and compiling goes to stderr, so
+split into); ``bench.partial=FILE`` (:data:`PATH_OPTIONS`). Everything mjlab and warp print while building and compiling goes to stderr, so
 stdout is the JSON object alone (``... | jq`` works).
 
 What each job measures and the keys of its JSON object: :mod:`march.bench.env_speed` (``env``)
@@ -35,6 +35,7 @@ USAGE = (
     "usage: python -m march.bench env|planner [compute.num_envs=64] [compute.device=...] "
     "[bench.steps=N] [bench.warmup=N] [bench.warmup_random=N] [bench.warmup_standing=N] "
     "[bench.profile_steps=N] [bench.op_steps=N] [bench.rounds=N] [bench.threads=1,2] "
+    "[bench.partial=FILE] "
     "[key=value ...]"
 )
 JOB_DEFAULTS: dict[str, dict[str, int]] = {
@@ -65,6 +66,10 @@ BENCH_MINIMUM = {
     "threads": 1,
 }
 """Smallest value of each option; ``bench.warmup=N`` sets both workloads' warm-up."""
+PATH_OPTIONS = ("partial",)
+"""Options that name a file: ``bench.partial=FILE`` (env job) rewrites FILE, atomically, after
+each workload with what has been measured so far (``partial``, ``completed_workloads``), so that
+a run stopped by a time limit keeps its finished workloads (the GPU check reads it)."""
 
 
 def pop_bench_options(argv: Sequence[str]) -> tuple[list[str], dict[str, Any]]:
@@ -77,8 +82,13 @@ def pop_bench_options(argv: Sequence[str]) -> tuple[list[str], dict[str, Any]]:
             rest.append(arg)
             continue
         key, _, value = arg[len("bench.") :].partition("=")
+        if key in PATH_OPTIONS:
+            if not value:
+                fail(f"{arg}: expected a file path")
+            opts[key] = value
+            continue
         if key not in BENCH_MINIMUM:
-            known = ", ".join(f"bench.{k}=N" for k in BENCH_MINIMUM)
+            known = ", ".join([f"bench.{k}=N" for k in BENCH_MINIMUM] + ["bench.partial=FILE"])
             fail(f"unknown benchmark option {arg!r}; use {known}")
         try:
             ns = [int(v) for v in value.split(",")] if key == "threads" else [int(value)]

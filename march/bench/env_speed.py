@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 from march.bench.harness import WORKLOADS, Actions, chunks, free, stdout_to_stderr, sync
@@ -183,6 +184,8 @@ def bench_env(cfg: MarchConfig, opts: dict[str, Any]) -> dict[str, Any]:
                         + f" env steps/s; march/rough {b['ratio_march_vs_rough']:.2f}",
                         flush=True,
                     )
+                if opts.get("partial"):
+                    _write_partial(Path(opts["partial"]), cfg, build, results)
     finally:
         for env in envs.values():
             env.close()
@@ -247,23 +250,48 @@ def bench_env(cfg: MarchConfig, opts: dict[str, Any]) -> dict[str, Any]:
 
 def _headline(results: dict[str, Any]) -> dict[str, Any]:
     """Ops and non-physics time per step by workload and env, and march / bare rough's worst
-    (largest) ratio over the workloads (and thread counts, for the time)."""
+    (largest) ratio over the workloads in ``results`` (and thread counts, for the time)."""
     out: dict[str, Any] = {}
-    if all("ops_per_step" in results[w] for w in WORKLOADS):
-        out["ops_per_step"] = {w: results[w]["ops_per_step"] for w in WORKLOADS}
-        out["ratio_ops_march_vs_rough"] = max(
-            results[w]["ratio_ops_march_vs_rough"] for w in WORKLOADS
-        )
-    if all("nonphysics_ms_per_step" in results[w] for w in WORKLOADS):
-        out["nonphysics_ms_per_step"] = {w: results[w]["nonphysics_ms_per_step"] for w in WORKLOADS}
+    done = list(results)
+    if done and all("ops_per_step" in results[w] for w in done):
+        out["ops_per_step"] = {w: results[w]["ops_per_step"] for w in done}
+        out["ratio_ops_march_vs_rough"] = max(results[w]["ratio_ops_march_vs_rough"] for w in done)
+    if done and all("nonphysics_ms_per_step" in results[w] for w in done):
+        out["nonphysics_ms_per_step"] = {w: results[w]["nonphysics_ms_per_step"] for w in done}
         out["nonphysics_ms_per_step_by_threads"] = {
             w: {t: b["nonphysics_ms_per_step"] for t, b in results[w]["by_threads"].items()}
-            for w in WORKLOADS
+            for w in done
         }
         out["ratio_nonphysics_march_vs_rough"] = max(
-            results[w]["worst_ratio_nonphysics_march_vs_rough"] for w in WORKLOADS
+            results[w]["worst_ratio_nonphysics_march_vs_rough"] for w in done
         )
     return out
+
+
+def _write_partial(
+    path: Path, cfg: MarchConfig, build: dict[str, float], results: dict[str, Any]
+) -> None:
+    """``bench.partial``: what the finished workloads measured, under the final JSON's keys
+    (atomic, rewritten after each workload), for a run that a time limit may stop."""
+    from march.fusion import compile_report
+    from march.learn.checkpoint import write_json_atomic
+
+    write_json_atomic(
+        {
+            "partial": len(results) < len(WORKLOADS),
+            "completed_workloads": list(results),
+            "device": cfg.compute.device,
+            "num_envs": cfg.compute.num_envs,
+            "build_s": build,
+            "ratio_march_vs_rough_by_workload": {
+                w: r["ratio_march_vs_rough"] for w, r in results.items()
+            },
+            **_headline(results),
+            "workloads": results,
+            "compile": compile_report() if cfg.compute.compile_math else None,
+        },
+        path,
+    )
 
 
 def _threads() -> int:
