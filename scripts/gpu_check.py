@@ -12,18 +12,20 @@ the check goes on with the phases that do not need its output):
    The bench rewrites ``bench_env.partial.json`` after each workload (``bench.partial``): a
    bench stopped by its time limit (warp's and inductor's first compiles are minutes on a cold
    machine) still reports the workloads it finished (``completed_workloads``).
-2. ``teacher_clf``, ``teacher_modelfree``: ``march.train stage=teacher`` of each arm, stopped
+2. ``syncs``: ``scripts/sync_check.py`` at 256 envs: a teacher iteration's rollout and a
+   distillation rollout under ``torch.cuda.set_sync_debug_mode("warn")``, each sync's source
+   line (and the march line on its stack) -> ``syncs.tsv`` (at most ``--sync-timeout`` s).
+   Second, so that the sync list of issue 20 is never starved by the training phases on a
+   cold machine.
+3. ``teacher_clf``, ``teacher_modelfree``: ``march.train stage=teacher`` of each arm, stopped
    once its training time (the ``wall_s`` of ``metrics.csv``, which leaves out the env build and
    warp's kernel compilation) passes ``--teacher-seconds``; a checkpoint every iteration, so
    the last completed one is kept -> ``teacher_<arm>_curve.csv`` (the learning curve: one row
    per iteration) and ``teacher_<arm>.json`` (iterations, env steps, env steps per second).
-3. ``student``: ``march.train stage=student`` from the clf teacher, ``distill.max_iterations=2``,
+4. ``student``: ``march.train stage=student`` from the clf teacher, ``distill.max_iterations=2``,
    which ends with the evaluation protocol on ``--eval-rollouts`` rollouts -> ``student_curve.csv``,
    ``eval.csv``, ``summary.json``.
-4. ``export``: ``python -m march.export`` of that student -> ``student.onnx``, ``export.txt``.
-5. ``syncs``: ``scripts/sync_check.py`` at 256 envs: a teacher iteration's rollout and a
-   distillation rollout under ``torch.cuda.set_sync_debug_mode("warn")``, each sync's source
-   line (and the march line on its stack) -> ``syncs.tsv`` (at most ``--sync-timeout`` s).
+5. ``export``: ``python -m march.export`` of that student -> ``student.onnx``, ``export.txt``.
 
 The bench phase also counts compute ops per env step on the GPU (``bench.op_steps``) and, with
 the gpu preset's ``compute.compile_math``, records what compiling cost: graphs and seconds per
@@ -260,6 +262,20 @@ def bench_results(out: Path, finished: bool) -> tuple[dict[str, Any] | None, lis
     return None, [], ""
 
 
+def sync_results(path: Path) -> dict[str, Any]:
+    """What ``gpu_check.json`` keeps of ``syncs.tsv``: syncs recorded, those with march code on
+    the stack, whether CUDA recorded anything, and the phases in the file."""
+    lines = path.read_text().splitlines()
+    rows = [ln.split("\t") for ln in lines if ln and not ln.startswith(("#", "phase"))]
+    phases = next((ln.split(":", 1)[1] for ln in lines if ln.startswith("# recorded:")), "")
+    return {
+        "recorded": len(rows),
+        "with_march_on_stack": sum(1 for r in rows if len(r) > 2 and r[2] != "-"),
+        "cuda": not (lines and lines[0].startswith("# no CUDA")),
+        "phases": [p.strip() for p in phases.split(",") if p.strip()],
+    }
+
+
 def teacher_budget_reached(run: Path, seconds: float) -> Any:
     """True once the teacher's training time (``wall_s`` of ``metrics.csv``) passed ``seconds``
     and the checkpoint of that iteration is on disk (the row is logged before the save)."""
@@ -300,6 +316,19 @@ def main(argv: list[str] | None = None) -> int:
         ph.note = "; ".join(n for n in (ph.note, note) if n)
         if results["bench"] is None:
             del results["bench"]
+
+    if "syncs" not in args.skip:
+        cmd = [py, "scripts/sync_check.py", str(out / "syncs.tsv"), *common, *s["syncs"]]
+        ph = Phase("syncs", cmd, out)
+        phases.append(ph)
+        (out / "syncs.tsv").unlink(missing_ok=True)
+        done = ph.run(min(limit(), args.sync_timeout))
+        if (out / "syncs.tsv").is_file():  # also a stopped run's: the teacher part is kept
+            ph.files.append("syncs.tsv")
+            results["syncs"] = sync_results(out / "syncs.tsv")
+            if not done:
+                recorded = ", ".join(results["syncs"]["phases"]) or "nothing"
+                ph.note = "; ".join(n for n in (ph.note, f"partial: {recorded} recorded") if n)
 
     teacher_ckpt: dict[str, Path] = {}
     for arm in ("clf", "modelfree"):
@@ -386,20 +415,6 @@ def main(argv: list[str] | None = None) -> int:
         if ph.run(limit(), stdout_file=out / "export.txt") and onnx.is_file():
             ph.files += ["student.onnx", "export.txt"]
             results["export"] = {"onnx_bytes": onnx.stat().st_size}
-
-    if "syncs" not in args.skip:
-        cmd = [py, "scripts/sync_check.py", str(out / "syncs.tsv"), *common, *s["syncs"]]
-        ph = Phase("syncs", cmd, out)
-        phases.append(ph)
-        if ph.run(min(limit(), args.sync_timeout)) and (out / "syncs.tsv").is_file():
-            ph.files.append("syncs.tsv")
-            lines = (out / "syncs.tsv").read_text().splitlines()
-            rows = [ln.split("\t") for ln in lines if ln and not ln.startswith(("#", "phase"))]
-            results["syncs"] = {
-                "recorded": len(rows),
-                "with_march_on_stack": sum(1 for r in rows if len(r) > 2 and r[2] != "-"),
-                "cuda": not lines[0].startswith("# no CUDA"),
-            }
 
     records = [ph.record() for ph in phases]
     ok = bool(records) and all(r["rc"] == 0 for r in records)

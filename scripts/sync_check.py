@@ -6,8 +6,10 @@ written to a file (the ``syncs`` phase of ``scripts/gpu_check.py``).
 
 One line per sync (tab-separated): the phase (``teacher`` or ``distill``), the innermost frame
 outside torch (``file:line``), the innermost frame in march's own code (or ``-``), and CUDA's
-message; then a count per source line at the end of the file. On a machine without CUDA the
-steps run the same and the file says that nothing could be recorded (the tests run it so).
+message; then a count per source line at the end of the file. A ``# recorded:`` line names the
+phases in the file: it is written after the teacher iteration and again after the distillation
+rollout, so a run stopped by a time limit keeps the teacher's syncs. On a machine without CUDA
+the steps run the same and the file says that nothing could be recorded (the tests run it so).
 """
 
 from __future__ import annotations
@@ -42,6 +44,23 @@ def _short(name: str) -> str:
     if name.startswith(str(ROOT)):
         return name[len(str(ROOT)) + 1 :]
     return name.partition("site-packages/")[2] or name
+
+
+def _write(out: Path, hits: list[tuple[str, str, str, str]], cuda: bool, done: list[str]) -> None:
+    """The syncs file (module docstring), replaced in one rename; ``done``: the phases recorded
+    so far (a ``# recorded:`` line after the first)."""
+    tmp = out.with_name(out.name + ".tmp")
+    with tmp.open("w") as f:
+        if not cuda:
+            f.write("# no CUDA device: torch.cuda.set_sync_debug_mode recorded nothing\n")
+        f.write(f"# recorded: {', '.join(done)}\n")
+        f.write("phase\tsource\tmarch\tmessage\n")
+        for h in hits:
+            f.write("\t".join(h) + "\n")
+        f.write("# count\tphase\tsource\tmarch\n")
+        for (ph, src, march), n in Counter((h[0], h[1], h[2]) for h in hits).most_common():
+            f.write(f"# {n}\t{ph}\t{src}\t{march}\n")
+    tmp.replace(out)
 
 
 def main(argv: list[str]) -> int:
@@ -88,6 +107,7 @@ def main(argv: list[str]) -> int:
             torch.cuda.set_sync_debug_mode("warn")
         teacher.learn(2)
         payload = teacher.payload()
+        _write(out, hits, cuda, ["teacher"])  # kept if a time limit stops the distillation part
     finally:
         if cuda:
             torch.cuda.set_sync_debug_mode(0)
@@ -110,15 +130,7 @@ def main(argv: list[str]) -> int:
         warnings.showwarning = old
         log.close()
         env.close()
-    with out.open("w") as f:
-        if not cuda:
-            f.write("# no CUDA device: torch.cuda.set_sync_debug_mode recorded nothing\n")
-        f.write("phase\tsource\tmarch\tmessage\n")
-        for h in hits:
-            f.write("\t".join(h) + "\n")
-        f.write("# count\tphase\tsource\tmarch\n")
-        for (ph, src, march), n in Counter((h[0], h[1], h[2]) for h in hits).most_common():
-            f.write(f"# {n}\t{ph}\t{src}\t{march}\n")
+    _write(out, hits, cuda, ["teacher", "distill"])
     n_march = sum(1 for h in hits if h[2] != "-")
     print(f"[syncs] {len(hits)} syncs recorded ({n_march} with march code on the stack) -> {out}")
     return 0

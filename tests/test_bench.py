@@ -96,6 +96,27 @@ def test_the_gpu_check_keeps_a_stopped_benchs_finished_workloads(tmp_path):
     assert summary is None and files == [] and note.startswith("unreadable bench_env.partial")
 
 
+def test_the_gpu_check_reads_a_stopped_sync_checks_teacher_part(tmp_path):
+    """scripts/sync_check.py writes its file after the teacher iteration and again after the
+    distillation rollout; the GPU check reads which phases a file holds and counts its rows."""
+    sync_results = _gpu_check().sync_results
+    path = tmp_path / "syncs.tsv"
+    path.write_text(
+        "# recorded: teacher\n"
+        "phase\tsource\tmarch\tmessage\n"
+        "teacher\tmjlab/managers/command_manager.py:90\t-\tcalled a synchronizing op\n"
+        "teacher\tmarch/env/course.py:12\tmarch/env/course.py:12\tcalled a synchronizing op\n"
+        "# count\tphase\tsource\tmarch\n"
+        "# 1\tteacher\tmjlab/managers/command_manager.py:90\t-\n"
+    )
+    assert sync_results(path) == {
+        "recorded": 2,
+        "with_march_on_stack": 1,
+        "cuda": True,
+        "phases": ["teacher"],
+    }
+
+
 class _Thing:
     def __init__(self) -> None:
         self.calls: list[str] = []
@@ -221,11 +242,11 @@ def test_gpu_check_runs_at_tiny_sizes_on_cpu(tmp_path):
     assert report["ok"] and report["mode"] == "cpu"
     assert list(phases) == [
         "bench",
+        "syncs",  # issue 20's two measurements first
         "teacher_clf",
         "teacher_modelfree",
         "student",
         "export",
-        "syncs",
     ]
     bench = json.loads((out / "bench_env.json").read_text())
     assert set(bench["workloads"]) == {"random", "standing"}
@@ -234,7 +255,12 @@ def test_gpu_check_runs_at_tiny_sizes_on_cpu(tmp_path):
     assert bench["ops_per_step"]["random"]["march_teacher"] > 0
     syncs = (out / "syncs.tsv").read_text().splitlines()
     assert syncs[0].startswith("# no CUDA") and "phase\tsource\tmarch\tmessage" in syncs
-    assert report["results"]["syncs"] == {"recorded": 0, "with_march_on_stack": 0, "cuda": False}
+    assert report["results"]["syncs"] == {
+        "recorded": 0,
+        "with_march_on_stack": 0,
+        "cuda": False,
+        "phases": ["teacher", "distill"],
+    }
     for arm in ("clf", "modelfree"):
         with (out / f"teacher_{arm}_curve.csv").open() as f:
             rows = list(csv.DictReader(f))
