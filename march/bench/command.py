@@ -12,8 +12,9 @@ before the config is composed: ``bench.steps`` (timed steps per env and workload
 ``bench.warmup_random`` / ``bench.warmup_standing`` (untimed steps after each reset;
 ``bench.warmup`` sets both), ``bench.profile_steps`` (steps of the separate
 instrumented pass, 0 = none) and ``bench.rounds`` (how many interleaved chunks the timed steps are
-split into); ``bench.partial=FILE`` (:data:`PATH_OPTIONS`). Everything mjlab and warp print while building and compiling goes to stderr, so
-stdout is the JSON object alone (``... | jq`` works).
+split into); ``bench.partial=FILE`` (:data:`PATH_OPTIONS`). Everything mjlab and warp print
+while building and compiling goes to stderr, so stdout is the JSON object alone (``... | jq``
+works).
 
 What each job measures and the keys of its JSON object: :mod:`march.bench.env_speed` (``env``)
 and :mod:`march.bench.planner_speed` (``planner``).
