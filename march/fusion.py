@@ -39,14 +39,14 @@ def fused(fn: Callable) -> Callable:
     Python floats (config values) stay constants of the graph (``specialize_float``): left
     dynamic, each would be wrapped in a tensor on every call, three host-built ops apiece.
 
-    Few graphs per function: dynamo guards the grad mode and each input's dispatch keys, which
+    One graph per function: dynamo guards the grad mode and each input's dispatch keys, which
     differ between the env's construction (grad on), the teacher's rollouts (``inference_mode``,
     inference tensors) and evaluation or distillation (``no_grad``, normal tensors, and the
     teacher env's inference tensors read outside inference mode), so a smoke training run
     compiled 11 graphs for 4 functions (``TORCH_LOGS=recompiles``; on the gpu preset minutes
     each, some in the middle of the run). The compiled code therefore always runs under
-    ``inference_mode``: the grad mode is always the same and inputs differ only in being normal
-    or inference tensors (8 graphs in the same run: 2 per function). A caller outside inference
+    ``inference_mode`` on inference tensors: every normal input tensor is copied into one
+    (:func:`_inference_tensors`), so the same run compiles 4 graphs. A caller outside inference
     mode gets the outputs cloned into normal tensors (an inference tensor may not be updated in
     place there): one copy per output tensor, on those paths only."""
     if fn not in _COMPILED:
@@ -67,10 +67,10 @@ def fused(fn: Callable) -> Callable:
         def call(*args: Any, **kwargs: Any) -> Any:
             graphs, t0 = counters["stats"]["unique_graphs"], time.perf_counter()
             if torch.is_inference_mode_enabled():
-                out = run(*args, **kwargs)
+                out = run(*_inference_tensors(args), **_inference_tensors(kwargs))
             else:
                 with torch.inference_mode():
-                    out = run(*args, **kwargs)
+                    out = run(*_inference_tensors(args), **_inference_tensors(kwargs))
                 out = _normal_tensors(out)
             if counters["stats"]["unique_graphs"] != graphs:  # this call compiled (host clock)
                 COMPILES.setdefault(fn.__name__, []).append(time.perf_counter() - t0)
@@ -79,6 +79,45 @@ def fused(fn: Callable) -> Callable:
         call.__wrapped__ = fn  # type: ignore[attr-defined]
         _COMPILED[fn] = call
     return _COMPILED[fn]
+
+
+def _inference_tensors(args: Any) -> Any:
+    """``args`` (tensors, tuples, named tuples, lists, dicts, dataclasses) with every normal
+    tensor in it copied into an inference tensor (inside ``inference_mode``, sizes and strides
+    kept: :func:`_copy_strided`). Dynamo guards each input's dispatch keys, so compiled code called
+    with normal tensors (env construction, evaluation, distillation) and with inference tensors
+    (teacher rollouts) made two graphs per function, the second compiled mid-run. The compiled
+    functions never write into their inputs (checked over a 40-step env rollout), so a copy
+    reads the same. A rollout passes few normal tensors (buffers made at construction)."""
+    if isinstance(args, torch.Tensor):
+        return args if args.is_inference() else _copy_strided(args)
+    if isinstance(args, (tuple, list)):
+        items = [_inference_tensors(x) for x in args]
+        if all(a is b for a, b in zip(items, args, strict=True)):
+            return args  # nothing to copy: the same object (configs are not rebuilt per call)
+        if isinstance(args, list):
+            return items
+        return type(args)(*items) if hasattr(args, "_fields") else tuple(items)
+    if isinstance(args, dict):
+        values = {k: _inference_tensors(v) for k, v in args.items()}
+        return args if all(values[k] is v for k, v in args.items()) else values
+    if dataclasses.is_dataclass(args) and not isinstance(args, type):
+        changes = {}
+        for f in dataclasses.fields(args):
+            value = getattr(args, f.name)
+            if f.init and (copied := _inference_tensors(value)) is not value:
+                changes[f.name] = copied
+        return dataclasses.replace(args, **changes) if changes else args
+    return args
+
+
+def _copy_strided(t: torch.Tensor) -> torch.Tensor:
+    """A copy of ``t`` with its sizes and strides (dynamo guards relations between them: a
+    contiguous copy of a sliced view would compile a graph of its own); a plain clone where a
+    stride is 0 (an expanded view cannot be written into)."""
+    if 0 in t.stride():
+        return t.clone()
+    return torch.empty_strided(t.shape, t.stride(), dtype=t.dtype, device=t.device).copy_(t)
 
 
 def _normal_tensors(out: Any) -> Any:

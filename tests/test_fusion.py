@@ -328,14 +328,15 @@ def _modes_probe(x: torch.Tensor, y: torch.Tensor) -> tuple[_Pair, torch.Tensor]
     return _Pair(twice=2.0 * x + y, flag=x > y), (x - y).abs().amax(-1)
 
 
-def test_grad_modes_add_no_graphs_and_tensor_kinds_at_most_one():
+def test_grad_modes_and_tensor_kinds_add_no_graphs():
     """A run calls the compiled maths with grad on (env construction), under inference_mode
     on inference tensors (teacher rollouts) and under no_grad on normal or inference tensors
     (evaluation, distillation). Dynamo guards the grad mode and each input's dispatch keys, so
-    these four callers made four graphs (planted: the plain compiled call gives 4). Now the grad
-    mode never matters and only the tensor kind does (normal or inference: 2 graphs), the
-    results are the eager ones, and a caller outside inference_mode gets normal tensors it may
-    update in place (dataclass and tuple outputs)."""
+    these four callers made four graphs (the plain compiled call), then two (normal and
+    inference tensors: the second compiled mid-run, at the first evaluation; planted back,
+    this test counts 2). Now one graph serves them all, the results are the eager ones, and a
+    caller outside inference_mode gets normal tensors it may update in place (dataclass and
+    tuple outputs)."""
     from march.fusion import COMPILES
 
     fn = fused(_modes_probe)
@@ -344,13 +345,14 @@ def test_grad_modes_add_no_graphs_and_tensor_kinds_at_most_one():
     with torch.inference_mode():
         xi, yi = x.clone(), y.clone()  # inference tensors, as a rollout makes them
     want, want_max = _modes_probe(x, y)
-    calls = [  # normal tensors first (one graph), then inference tensors (the second)
-        (torch.enable_grad, x, y, 1),
-        (torch.no_grad, x, y, 1),
-        (torch.inference_mode, xi, yi, 2),
-        (torch.no_grad, xi, yi, 2),
+    calls = [
+        (torch.enable_grad, x, y),
+        (torch.no_grad, x, y),
+        (torch.inference_mode, xi, yi),
+        (torch.no_grad, xi, yi),
+        (torch.inference_mode, x, yi),  # a rollout also passes buffers made at construction
     ]
-    for mode, a, b, graphs in calls:
+    for mode, a, b in calls:
         with mode():
             pair, amax = fn(a, b)
             inside = torch.is_inference_mode_enabled()
@@ -360,7 +362,74 @@ def test_grad_modes_add_no_graphs_and_tensor_kinds_at_most_one():
             for out in (pair.twice, pair.flag, amax):
                 assert not out.is_inference()
             pair.twice.add_(1.0)  # an inference tensor would refuse this here
-        assert len(COMPILES["_modes_probe"]) == graphs, (mode, COMPILES["_modes_probe"])
+        assert len(COMPILES["_modes_probe"]) == 1, (mode, COMPILES["_modes_probe"])
+
+
+def _sliced_probe(pose: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    return (pose * w).sum(-1)
+
+
+def test_a_normal_view_is_copied_with_its_strides():
+    """The copy of a normal input keeps its sizes and strides: dynamo guards relations between
+    them, and a contiguous copy of a sliced view (an env's pose buffer ``[:, :3]``) compiled a
+    second graph once the rollout passed the inference view (measured in a smoke training run:
+    the height scan and the CLF outputs recompiled on ``stride()[0] == size()[1]``)."""
+    from march.fusion import COMPILES, _copy_strided
+
+    g = torch.Generator().manual_seed(4)
+    buffer, w = torch.rand(8, 7, generator=g), torch.rand(3, generator=g)
+    view = buffer[:, :3]
+    copy = _copy_strided(view)
+    assert copy.stride() == view.stride() == (7, 1) and torch.equal(copy, view)
+    expanded = w.expand(8, 3)
+    assert torch.equal(_copy_strided(expanded), expanded)  # stride 0: a plain clone
+    fn = fused(_sliced_probe)
+    want = _sliced_probe(view, w)
+    with torch.no_grad():  # evaluation: a normal view
+        assert torch.allclose(fn(view, w), want, atol=1e-6, rtol=0.0)
+    with torch.inference_mode():  # a rollout: the same view of an inference buffer
+        inference = buffer.clone()[:, :3]
+        assert torch.allclose(fn(inference, w), want, atol=1e-6, rtol=0.0)
+    assert len(COMPILES["_sliced_probe"]) == 1, COMPILES["_sliced_probe"]
+
+
+def test_the_compiled_maths_never_writes_into_its_inputs():
+    """march.fusion copies normal inputs into inference tensors, which is only sound while the
+    compiled functions read their inputs and never write into them. Checked eagerly on the
+    agreement tests' random inputs: every input tensor equal afterwards, its version counter
+    unchanged."""
+    from march.env.clf_outputs import outputs_from_state
+    from march.env.observations import scan_heights
+    from march.reference.planner import PlannerCfg, plan_footsteps
+    from march.reference.trajectory import reference_at
+
+    def tensors(x):
+        if isinstance(x, torch.Tensor):
+            yield x
+        elif isinstance(x, tuple | list):
+            for y in x:
+                yield from tensors(y)
+        elif dataclasses.is_dataclass(x) and not isinstance(x, type):
+            for f in dataclasses.fields(x):
+                yield from tensors(getattr(x, f.name))
+
+    g = torch.Generator().manual_seed(6)
+    stance, left, cmd, fh, seed = next(_planner_cases())
+    calls = [
+        (outputs_from_state, _outputs_args(9, g)),
+        (scan_heights, _scan_args(9, g)),
+        (reference_at, (_random_step(9, g), 1.2 * torch.rand(9, generator=g))),
+        (
+            lambda *a: plan_footsteps(*a, PlannerCfg(), torch.Generator().manual_seed(seed)),
+            (stance, left, cmd, fh),
+        ),
+    ]
+    for fn, args in calls:
+        before = [(t, t.clone(), t._version) for t in tensors(args)]
+        assert len(before) >= 4
+        fn(*args)
+        for t, copy, version in before:
+            assert t._version == version and torch.equal(t, copy), fn
 
 
 def _bezier_of(ctrl: torch.Tensor, s: torch.Tensor):
