@@ -113,9 +113,9 @@ def _inference_tensors(args: Any) -> Any:
 
 def _copy_strided(t: torch.Tensor) -> torch.Tensor:
     """A copy of ``t`` with its sizes and strides (dynamo guards relations between them: a
-    contiguous copy of a sliced view would compile a graph of its own); a plain clone where a
-    stride is 0 (an expanded view cannot be written into)."""
-    if 0 in t.stride():
+    contiguous copy of a sliced view would compile a graph of its own); a plain clone where
+    elements share memory (an expanded view: a tensor like that cannot be written into)."""
+    if torch._debug_has_internal_overlap(t) == 1:  # 1: elements overlap (0: no, 2: unknown)
         return t.clone()
     return torch.empty_strided(t.shape, t.stride(), dtype=t.dtype, device=t.device).copy_(t)
 
