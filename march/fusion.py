@@ -66,7 +66,7 @@ def fused(fn: Callable) -> Callable:
 
         def call(*args: Any, **kwargs: Any) -> Any:
             graphs, t0 = counters["stats"]["unique_graphs"], time.perf_counter()
-            if torch.is_inference_mode_enabled():
+            if torch.is_inference_mode_enabled():  # (entering it again costs host time)
                 out = run(*_inference_tensors(args), **_inference_tensors(kwargs))
             else:
                 with torch.inference_mode():
@@ -81,34 +81,55 @@ def fused(fn: Callable) -> Callable:
     return _COMPILED[fn]
 
 
-def _inference_tensors(args: Any) -> Any:
-    """``args`` (tensors, tuples, named tuples, lists, dicts, dataclasses) with every normal
-    tensor in it copied into an inference tensor (inside ``inference_mode``, sizes and strides
-    kept: :func:`_copy_strided`). Dynamo guards each input's dispatch keys, so compiled code called
-    with normal tensors (env construction, evaluation, distillation) and with inference tensors
-    (teacher rollouts) made two graphs per function, the second compiled mid-run. The compiled
-    functions never write into their inputs (checked over a 40-step env rollout), so a copy
-    reads the same. A rollout passes few normal tensors (buffers made at construction)."""
-    if isinstance(args, torch.Tensor):
-        return args if args.is_inference() else _copy_strided(args)
-    if isinstance(args, (tuple, list)):
-        items = [_inference_tensors(x) for x in args]
-        if all(a is b for a, b in zip(items, args, strict=True)):
-            return args  # nothing to copy: the same object (configs are not rebuilt per call)
-        if isinstance(args, list):
+_LEAVES = (bool, int, float, str, type(None), torch.dtype, torch.device)
+"""Values :func:`map_tensors` returns as they are without looking inside (config fields)."""
+
+_INIT_FIELDS: dict[type, tuple[str, ...]] = {}
+"""The ``__init__`` fields of each dataclass type :func:`map_tensors` has walked."""
+
+
+def map_tensors(obj: Any, fn: Callable[[torch.Tensor], torch.Tensor]) -> Any:
+    """``obj`` (tensors inside tuples, named tuples, lists, dicts and dataclasses, at any depth)
+    with ``fn`` applied to every tensor. A container none of whose tensors ``fn`` replaced is
+    returned as the same object: a config is not rebuilt on every call (a compiled call's
+    inputs pass through here: host time on every step)."""
+    if isinstance(obj, torch.Tensor):
+        return fn(obj)
+    if isinstance(obj, _LEAVES):
+        return obj
+    if isinstance(obj, (tuple, list)):
+        items = [map_tensors(x, fn) for x in obj]
+        if all(a is b for a, b in zip(items, obj, strict=True)):
+            return obj
+        if isinstance(obj, list):
             return items
-        return type(args)(*items) if hasattr(args, "_fields") else tuple(items)
-    if isinstance(args, dict):
-        values = {k: _inference_tensors(v) for k, v in args.items()}
-        return args if all(values[k] is v for k, v in args.items()) else values
-    if dataclasses.is_dataclass(args) and not isinstance(args, type):
+        return type(obj)(*items) if hasattr(obj, "_fields") else tuple(items)
+    if isinstance(obj, dict):
+        values = {k: map_tensors(v, fn) for k, v in obj.items()}
+        return obj if all(values[k] is v for k, v in obj.items()) else values
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        names = _INIT_FIELDS.get(type(obj))
+        if names is None:
+            names = tuple(f.name for f in dataclasses.fields(obj) if f.init)
+            _INIT_FIELDS[type(obj)] = names
         changes = {}
-        for f in dataclasses.fields(args):
-            value = getattr(args, f.name)
-            if f.init and (copied := _inference_tensors(value)) is not value:
-                changes[f.name] = copied
-        return dataclasses.replace(args, **changes) if changes else args
-    return args
+        for name in names:
+            value = getattr(obj, name)
+            if not isinstance(value, _LEAVES) and (mapped := map_tensors(value, fn)) is not value:
+                changes[name] = mapped
+        return dataclasses.replace(obj, **changes) if changes else obj
+    return obj
+
+
+def _inference_tensors(args: Any) -> Any:
+    """``args`` with every normal tensor in it copied into an inference tensor (called inside
+    ``inference_mode``; sizes and strides kept: :func:`_copy_strided`). Dynamo guards each
+    input's dispatch keys, so compiled code called with normal tensors (env construction,
+    evaluation, distillation) and with inference tensors (teacher rollouts) made two graphs per
+    function, the second compiled mid-run. The compiled functions never write into their inputs
+    (checked over a 40-step env rollout, and by a test), so a copy reads the same. A rollout
+    passes few normal tensors (buffers made at construction)."""
+    return map_tensors(args, lambda t: t if t.is_inference() else _copy_strided(t))
 
 
 def _copy_strided(t: torch.Tensor) -> torch.Tensor:
@@ -121,17 +142,9 @@ def _copy_strided(t: torch.Tensor) -> torch.Tensor:
 
 
 def _normal_tensors(out: Any) -> Any:
-    """``out`` with every inference tensor in it (tensors, tuples, named tuples, dataclasses)
-    cloned outside inference mode, which makes it a normal tensor."""
-    if isinstance(out, torch.Tensor):
-        return out.clone() if out.is_inference() else out
-    if isinstance(out, tuple):
-        items = [_normal_tensors(x) for x in out]
-        return type(out)(*items) if hasattr(out, "_fields") else tuple(items)
-    if dataclasses.is_dataclass(out) and not isinstance(out, type):
-        changes = {f.name: _normal_tensors(getattr(out, f.name)) for f in dataclasses.fields(out)}
-        return dataclasses.replace(out, **changes)
-    return out
+    """``out`` with every inference tensor in it cloned outside inference mode, which makes it
+    a normal tensor."""
+    return map_tensors(out, lambda t: t.clone() if t.is_inference() else t)
 
 
 def maybe_fused(fn: Callable, compile_math: bool) -> Callable:

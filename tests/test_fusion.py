@@ -400,18 +400,14 @@ def test_the_compiled_maths_never_writes_into_its_inputs():
     unchanged."""
     from march.env.clf_outputs import outputs_from_state
     from march.env.observations import scan_heights
+    from march.fusion import map_tensors
     from march.reference.planner import PlannerCfg, plan_footsteps
     from march.reference.trajectory import reference_at
 
-    def tensors(x):
-        if isinstance(x, torch.Tensor):
-            yield x
-        elif isinstance(x, tuple | list):
-            for y in x:
-                yield from tensors(y)
-        elif dataclasses.is_dataclass(x) and not isinstance(x, type):
-            for f in dataclasses.fields(x):
-                yield from tensors(getattr(x, f.name))
+    def tensors(x) -> list[torch.Tensor]:
+        found: list[torch.Tensor] = []
+        map_tensors(x, lambda t: found.append(t) or t)
+        return found
 
     g = torch.Generator().manual_seed(6)
     stance, left, cmd, fh, seed = next(_planner_cases())
