@@ -32,8 +32,10 @@ the gpu preset's ``compute.compile_math``, records what compiling cost: graphs a
 compiled function and the recompiles (``compile`` in ``bench_env.json`` and ``gpu_check.json``).
 
 ``gpu_check.json`` holds every phase's command, return code, seconds and result files, the
-machine (GPU name, torch/CUDA versions) and the date; ``gpu_check.csv`` one row per phase. Exit
-status 0 only if every phase succeeded. Dependencies on a machine without a package index:
+machine (GPU name, torch/CUDA versions), the date and ``targets``: the step's speed targets as
+the bench judged them and the sync target (no sync with march code on the stack), each met,
+missed or not measured, also printed one line each at the end; ``gpu_check.csv`` one row per
+phase. Exit status 0 only if every phase succeeded (a missed target does not fail the check). Dependencies on a machine without a package index:
 ``../shared/gpu/README.md`` (source the bundles' ``gpu.sh`` first).
 """
 
@@ -50,6 +52,8 @@ import sys
 import time
 from pathlib import Path
 from typing import Any
+
+from march.bench.targets import STEP_TARGETS, SYNC_TARGET, verdict_lines
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -234,6 +238,8 @@ BENCH_KEYS = (
     "ratio_ops_march_vs_rough",
     "nonphysics_ms_per_step",
     "ratio_nonphysics_march_vs_rough",
+    "min_ratio_march_vs_rough",
+    "targets",
     "compile",
 )
 """What ``gpu_check.json`` keeps of the bench's JSON (and ``steps_per_s`` per workload)."""
@@ -274,6 +280,18 @@ def sync_results(path: Path) -> dict[str, Any]:
         "cuda": not (lines and lines[0].startswith("# no CUDA")),
         "phases": [p.strip() for p in phases.split(",") if p.strip()],
     }
+
+
+def judged_targets(results: dict[str, Any]) -> dict[str, Any]:
+    """The step's speed targets as the bench judged them (each not measured where the bench
+    phase left no figure), and the sync target: no sync with march code on the stack, judged
+    only where CUDA recorded the syncs (:mod:`march.bench.targets`)."""
+    bench = (results.get("bench") or {}).get("targets") or {}
+    judged = {t.key: bench.get(t.key) or t.judge(None) for t in STEP_TARGETS}
+    syncs = results.get("syncs") or {}
+    measured = syncs.get("cuda") and syncs.get("phases")
+    judged[SYNC_TARGET.key] = SYNC_TARGET.judge(syncs["with_march_on_stack"] if measured else None)
+    return judged
 
 
 def teacher_budget_reached(run: Path, seconds: float) -> Any:
@@ -426,6 +444,7 @@ def main(argv: list[str] | None = None) -> int:
         "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
         "phases": records,
         "results": results,
+        "targets": judged_targets(results),
     }
     (out / "gpu_check.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
     with (out / "gpu_check.csv").open("w", newline="") as f:
@@ -438,6 +457,8 @@ def main(argv: list[str] | None = None) -> int:
                     "files": " ".join(r["files"]),
                 }
             )
+    for line in verdict_lines(report["targets"], "[gpu_check]"):
+        print(line, flush=True)
     print(f"[gpu_check] {'ok' if ok else 'FAILED'} in {report['seconds']:.0f} s: {out}", flush=True)
     return 0 if ok else 1
 

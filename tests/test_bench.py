@@ -117,6 +117,114 @@ def test_the_gpu_check_reads_a_stopped_sync_checks_teacher_part(tmp_path):
     }
 
 
+def _workload(ops: float, ratios: dict[str, float], nonphys: dict[str, float]) -> dict:
+    """One workload's results as ``run_workload`` returns them: march / rough speed ratio and
+    non-physics ratio per thread count, ops ratio."""
+    by_threads = {
+        t: {"ratio_march_vs_rough": r, "ratio_nonphysics_march_vs_rough": nonphys[t]}
+        for t, r in ratios.items()
+    }
+    for b in by_threads.values():
+        b["nonphysics_ms_per_step"] = {"march_teacher": b["ratio_nonphysics_march_vs_rough"]}
+    return {
+        "ratio_march_vs_rough": ratios["1"],
+        "by_threads": by_threads,
+        "ops_per_step": {"march_teacher": 100.0 * ops, "bare_rough": 100.0},
+        "ratio_ops_march_vs_rough": ops,
+        "nonphysics_ms_per_step": by_threads["1"]["nonphysics_ms_per_step"],
+        "worst_ratio_nonphysics_march_vs_rough": max(nonphys.values()),
+    }
+
+
+@pytest.mark.parametrize(
+    ("random", "standing", "expected"),
+    [
+        # Every figure within its bound, the bounds themselves included.
+        (
+            _workload(1.5, {"1": 1.0, "2": 1.2}, {"1": 1.5, "2": 1.1}),
+            _workload(1.2, {"1": 1.1, "2": 1.0}, {"1": 1.2, "2": 1.4}),
+            (True, True, True),
+        ),
+        # The standing workload's ops, the second thread count's non-physics time and speed
+        # decide: the worst workload and thread count, not the first.
+        (
+            _workload(1.1, {"1": 1.3, "2": 1.2}, {"1": 1.2, "2": 1.3}),
+            _workload(1.51, {"1": 1.2, "2": 0.99}, {"1": 1.4, "2": 1.6}),
+            (False, False, False),
+        ),
+        # The random workload's ops and non-physics time decide; the speed holds.
+        (
+            _workload(2.3, {"1": 1.04, "2": 1.05}, {"1": 2.91, "2": 2.84}),
+            _workload(1.09, {"1": 1.08, "2": 1.07}, {"1": 1.3, "2": 1.2}),
+            (False, False, True),
+        ),
+    ],
+)
+def test_the_bench_judges_the_worst_workload_and_thread_count(random, standing, expected):
+    from march.bench.env_speed import _headline
+
+    head = _headline({"random": random, "standing": standing})
+    keys = ("ratio_ops_march_vs_rough", "ratio_nonphysics_march_vs_rough")
+    judged = head["targets"]
+    assert tuple(judged[k]["met"] for k in (*keys, "min_ratio_march_vs_rough")) == expected
+    assert judged["ratio_ops_march_vs_rough"]["value"] == max(
+        random["ratio_ops_march_vs_rough"], standing["ratio_ops_march_vs_rough"]
+    )
+    assert judged["ratio_nonphysics_march_vs_rough"]["at_most"] == 1.5
+    assert judged["min_ratio_march_vs_rough"] == {
+        "value": min(
+            b["ratio_march_vs_rough"] for w in (random, standing) for b in w["by_threads"].values()
+        ),
+        "at_least": 1.0,
+        "met": expected[2],
+    }
+
+
+def test_a_figure_the_bench_did_not_measure_is_judged_not_measured():
+    """bench.op_steps=0 and bench.profile_steps=0 leave the ops and non-physics figures out:
+    neither met nor missed, and the printed line says so."""
+    from march.bench.env_speed import _headline
+    from march.bench.targets import verdict_lines
+
+    work = _workload(1.0, {"1": 0.9}, {"1": 1.0})
+    for key in ("ops_per_step", "nonphysics_ms_per_step"):
+        del work[key]
+    judged = _headline({"random": work})["targets"]
+    assert judged["ratio_ops_march_vs_rough"] == {"value": None, "at_most": 1.5, "met": None}
+    assert judged["ratio_nonphysics_march_vs_rough"]["met"] is None
+    lines = verdict_lines(judged, "[bench]")
+    assert lines[0].startswith("[bench] target ratio_ops_march_vs_rough <= 1.5: - (")
+    assert lines[0].endswith(": not measured")
+    assert lines[2].startswith("[bench] target min_ratio_march_vs_rough >= 1: 0.90 (")
+    assert lines[2].endswith(": NOT MET")
+
+
+def test_the_gpu_check_judges_the_bench_targets_and_the_syncs():
+    """gpu_check.json's targets: the bench's judgement where the bench phase left one (else not
+    measured), and no sync with march code on the stack, judged only where CUDA recorded."""
+    judged_targets = _gpu_check().judged_targets
+    nothing = judged_targets({})
+    assert list(nothing) == [
+        "ratio_ops_march_vs_rough",
+        "ratio_nonphysics_march_vs_rough",
+        "min_ratio_march_vs_rough",
+        "syncs_with_march_on_stack",
+    ]
+    assert all(j["met"] is None for j in nothing.values())
+    bench = {"targets": {"ratio_ops_march_vs_rough": {"value": 1.09, "at_most": 1.5, "met": True}}}
+    cuda = {"recorded": 3, "with_march_on_stack": 1, "cuda": True, "phases": ["teacher"]}
+    judged = judged_targets({"bench": bench, "syncs": cuda})
+    assert judged["ratio_ops_march_vs_rough"]["met"] is True
+    assert judged["ratio_nonphysics_march_vs_rough"]["met"] is None  # partial: not in the bench
+    assert judged["syncs_with_march_on_stack"] == {"value": 1, "at_most": 0.0, "met": False}
+    clean = judged_targets({"syncs": {**cuda, "with_march_on_stack": 0}})
+    assert clean["syncs_with_march_on_stack"]["met"] is True
+    cpu = {"recorded": 0, "with_march_on_stack": 0, "cuda": False, "phases": ["teacher"]}
+    assert judged_targets({"syncs": cpu})["syncs_with_march_on_stack"]["met"] is None
+    stopped = {**cuda, "with_march_on_stack": 0, "phases": []}  # killed before it recorded
+    assert judged_targets({"syncs": stopped})["syncs_with_march_on_stack"]["met"] is None
+
+
 class _Thing:
     def __init__(self) -> None:
         self.calls: list[str] = []
@@ -206,6 +314,15 @@ def test_bench_env_prints_one_json_object_with_both_workloads_and_a_profile(tmp_
     assert result["min_ratio_march_vs_rough"] == pytest.approx(
         min(result["ratio_march_vs_rough_by_workload"].values())
     )
+    judged = result["targets"]
+    assert judged["min_ratio_march_vs_rough"]["value"] == result["min_ratio_march_vs_rough"]
+    assert (
+        judged["ratio_nonphysics_march_vs_rough"]["value"]
+        == (result["ratio_nonphysics_march_vs_rough"])
+    )
+    assert partial["targets"] == judged
+    printed = [ln for ln in res.stderr.splitlines() if ln.startswith("[bench] target ")]
+    assert len(printed) == len(judged)
 
 
 @pytest.mark.slow
@@ -274,3 +391,9 @@ def test_gpu_check_runs_at_tiny_sizes_on_cpu(tmp_path):
     assert (out / "student.onnx").stat().st_size > 10_000
     with (out / "gpu_check.csv").open() as f:
         assert [r["phase"] for r in csv.DictReader(f)] == list(phases)
+    assert (
+        report["targets"]["ratio_ops_march_vs_rough"]
+        == bench["targets"]["ratio_ops_march_vs_rough"]
+    )
+    assert report["targets"]["syncs_with_march_on_stack"]["met"] is None  # no CUDA: not measured
+    assert sum(ln.startswith("[gpu_check] target ") for ln in res.stdout.splitlines()) == 4

@@ -26,6 +26,9 @@ step goes, as exclusive milliseconds per control step:
 ``_reset_idx``: sim and scene reset, manager resets), ``curriculum`` and ``other`` (mjlab's
 glue in ``step``). ``sections_ms`` lists the finer sections (each reward, observation, termination,
 command and event term) largest first.
+
+The JSON's ``targets`` judges the headline ratios against the step's speed targets
+(:mod:`march.bench.targets`), and the run ends with one ``[bench] target ...`` line each.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from typing import Any
 from march.bench.harness import WORKLOADS, Actions, chunks, free, stdout_to_stderr, sync
 from march.bench.ops import count_ops
 from march.bench.profiler import profile_envs
+from march.bench.targets import judge, verdict_lines
 from march.config import MarchConfig
 
 ROUGH_TASK = "Mjlab-Velocity-Rough-Unitree-G1"
@@ -202,7 +206,7 @@ def bench_env(cfg: MarchConfig, opts: dict[str, Any]) -> dict[str, Any]:
             file=sys.stderr,
             flush=True,
         )
-    return {
+    report = {
         "device": device,
         "num_envs": cfg.compute.num_envs,
         "steps": opts["steps"],
@@ -226,9 +230,6 @@ def bench_env(cfg: MarchConfig, opts: dict[str, Any]) -> dict[str, Any]:
             t: {w: results[w]["by_threads"][t]["ratio_march_vs_rough"] for w in WORKLOADS}
             for t in results["random"]["by_threads"]
         },
-        "min_ratio_march_vs_rough": min(
-            b["ratio_march_vs_rough"] for w in WORKLOADS for b in results[w]["by_threads"].values()
-        ),
         **_headline(results),
         "workloads": results,
         "build_s": build,
@@ -243,6 +244,9 @@ def bench_env(cfg: MarchConfig, opts: dict[str, Any]) -> dict[str, Any]:
         "wall seconds of the calls that compiled, per compiled function, and recompiles (graphs "
         "beyond one per function)",
     }
+    for line in verdict_lines(report["targets"], "[bench]"):
+        print(line, file=sys.stderr, flush=True)
+    return report
 
 
 def _headline(results: dict[str, Any]) -> dict[str, Any]:
@@ -253,6 +257,10 @@ def _headline(results: dict[str, Any]) -> dict[str, Any]:
     out: dict[str, Any] = {
         "ratio_march_vs_rough_by_workload": {w: results[w]["ratio_march_vs_rough"] for w in done}
     }
+    if done:
+        out["min_ratio_march_vs_rough"] = min(
+            b["ratio_march_vs_rough"] for w in done for b in results[w]["by_threads"].values()
+        )
     if done and all("ops_per_step" in results[w] for w in done):
         out["ops_per_step"] = {w: results[w]["ops_per_step"] for w in done}
         out["ratio_ops_march_vs_rough"] = max(results[w]["ratio_ops_march_vs_rough"] for w in done)
@@ -265,6 +273,7 @@ def _headline(results: dict[str, Any]) -> dict[str, Any]:
         out["ratio_nonphysics_march_vs_rough"] = max(
             results[w]["worst_ratio_nonphysics_march_vs_rough"] for w in done
         )
+    out["targets"] = judge(out)
     return out
 
 
