@@ -12,9 +12,10 @@ the check goes on with the phases that do not need its output):
    The bench rewrites ``bench_env.partial.json`` after each workload (``bench.partial``): a
    bench stopped by its time limit (warp's and inductor's first compiles are minutes on a cold
    machine) still reports the workloads it finished (``completed_workloads``).
-2. ``syncs``: ``scripts/sync_check.py`` at 256 envs: a teacher iteration's rollout and a
-   distillation rollout under ``torch.cuda.set_sync_debug_mode("warn")``, each sync's source
-   line (and the march line on its stack) -> ``syncs.tsv`` (at most ``--sync-timeout`` s).
+2. ``syncs``: ``scripts/sync_check.py`` at 256 envs: a teacher iteration's rollout, a
+   distillation rollout, then the march teacher env and bare mjlab rough stepped alone, under
+   ``torch.cuda.set_sync_debug_mode("warn")``, each sync's source line (and the march line on
+   its stack) -> ``syncs.tsv`` (at most ``--sync-timeout`` s; rewritten after each part).
    Second, so that the sync list of issue 20 is never starved by the training phases on a
    cold machine.
 3. ``teacher_clf``, ``teacher_modelfree``: ``march.train stage=teacher`` of each arm, stopped
@@ -33,7 +34,8 @@ compiled function and the recompiles (``compile`` in ``bench_env.json`` and ``gp
 
 ``gpu_check.json`` holds every phase's command, return code, seconds and result files, the
 machine (GPU name, torch/CUDA versions), the date and ``targets``: the step's speed targets as
-the bench judged them and the sync target (no sync with march code on the stack), each met,
+the bench judged them and the sync targets (no march line that syncs every step, march's env
+no more syncs per step than bare rough's), each met,
 missed or not measured, also printed one line each at the end; ``gpu_check.csv`` one row per
 phase. Exit status 0 only if every phase succeeded (a missed target does not fail the check). Dependencies on a machine without a package index:
 ``../shared/gpu/README.md`` (source the bundles' ``gpu.sh`` first).
@@ -50,10 +52,11 @@ import shutil
 import subprocess
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
-from march.bench.targets import STEP_TARGETS, SYNC_TARGET, verdict_lines
+from march.bench.targets import STEP_TARGETS, SYNC_TARGETS, verdict_lines
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -270,27 +273,57 @@ def bench_results(out: Path, finished: bool) -> tuple[dict[str, Any] | None, lis
 
 def sync_results(path: Path) -> dict[str, Any]:
     """What ``gpu_check.json`` keeps of ``syncs.tsv``: syncs recorded, those with march code on
-    the stack, whether CUDA recorded anything, and the phases in the file."""
+    the stack, whether CUDA recorded anything, the phases in the file and their env steps; the
+    march source lines that synced at least once per env step of their phase (a read once per
+    iteration, which the runners may make, stays below that); and the syncs per env step of
+    march's env and bare rough's, stepped alone (once both are recorded)."""
     lines = path.read_text().splitlines()
     rows = [ln.split("\t") for ln in lines if ln and not ln.startswith(("#", "phase"))]
-    phases = next((ln.split(":", 1)[1] for ln in lines if ln.startswith("# recorded:")), "")
-    return {
+
+    def header(key: str) -> list[str]:
+        text = next((ln.split(":", 1)[1] for ln in lines if ln.startswith(f"# {key}:")), "")
+        return [p.strip() for p in text.split(",") if p.strip()]
+
+    steps = {k: int(v) for k, _, v in (p.rpartition(" ") for p in header("steps")) if k}
+    per_line = Counter((r[0], r[1]) for r in rows if len(r) > 1)
+    every_step = sorted(
+        f"{ph} {src}"
+        for (ph, src), n in per_line.items()
+        if src.startswith("march/") and n >= steps.get(ph, 1)
+    )
+    result: dict[str, Any] = {
         "recorded": len(rows),
         "with_march_on_stack": sum(1 for r in rows if len(r) > 2 and r[2] != "-"),
         "cuda": not (lines and lines[0].startswith("# no CUDA")),
-        "phases": [p.strip() for p in phases.split(",") if p.strip()],
+        "phases": header("recorded"),
+        "steps": steps,
+        "march_lines_every_step": every_step,
     }
+    if "env_march" in steps and "env_rough" in steps:
+        result["env_syncs_per_step"] = {
+            env: sum(1 for r in rows if r[0] == f"env_{env}") / steps[f"env_{env}"]
+            for env in ("march", "rough")
+        }
+    return result
 
 
 def judged_targets(results: dict[str, Any]) -> dict[str, Any]:
     """The step's speed targets as the bench judged them (each not measured where the bench
-    phase left no figure), and the sync target: no sync with march code on the stack, judged
-    only where CUDA recorded the syncs (:mod:`march.bench.targets`)."""
+    phase left no figure), and the sync targets, judged only where CUDA recorded the syncs
+    (:mod:`march.bench.targets`): no march source line that syncs every env step (teacher
+    rollout, distillation rollout, march's env), and march's env no more syncs per step than
+    bare rough's."""
     bench = (results.get("bench") or {}).get("targets") or {}
     judged = {t.key: bench.get(t.key) or t.judge(None) for t in STEP_TARGETS}
     syncs = results.get("syncs") or {}
-    measured = syncs.get("cuda") and syncs.get("phases")
-    judged[SYNC_TARGET.key] = SYNC_TARGET.judge(syncs["with_march_on_stack"] if measured else None)
+    lines = (
+        syncs.get("march_lines_every_step") if syncs.get("cuda") and syncs.get("phases") else None
+    )
+    per_step = syncs.get("env_syncs_per_step") if syncs.get("cuda") else None
+    extra = per_step["march"] - per_step["rough"] if per_step else None
+    lines_target, env_target = SYNC_TARGETS
+    judged[lines_target.key] = lines_target.judge(None if lines is None else len(lines))
+    judged[env_target.key] = env_target.judge(extra)
     return judged
 
 

@@ -1,15 +1,23 @@
-"""Where a training step still waits for the GPU: one teacher iteration and one distillation
-rollout under ``torch.cuda.set_sync_debug_mode("warn")``, every synchronising call's source line
-written to a file (the ``syncs`` phase of ``scripts/gpu_check.py``).
+"""Where a training step still waits for the GPU: one teacher iteration, one distillation
+rollout and the bare env steps of march and of mjlab's rough task under
+``torch.cuda.set_sync_debug_mode("warn")``, every synchronising call's source line written to a
+file (the ``syncs`` phase of ``scripts/gpu_check.py``).
 
     python scripts/sync_check.py OUT_FILE [overrides ...]     # e.g. compute=gpu compute.num_envs=256
 
-One line per sync (tab-separated): the phase (``teacher`` or ``distill``), the innermost frame
-outside torch (``file:line``), the innermost frame in march's own code (or ``-``), and CUDA's
-message; then a count per source line at the end of the file. A ``# recorded:`` line names the
-phases in the file: it is written after the teacher iteration and again after the distillation
-rollout, so a run stopped by a time limit keeps the teacher's syncs. On a machine without CUDA
-the steps run the same and the file says that nothing could be recorded (the tests run it so).
+Parts, each recorded as a phase of the file: ``teacher`` (a teacher iteration's rollout and
+bookkeeping, the update left out), ``distill`` (a distillation rollout), then ``env_march``
+and ``env_rough``: ``teacher.num_steps_per_env`` steps of the march teacher env and of bare
+mjlab rough alone (random actions drawn beforehand, under ``inference_mode``), so that the
+file says whether march's step issues more syncs than bare mjlab's.
+
+One line per sync (tab-separated): the phase, the innermost frame outside torch (``file:line``),
+the innermost frame in march's own code (or ``-``: for a sync inside mjlab called from a march
+runner, that is the runner's line), and CUDA's message; then a count per source line at the end
+of the file. A ``# recorded:`` line names the phases in the file and a ``# steps:`` line the env
+steps of each: the file is rewritten after each part, so a run stopped by a time limit keeps
+what it recorded. On a machine without CUDA the steps run the same and the file says that
+nothing could be recorded (the tests run it so).
 """
 
 from __future__ import annotations
@@ -20,6 +28,7 @@ import traceback
 import warnings
 from collections import Counter
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # run as a script: import this checkout's march
@@ -46,14 +55,17 @@ def _short(name: str) -> str:
     return name.partition("site-packages/")[2] or name
 
 
-def _write(out: Path, hits: list[tuple[str, str, str, str]], cuda: bool, done: list[str]) -> None:
-    """The syncs file (module docstring), replaced in one rename; ``done``: the phases recorded
-    so far (a ``# recorded:`` line after the first)."""
+def _write(
+    out: Path, hits: list[tuple[str, str, str, str]], cuda: bool, steps: dict[str, int]
+) -> None:
+    """The syncs file (module docstring), replaced in one rename; ``steps``: the phases recorded
+    so far and the env steps of each (the ``# recorded:`` and ``# steps:`` lines)."""
     tmp = out.with_name(out.name + ".tmp")
     with tmp.open("w") as f:
         if not cuda:
             f.write("# no CUDA device: torch.cuda.set_sync_debug_mode recorded nothing\n")
-        f.write(f"# recorded: {', '.join(done)}\n")
+        f.write(f"# recorded: {', '.join(steps)}\n")
+        f.write(f"# steps: {', '.join(f'{k} {v}' for k, v in steps.items())}\n")
         f.write("phase\tsource\tmarch\tmessage\n")
         for h in hits:
             f.write("\t".join(h) + "\n")
@@ -63,11 +75,45 @@ def _write(out: Path, hits: list[tuple[str, str, str, str]], cuda: bool, done: l
     tmp.replace(out)
 
 
+def _record_env_steps(
+    make: Any, steps: int, seed: int, cuda: bool, phase: dict[str, str], name: str
+) -> int:
+    """Step the env ``make()`` builds ``steps`` times with random actions (drawn before the
+    recording) under ``inference_mode``, as the rollouts do, recording its syncs as phase
+    ``name`` (after a reset and 5 warm-up steps); returns ``steps``."""
+    import torch
+
+    from march.bench.harness import Actions
+
+    env = make()
+    try:
+        draw = Actions(env, "random", seed)
+        with torch.inference_mode():
+            env.reset()
+            for _ in range(5):
+                env.step(draw())
+            actions = [draw() for _ in range(steps)]
+            if cuda:
+                torch.cuda.synchronize()
+                torch.cuda.set_sync_debug_mode("warn")
+            phase["name"] = name
+            try:
+                for a in actions:
+                    env.step(a)
+            finally:
+                if cuda:
+                    torch.cuda.set_sync_debug_mode(0)
+    finally:
+        env.close()
+    return steps
+
+
 def main(argv: list[str]) -> int:
     import torch
 
+    from march.bench.env_speed import ROUGH_TASK
     from march.config.cli import load
-    from march.env.build import make_env
+    from march.env.build import bare_env, make_env
     from march.learn.distill import DistillRunner
     from march.learn.metrics import MetricsLog
     from march.learn.teacher import EpisodeStats, TeacherRunner
@@ -107,7 +153,8 @@ def main(argv: list[str]) -> int:
             torch.cuda.set_sync_debug_mode("warn")
         teacher.learn(2)
         payload = teacher.payload()
-        _write(out, hits, cuda, ["teacher"])  # kept if a time limit stops the distillation part
+        steps = {"teacher": cfg.teacher.num_steps_per_env}
+        _write(out, hits, cuda, steps)  # kept if a time limit stops the later parts
     finally:
         if cuda:
             torch.cuda.set_sync_debug_mode(0)
@@ -127,10 +174,22 @@ def main(argv: list[str]) -> int:
     finally:
         if cuda:
             torch.cuda.set_sync_debug_mode(0)
-        warnings.showwarning = old
         log.close()
         env.close()
-    _write(out, hits, cuda, ["teacher", "distill"])
+    steps["distill"] = cfg.distill.num_steps_per_env
+    _write(out, hits, cuda, steps)
+    try:
+        n, seed, device = cfg.compute.num_envs, cfg.seed, cfg.compute.device
+        for name, make in (
+            ("env_march", lambda: make_env(cfg, "teacher")),
+            ("env_rough", lambda: bare_env(ROUGH_TASK, n, seed, device)),
+        ):
+            steps[name] = _record_env_steps(
+                make, cfg.teacher.num_steps_per_env, seed, cuda, phase, name
+            )
+            _write(out, hits, cuda, steps)
+    finally:
+        warnings.showwarning = old
     n_march = sum(1 for h in hits if h[2] != "-")
     print(f"[syncs] {len(hits)} syncs recorded ({n_march} with march code on the stack) -> {out}")
     return 0

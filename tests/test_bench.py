@@ -97,24 +97,49 @@ def test_the_gpu_check_keeps_a_stopped_benchs_finished_workloads(tmp_path):
 
 
 def test_the_gpu_check_reads_a_stopped_sync_checks_teacher_part(tmp_path):
-    """scripts/sync_check.py writes its file after the teacher iteration and again after the
-    distillation rollout; the GPU check reads which phases a file holds and counts its rows."""
+    """scripts/sync_check.py writes its file after each part; the GPU check reads which phases
+    a file holds and their steps, counts its rows, and lists the march source lines that synced
+    at least once per env step of their phase (a once-per-iteration read stays below that)."""
     sync_results = _gpu_check().sync_results
     path = tmp_path / "syncs.tsv"
+    mjlab = "teacher\tmjlab/managers/command_manager.py:90\tmarch/learn/teacher.py:80\tsync\n"
+    per_iteration = "teacher\tmarch/learn/teacher.py:120\tmarch/learn/teacher.py:120\tsync\n"
+    per_step = "teacher\tmarch/env/course.py:12\tmarch/env/course.py:12\tsync\n"
     path.write_text(
-        "# recorded: teacher\n"
-        "phase\tsource\tmarch\tmessage\n"
-        "teacher\tmjlab/managers/command_manager.py:90\t-\tcalled a synchronizing op\n"
-        "teacher\tmarch/env/course.py:12\tmarch/env/course.py:12\tcalled a synchronizing op\n"
-        "# count\tphase\tsource\tmarch\n"
-        "# 1\tteacher\tmjlab/managers/command_manager.py:90\t-\n"
+        "# recorded: teacher\n# steps: teacher 3\nphase\tsource\tmarch\tmessage\n"
+        + 3 * mjlab
+        + 2 * per_iteration
+        + 3 * per_step
+        + "# count\tphase\tsource\tmarch\n# 3\tteacher\tmjlab/managers/command_manager.py:90\t-\n"
     )
     assert sync_results(path) == {
-        "recorded": 2,
-        "with_march_on_stack": 1,
+        "recorded": 8,
+        "with_march_on_stack": 8,  # every frame below a march runner has march on its stack
         "cuda": True,
         "phases": ["teacher"],
+        "steps": {"teacher": 3},
+        "march_lines_every_step": ["teacher march/env/course.py:12"],
     }
+
+
+def test_the_gpu_check_compares_march_and_rough_env_syncs_per_step(tmp_path):
+    sync_results = _gpu_check().sync_results
+    path = tmp_path / "syncs.tsv"
+    rows = 16 * "env_march\tmjlab/sim/sim.py:5\t-\tsync\n" + 8 * "env_rough\tmjlab/x.py:1\t-\ts\n"
+    path.write_text(
+        "# recorded: teacher, distill, env_march, env_rough\n"
+        "# steps: teacher 8, distill 8, env_march 8, env_rough 4\n"
+        "phase\tsource\tmarch\tmessage\n" + rows
+    )
+    result = sync_results(path)
+    assert result["env_syncs_per_step"] == {"march": 2.0, "rough": 2.0}
+    assert result["march_lines_every_step"] == []  # mjlab lines: compared, not listed
+    judged = _gpu_check().judged_targets({"syncs": result})
+    assert judged["env_syncs_per_step_march_minus_rough"]["met"] is True
+    path.write_text(path.read_text().replace("env_rough 4", "env_rough 8"))
+    judged = _gpu_check().judged_targets({"syncs": sync_results(path)})
+    assert judged["env_syncs_per_step_march_minus_rough"]["value"] == 1.0
+    assert judged["env_syncs_per_step_march_minus_rough"]["met"] is False
 
 
 def _workload(ops: float, ratios: dict[str, float], nonphys: dict[str, float]) -> dict:
@@ -201,28 +226,30 @@ def test_a_figure_the_bench_did_not_measure_is_judged_not_measured():
 
 def test_the_gpu_check_judges_the_bench_targets_and_the_syncs():
     """gpu_check.json's targets: the bench's judgement where the bench phase left one (else not
-    measured), and no sync with march code on the stack, judged only where CUDA recorded."""
+    measured), and the sync targets, judged only where CUDA recorded."""
     judged_targets = _gpu_check().judged_targets
     nothing = judged_targets({})
     assert list(nothing) == [
         "ratio_ops_march_vs_rough",
         "ratio_nonphysics_march_vs_rough",
         "min_ratio_march_vs_rough",
-        "syncs_with_march_on_stack",
+        "march_sync_lines_every_step",
+        "env_syncs_per_step_march_minus_rough",
     ]
     assert all(j["met"] is None for j in nothing.values())
     bench = {"targets": {"ratio_ops_march_vs_rough": {"value": 1.09, "at_most": 1.5, "met": True}}}
-    cuda = {"recorded": 3, "with_march_on_stack": 1, "cuda": True, "phases": ["teacher"]}
+    cuda = {"cuda": True, "phases": ["teacher"], "march_lines_every_step": ["teacher m.py:1"]}
     judged = judged_targets({"bench": bench, "syncs": cuda})
     assert judged["ratio_ops_march_vs_rough"]["met"] is True
     assert judged["ratio_nonphysics_march_vs_rough"]["met"] is None  # partial: not in the bench
-    assert judged["syncs_with_march_on_stack"] == {"value": 1, "at_most": 0.0, "met": False}
-    clean = judged_targets({"syncs": {**cuda, "with_march_on_stack": 0}})
-    assert clean["syncs_with_march_on_stack"]["met"] is True
-    cpu = {"recorded": 0, "with_march_on_stack": 0, "cuda": False, "phases": ["teacher"]}
-    assert judged_targets({"syncs": cpu})["syncs_with_march_on_stack"]["met"] is None
-    stopped = {**cuda, "with_march_on_stack": 0, "phases": []}  # killed before it recorded
-    assert judged_targets({"syncs": stopped})["syncs_with_march_on_stack"]["met"] is None
+    assert judged["march_sync_lines_every_step"] == {"value": 1, "at_most": 0.0, "met": False}
+    assert judged["env_syncs_per_step_march_minus_rough"]["met"] is None  # env parts not reached
+    clean = judged_targets({"syncs": {**cuda, "march_lines_every_step": []}})
+    assert clean["march_sync_lines_every_step"]["met"] is True
+    cpu = {**cuda, "cuda": False, "env_syncs_per_step": {"march": 0.0, "rough": 0.0}}
+    assert all(j["met"] is None for j in judged_targets({"syncs": cpu}).values())
+    stopped = {**cuda, "phases": []}  # killed before it recorded
+    assert judged_targets({"syncs": stopped})["march_sync_lines_every_step"]["met"] is None
 
 
 class _Thing:
@@ -376,7 +403,10 @@ def test_gpu_check_runs_at_tiny_sizes_on_cpu(tmp_path):
         "recorded": 0,
         "with_march_on_stack": 0,
         "cuda": False,
-        "phases": ["teacher", "distill"],
+        "phases": ["teacher", "distill", "env_march", "env_rough"],
+        "steps": {"teacher": 2, "distill": 2, "env_march": 2, "env_rough": 2},
+        "march_lines_every_step": [],
+        "env_syncs_per_step": {"march": 0.0, "rough": 0.0},
     }
     for arm in ("clf", "modelfree"):
         with (out / f"teacher_{arm}_curve.csv").open() as f:
@@ -395,5 +425,6 @@ def test_gpu_check_runs_at_tiny_sizes_on_cpu(tmp_path):
         report["targets"]["ratio_ops_march_vs_rough"]
         == bench["targets"]["ratio_ops_march_vs_rough"]
     )
-    assert report["targets"]["syncs_with_march_on_stack"]["met"] is None  # no CUDA: not measured
-    assert sum(ln.startswith("[gpu_check] target ") for ln in res.stdout.splitlines()) == 4
+    for key in ("march_sync_lines_every_step", "env_syncs_per_step_march_minus_rough"):
+        assert report["targets"][key]["met"] is None  # no CUDA: not measured
+    assert sum(ln.startswith("[gpu_check] target ") for ln in res.stdout.splitlines()) == 5
