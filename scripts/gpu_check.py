@@ -27,6 +27,11 @@ the check goes on with the phases that do not need its output):
    which ends with the evaluation protocol on ``--eval-rollouts`` rollouts -> ``student_curve.csv``,
    ``eval.csv``, ``summary.json``.
 5. ``export``: ``python -m march.export`` of that student -> ``student.onnx``, ``export.txt``.
+6. ``bench_eager`` (optional: only with time to spare; skipped or stopped by the deadline, it
+   fails nothing): the bench again with ``compute.compile_math=false`` -> ``bench_env_eager.json``,
+   and ``compile_vs_eager`` in ``gpu_check.json``: march's env steps per second and non-physics
+   time compiled and eager, per workload, i.e. whether the gpu preset's compiled maths wins on
+   this GPU.
 
 The bench phase also counts compute ops per env step on the GPU (``bench.op_steps``) and, with
 the gpu preset's ``compute.compile_math``, records what compiling cost: graphs and seconds per
@@ -35,9 +40,10 @@ compiled function and the recompiles (``compile`` in ``bench_env.json`` and ``gp
 ``gpu_check.json`` holds every phase's command, return code, seconds and result files, the
 machine (GPU name, torch/CUDA versions), the date and ``targets``: the step's speed targets as
 the bench judged them and the sync targets (no march line that syncs every step, march's env
-no more syncs per step than bare rough's), each met,
-missed or not measured, also printed one line each at the end; ``gpu_check.csv`` one row per
-phase. Exit status 0 only if every phase succeeded (a missed target does not fail the check). Dependencies on a machine without a package index:
+no more syncs per step than bare rough's), each met, missed or not measured, also printed one
+line each at the end; ``gpu_check.csv`` one row per phase. Exit status 0 only if every phase
+but an optional one the deadline skipped or stopped succeeded (a missed target does not fail
+the check). Dependencies on a machine without a package index:
 ``../shared/gpu/README.md`` (source the bundles' ``gpu.sh`` first).
 """
 
@@ -148,8 +154,10 @@ def machine() -> dict[str, Any]:
 class Phase:
     """One subprocess phase: command, log, return code, seconds."""
 
-    def __init__(self, name: str, cmd: list[str], out: Path) -> None:
+    def __init__(self, name: str, cmd: list[str], out: Path, optional: bool = False) -> None:
         self.name, self.cmd, self.out = name, cmd, out
+        self.optional = optional
+        """Run only with time to spare: skipped or stopped by its limit, it fails nothing."""
         self.log = out / f"{name}.log"
         self.rc: int | None = None
         self.seconds = 0.0
@@ -205,7 +213,15 @@ class Phase:
             "note": self.note,
             "log": self.log.name,
             "files": self.files,
+            "optional": self.optional,
         }
+
+    def failed(self) -> bool:
+        """The phase counts against the check: it did not succeed, and it is not an optional
+        phase that the deadline skipped or stopped."""
+        if self.rc == 0 or self.note == "stopped at its budget":
+            return False
+        return not (self.optional and self.note.startswith(("skipped", "timed out")))
 
 
 def read_rows(path: Path, stage: str) -> list[dict[str, str]]:
@@ -248,12 +264,14 @@ BENCH_KEYS = (
 """What ``gpu_check.json`` keeps of the bench's JSON (and ``steps_per_s`` per workload)."""
 
 
-def bench_results(out: Path, finished: bool) -> tuple[dict[str, Any] | None, list[str], str]:
+def bench_results(
+    out: Path, finished: bool, stem: str = "bench_env"
+) -> tuple[dict[str, Any] | None, list[str], str]:
     """The bench phase's figures for ``gpu_check.json``, its result files and a note. From
     ``bench_env.json`` when the phase finished; otherwise (failed, or stopped by its time
     limit) from ``bench_env.partial.json``, which the bench rewrites after each workload, so a
     first GPU run that runs out of time still reports the workloads it finished."""
-    for name, usable in (("bench_env.json", finished), ("bench_env.partial.json", True)):
+    for name, usable in ((f"{stem}.json", finished), (f"{stem}.partial.json", True)):
         path = out / name
         if not usable or not path.is_file():
             continue
@@ -263,7 +281,7 @@ def bench_results(out: Path, finished: bool) -> tuple[dict[str, Any] | None, lis
             summary["steps_per_s"] = {w: v["steps_per_s"] for w, v in bench["workloads"].items()}
         except (json.JSONDecodeError, KeyError, TypeError, AttributeError) as err:
             return None, [], f"unreadable {name}: {err}"
-        if name == "bench_env.json":
+        if name == f"{stem}.json":
             return summary, [name], ""
         done = bench.get("completed_workloads", [])
         summary["completed_workloads"] = done
@@ -305,6 +323,30 @@ def sync_results(path: Path) -> dict[str, Any]:
             for env in ("march", "rough")
         }
     return result
+
+
+def compile_vs_eager(compiled: dict[str, Any], eager: dict[str, Any]) -> dict[str, Any]:
+    """What ``compute.compile_math`` gains on this machine, per workload both benches finished:
+    march's env steps per second and non-physics ms per step, compiled and eager, and their
+    ratios (compiled / eager: above 1 for the speed, below 1 for the time, where it wins)."""
+    out: dict[str, Any] = {}
+    for w in sorted(set(compiled.get("steps_per_s") or {}) & set(eager.get("steps_per_s") or {})):
+        fast = {"compiled": compiled["steps_per_s"][w], "eager": eager["steps_per_s"][w]}
+        row: dict[str, Any] = {
+            "steps_per_s": {k: v["march_teacher"] for k, v in fast.items()},
+        }
+        row["speed_ratio"] = row["steps_per_s"]["compiled"] / row["steps_per_s"]["eager"]
+        times = {
+            k: (b.get("nonphysics_ms_per_step") or {}).get(w)
+            for k, b in (("compiled", compiled), ("eager", eager))
+        }
+        if all(times.values()):
+            row["nonphysics_ms"] = {k: v["march_teacher"] for k, v in times.items()}
+            row["nonphysics_ratio"] = (
+                row["nonphysics_ms"]["compiled"] / row["nonphysics_ms"]["eager"]
+            )
+        out[w] = row
+    return out
 
 
 def judged_targets(results: dict[str, Any]) -> dict[str, Any]:
@@ -355,18 +397,23 @@ def main(argv: list[str] | None = None) -> int:
         """This phase's time limit: the per-phase limit, or what is left before the deadline."""
         return min(args.phase_timeout, args.deadline - (time.time() - t_start))
 
-    if "bench" not in args.skip:
-        partial = out / "bench_env.partial.json"
+    def bench(name: str, stem: str, extra: list[str], optional: bool = False) -> None:
+        """A ``march.bench env`` phase: ``{stem}.json``, or the finished workloads of its
+        partial file when a limit stopped it, as ``results[name]``."""
+        partial = out / f"{stem}.partial.json"
         partial.unlink(missing_ok=True)
-        cmd = [py, "-m", "march.bench", "env", *common[:1], *s["bench"], f"bench.partial={partial}"]
-        ph = Phase("bench", cmd, out)
+        cmd = [py, "-m", "march.bench", "env", *common[:1], *s["bench"], *extra]
+        ph = Phase(name, [*cmd, f"bench.partial={partial}"], out, optional)
         phases.append(ph)
-        done = ph.run(limit(), stdout_file=out / "bench_env.json")
-        results["bench"], files, note = bench_results(out, done)
+        done = ph.run(limit(), stdout_file=out / f"{stem}.json")
+        summary, files, note = bench_results(out, done, stem)
         ph.files += files
         ph.note = "; ".join(n for n in (ph.note, note) if n)
-        if results["bench"] is None:
-            del results["bench"]
+        if summary is not None:
+            results[name] = summary
+
+    if "bench" not in args.skip:
+        bench("bench", "bench_env", [])
 
     if "syncs" not in args.skip:
         cmd = [py, "scripts/sync_check.py", str(out / "syncs.tsv"), *common, *s["syncs"]]
@@ -467,8 +514,13 @@ def main(argv: list[str] | None = None) -> int:
             ph.files += ["student.onnx", "export.txt"]
             results["export"] = {"onnx_bytes": onnx.stat().st_size}
 
+    if "bench_eager" not in args.skip:  # last: only with time to spare
+        bench("bench_eager", "bench_env_eager", ["compute.compile_math=false"], optional=True)
+        if "bench" in results and "bench_eager" in results:
+            results["compile_vs_eager"] = compile_vs_eager(results["bench"], results["bench_eager"])
+
     records = [ph.record() for ph in phases]
-    ok = bool(records) and all(r["rc"] == 0 for r in records)
+    ok = bool(records) and not any(ph.failed() for ph in phases)
     report = {
         "ok": ok,
         "mode": "cpu" if args.cpu else "gpu",
@@ -492,6 +544,18 @@ def main(argv: list[str] | None = None) -> int:
             )
     for line in verdict_lines(report["targets"], "[gpu_check]"):
         print(line, flush=True)
+    for w, row in results.get("compile_vs_eager", {}).items():
+        times = row.get("nonphysics_ms")
+        print(
+            f"[gpu_check] compile_math, {w}: march {row['steps_per_s']['compiled']:.0f} vs "
+            f"{row['steps_per_s']['eager']:.0f} env steps/s eager (x{row['speed_ratio']:.2f})"
+            + (
+                f", non-physics {times['compiled']:.1f} vs {times['eager']:.1f} ms/step"
+                if times
+                else ""
+            ),
+            flush=True,
+        )
     print(f"[gpu_check] {'ok' if ok else 'FAILED'} in {report['seconds']:.0f} s: {out}", flush=True)
     return 0 if ok else 1
 

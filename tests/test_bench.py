@@ -142,6 +142,54 @@ def test_the_gpu_check_compares_march_and_rough_env_syncs_per_step(tmp_path):
     assert judged["env_syncs_per_step_march_minus_rough"]["met"] is False
 
 
+def test_the_gpu_check_compares_compiled_and_eager_benches():
+    """compile_vs_eager: per workload both benches finished, march's speed and non-physics time
+    compiled and eager (ratios compiled / eager); a workload one bench lacks is left out."""
+    compile_vs_eager = _gpu_check().compile_vs_eager
+    compiled = {
+        "steps_per_s": {
+            "random": {"march_teacher": 300.0, "bare_rough": 250.0},
+            "standing": {"march_teacher": 330.0, "bare_rough": 260.0},
+        },
+        "nonphysics_ms_per_step": {"random": {"march_teacher": 6.0, "bare_rough": 5.0}},
+    }
+    eager = {
+        "steps_per_s": {"random": {"march_teacher": 200.0, "bare_rough": 251.0}},
+        "nonphysics_ms_per_step": {"random": {"march_teacher": 12.0, "bare_rough": 5.1}},
+    }
+    assert compile_vs_eager(compiled, eager) == {
+        "random": {
+            "steps_per_s": {"compiled": 300.0, "eager": 200.0},
+            "speed_ratio": 1.5,
+            "nonphysics_ms": {"compiled": 6.0, "eager": 12.0},
+            "nonphysics_ratio": 0.5,
+        }
+    }
+    del eager["nonphysics_ms_per_step"]  # profile_steps=0: the speeds alone
+    assert set(compile_vs_eager(compiled, eager)["random"]) == {"steps_per_s", "speed_ratio"}
+
+
+@pytest.mark.parametrize(
+    ("optional", "rc", "note", "failed"),
+    [
+        (False, 0, "", False),
+        (False, 0, "stopped at its budget", False),
+        (False, -1, "skipped: no time left before the deadline", True),
+        (False, -15, "timed out after 240 s; partial results: random finished", True),
+        (False, 1, "", True),
+        (True, -1, "skipped: no time left before the deadline", False),
+        (True, -15, "timed out after 60 s; partial results: random finished", False),
+        (True, 1, "", True),  # an optional phase that ran and broke is a failure
+    ],
+)
+def test_only_an_optional_phase_the_deadline_cut_short_fails_nothing(
+    tmp_path, optional, rc, note, failed
+):
+    phase = _gpu_check().Phase("p", ["true"], tmp_path, optional=optional)
+    phase.rc, phase.note = rc, note
+    assert phase.failed() is failed
+
+
 def _workload(ops: float, ratios: dict[str, float], nonphys: dict[str, float]) -> dict:
     """One workload's results as ``run_workload`` returns them: march / rough speed ratio and
     non-physics ratio per thread count, ops ratio."""
@@ -391,8 +439,11 @@ def test_gpu_check_runs_at_tiny_sizes_on_cpu(tmp_path):
         "teacher_modelfree",
         "student",
         "export",
+        "bench_eager",  # optional, last
     ]
     bench = json.loads((out / "bench_env.json").read_text())
+    assert set(report["results"]["compile_vs_eager"]) == {"random", "standing"}
+    assert "compute.compile_math=false" in phases["bench_eager"]["command"]
     assert set(bench["workloads"]) == {"random", "standing"}
     assert phases["bench"]["files"] == ["bench_env.json"] and phases["bench"]["note"] == ""
     assert set(bench["ops_per_step"]) == {"random", "standing"}
