@@ -11,10 +11,11 @@ and ``env_rough``: ``teacher.num_steps_per_env`` steps of the march teacher env 
 mjlab rough alone (random actions drawn beforehand, under ``inference_mode``), so that the
 file says whether march's step issues more syncs than bare mjlab's.
 
-One line per sync (tab-separated): the phase, the innermost frame outside torch (``file:line``),
-the innermost frame in march's own code (or ``-``: for a sync inside mjlab called from a march
-runner, that is the runner's line), and CUDA's message; then a count per source line at the end
-of the file. A ``# recorded:`` line names the phases in the file and a ``# steps:`` line the env
+One line per sync (tab-separated): the phase, the env step of the part it follows (1 from the
+first step's start to the second's, 0 before the first), the innermost frame outside torch
+(``file:line``), the innermost frame in march's own code (or ``-``: for a sync inside mjlab
+called from a march runner, that is the runner's line), and CUDA's message; then a count per
+source line at the end of the file. A ``# recorded:`` line names the phases in the file and a ``# steps:`` line the env
 steps of each: the file is rewritten after each part, so a run stopped by a time limit keeps
 what it recorded. On a machine without CUDA the steps run the same and the file says that
 nothing could be recorded (the tests run it so).
@@ -55,9 +56,21 @@ def _short(name: str) -> str:
     return name.partition("site-packages/")[2] or name
 
 
-def _write(
-    out: Path, hits: list[tuple[str, str, str, str]], cuda: bool, steps: dict[str, int]
-) -> None:
+def _counting_steps(env: Any, phase: dict[str, Any]) -> Any:
+    """``env`` whose ``step`` first advances ``phase["step"]``: each sync is recorded with the
+    env step it follows (0 before the first), so that a line that syncs in several steps of a
+    part is told from a read once per iteration."""
+    step = env.step
+
+    def counted(*args: Any, **kwargs: Any) -> Any:
+        phase["step"] += 1
+        return step(*args, **kwargs)
+
+    env.step = counted
+    return env
+
+
+def _write(out: Path, hits: list[tuple[str, ...]], cuda: bool, steps: dict[str, int]) -> None:
     """The syncs file (module docstring), replaced in one rename; ``steps``: the phases recorded
     so far and the env steps of each (the ``# recorded:`` and ``# steps:`` lines)."""
     tmp = out.with_name(out.name + ".tmp")
@@ -66,11 +79,11 @@ def _write(
             f.write("# no CUDA device: torch.cuda.set_sync_debug_mode recorded nothing\n")
         f.write(f"# recorded: {', '.join(steps)}\n")
         f.write(f"# steps: {', '.join(f'{k} {v}' for k, v in steps.items())}\n")
-        f.write("phase\tsource\tmarch\tmessage\n")
+        f.write("phase\tstep\tsource\tmarch\tmessage\n")
         for h in hits:
             f.write("\t".join(h) + "\n")
         f.write("# count\tphase\tsource\tmarch\n")
-        for (ph, src, march), n in Counter((h[0], h[1], h[2]) for h in hits).most_common():
+        for (ph, src, march), n in Counter((h[0], h[2], h[3]) for h in hits).most_common():
             f.write(f"# {n}\t{ph}\t{src}\t{march}\n")
     tmp.replace(out)
 
@@ -98,7 +111,8 @@ def _record_env_steps(
                 torch.cuda.set_sync_debug_mode("warn")
             phase["name"] = name
             try:
-                for a in actions:
+                for i, a in enumerate(actions):
+                    phase["step"] = i + 1
                     env.step(a)
             finally:
                 if cuda:
@@ -121,18 +135,19 @@ def main(argv: list[str]) -> int:
     out = Path(argv[0])
     cfg = load(["logger=csv", *argv[1:]])
     cuda = cfg.compute.device.startswith("cuda") and torch.cuda.is_available()
-    hits: list[tuple[str, str, str, str]] = []
-    phase = {"name": ""}
+    hits: list[tuple[str, ...]] = []
+    phase: dict[str, Any] = {"name": "", "step": 0}
 
     def record(message, category, filename, lineno, file=None, line=None):
         text = str(message)
         if "synchroniz" not in text:
             return
         outside, march = _frames()
-        hits.append((phase["name"], outside, march, text.splitlines()[0][:120]))
+        step = str(phase["step"])
+        hits.append((phase["name"], step, outside, march, text.splitlines()[0][:120]))
 
     run = Path(tempfile.mkdtemp(prefix="sync_check_"))
-    env = make_env(cfg, "teacher")
+    env = _counting_steps(make_env(cfg, "teacher"), phase)
     log = MetricsLog(run, cfg.logger, "t")
     old = warnings.showwarning
     warnings.showwarning = record
@@ -148,25 +163,25 @@ def main(argv: list[str]) -> int:
             return real_update()
 
         teacher.alg.update = update
-        phase["name"] = "teacher"
+        phase["name"], phase["step"] = "teacher", 0
         if cuda:
             torch.cuda.set_sync_debug_mode("warn")
         teacher.learn(2)
         payload = teacher.payload()
-        steps = {"teacher": cfg.teacher.num_steps_per_env}
+        steps = {"teacher": phase["step"]}
         _write(out, hits, cuda, steps)  # kept if a time limit stops the later parts
     finally:
         if cuda:
             torch.cuda.set_sync_debug_mode(0)
         log.close()
         env.close()
-    env = make_env(cfg, "student")
+    env = _counting_steps(make_env(cfg, "student"), phase)
     log = MetricsLog(run / "s", cfg.logger, "s")
     try:
         student = DistillRunner(env, cfg, run / "s", log, payload, "teacher.pt")
         stats = EpisodeStats(env.num_envs, cfg.compute.device)
         student._rollout(stats)  # warm-up
-        phase["name"] = "distill"
+        phase["name"], phase["step"] = "distill", 0
         if cuda:
             torch.cuda.synchronize()
             torch.cuda.set_sync_debug_mode("warn")
@@ -176,7 +191,7 @@ def main(argv: list[str]) -> int:
             torch.cuda.set_sync_debug_mode(0)
         log.close()
         env.close()
-    steps["distill"] = cfg.distill.num_steps_per_env
+    steps["distill"] = phase["step"]
     _write(out, hits, cuda, steps)
     try:
         n, seed, device = cfg.compute.num_envs, cfg.seed, cfg.compute.device
@@ -190,7 +205,7 @@ def main(argv: list[str]) -> int:
             _write(out, hits, cuda, steps)
     finally:
         warnings.showwarning = old
-    n_march = sum(1 for h in hits if h[2] != "-")
+    n_march = sum(1 for h in hits if h[3] != "-")
     print(f"[syncs] {len(hits)} syncs recorded ({n_march} with march code on the stack) -> {out}")
     return 0
 

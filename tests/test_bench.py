@@ -99,41 +99,48 @@ def test_the_gpu_check_keeps_a_stopped_benchs_finished_workloads(tmp_path):
 def test_the_gpu_check_reads_a_stopped_sync_checks_teacher_part(tmp_path):
     """scripts/sync_check.py writes its file after each part; the GPU check reads which phases
     a file holds and their steps, counts its rows, and lists the march source lines that synced
-    at least once per env step of their phase (a once-per-iteration read stays below that)."""
+    in more than one env step of a part: a read once per iteration falls in one step however
+    often it syncs there, and what precedes the first step (step 0) is no step."""
     sync_results = _gpu_check().sync_results
     path = tmp_path / "syncs.tsv"
-    mjlab = "teacher\tmjlab/managers/command_manager.py:90\tmarch/learn/teacher.py:80\tsync\n"
-    per_iteration = "teacher\tmarch/learn/teacher.py:120\tmarch/learn/teacher.py:120\tsync\n"
-    per_step = "teacher\tmarch/env/course.py:12\tmarch/env/course.py:12\tsync\n"
+
+    def row(step: int, source: str, march: str = "-") -> str:
+        return f"teacher\t{step}\t{source}\t{march}\tcalled a synchronizing op\n"
+
+    runner = "march/learn/teacher.py:80"
+    rows = [row(s, "mjlab/managers/command_manager.py:90", runner) for s in (1, 2, 3)]
+    rows += [row(3, "march/learn/teacher.py:120", "march/learn/teacher.py:120")] * 5
+    rows += [row(0, "march/learn/teacher.py:50", "march/learn/teacher.py:50")] * 2
+    rows += [row(0, "march/env/course.py:12"), row(1, "march/env/course.py:12")]
+    rows += [row(s, "march/env/course.py:40") for s in (2, 3)]  # not in every step: still found
     path.write_text(
-        "# recorded: teacher\n# steps: teacher 3\nphase\tsource\tmarch\tmessage\n"
-        + 3 * mjlab
-        + 2 * per_iteration
-        + 3 * per_step
+        "# recorded: teacher\n# steps: teacher 3\nphase\tstep\tsource\tmarch\tmessage\n"
+        + "".join(rows)
         + "# count\tphase\tsource\tmarch\n# 3\tteacher\tmjlab/managers/command_manager.py:90\t-\n"
     )
     assert sync_results(path) == {
-        "recorded": 8,
-        "with_march_on_stack": 8,  # every frame below a march runner has march on its stack
+        "recorded": 14,
+        "with_march_on_stack": 10,  # the runner's line lies below every sync inside mjlab
         "cuda": True,
         "phases": ["teacher"],
         "steps": {"teacher": 3},
-        "march_lines_every_step": ["teacher march/env/course.py:12"],
+        "march_lines_per_step": ["teacher march/env/course.py:40"],
     }
 
 
 def test_the_gpu_check_compares_march_and_rough_env_syncs_per_step(tmp_path):
     sync_results = _gpu_check().sync_results
     path = tmp_path / "syncs.tsv"
-    rows = 16 * "env_march\tmjlab/sim/sim.py:5\t-\tsync\n" + 8 * "env_rough\tmjlab/x.py:1\t-\ts\n"
+    rows = "".join(f"env_march\t{1 + i % 8}\tmjlab/sim/sim.py:5\t-\tsync\n" for i in range(16))
+    rows += "".join(f"env_rough\t{1 + i % 4}\tmjlab/x.py:1\t-\ts\n" for i in range(8))
     path.write_text(
         "# recorded: teacher, distill, env_march, env_rough\n"
         "# steps: teacher 8, distill 8, env_march 8, env_rough 4\n"
-        "phase\tsource\tmarch\tmessage\n" + rows
+        "phase\tstep\tsource\tmarch\tmessage\n" + rows
     )
     result = sync_results(path)
     assert result["env_syncs_per_step"] == {"march": 2.0, "rough": 2.0}
-    assert result["march_lines_every_step"] == []  # mjlab lines: compared, not listed
+    assert result["march_lines_per_step"] == []  # mjlab lines: compared, not listed
     judged = _gpu_check().judged_targets({"syncs": result})
     assert judged["env_syncs_per_step_march_minus_rough"]["met"] is True
     path.write_text(path.read_text().replace("env_rough 4", "env_rough 8"))
@@ -281,23 +288,23 @@ def test_the_gpu_check_judges_the_bench_targets_and_the_syncs():
         "ratio_ops_march_vs_rough",
         "ratio_nonphysics_march_vs_rough",
         "min_ratio_march_vs_rough",
-        "march_sync_lines_every_step",
+        "march_sync_lines_per_step",
         "env_syncs_per_step_march_minus_rough",
     ]
     assert all(j["met"] is None for j in nothing.values())
     bench = {"targets": {"ratio_ops_march_vs_rough": {"value": 1.09, "at_most": 1.5, "met": True}}}
-    cuda = {"cuda": True, "phases": ["teacher"], "march_lines_every_step": ["teacher m.py:1"]}
+    cuda = {"cuda": True, "phases": ["teacher"], "march_lines_per_step": ["teacher m.py:1"]}
     judged = judged_targets({"bench": bench, "syncs": cuda})
     assert judged["ratio_ops_march_vs_rough"]["met"] is True
     assert judged["ratio_nonphysics_march_vs_rough"]["met"] is None  # partial: not in the bench
-    assert judged["march_sync_lines_every_step"] == {"value": 1, "at_most": 0.0, "met": False}
+    assert judged["march_sync_lines_per_step"] == {"value": 1, "at_most": 0.0, "met": False}
     assert judged["env_syncs_per_step_march_minus_rough"]["met"] is None  # env parts not reached
-    clean = judged_targets({"syncs": {**cuda, "march_lines_every_step": []}})
-    assert clean["march_sync_lines_every_step"]["met"] is True
+    clean = judged_targets({"syncs": {**cuda, "march_lines_per_step": []}})
+    assert clean["march_sync_lines_per_step"]["met"] is True
     cpu = {**cuda, "cuda": False, "env_syncs_per_step": {"march": 0.0, "rough": 0.0}}
     assert all(j["met"] is None for j in judged_targets({"syncs": cpu}).values())
     stopped = {**cuda, "phases": []}  # killed before it recorded
-    assert judged_targets({"syncs": stopped})["march_sync_lines_every_step"]["met"] is None
+    assert judged_targets({"syncs": stopped})["march_sync_lines_per_step"]["met"] is None
 
 
 class _Thing:
@@ -449,14 +456,14 @@ def test_gpu_check_runs_at_tiny_sizes_on_cpu(tmp_path):
     assert set(bench["ops_per_step"]) == {"random", "standing"}
     assert bench["ops_per_step"]["random"]["march_teacher"] > 0
     syncs = (out / "syncs.tsv").read_text().splitlines()
-    assert syncs[0].startswith("# no CUDA") and "phase\tsource\tmarch\tmessage" in syncs
+    assert syncs[0].startswith("# no CUDA") and "phase\tstep\tsource\tmarch\tmessage" in syncs
     assert report["results"]["syncs"] == {
         "recorded": 0,
         "with_march_on_stack": 0,
         "cuda": False,
         "phases": ["teacher", "distill", "env_march", "env_rough"],
         "steps": {"teacher": 2, "distill": 2, "env_march": 2, "env_rough": 2},
-        "march_lines_every_step": [],
+        "march_lines_per_step": [],
         "env_syncs_per_step": {"march": 0.0, "rough": 0.0},
     }
     for arm in ("clf", "modelfree"):
@@ -476,6 +483,6 @@ def test_gpu_check_runs_at_tiny_sizes_on_cpu(tmp_path):
         report["targets"]["ratio_ops_march_vs_rough"]
         == bench["targets"]["ratio_ops_march_vs_rough"]
     )
-    for key in ("march_sync_lines_every_step", "env_syncs_per_step_march_minus_rough"):
+    for key in ("march_sync_lines_per_step", "env_syncs_per_step_march_minus_rough"):
         assert report["targets"][key]["met"] is None  # no CUDA: not measured
     assert sum(ln.startswith("[gpu_check] target ") for ln in res.stdout.splitlines()) == 5
