@@ -33,6 +33,10 @@ the check goes on with the phases that do not need its output):
    time compiled and eager, per workload, i.e. whether the gpu preset's compiled maths wins on
    this GPU.
 
+At the end ``analysis/bench_figure.py`` draws each bench JSON (``bench_env*.png``: non-physics
+ms per step by category, march against bare rough and flat, the 1.5x line), listed under
+``figures`` in ``gpu_check.json``.
+
 The bench phase also counts compute ops per env step on the GPU (``bench.op_steps``) and, with
 the gpu preset's ``compute.compile_math``, records what compiling cost: graphs and seconds per
 compiled function and the recompiles (``compile`` in ``bench_env.json`` and ``gpu_check.json``).
@@ -349,6 +353,23 @@ def compile_vs_eager(compiled: dict[str, Any], eager: dict[str, Any]) -> dict[st
     return out
 
 
+def draw_bench_figures(out: Path) -> list[str]:
+    """``analysis/bench_figure.py`` on the benches in ``out`` (where the non-physics time goes,
+    one PNG per bench JSON): the files it wrote. A figure is a reading aid: a failure to draw is
+    printed and fails nothing."""
+    if not any(out.glob("bench_env*.json")):
+        return []
+    cmd = [sys.executable, str(ROOT / "analysis" / "bench_figure.py"), str(out)]
+    try:
+        done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    except subprocess.TimeoutExpired:
+        print("[gpu_check] bench figures: timed out", flush=True)
+        return []
+    for line in (done.stdout + done.stderr).strip().splitlines()[-6:]:
+        print(f"[gpu_check] {line}", flush=True)
+    return sorted(p.name for p in out.glob("bench_env*.png"))
+
+
 def judged_targets(results: dict[str, Any]) -> dict[str, Any]:
     """The step's speed targets as the bench judged them (each not measured where the bench
     phase left no figure), and the sync targets, judged only where CUDA recorded the syncs
@@ -519,6 +540,7 @@ def main(argv: list[str] | None = None) -> int:
 
     records = [ph.record() for ph in phases]
     ok = bool(records) and not any(ph.failed() for ph in phases)
+    figures = draw_bench_figures(out)
     report = {
         "ok": ok,
         "mode": "cpu" if args.cpu else "gpu",
@@ -528,6 +550,7 @@ def main(argv: list[str] | None = None) -> int:
         "phases": records,
         "results": results,
         "targets": judged_targets(results),
+        "figures": figures,
     }
     (out / "gpu_check.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
     with (out / "gpu_check.csv").open("w", newline="") as f:

@@ -451,6 +451,7 @@ def test_gpu_check_runs_at_tiny_sizes_on_cpu(tmp_path):
     bench = json.loads((out / "bench_env.json").read_text())
     assert set(report["results"]["compile_vs_eager"]) == {"random", "standing"}
     assert "compute.compile_math=false" in phases["bench_eager"]["command"]
+    assert report["figures"] == ["bench_env.png", "bench_env_eager.png"]
     assert set(bench["workloads"]) == {"random", "standing"}
     assert phases["bench"]["files"] == ["bench_env.json"] and phases["bench"]["note"] == ""
     assert set(bench["ops_per_step"]) == {"random", "standing"}
@@ -486,3 +487,63 @@ def test_gpu_check_runs_at_tiny_sizes_on_cpu(tmp_path):
     for key in ("march_sync_lines_per_step", "env_syncs_per_step_march_minus_rough"):
         assert report["targets"][key]["met"] is None  # no CUDA: not measured
     assert sum(ln.startswith("[gpu_check] target ") for ln in res.stdout.splitlines()) == 5
+
+
+def _bench_figure():
+    import importlib.util
+
+    path = ROOT / "analysis" / "bench_figure.py"
+    spec = importlib.util.spec_from_file_location("bench_figure", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+BENCH_RESULT = ROOT / "docs" / "results" / "bench_env_cpu64_2026-12-03_session4_targets.json"
+
+
+def test_the_bench_figure_draws_every_non_physics_millisecond_of_a_real_bench(tmp_path):
+    """analysis/bench_figure.py on a committed 64-env bench: per workload and env the bar
+    segments add up to the bench's non-physics time (profiled minus physics, to the rounding of
+    the categories), the planner's segment is its profile section and with the rest of the
+    commands makes the commands category; the PNG, PDF and data CSV are written."""
+    import pandas as pd
+
+    fig = _bench_figure()
+    assert fig.main([str(BENCH_RESULT), "--out", str(tmp_path)]) == 0
+    stem = tmp_path / BENCH_RESULT.stem
+    assert stem.with_suffix(".png").stat().st_size > 10_000 and stem.with_suffix(".pdf").is_file()
+    data = pd.read_csv(tmp_path / f"{BENCH_RESULT.stem}_data.csv")
+    bench = json.loads(BENCH_RESULT.read_text())
+    assert set(data["workload"]) == {"random", "standing"}
+    for workload, result in bench["workloads"].items():
+        for env, nonphysics in result["nonphysics_ms_per_step"].items():
+            rows = data[(data["workload"] == workload) & (data["env"] == env)]
+            assert rows["ms"].sum() == pytest.approx(nonphysics, abs=0.01)
+            assert "physics" not in set(rows["category"])
+        march = data[(data["workload"] == workload) & (data["env"] == "march_teacher")]
+        by_cat = march.set_index("category")["ms"]
+        prof = result["profile"]["march_teacher"]
+        assert by_cat[fig.PLANNER] == prof["sections_ms"]["commands/planner"]
+        assert by_cat[fig.PLANNER] + by_cat["commands"] == pytest.approx(
+            prof["categories_ms"]["commands"]
+        )
+        rough = data[(data["workload"] == workload) & (data["env"] == "bare_rough")]
+        assert fig.PLANNER not in set(rough["category"])  # no planner in bare mjlab
+
+
+def test_the_bench_figure_reads_a_gpu_check_folder_and_refuses_bad_input(tmp_path, capsys):
+    fig = _bench_figure()
+    no_profile = {"device": "cuda", "workloads": {"random": {"steps_per_s": {}}}}
+    for name in ("bench_env.json", "bench_env.partial.json", "bench_env_eager.partial.json"):
+        (tmp_path / name).write_text(json.dumps(no_profile))
+    names = [p.name for p in fig.bench_files([tmp_path])]
+    assert names == ["bench_env.json", "bench_env_eager.partial.json"]  # finals win
+    assert fig.main([str(tmp_path)]) == 0
+    assert "no profile pass" in capsys.readouterr().out
+    (tmp_path / "bench_env.json").write_text("{")
+    assert fig.main([str(tmp_path / "bench_env.json")]) == 2
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1 and "not a bench JSON" in out[0]
+    assert fig.main([str(tmp_path / "missing.json")]) == 2
+    assert "no bench JSON at" in capsys.readouterr().out

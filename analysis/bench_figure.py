@@ -1,0 +1,202 @@
+"""Where a step's non-physics time goes: a picture of a ``python -m march.bench env`` result.
+
+Usage::
+
+    python analysis/bench_figure.py BENCH_JSON_OR_DIR [MORE ...] [--out DIR]
+
+A directory stands for the bench JSONs in it (``bench_env*.json`` of a GPU check's folder,
+partial files left out when the final file is there). Per JSON, ``<stem>.png`` (and ``.pdf``)
+in ``--out`` (default: beside the JSON): one panel per workload, a stacked bar per env (march
+teacher, bare rough, bare flat) of the profile pass's exclusive ms per control step by category,
+physics left out and the footstep planner apart from the other commands, at the first timed
+thread count; a dashed line at 1.5x bare rough's
+non-physics time (the step's target, ``march.bench.targets``); each env's label carries its
+compute ops per step. The title names the device, the envs and the targets the bench judged.
+``<stem>_data.csv`` holds every bar segment (workload, env, category, ms) so that the picture can
+be read back number by number.
+
+This script reads files only (pandas, matplotlib), never the simulator or the ``march`` package.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import pandas as pd  # noqa: E402
+
+ENVS = ("march_teacher", "bare_rough", "bare_flat")
+"""The bench's envs, in the order drawn."""
+PLANNER = "commands: planner"
+"""The footstep planner's share of ``commands`` (the profile's ``commands/planner`` section)."""
+CATEGORIES = (
+    PLANNER,
+    "commands",
+    "observations",
+    "rewards",
+    "terminations",
+    "actions",
+    "events",
+    "resets",
+    "curriculum",
+    "other",
+)
+"""The profile's non-physics categories, in stacking order (others, if any, go last)."""
+SHORT = {
+    "ratio_ops_march_vs_rough": "ops",
+    "ratio_nonphysics_march_vs_rough": "non-physics",
+    "min_ratio_march_vs_rough": "speed",
+}
+"""The title's names of the bench's targets (march / bare rough ratios)."""
+NONPHYSICS_BOUND = 1.5
+"""march.bench.targets' bound on march / bare rough's non-physics time (drawn as a line)."""
+
+
+def bench_files(paths: list[Path]) -> list[Path]:
+    """The bench JSONs named, a directory standing for its ``bench_env*.json`` (a partial file
+    only where its final file is missing)."""
+    found: list[Path] = []
+    for path in paths:
+        if path.is_dir():
+            names = sorted(path.glob("bench_env*.json"))
+            finals = {p.name for p in names if not p.name.endswith(".partial.json")}
+            found += [
+                p
+                for p in names
+                if not p.name.endswith(".partial.json")
+                or p.name.replace(".partial.json", ".json") not in finals
+            ]
+        else:
+            found.append(path)
+    return found
+
+
+def segments(bench: dict) -> pd.DataFrame:
+    """One row per bar segment: workload, env, category, ms (non-physics categories of the
+    profile at the first timed thread count, the planner's section apart from the rest of
+    ``commands``); empty where the bench ran no profile pass."""
+    rows = []
+    for workload, result in (bench.get("workloads") or {}).items():
+        for env, prof in (result.get("profile") or {}).items():
+            planner = (prof.get("sections_ms") or {}).get("commands/planner", 0.0)
+            for category, ms in (prof.get("categories_ms") or {}).items():
+                if category == "physics":
+                    continue
+                if category == "commands" and planner > 0:
+                    rows.append(
+                        {"workload": workload, "env": env, "category": PLANNER, "ms": planner}
+                    )
+                    ms -= planner
+                rows.append({"workload": workload, "env": env, "category": category, "ms": ms})
+    return pd.DataFrame(rows, columns=["workload", "env", "category", "ms"])
+
+
+def _title(bench: dict) -> str:
+    judged = bench.get("targets") or {}
+    verdicts = []
+    for key, j in judged.items():
+        if j.get("value") is None:
+            continue
+        name = SHORT.get(key, key)
+        bound = f"{'<=' if 'at_most' in j else '>='} {j.get('at_most', j.get('at_least'))}"
+        state = "met" if j.get("met") else "NOT MET"
+        verdicts.append(f"{name} {j['value']:.2f} ({bound}) {state}")
+    head = f"march.bench env: {bench.get('device', '?')}, {bench.get('num_envs', '?')} envs"
+    threads = bench.get("threads") or []
+    if threads:
+        head += f", profile at {threads[0]} thread(s)"
+    return head + ("\n" + "; ".join(verdicts) if verdicts else "")
+
+
+def draw(bench: dict, stem: Path) -> list[Path]:
+    """``stem``.png/.pdf and ``stem``_data.csv for one bench result; [] without a profile."""
+    data = segments(bench)
+    if data.empty:
+        return []
+    workloads = list(dict.fromkeys(data["workload"]))
+    order = [c for c in CATEGORIES if c in set(data["category"])]
+    order += sorted(set(data["category"]) - set(order))
+    colours = dict(zip(order, plt.get_cmap("tab10").colors, strict=False))
+    fig, axes = plt.subplots(
+        len(workloads), 1, figsize=(8.0, 1.2 + 1.6 * len(workloads)), squeeze=False
+    )
+    ops = bench.get("ops_per_step") or {}
+    for ax, workload in zip(axes[:, 0], workloads, strict=True):
+        rows = data[data["workload"] == workload]
+        envs = [e for e in ENVS if e in set(rows["env"])]
+        labels = []
+        for y, env in enumerate(envs):
+            left = 0.0
+            for category in order:
+                ms = float(rows[(rows["env"] == env) & (rows["category"] == category)]["ms"].sum())
+                if ms > 0:
+                    ax.barh(y, ms, left=left, color=colours[category], label=category)
+                    left += ms
+            n_ops = (ops.get(workload) or {}).get(env)
+            labels.append(env + (f"\n{n_ops:.0f} ops/step" if n_ops is not None else ""))
+        ax.set_yticks(range(len(envs)), labels)
+        ax.invert_yaxis()
+        rough = float(rows[rows["env"] == "bare_rough"]["ms"].sum())
+        if rough > 0:
+            ax.axvline(NONPHYSICS_BOUND * rough, color="k", linestyle="--", linewidth=1)
+            ax.text(
+                NONPHYSICS_BOUND * rough,
+                -0.6,
+                f" {NONPHYSICS_BOUND:g}x rough",
+                fontsize=8,
+                va="bottom",
+            )
+        ax.set_title(workload, fontsize=10, loc="left")
+        ax.set_xlabel("non-physics ms per control step (profile pass)")
+    handles, names = axes[0, 0].get_legend_handles_labels()
+    unique = dict(zip(names, handles, strict=True))
+    fig.legend(unique.values(), unique.keys(), loc="lower center", ncol=5, fontsize=8)
+    fig.suptitle(_title(bench), fontsize=9)
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    written = []
+    for ext in ("png", "pdf"):
+        path = stem.with_suffix(f".{ext}")
+        fig.savefig(path, dpi=120)
+        written.append(path)
+    plt.close(fig)
+    csv = stem.with_name(stem.name + "_data.csv")
+    data.to_csv(csv, index=False)
+    return [*written, csv]
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("paths", nargs="+", type=Path, help="bench JSONs or folders holding them")
+    p.add_argument("--out", type=Path, default=None, help="folder for the figures")
+    args = p.parse_args(argv)
+    files = bench_files(args.paths)
+    missing = [f for f in files if not f.is_file()]
+    if missing or not files:
+        print(f"bench_figure: no bench JSON at {', '.join(map(str, missing or args.paths))}")
+        return 2
+    status = 0
+    for path in files:
+        try:
+            bench = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as err:
+            print(f"bench_figure: {path}: not a bench JSON ({err})")
+            status = 2
+            continue
+        out = args.out or path.parent
+        out.mkdir(parents=True, exist_ok=True)
+        written = draw(bench, out / path.name.removesuffix(".json"))
+        if written:
+            print(f"bench_figure: {path} -> {', '.join(str(w) for w in written)}")
+        else:
+            print(f"bench_figure: {path}: no profile pass (bench.profile_steps=0), nothing drawn")
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main())
