@@ -4,8 +4,8 @@ Usage::
 
     python analysis/bench_figure.py BENCH_JSON_OR_DIR [MORE ...] [--out DIR]
 
-A directory stands for the bench JSONs in it (``bench_env*.json`` of a GPU check's folder,
-partial files left out when the final file is there). Per JSON, ``<stem>.png`` (and ``.pdf``)
+A directory stands for the bench JSONs in it (``bench_env*.json`` of a GPU check's folder; a
+partial file only where the final one is missing or unreadable). Per JSON, ``<stem>.png`` (and ``.pdf``)
 in ``--out`` (default: beside the JSON): one panel per workload, a stacked bar per env (march
 teacher, bare rough, bare flat) of the profile pass's exclusive ms per control step by category,
 physics left out and the footstep planner apart from the other commands, at the first timed
@@ -59,22 +59,30 @@ NONPHYSICS_BOUND = 1.5
 
 
 def bench_files(paths: list[Path]) -> list[Path]:
-    """The bench JSONs named, a directory standing for its ``bench_env*.json`` (a partial file
-    only where its final file is missing)."""
+    """The bench JSONs named, a directory standing for its ``bench_env*.json``: a partial file
+    only where its final file is missing or unreadable (a bench stopped while it printed)."""
     found: list[Path] = []
     for path in paths:
-        if path.is_dir():
-            names = sorted(path.glob("bench_env*.json"))
-            finals = {p.name for p in names if not p.name.endswith(".partial.json")}
-            found += [
-                p
-                for p in names
-                if not p.name.endswith(".partial.json")
-                or p.name.replace(".partial.json", ".json") not in finals
-            ]
-        else:
+        if not path.is_dir():
             found.append(path)
+            continue
+        names = sorted(path.glob("bench_env*.json"))
+        finals = {p.name for p in names if not p.name.endswith(".partial.json") and _readable(p)}
+        for p in names:
+            if p.name.endswith(".partial.json"):
+                if p.name.replace(".partial.json", ".json") not in finals:
+                    found.append(p)
+            elif p.name in finals:
+                found.append(p)
     return found
+
+
+def _readable(path: Path) -> bool:
+    try:
+        json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False
+    return True
 
 
 def segments(bench: dict) -> pd.DataFrame:

@@ -539,6 +539,10 @@ def test_the_bench_figure_reads_a_gpu_check_folder_and_refuses_bad_input(tmp_pat
         (tmp_path / name).write_text(json.dumps(no_profile))
     names = [p.name for p in fig.bench_files([tmp_path])]
     assert names == ["bench_env.json", "bench_env_eager.partial.json"]  # finals win
+    (tmp_path / "bench_env_eager.json").write_text('{"workl')  # stopped while it printed
+    names = [p.name for p in fig.bench_files([tmp_path])]
+    assert names == ["bench_env.json", "bench_env_eager.partial.json"]
+    (tmp_path / "bench_env_eager.json").unlink()
     assert fig.main([str(tmp_path)]) == 0
     assert "no profile pass" in capsys.readouterr().out
     (tmp_path / "bench_env.json").write_text("{")
