@@ -66,9 +66,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from march.bench.targets import STEP_TARGETS, SYNC_TARGETS, verdict_lines
-
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))  # run as a script: import this checkout's march
+
+from march.bench.targets import STEP_TARGETS, SYNC_TARGETS, verdict_lines  # noqa: E402
 
 GPU = {
     "compute": ["compute=gpu"],
