@@ -5,13 +5,13 @@ Usage::
     python analysis/bench_figure.py BENCH_JSON_OR_DIR [MORE ...] [--out DIR]
 
 A directory stands for the bench JSONs in it (``bench_env*.json`` of a GPU check's folder; a
-partial file only where the final one is missing or unreadable). Per JSON, ``<stem>.png`` (and ``.pdf``)
-in ``--out`` (default: beside the JSON): one panel per workload, a stacked bar per env (march
-teacher, bare rough, bare flat) of the profile pass's exclusive ms per control step by category,
-physics left out and the footstep planner apart from the other commands, at the first timed
-thread count; a dashed line at 1.5x bare rough's
-non-physics time (the step's target, ``march.bench.targets``); each env's label carries its
-compute ops per step. The title names the device, the envs and the targets the bench judged.
+partial file only where the final one is missing or unreadable). Per JSON, ``<stem>.png`` (and
+``.pdf``) in ``--out`` (default: beside the JSON): one panel per workload, a stacked bar per env
+(march teacher, bare rough, bare flat) of the profile pass's exclusive ms per control step by
+category, physics left out and the footstep planner apart from the other commands, at the first
+timed thread count; a dashed line at the non-physics target's bound times bare rough's time
+(the bound the bench judged, ``targets`` in its JSON; 1.5 for older JSONs without it); each
+env's label carries its compute ops per step. The title names the device, the envs and the targets the bench judged.
 ``<stem>_data.csv`` holds every bar segment (workload, env, category, ms) so that the picture can
 be read back number by number.
 
@@ -55,7 +55,8 @@ SHORT = {
 }
 """The title's names of the bench's targets (march / bare rough ratios)."""
 NONPHYSICS_BOUND = 1.5
-"""march.bench.targets' bound on march / bare rough's non-physics time (drawn as a line)."""
+"""march.bench.targets' bound on march / bare rough's non-physics time, for a bench JSON from
+before the bench judged its targets (a newer one carries the bound it judged)."""
 
 
 def bench_files(paths: list[Path]) -> list[Path]:
@@ -135,6 +136,8 @@ def draw(bench: dict, stem: Path) -> list[Path]:
         len(workloads), 1, figsize=(8.0, 1.2 + 1.6 * len(workloads)), squeeze=False
     )
     ops = bench.get("ops_per_step") or {}
+    judged = (bench.get("targets") or {}).get("ratio_nonphysics_march_vs_rough") or {}
+    bound = judged.get("at_most", NONPHYSICS_BOUND)
     for ax, workload in zip(axes[:, 0], workloads, strict=True):
         rows = data[data["workload"] == workload]
         envs = [e for e in ENVS if e in set(rows["env"])]
@@ -152,11 +155,11 @@ def draw(bench: dict, stem: Path) -> list[Path]:
         ax.invert_yaxis()
         rough = float(rows[rows["env"] == "bare_rough"]["ms"].sum())
         if rough > 0:
-            ax.axvline(NONPHYSICS_BOUND * rough, color="k", linestyle="--", linewidth=1)
+            ax.axvline(bound * rough, color="k", linestyle="--", linewidth=1)
             ax.text(
-                NONPHYSICS_BOUND * rough,
+                bound * rough,
                 -0.6,
-                f" {NONPHYSICS_BOUND:g}x rough",
+                f" {bound:g}x rough",
                 fontsize=8,
                 va="bottom",
             )

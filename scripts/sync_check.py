@@ -15,9 +15,9 @@ One line per sync (tab-separated): the phase, the env step of the part it follow
 first step's start to the second's, 0 before the first), the innermost frame outside torch
 (``file:line``), the innermost frame in march's own code (or ``-``: for a sync inside mjlab
 called from a march runner, that is the runner's line), and CUDA's message; then a count per
-source line at the end of the file. A ``# recorded:`` line names the phases in the file and a ``# steps:`` line the env
-steps of each: the file is rewritten after each part, so a run stopped by a time limit keeps
-what it recorded. On a machine without CUDA the steps run the same and the file says that
+source line at the end of the file. A ``# recorded:`` line names the phases in the file and a
+``# steps:`` line the env steps of each: the file is rewritten after each part, so a run
+stopped by a time limit keeps what it recorded. On a machine without CUDA the steps run the same and the file says that
 nothing could be recorded (the tests run it so).
 """
 
@@ -89,16 +89,16 @@ def _write(out: Path, hits: list[tuple[str, ...]], cuda: bool, steps: dict[str, 
 
 
 def _record_env_steps(
-    make: Any, steps: int, seed: int, cuda: bool, phase: dict[str, str], name: str
+    make: Any, steps: int, seed: int, cuda: bool, phase: dict[str, Any], name: str
 ) -> int:
     """Step the env ``make()`` builds ``steps`` times with random actions (drawn before the
     recording) under ``inference_mode``, as the rollouts do, recording its syncs as phase
-    ``name`` (after a reset and 5 warm-up steps); returns ``steps``."""
+    ``name`` (after a reset and 5 warm-up steps); returns the steps recorded."""
     import torch
 
     from march.bench.harness import Actions
 
-    env = make()
+    env = _counting_steps(make(), phase)
     try:
         draw = Actions(env, "random", seed)
         with torch.inference_mode():
@@ -109,17 +109,16 @@ def _record_env_steps(
             if cuda:
                 torch.cuda.synchronize()
                 torch.cuda.set_sync_debug_mode("warn")
-            phase["name"] = name
+            phase["name"], phase["step"] = name, 0
             try:
-                for i, a in enumerate(actions):
-                    phase["step"] = i + 1
+                for a in actions:
                     env.step(a)
             finally:
                 if cuda:
                     torch.cuda.set_sync_debug_mode(0)
     finally:
         env.close()
-    return steps
+    return phase["step"]
 
 
 def main(argv: list[str]) -> int:

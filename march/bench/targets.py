@@ -3,7 +3,8 @@
 ``python -m march.bench env`` ends with one line per target and writes them under ``targets``
 in its JSON (and in ``bench.partial``); ``scripts/gpu_check.py`` adds the sync targets from its
 ``syncs`` phase (no march line that syncs in more than one env step: a read once per iteration
-is allowed; march's env no more syncs per step than bare rough's), so that a GPU's first run says which targets hold without reading figures.
+is allowed; march's env no more syncs per step than bare rough's), so that a GPU's first run
+says which targets hold without reading figures.
 The targets come from the issue that made the step GPU-ready (docs/decisions.md, issue 20):
 
 - ``ratio_ops_march_vs_rough`` <= 1.5: compute ops (a GPU's kernel launches) per env step,
