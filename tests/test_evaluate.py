@@ -237,6 +237,9 @@ def _naive(tr) -> dict[str, list[float]]:
         out["abs_torque_nm"].append(sum(tq) / len(tq) if tq else math.nan)
         out["abs_ang_jerk"].append(sum(jk) / len(jk) if jk else math.nan)
         out["reward"].append(float(tr["reward"][: end + 1, i].double().sum()))
+        out["reward_per_step"].append(out["reward"][-1] / (end + 1))
+        out["torque_success"].append(out["abs_torque_nm"][-1] if won else math.nan)
+        out["jerk_success"].append(out["abs_ang_jerk"][-1] if won else math.nan)
     return out
 
 
@@ -485,7 +488,15 @@ def test_eval_columns_keep_the_names_figures_read():
         assert col in EVAL_COLUMNS
     for m in ("distance_m", "success_rate", "abs_torque_nm", "abs_ang_jerk", "reward"):
         assert f"mean_{m}" in EVAL_COLUMNS and f"se_{m}" in EVAL_COLUMNS
-    assert EVAL_COLUMNS[-2:] == ("n_torque", "n_jerk")
+    for m in ("reward_per_step", "torque_success", "jerk_success"):
+        assert f"mean_{m}" in EVAL_COLUMNS and f"se_{m}" in EVAL_COLUMNS
+    assert EVAL_COLUMNS[-5:] == (
+        "n_torque",
+        "n_jerk",
+        "n_torque_success",
+        "n_jerk_success",
+        "deferred_replans",
+    )
 
 
 def test_resume_truncation_keeps_other_stages(tmp_path):
@@ -579,7 +590,7 @@ def test_real_env_rollouts_on_stratified_cells_leave_training_rng_alone():
 
 def test_an_older_eval_csv_gets_the_new_columns(tmp_path):
     path = tmp_path / "eval.csv"
-    old = EVAL_COLUMNS[:-2]  # written before n_torque / n_jerk existed
+    old = EVAL_COLUMNS[:-5]  # written before the count columns existed
     append_row(path, old, {"stage": "student", "iteration": 1, "mean_distance_m": 1.5})
     append_row(path, EVAL_COLUMNS, {"stage": "student", "iteration": 2, "n_torque": 3})
     rows = _rows(path)

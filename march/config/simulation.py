@@ -42,6 +42,10 @@ class ComputeCfg:
     """Parallel environments for evaluation rollouts (at most eval.num_rollouts are used)."""
     torch_threads: int = 0
     """torch.set_num_threads on CPU; 0 keeps torch's default."""
+    dist_timeout_s: float = 300.0
+    """A run over N processes: the process group's timeout [s]. A rank that waits longer for
+    another one (dead, hung) stops the run with one line instead of holding every device
+    (docs/scaling.md)."""
     compile_math: bool = False
     """``torch.compile`` the pure maths of a step (``march.fusion``): the footstep planner's
     search, the step reference, the measured CLF outputs and the height scan. On in the gpu
@@ -58,6 +62,7 @@ class ComputeCfg:
             raise ConfigError(f"compute.device={self.device!r}: use cpu, cuda or cuda:N")
         _positive("compute", "num_envs", self.num_envs)
         _positive("compute", "eval_num_envs", self.eval_num_envs)
+        _positive("compute", "dist_timeout_s", self.dist_timeout_s)
         _need(
             "compute",
             "torch_threads",
@@ -190,6 +195,10 @@ class RewardCfg:
     """The arm's matplotlib colour in figures (empty: one no other arm uses)."""
     order: int = 100
     """The arm's position in legends and tables (lower first)."""
+    observe_reference: bool = False
+    """The teacher observes the planner's reference even when no term needs it (the planner
+    runs for it). A factorial control: modelfree with the clf teacher's reference observation
+    (``+sweep=factorial``) separates the CLF reward's effect from the observation's."""
     terms: dict[str, float] = field(default_factory=dict)
     """Reward term name -> weight. A penalty term returns a value <= 0 and carries a positive
     weight, so every weight here is the sign the term's contribution has (SPEC §2)."""

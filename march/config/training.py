@@ -281,6 +281,11 @@ class EvalCfg:
     """Depth corruption (noise, dropout, delay) as in training."""
     randomization: bool = True
     """Domain randomization as in training."""
+    pushes: bool = True
+    """The velocity pushes of the DR table (every 10-15 s) during evaluation. On by default
+    (evaluation under training's DR); false evaluates the undisturbed gait. Either way both arms
+    get the same pushes at the same steps, and the headline gait metrics are taken over
+    successful rollouts (docs/decisions.md, "Gait metrics and pushes")."""
     policy: str = "student"
     """Which policy to evaluate in stage=eval: student or teacher."""
 

@@ -44,11 +44,12 @@ from march.env.course import course_levels
 from march.env.depth import corrupt, depth_camera_cfg, normalize
 from march.env.nonfinite import nonfinite_termination
 from march.env.observations import reference_obs, stones_ahead, terrain_height_scan
-from march.env.randomization import apply_dr
+from march.env.randomization import T_PUSH, apply_dr
 from march.env.reference_command import ReferenceCommandCfg
 from march.env.rewards import REFERENCE_COMMAND, needs_reference, reward_terms
 from march.env.stone_terrain import terrain_entity_cfg
 from march.env.terminations import foot_too_low, goal_reached, planner_infeasible
+from march.env.velocity_command import sync_free
 
 PURPOSES = ("teacher", "student", "eval")
 COURSE_HEADING = 0.0
@@ -347,11 +348,19 @@ def build_env_cfg(
         ang_vel_z=tuple(cfg.env.command_yaw_rate),
         heading=(COURSE_HEADING, COURSE_HEADING),
     )
+    # The same command without mjlab's per-step host syncs (march.env.velocity_command).
+    env_cfg.commands["twist"] = sync_free(twist)
 
     if needs_reference(cfg.reward):
         # Stage (1): planner + HLIP/Bezier reference + CLF state (march.env.reference_command).
+        # Evaluation plans every env that touches down in the step it touches down (capacity =
+        # all envs): a wave resets every env at once, so a training-sized batch would defer
+        # touchdowns (the clf arm scored with a stale reference meanwhile). Training keeps its
+        # fixed share (replan_capacity_fraction).
         env_cfg.commands[REFERENCE_COMMAND] = ReferenceCommandCfg(
-            planner_seed=cfg.seed, compile_math=cfg.compute.compile_math
+            planner_seed=cfg.seed,
+            compile_math=cfg.compute.compile_math,
+            **({"replan_capacity_fraction": 1.0} if purpose == "eval" else {}),
         )
 
     env_cfg.observations = _observations(cfg, purpose)
@@ -361,6 +370,8 @@ def build_env_cfg(
     camera = cfg.depth.name if purpose in ("student", "eval") else None
     dr = cfg.dr if purpose != "eval" or cfg.eval.randomization else replace(cfg.dr, name="none")
     apply_dr(env_cfg, dr, camera=camera)
+    if purpose == "eval" and not cfg.eval.pushes:
+        env_cfg.events.pop(T_PUSH, None)
     env_cfg.metrics = {}
     env_cfg.scene.sensors = _air_time_if_read(env_cfg)
     return env_cfg

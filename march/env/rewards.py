@@ -244,8 +244,13 @@ def available_terms() -> list[str]:
 
 
 def needs_reference(reward: RewardCfg) -> bool:
-    """Whether the env needs the ``reference`` command term: reward=clf, or any CLF term."""
-    return reward.name == "clf" or any(t in reward.terms for t in CLF_TERMS)
+    """Whether the env needs the ``reference`` command term: reward=clf, any CLF term, or a
+    teacher that observes the reference (``reward.observe_reference``)."""
+    return (
+        reward.name == "clf"
+        or reward.observe_reference
+        or any(t in reward.terms for t in CLF_TERMS)
+    )
 
 
 def reward_terms(reward: RewardCfg) -> dict[str, RewardTermCfg]:

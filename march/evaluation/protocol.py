@@ -48,11 +48,19 @@ import torch
 
 from march.config import MarchConfig
 from march.env.build import SUCCESS_TERMINATION, reseed_env
-from march.env.course import CourseRuler, assign_eval_cells
+from march.env.course import CourseRuler, assign_eval_cells, eval_cells
 from march.env.depth import camera_paused
 from march.learn.checkpoint import write_json_atomic
 from march.learn.distributed import eval_share, gather_rollouts
-from march.learn.metrics import EVAL_COLUMNS, EVAL_METRICS, append_row
+from march.learn.metrics import (
+    EVAL_COLUMNS,
+    EVAL_LEVEL_COLUMNS,
+    EVAL_METRICS,
+    EVAL_ROLLOUT_COLUMNS,
+    append_row,
+    append_rows,
+    truncate_rows,
+)
 
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv
@@ -86,6 +94,7 @@ def episode_metrics(
     goal_distance: torch.Tensor,
     dt: float,
     reached: torch.Tensor | None = None,
+    deferred: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
     """Per-rollout metrics of E rollouts from T recorded control steps (pure tensor arithmetic).
 
@@ -101,8 +110,12 @@ def episode_metrics(
     truncated or reached (a rollout still running at step T-1 counts as timed out there). Its
     live steps are t < end_e. Success: reached at end_e and not terminated (a fall) there.
     Distance: the goal distance for a success, else ``progress[end_e]`` (never past the goal).
+    ``deferred[t]`` (E,): env-steps a due replan waited for the planner in step t (the replan
+    queue's counter increments; None: no planner), summed over the episode's steps.
     Returns (E,) tensors keyed by ``EVAL_METRICS`` (torque NaN with no live step, jerk with
-    fewer than 3) and ``episode_steps`` (end_e + 1, the control steps of the episode).
+    fewer than 3; ``torque_success`` / ``jerk_success`` the same values for successful rollouts,
+    NaN for the others; ``reward_per_step`` the return / ``episode_steps``), ``episode_steps``
+    (end_e + 1, the control steps of the episode) and ``deferred_replans``.
     """
     t_len, e = reward.shape
     if torque.shape != (t_len, e) or ang_vel.shape != (t_len, e, 3):
@@ -145,13 +158,22 @@ def episode_metrics(
     last_progress = torch.minimum(progress.double().gather(0, idx).squeeze(0), goal)
     distance = torch.where(success, goal, last_progress)
     ret = torch.where(in_episode, reward.double(), 0.0).sum(0)
+    steps = (end + 1).double()
+    if deferred is None:
+        deferred_sum = torch.zeros(e, device=dev, dtype=torch.float64)
+    else:
+        deferred_sum = torch.where(in_episode, deferred.double(), 0.0).sum(0)
     return {
         "distance_m": distance,
         "success_rate": success.double(),
         "abs_torque_nm": abs_torque,
         "abs_ang_jerk": abs_jerk,
         "reward": ret,
-        "episode_steps": (end + 1).double(),
+        "reward_per_step": ret / steps,
+        "torque_success": torch.where(success, abs_torque, nan),
+        "jerk_success": torch.where(success, abs_jerk, nan),
+        "episode_steps": steps,
+        "deferred_replans": deferred_sum,
     }
 
 
@@ -166,9 +188,75 @@ def summarise(per_rollout: dict[str, torch.Tensor]) -> dict[str, float | int]:
         n = x.numel()
         out[f"mean_{name}"] = x.mean().item() if n else float("nan")
         out[f"se_{name}"] = (x.std(unbiased=True).item() / math.sqrt(n)) if n > 1 else float("nan")
-    out["n_torque"] = int(torch.isfinite(per_rollout["abs_torque_nm"]).sum())
-    out["n_jerk"] = int(torch.isfinite(per_rollout["abs_ang_jerk"]).sum())
+    for count, name in COUNTED.items():
+        out[count] = int(torch.isfinite(per_rollout[name]).sum())
+    deferred = per_rollout.get("deferred_replans")
+    out["deferred_replans"] = 0 if deferred is None else int(deferred.sum())
     return out
+
+
+COUNTED = {
+    "n_torque": "abs_torque_nm",
+    "n_jerk": "abs_ang_jerk",
+    "n_torque_success": "torque_success",
+    "n_jerk_success": "jerk_success",
+}
+"""eval.csv count column -> the metric whose defined (finite) rollouts it counts."""
+
+
+def _nanmean(x: torch.Tensor) -> float:
+    x = x[torch.isfinite(x)]
+    return x.mean().item() if x.numel() else float("nan")
+
+
+def level_rows(per_rollout: dict[str, torch.Tensor], stage: str, iteration: int) -> list[dict]:
+    """eval_levels.csv rows: per difficulty level, its rollouts and mean metrics (NaN where no
+    rollout of the level defines the metric)."""
+    rows = []
+    levels = per_rollout["level"].long()
+    for level in sorted(set(levels.tolist())):
+        at = levels == level
+        rows.append(
+            {
+                "stage": stage,
+                "iteration": iteration,
+                "level": level,
+                "rollouts": int(at.sum()),
+                "success": _nanmean(per_rollout["success_rate"][at].double()),
+                "distance": _nanmean(per_rollout["distance_m"][at].double()),
+                "torque": _nanmean(per_rollout["abs_torque_nm"][at].double()),
+                "jerk": _nanmean(per_rollout["abs_ang_jerk"][at].double()),
+                "torque_success": _nanmean(per_rollout["torque_success"][at].double()),
+                "jerk_success": _nanmean(per_rollout["jerk_success"][at].double()),
+            }
+        )
+    return rows
+
+
+def rollout_rows(per_rollout: dict[str, torch.Tensor], stage: str, iteration: int) -> list[dict]:
+    """eval_rollouts.csv rows: one per rollout, in rollout order, with its course cell."""
+    cols = {
+        "level": "level",
+        "column": "column",
+        "success": "success_rate",
+        "distance": "distance_m",
+        "torque": "abs_torque_nm",
+        "jerk": "abs_ang_jerk",
+        "reward": "reward",
+        "reward_per_step": "reward_per_step",
+        "episode_steps": "episode_steps",
+        "deferred_replans": "deferred_replans",
+    }
+    values = {k: per_rollout[v].double().tolist() for k, v in cols.items()}
+    ints = ("level", "column", "success", "episode_steps", "deferred_replans")
+    rows = []
+    for i in range(len(values["level"])):
+        row: dict[str, Any] = {"stage": stage, "iteration": iteration, "rollout": i}
+        for k in cols:
+            v = values[k][i]
+            row[k] = int(v) if k in ints else v
+        rows.append(row)
+    return rows
 
 
 @torch.no_grad()
@@ -179,10 +267,15 @@ def _wave(env: ManagerBasedRlEnv, policy: Policy, ruler: CourseRuler) -> dict[st
     goal = ruler.goal_distance.clone()
     keys = ("torque", "ang_vel", "reward", "terminated", "truncated", "progress", "reached")
     rec: dict[str, list[torch.Tensor]] = {k: [] for k in keys}
+    queue = replan_queue(env)
+    deferred: list[torch.Tensor] = []
     finished = torch.zeros(env.num_envs, dtype=torch.bool, device=env.device)
     for _ in range(int(env.max_episode_length) + 1):
         rec["progress"].append(ruler.progress())
+        before = None if queue is None else queue.deferred_count.clone()
         obs, reward, terminated, truncated, _ = env.step(policy(obs))
+        if queue is not None:
+            deferred.append(queue.deferred_count - before)
         rec["torque"].append(robot.data.actuator_force.abs().mean(-1))
         rec["ang_vel"].append(robot.data.root_link_ang_vel_b.clone())
         # mjlab returns its own reward / termination buffers, rewritten in place every step.
@@ -206,7 +299,17 @@ def _wave(env: ManagerBasedRlEnv, policy: Policy, ruler: CourseRuler) -> dict[st
         goal,
         env.step_dt,
         s["reached"],
+        torch.stack(deferred) if deferred else None,
     )
+
+
+def replan_queue(env: ManagerBasedRlEnv):
+    """The reference command's replan queue (march.env.replan_queue), or None (no planner)."""
+    from march.env.rewards import REFERENCE_COMMAND
+
+    if REFERENCE_COMMAND not in env.command_manager.active_terms:
+        return None
+    return getattr(env.command_manager.get_term(REFERENCE_COMMAND), "queue", None)
 
 
 def _eval_rng(env: ManagerBasedRlEnv):
@@ -235,6 +338,10 @@ def rollout_metrics(
             assign_eval_cells(env, first + total)
             per = _wave(env, policy, ruler)
             take = min(env.num_envs, num_rollouts - total)
+            rows, cols = env.scene.terrain.terrain_origins.shape[:2]
+            level, column = eval_cells(first + total, take, rows, cols)
+            dev = per["reward"].device
+            per = {**per, "level": level.to(dev), "column": column.to(dev)}
             for k, v in per.items():
                 collected.setdefault(k, []).append(v[:take])
             total += take
@@ -266,6 +373,14 @@ def evaluate(
         **summarise(per),
     }
     append_row(run_dir / "eval.csv", EVAL_COLUMNS, row)
+    # The side files follow eval.csv: rows of a resumed run's re-done evaluations replace the
+    # ones written before the kill (eval.csv itself is truncated by the runners on resume).
+    for side in ("eval_levels.csv", "eval_rollouts.csv"):
+        truncate_rows(run_dir / side, stage, iteration - 1)
+    append_rows(run_dir / "eval_levels.csv", EVAL_LEVEL_COLUMNS, level_rows(per, stage, iteration))
+    append_rows(
+        run_dir / "eval_rollouts.csv", EVAL_ROLLOUT_COLUMNS, rollout_rows(per, stage, iteration)
+    )
     return row
 
 

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import csv
+import errno
 import math
 import os
 import time
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
-from march.config import LoggerCfg
+from march.config import ConfigError, LoggerCfg
 from march.learn.checkpoint import replace_durably, write_text_durably
 from march.learn.distributed import writes_files
 
@@ -39,15 +40,78 @@ METRIC_COLUMNS = (
     # the planner batch in the iteration (>= the replans deferred; march.env.replan_queue)
 )
 
-EVAL_METRICS = ("distance_m", "success_rate", "abs_torque_nm", "abs_ang_jerk", "reward")
+EVAL_METRICS = (
+    "distance_m",
+    "success_rate",
+    "abs_torque_nm",
+    "abs_ang_jerk",
+    "reward",
+    "reward_per_step",
+    "torque_success",
+    "jerk_success",
+)
 EVAL_COLUMNS = (
     ("stage", "iteration", "env_steps", "n_rollouts")
     + tuple(f"{p}_{m}" for m in EVAL_METRICS for p in ("mean", "se"))
-    + ("n_torque", "n_jerk")
+    + ("n_torque", "n_jerk", "n_torque_success", "n_jerk_success", "deferred_replans")
 )
 """eval.csv: one row per evaluation. ``stage`` is teacher (the teacher during PPO, iteration and
 env_steps of the teacher) or student (during distillation and the final evaluation);
-``n_torque`` / ``n_jerk`` count the rollouts long enough for the torque / jerk means."""
+``n_torque`` / ``n_jerk`` count the rollouts long enough for the torque / jerk means,
+``n_torque_success`` / ``n_jerk_success`` the successful ones behind ``torque_success`` /
+``jerk_success`` (the same metrics over successful rollouts only: gait without falls);
+``reward_per_step`` is the episode return / its control steps (the ablation metric: it does not
+pay for standing); ``deferred_replans`` the env-steps a due touchdown waited for the planner
+over all rollouts (0 by construction: the evaluation env plans every touchdown at once).
+
+EVAL_LEVEL_COLUMNS (eval_levels.csv): per evaluation and difficulty level, the rollouts and the
+means of success, distance, torque, jerk (all and successful rollouts).
+EVAL_ROLLOUT_COLUMNS (eval_rollouts.csv): one row per rollout of every evaluation, with its
+course cell (level, column): every arm of one seed runs rollout i on the same cell under the same
+randomisation draws, so analysis can pair arms cell by cell."""
+EVAL_LEVEL_COLUMNS = (
+    "stage",
+    "iteration",
+    "level",
+    "rollouts",
+    "success",
+    "distance",
+    "torque",
+    "jerk",
+    "torque_success",
+    "jerk_success",
+)
+EVAL_ROLLOUT_COLUMNS = (
+    "stage",
+    "iteration",
+    "rollout",
+    "level",
+    "column",
+    "success",
+    "distance",
+    "torque",
+    "jerk",
+    "reward",
+    "reward_per_step",
+    "episode_steps",
+    "deferred_replans",
+)
+
+
+def open_run_file(path: Path, mode: str = "a") -> IO[str]:
+    """``path`` opened for writing (``a``: append, ``w``: truncate) without following a link:
+    a symbolic link there is refused in one line, and nothing is written through it."""
+    how = os.O_APPEND if mode == "a" else os.O_TRUNC
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC | how, 0o644)
+    except OSError as err:
+        if err.errno != errno.ELOOP:
+            raise
+        raise ConfigError(
+            f"{path} is a symbolic link; march writes no run file through a link (remove it, "
+            "then continue with resume=<run dir>)"
+        ) from None
+    return os.fdopen(fd, mode, newline="")
 
 
 def drop_torn_row(path: Path) -> bool:
@@ -92,7 +156,7 @@ def truncate_rows(path: Path, stage: str, after_iteration: int) -> None:
     if len(keep) == len(rows):
         return
     tmp = path.with_suffix(".tmp")
-    with tmp.open("w", newline="") as f:
+    with open_run_file(tmp, "w") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
         writer.writeheader()
         writer.writerows(keep)
@@ -113,9 +177,14 @@ def has_row(path: Path, stage: str, iteration: int) -> bool:
 
 
 def append_row(path: Path, columns: tuple[str, ...], row: dict[str, Any]) -> None:
-    """Append ``row`` under ``columns``; a file written with other columns (an older run being
-    resumed) is first rewritten under the current ones, its missing values left empty.
-    In a run over N processes only rank 0 writes (march.learn.distributed)."""
+    """Append ``row`` under ``columns`` (:func:`append_rows` with one row)."""
+    append_rows(path, columns, [row])
+
+
+def append_rows(path: Path, columns: tuple[str, ...], rows: list[dict[str, Any]]) -> None:
+    """Append ``rows`` under ``columns`` in one write; a file written with other columns (an
+    older run being resumed) is first rewritten under the current ones, its missing values left
+    empty. In a run over N processes only rank 0 writes (march.learn.distributed)."""
     if not writes_files():
         return
     new = not path.is_file()
@@ -126,7 +195,7 @@ def append_row(path: Path, columns: tuple[str, ...], row: dict[str, Any]) -> Non
             with path.open(newline="") as f:
                 old_rows = list(csv.DictReader(f))
             tmp = path.with_suffix(".tmp")
-            with tmp.open("w", newline="") as f:
+            with open_run_file(tmp, "w") as f:
                 writer = csv.DictWriter(f, fieldnames=list(columns), extrasaction="ignore")
                 writer.writeheader()
                 writer.writerows(old_rows)
@@ -134,11 +203,11 @@ def append_row(path: Path, columns: tuple[str, ...], row: dict[str, Any]) -> Non
                 os.fsync(f.fileno())
             replace_durably(tmp, path)
     # One row per iteration: flushed and fsynced before the iteration's checkpoint is written.
-    with path.open("a", newline="") as f:
+    with open_run_file(path, "a") as f:
         writer = csv.DictWriter(f, fieldnames=list(columns), extrasaction="ignore")
         if new:
             writer.writeheader()
-        writer.writerow({k: _fmt(row.get(k)) for k in columns})
+        writer.writerows({k: _fmt(row.get(k)) for k in columns} for row in rows)
         f.flush()
         os.fsync(f.fileno())
 
