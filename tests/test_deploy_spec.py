@@ -347,3 +347,44 @@ def test_delays_match_the_mjlab_env_with_the_same_delays(bundle, smoke_run):
     assert loop(3, 1)[0] > DELAY_JOINT_TOL_RAD  # one physics step too early
     assert loop(5, 1)[0] > DELAY_JOINT_TOL_RAD  # one physics step too late
     assert loop(4, 0)[1] > DELAY_DEPTH_MAD_TOL  # the depth delay left out
+
+
+def test_the_bundles_motor_table_is_the_simulated_robots_wiring():
+    """Two tables written apart (the export's claim, the simulated robot's wiring) agree."""
+    from march.export.deploy_terms import G1_MOTOR_ORDER
+    from march.sim2sim.motors import G1_MOTOR_WIRING
+
+    assert G1_MOTOR_ORDER == G1_MOTOR_WIRING
+    assert len(set(G1_MOTOR_WIRING)) == 29
+
+
+@pytest.mark.sim
+def test_onnx_metadata_carries_the_joint_table_as_mjlab_does(spec, bundle):
+    from march.export.onnx_graph import read_onnx_metadata
+
+    meta = read_onnx_metadata(bundle)
+    joints = spec["joints"]
+    assert meta["joint_names"].split(",") == [j["name"] for j in joints]
+    kp = [float(v) for v in meta["joint_stiffness"].split(",")]
+    kd = [float(v) for v in meta["joint_damping"].split(",")]
+    np.testing.assert_allclose(kp, [j["kp"] for j in joints], rtol=1e-8)
+    np.testing.assert_allclose(kd, [j["kd"] for j in joints], rtol=1e-8)
+    assert [int(v) for v in meta["motor_index"].split(",")] == [j["motor_index"] for j in joints]
+    assert json.loads(meta["joint_table"]) == joints
+
+
+@pytest.mark.sim
+def test_command_frame_is_the_body_frame_training_tracks(spec):
+    terms = {t["name"]: t for t in spec["observation"]["terms"]}
+    frame = terms["command"]["frame"]
+    assert "body" in frame and "root_link_lin_vel_b" in frame and "course frame" not in frame
+    assert "body" in spec["command_ranges"]["meaning"]
+    assert "course frame" not in json.dumps(spec)
+    d = spec["deploy"]
+    assert (d["msg_type"], d["lowcmd_topic"], d["lowstate_topic"]) == (
+        "hg",
+        "rt/lowcmd",
+        "rt/lowstate",
+    )
+    assert d["heading_reference"] == "imu_yaw" and d["measured_latency_ms"] > 0
+    assert len(d["joint_vel_limits"]) == 29 and min(d["joint_vel_limits"]) == 20.0

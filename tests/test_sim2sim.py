@@ -223,7 +223,7 @@ def test_bundle_is_self_describing(bundle):
     from march.sim2sim.deploy_bundle import Bundle
 
     spec = json.loads(bundle.with_suffix(".deploy.json").read_text())
-    assert spec["format"] == 2 and spec["onnx"]["file"] == "student.onnx"
+    assert spec["format"] == 3 and spec["onnx"]["file"] == "student.onnx"
     assert spec["rates"]["decimation"] * spec["rates"]["physics_dt_s"] == pytest.approx(0.02)
     assert len(spec["action"]["joint_names"]) == len(spec["action"]["scale"]) == 29
     assert [t["name"] for t in spec["observation"]["proprio_terms"]] == [

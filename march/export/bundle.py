@@ -225,12 +225,78 @@ def write_bundle(
             "cells": course_cells(env_cfg, scene),
         }
     assert spec is not None
+    attach_joint_table(onnx_path, spec["joints"])  # before its SHA-256 is taken
+    spec["deploy"]["measured_latency_ms"] = float(extra["latency_ms_p95"])
     spec["onnx"] = {"file": onnx_path.name, "sha256": _sha256(onnx_path), **extra}
     spec["courses"] = courses
     from march.learn.checkpoint import write_json_atomic
 
     write_json_atomic(spec, files["json"])
     return files
+
+
+def joint_table_metadata(joints: list[dict[str, Any]]) -> dict[str, str]:
+    """The joint table as ONNX metadata: mjlab's keys and format (``joint_names``,
+    ``joint_stiffness``, ``joint_damping``: comma-separated, policy order, as
+    ``mjlab.rl.exporter_utils.get_base_metadata``), plus ``motor_index`` (the Unitree motor slot
+    of each policy joint) and ``joint_table`` (every row of ``deploy.json`` ``joints``, JSON)."""
+
+    def csv(values: list[Any]) -> str:
+        return ",".join(f"{v:.9g}" if isinstance(v, float) else str(v) for v in values)
+
+    return {
+        "joint_names": ",".join(j["name"] for j in joints),
+        "joint_stiffness": csv([float(j["kp"]) for j in joints]),
+        "joint_damping": csv([float(j["kd"]) for j in joints]),
+        "motor_index": csv([int(j["motor_index"]) for j in joints]),
+        "joint_table": json.dumps(joints),
+    }
+
+
+def attach_joint_table(onnx_path: Path, joints: list[dict[str, Any]]) -> None:
+    """Add :func:`joint_table_metadata` to the ONNX file's ``metadata_props`` (atomic)."""
+    import os
+
+    import onnx
+
+    proto = onnx.load(str(onnx_path))
+    props = {e.key: e.value for e in proto.metadata_props}
+    props.update(joint_table_metadata(joints))
+    onnx.helper.set_model_props(proto, props)
+    tmp = onnx_path.with_name(onnx_path.name + ".tmp")
+    onnx.save(proto, str(tmp))
+    os.replace(tmp, onnx_path)
+
+
+def output_path(out_arg: str, ckpt: str) -> Path:
+    """Where the ONNX file goes, checked before any work: ``out`` a ``.onnx`` file (replaced if
+    it is one), a folder (created), or none (beside the checkpoint). Refused in one line: an
+    existing non-folder given as the folder, a folder or a link where the files go, a parent
+    that is a file or cannot be written."""
+    import os
+
+    if not out_arg:
+        out = Path(ckpt).resolve().parent / DEFAULT_NAME
+    elif out_arg.lower().endswith(".onnx"):
+        out = Path(out_arg)
+    else:
+        folder = Path(out_arg)
+        if folder.exists() and not folder.is_dir():
+            fail(f"out={out_arg}: exists and is not a folder (give a folder or a .onnx file)")
+        out = folder / DEFAULT_NAME  # a folder: the bundle goes inside
+    for f in (out, *bundle_files(out).values()):
+        if f.is_symlink():
+            fail(f"out={out_arg}: {f} is a symbolic link; not written through")
+        if f.exists() and not f.is_file():
+            fail(f"out={out_arg}: {f} exists and is not a file")
+    parent = out.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        fail(f"out={out_arg}: {parent} is not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        fail(f"out={out_arg}: {parent} is not writable")
+    return out
 
 
 def export(cfg: MarchConfig, overrides: Sequence[str] = ()) -> dict[str, Any]:
@@ -241,6 +307,7 @@ def export(cfg: MarchConfig, overrides: Sequence[str] = ()) -> dict[str, Any]:
     path = cfg.student_ckpt
     if not path:
         fail(f"give student_ckpt=<file> (outputs/<run>/student/latest.pt). {USAGE}")
+    out = output_path(cfg.out, path)  # refused before any work
     try:
         payload = load_checkpoint(path, "student", "cpu")
     except CheckpointError as err:
@@ -249,14 +316,6 @@ def export(cfg: MarchConfig, overrides: Sequence[str] = ()) -> dict[str, Any]:
         cfg = apply_checkpoint_config(cfg, payload, overrides, path, "student")
     except ConfigError as err:
         fail(_one_line(err))
-    if not cfg.out:
-        out = Path(path).resolve().parent / DEFAULT_NAME
-    elif cfg.out.lower().endswith(".onnx"):
-        out = Path(cfg.out)
-    else:
-        out = Path(cfg.out) / DEFAULT_NAME  # a folder: the bundle goes inside
-    if out.exists() and not out.is_file():
-        fail(f"out={cfg.out}: {out} exists and is not a file")
     from march.export.onnx_graph import export_student_onnx  # torch, rsl-rl, onnx: after the checks
 
     policy = rebuild_student(payload, path, cfg.student)
@@ -273,7 +332,7 @@ def export(cfg: MarchConfig, overrides: Sequence[str] = ()) -> dict[str, Any]:
         f"p95 {result['latency_ms_p95']:.3f} ms (onnxruntime, batch 1, one thread)"
     )
     print(f"wrote {result['path']}")
-    extra = {k: result[k] for k in ("max_abs_diff", "latency_ms_median", "opset")}
+    extra = {k: result[k] for k in ("max_abs_diff", "latency_ms_median", "latency_ms_p95", "opset")}
     bundle = write_bundle(cfg, payload, out, extra)
     if isinstance(bundle, str):
         print(f"no deployment bundle: the checkpoint's layout does not fit the G1 env ({bundle})")

@@ -26,10 +26,11 @@ from march.export.deploy_terms import (
     latency_ranges,
     observation_terms,
     portable_path,
+    robot_section,
     training_range,
 )
 
-BUNDLE_FORMAT = 2
+BUNDLE_FORMAT = 3
 """Version of the ``<stem>.deploy.json`` layout; march.sim2sim refuses other versions."""
 
 
@@ -225,6 +226,7 @@ def deployment_spec(
             "command": "the command section's (v_x, v_y, yaw rate) of this step",
             "when": "after the control step's last physics step and mj_forward (as mjlab)",
         },
+        "deploy": robot_section(bare_names, physics_dt * int(env_cfg.decimation)),
         "command": _command_spec(env_cfg),
         "command_ranges": command_ranges(trained.get("env") or asdict_env(cfg)),
         "latency": latency_ranges(trained or {"dr": asdict_section(cfg.dr)}, physics_dt),

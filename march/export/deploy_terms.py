@@ -197,8 +197,11 @@ def observation_terms(
             joints,
         ),
         "command": (
-            "course frame (v_x along the course, v_y across it, yaw rate about world z)",
-            "the velocity command of this step (the command section)",
+            "body (heading) frame, as training tracks it: v_x forward and v_y left along the "
+            "root body's own x / y axes (mjlab's UniformVelocityCommand against "
+            "root_link_lin_vel_b), yaw rate about the body's z (root_link_ang_vel_b)",
+            "the velocity command of this step (the command section); on the robot the yaw "
+            "rate comes from the heading controller on the IMU's yaw (heading_reference)",
             ["v_x", "v_y", "yaw_rate"],
         ),
     }
@@ -231,7 +234,8 @@ def command_ranges(env: dict[str, Any]) -> dict[str, Any]:
         "lin_vel_x": [float(v) for v in env["command_vx"]],
         "lin_vel_y": [float(v) for v in env["command_vy"]],
         "ang_vel_z": [float(v) for v in env["command_yaw_rate"]],
-        "meaning": "m/s, m/s, rad/s in the course frame; v_x drawn once per episode, v_y as "
+        "meaning": "m/s, m/s, rad/s in the robot's body (heading) frame, as training tracks "
+        "it (root_link_lin_vel_b, root_link_ang_vel_b z); v_x drawn once per episode, v_y as "
         "drawn (0 when the range is [0, 0]), the yaw rate from the heading controller clipped to "
         "ang_vel_z; a command outside these ranges is refused (march.sim2sim.guard)",
     }
@@ -282,3 +286,83 @@ REAL_DEPTH_RECIPE = [
     "(d - min_range_m) / (max_range_m - min_range_m) -> [0, 1].",
     "4. Feed as depth (1, 1, 24, 32) float32, row 0 at the top of the image.",
 ]
+
+
+G1_MODE_MACHINE = 5
+"""``LowState_.mode_machine`` of a 29-DoF G1 (unitree_sdk2's G1 notes: 4 = 23-DoF, 5 = 29-DoF,
+6 = 27-DoF, waist locked); ``march.robot`` refuses a LowState of another variant."""
+G1_MODE_PR = 0
+"""``LowCmd_.mode_pr``: 0 = PR (ankle and waist commanded as pitch / roll joints, the joints of
+this policy), 1 = AB (the parallel linkage's motors A / B)."""
+JOINT_VEL_LIMITS = (
+    ("wrist_pitch", 22.0),
+    ("wrist_yaw", 22.0),
+    ("hip_roll", 20.0),
+    ("knee", 20.0),
+    ("hip_pitch", 32.0),
+    ("hip_yaw", 32.0),
+    ("waist_yaw", 32.0),
+    ("", 37.0),
+)
+"""Joint velocity limit [rad/s] by name (first match): mjlab's G1 ``ElectricActuator``
+``velocity_limit`` per motor (4010: 22, 7520-22: 20, 7520-14: 32, 5020 and the 2x5020 ankle /
+waist linkages: 37)."""
+
+
+def joint_vel_limit(name: str) -> float:
+    return next(v for key, v in JOINT_VEL_LIMITS if key in name)
+
+
+def robot_section(joint_names: list[str], control_dt: float) -> dict[str, Any]:
+    """What ``march.robot`` needs beyond the policy: the message variant, start-up and shut-down
+    timings and gains, velocity limits, watchdog, deadline budget, the heading reference."""
+    return {
+        "msg_type": "hg",
+        "lowcmd_topic": "rt/lowcmd",
+        "lowstate_topic": "rt/lowstate",
+        "num_motor_slots": 35,
+        "mode_machine": G1_MODE_MACHINE,
+        "mode_pr": G1_MODE_PR,
+        "motor_mode_enable": 1,
+        "lowstate_hz": 500.0,
+        "startup": {
+            "zero_torque_s": 1.0,
+            "ramp_s": 3.0,
+            "ramp_gains": "the joints table's kp / kd (the policy's own)",
+            "hold": "at the default pose with the joints' kp / kd until started (Enter, or "
+            "start=auto after hold_s)",
+            "hold_s": 1.0,
+        },
+        "shutdown": {
+            "damping_kd": 8.0,
+            "damping_s": 3.0,
+            "meaning": "kp 0, kd damping_kd, q/dq/tau 0 on every used slot, sent for damping_s "
+            "(then the loop exits; Unitree's own examples damp with kd 8)",
+        },
+        "joint_vel_limits": [joint_vel_limit(n) for n in joint_names],
+        "joint_vel_limits_meaning": "rad/s per policy joint (mjlab's G1 motor velocity limits); "
+        "a measured |dq| above it is a guard flag",
+        "watchdog_s": 0.05,
+        "watchdog_meaning": "no new LowState (tick) for this long: damping",
+        "deadline": {
+            "period_s": control_dt,
+            "max_missed_in_window": 5,
+            "window_steps": 50,
+            "max_missed_in_a_row": 3,
+            "meaning": "a step misses its deadline when its command goes out after the end of "
+            "its period; more than max_missed_in_window misses in the last window_steps steps, "
+            "or max_missed_in_a_row in a row: damping",
+        },
+        "guards": "damping on: a proprioception element outside training (observation."
+        "training_range, past its margin) or not finite, a |dq| above joint_vel_limits, a "
+        "depth image that is all NaN / all zero (or mostly invalid), an action not finite or "
+        "outside the actions' training range, a LowState with another mode_machine or a bad "
+        "CRC",
+        "heading_reference": "imu_yaw",
+        "heading_meaning": "the heading controller's heading is the yaw of "
+        "LowState_.imu_state.quaternion (w x y z), its target the IMU yaw when the policy "
+        "starts (heading_target_rad is the simulation's world angle, not used on the robot)",
+        "measured_latency_ms": None,
+        "measured_latency_meaning": "p95 of one onnxruntime policy call on the export machine "
+        "(one thread); python -m march.sim2sim delays=measured uses it as the control delay",
+    }

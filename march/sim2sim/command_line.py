@@ -18,12 +18,15 @@ parsed here without Hydra):
   (the evaluation's reset ranges; seed < 0 spawns exactly at the start point) and the delay
   draws. Episode k of ``episodes`` uses seed + k.
 - ``seconds``: episode length [s] (ends earlier on a fall); ``episodes``: how many (default 1).
-- ``vx``, ``vy``: the forward / lateral command [m/s] (default: the bundle's evaluation command);
-  outside the trained ranges (``command_ranges``) refused in one line.
+- ``vx``, ``vy``: the forward / lateral command [m/s] in the robot's body frame (default: the
+  bundle's evaluation command); outside the trained ranges (``command_ranges``) or not finite
+  (``vx=nan``) refused in one line.
 - ``control_delay_ms``: the position target reaches the motors this late (rounded to the physics
   step, 5 ms); ``depth_delay_steps``: the depth image is this many control steps old;
   ``delays=train``: both drawn per episode as in training (``deploy.json`` ``latency``:
-  U(0, 20) ms once per episode, the depth lag U{0, 1} every control step). Default: none.
+  U(0, 20) ms once per episode, the depth lag U{0, 1} every control step);
+  ``delays=measured``: the control delay is the bundle's measured policy latency
+  (``deploy.measured_latency_ms``, rounded up to the physics step), no depth lag. Default: none.
 - ``report``: how many out-of-range lines per episode go to stderr (default 20).
 - ``out``: optional video file (.mp4/.gif) from the scene's tracking camera; needs OpenGL
   offscreen (``MUJOCO_GL=egl``, the default here as in mjlab, or ``osmesa``) - refused with one
@@ -68,7 +71,7 @@ from march.sim2sim.runner import Delays, Sim2Sim, rollout
 USAGE = (
     "usage: python -m march.sim2sim onnx=<student.onnx> [course=hardware|stones] "
     "[difficulty=0.5] [seed=0] [seconds=20] [episodes=1] [vx=..] [vy=..] "
-    "[control_delay_ms=0] [depth_delay_steps=0] [delays=train] [out=rollout.mp4] [threads=1]"
+    "[control_delay_ms=0] [depth_delay_steps=0] [delays=train|measured] [out=rollout.mp4] [threads=1]"
 )
 
 
@@ -82,9 +85,9 @@ class Args:
     seed: int = 0
     seconds: float = 20.0
     episodes: int = 1
-    vx: float = math.nan
-    vy: float = math.nan
-    control_delay_ms: float = math.nan
+    vx: float | None = None
+    vy: float | None = None
+    control_delay_ms: float | None = None
     depth_delay_steps: int = -1
     delays: str = "none"
     report: int = 20
@@ -95,7 +98,7 @@ class Args:
 def parse_args(argv: Sequence[str]) -> Args:
     """``key=value`` words into :class:`Args` (Hydra-style, without Hydra)."""
     args = Args()
-    types = {k: type(v) for k, v in vars(args).items()}
+    types = {k: float if v is None else type(v) for k, v in vars(args).items()}
     for word in argv:
         key, eq, value = word.partition("=")
         if not eq:
@@ -104,9 +107,12 @@ def parse_args(argv: Sequence[str]) -> Args:
         if key not in types:
             raise UsageError(f"unknown key {key!r}; keys: {', '.join(types)}. {USAGE}")
         try:
-            setattr(args, key, types[key](value))
+            typed = types[key](value)
         except ValueError:
             raise UsageError(f"{key}={value}: not a {types[key].__name__}") from None
+        if isinstance(typed, float) and not math.isfinite(typed):
+            raise UsageError(f"{key}={value}: must be a finite number")
+        setattr(args, key, typed)
     if not args.onnx:
         raise UsageError(f"give onnx=<student.onnx> (written by python -m march.export). {USAGE}")
     if args.course not in ("hardware", "stones"):
@@ -121,20 +127,20 @@ def parse_args(argv: Sequence[str]) -> Args:
         raise UsageError(f"threads={args.threads}: must be >= 1")
     if args.out and Path(args.out).suffix.lower() not in (".mp4", ".gif"):
         raise UsageError(f"out={args.out}: the video must end in .mp4 or .gif")
-    if args.delays not in ("none", "train"):
-        raise UsageError(f"delays={args.delays}: choose train (training's ranges) or none")
-    explicit = not math.isnan(args.control_delay_ms) or args.depth_delay_steps >= 0
-    if args.delays == "train" and explicit:
+    if args.delays not in ("none", "train", "measured"):
         raise UsageError(
-            "delays=train draws the delays: drop control_delay_ms= / depth_delay_steps="
+            f"delays={args.delays}: choose train (training's ranges), measured (the bundle's "
+            "measured policy latency) or none"
         )
-    if not math.isnan(args.control_delay_ms) and not 0.0 <= args.control_delay_ms <= 1000.0:
+    explicit = args.control_delay_ms is not None or args.depth_delay_steps >= 0
+    if args.delays != "none" and explicit:
+        raise UsageError(
+            f"delays={args.delays} sets the delays: drop control_delay_ms= / depth_delay_steps="
+        )
+    if args.control_delay_ms is not None and not 0.0 <= args.control_delay_ms <= 1000.0:
         raise UsageError(f"control_delay_ms={args.control_delay_ms}: must be in [0, 1000]")
     if args.depth_delay_steps < -1 or args.depth_delay_steps > 50:
         raise UsageError(f"depth_delay_steps={args.depth_delay_steps}: must be in [0, 50]")
-    for key in ("vx", "vy"):
-        if math.isinf(getattr(args, key)):
-            raise UsageError(f"{key}={getattr(args, key)}: must be finite")
     return args
 
 
@@ -173,7 +179,9 @@ def episode_delays(args: Args, spec: dict[str, Any], seed: int) -> Delays:
     dt = float(spec["rates"]["physics_dt_s"])
     if args.delays == "train":
         return Delays.draw_train(spec["latency"], dt, seed)
-    ms = 0.0 if math.isnan(args.control_delay_ms) else args.control_delay_ms
+    if args.delays == "measured":
+        return Delays.measured(spec, seed)
+    ms = 0.0 if args.control_delay_ms is None else args.control_delay_ms
     k = max(args.depth_delay_steps, 0)
     return Delays(int(round(ms / (dt * 1e3))), (k, k), np.random.default_rng(seed))
 
@@ -196,8 +204,8 @@ def run(args: Args) -> dict[str, Any]:
     bundle = Bundle.load(args.onnx)
     spec = bundle.spec
     cmd = spec["command"]
-    vx = cmd["lin_vel_x"] if math.isnan(args.vx) else args.vx
-    vy = cmd["lin_vel_y"] if math.isnan(args.vy) else args.vy
+    vx = cmd["lin_vel_x"] if args.vx is None else args.vx
+    vy = cmd["lin_vel_y"] if args.vy is None else args.vy
     try:  # the yaw rate is the heading controller's, clipped into its trained range
         check_command(spec, (vx, vy, 0.0))
     except CommandRefused as err:
@@ -235,7 +243,7 @@ def run(args: Args) -> dict[str, Any]:
         "goal_distance_m": cell["goal_distance"],
         "command": [vx, vy],
         "delays": args.delays
-        if args.delays == "train"
+        if args.delays != "none"
         else {
             "control_delay_ms": head["control_delay_ms"],
             "depth_delay_steps": head["depth_delay_steps"][0],

@@ -1,9 +1,13 @@
 """The deployment bundle as the robot-side loop reads it: ``<stem>.deploy.json`` beside the ONNX.
 
-:class:`Bundle` loads and checks the JSON (format version, MuJoCo version, the ONNX file's
-SHA-256), loads a course's compiled scene (gzipped MJB, SHA-256 checked) and picks a course cell;
-:data:`INPUTS` and :data:`OUTPUT` name the ONNX graph's feeds and result. Bad input raises
-:class:`UsageError`, one line for the user. MuJoCo, json and hashlib only (no training stack).
+:meth:`Bundle.load` checks, before anything is simulated: the JSON (format version, MuJoCo
+version, the schema of :mod:`march.sim2sim.bundle_schema`: every key, every type; sizes that
+must agree), the files it names (plain names inside the bundle's folder - no directories, no
+``..``, no absolute paths - read without following a symbolic link), the ONNX file's SHA-256;
+:meth:`Bundle.scene` loads a course's compiled scene (gzipped MJB, SHA-256 checked) and
+:meth:`Bundle.cell` picks a course cell. :data:`INPUTS` and :data:`OUTPUT` name the ONNX graph's
+feeds and result. Every fault is a :class:`UsageError`: one line for the user, never a
+``KeyError`` / ``IndexError`` / ``EOFError`` traceback. MuJoCo, json and hashlib only.
 """
 
 from __future__ import annotations
@@ -11,16 +15,22 @@ from __future__ import annotations
 import gzip
 import hashlib
 import json
+import os
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import mujoco
 
-BUNDLE_FORMAT = 2
+from march.sim2sim.bundle_schema import SchemaError, check_spec
+
+BUNDLE_FORMAT = 3
 """The ``deploy.json`` layout this loop reads (march.export.deploy_spec.BUNDLE_FORMAT)."""
 INPUTS = ("proprio_hist", "command", "depth")
 OUTPUT = "actions"
+MAX_FILE_BYTES = 1 << 30
+"""Larger files in a bundle are refused (a scene is ~2 MB, the ONNX ~10 MB)."""
 
 
 class UsageError(ValueError):
@@ -29,6 +39,69 @@ class UsageError(ValueError):
 
 def _sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
+
+
+def read_in_bundle(folder: Path, name: Any, what: str) -> bytes:
+    """The bytes of the file ``name`` in ``folder``: a plain file name (no directory part,
+    not ``.`` / ``..``), a regular file, not a symbolic link (opened with O_NOFOLLOW)."""
+    if not isinstance(name, str) or not name or name in (".", "..") or "/" in name or "\\" in name:
+        raise UsageError(f"deploy.json: the {what} {name!r} is not a file name inside the bundle")
+    path = folder / name
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+    except FileNotFoundError:
+        raise UsageError(f"{path}: the bundle's {what} is missing") from None
+    except OSError as err:  # ELOOP: a link; EACCES; ...
+        why = "a symbolic link (not followed)" if path.is_symlink() else err.strerror
+        raise UsageError(f"{path}: the bundle's {what} cannot be read: {why}") from None
+    with os.fdopen(fd, "rb") as f:
+        st = os.fstat(f.fileno())
+        import stat
+
+        if not stat.S_ISREG(st.st_mode):
+            raise UsageError(f"{path}: the bundle's {what} is not a regular file")
+        if st.st_size > MAX_FILE_BYTES:
+            raise UsageError(f"{path}: the bundle's {what} is {st.st_size} bytes, too large")
+        return f.read()
+
+
+def _agree(spec: dict[str, Any]) -> None:
+    """Sizes that must agree between sections (after the schema)."""
+    lay = spec["checkpoint"]["layout"]
+    a = lay["num_actions"]
+    sizes = {
+        "joints": len(spec["joints"]),
+        "robot.joint_names": len(spec["robot"]["joint_names"]),
+        "robot.default_joint_pos": len(spec["robot"]["default_joint_pos"]),
+        "action.joint_names": len(spec["action"]["joint_names"]),
+        "action.actuator_names": len(spec["action"]["actuator_names"]),
+        "action.scale": len(spec["action"]["scale"]),
+        "action.offset": len(spec["action"]["offset"]),
+        "deploy.joint_vel_limits": len(spec["deploy"]["joint_vel_limits"]),
+    }
+    for key, n in sizes.items():
+        if n != a:
+            raise UsageError(f"deploy.json: {key} has {n} entries, the policy {a} actions")
+    obs = spec["observation"]
+    dims = [t["dim"] for t in obs["proprio_terms"]]
+    if sum(dims) != lay["proprio_dim"] or [t["dim"] for t in obs["terms"]] != dims:
+        raise UsageError("deploy.json: observation term sizes do not add up to proprio_dim")
+    for t in obs["terms"]:
+        r = obs["training_range"].get(t["name"])
+        if r is None or {len(v) for v in r.values()} != {t["dim"]}:
+            raise UsageError(f"deploy.json: training_range.{t['name']} is not {t['dim']} long")
+        if len(t["elements"]) != t["dim"]:
+            raise UsageError(f"deploy.json: observation term {t['name']} names not {t['dim']}")
+    if obs["history_len"] != lay["history_len"] or obs["history_len"] < 1:
+        raise UsageError("deploy.json: observation.history_len is not the layout's")
+    d = spec["depth"]
+    if [d["height"], d["width"]] != lay["image_hw"]:
+        raise UsageError("deploy.json: depth height / width are not the layout's image_hw")
+    rates = spec["rates"]
+    if not (rates["physics_dt_s"] > 0 and rates["decimation"] >= 1):
+        raise UsageError("deploy.json: rates.physics_dt_s must be > 0 and decimation >= 1")
+    if abs(rates["control_dt_s"] - rates["physics_dt_s"] * rates["decimation"]) > 1e-9:
+        raise UsageError("deploy.json: rates.control_dt_s is not physics_dt_s x decimation")
 
 
 @dataclass
@@ -41,45 +114,66 @@ class Bundle:
     @classmethod
     def load(cls, onnx_path: str | Path) -> Bundle:
         onnx_path = Path(onnx_path)
-        if not onnx_path.is_file():
+        if not onnx_path.exists() and not onnx_path.is_symlink():
             raise UsageError(f"onnx={onnx_path}: no such file (python -m march.export writes it)")
-        path = onnx_path.with_suffix(".deploy.json")
-        if not path.is_file():
+        folder = onnx_path.parent
+        name = onnx_path.with_suffix(".deploy.json").name
+        if not (folder / name).exists() and not (folder / name).is_symlink():
             raise UsageError(
-                f"onnx={onnx_path}: no deployment bundle beside it ({path.name}); export it "
+                f"onnx={onnx_path}: no deployment bundle beside it ({name}); export it "
                 "with python -m march.export student_ckpt=<file> out=<folder>"
             )
+        raw = read_in_bundle(folder, name, "deploy.json")
+        path = folder / name
         try:
-            spec = json.loads(path.read_text())
-        except (OSError, ValueError) as err:
+            spec = json.loads(raw)
+        except (UnicodeDecodeError, ValueError, RecursionError) as err:
             raise UsageError(f"{path}: not readable JSON ({err})") from None
         if not isinstance(spec, dict) or spec.get("format") != BUNDLE_FORMAT:
             found = spec.get("format") if isinstance(spec, dict) else None
             raise UsageError(f"{path}: bundle format {found!r}, this loop reads {BUNDLE_FORMAT}")
         if spec.get("mujoco_version") != mujoco.__version__:
             raise UsageError(
-                f"{path}: the scenes were compiled with MuJoCo {spec.get('mujoco_version')}, "
+                f"{path}: 'mujoco_version' {spec.get('mujoco_version')!r}: the scenes were "
+                f"compiled with MuJoCo {spec.get('mujoco_version')}, "
                 f"this is MuJoCo {mujoco.__version__} (MJB files are version-bound)"
             )
-        want = spec["onnx"]["sha256"]
-        if _sha256(onnx_path.read_bytes()) != want:
+        try:
+            check_spec(spec)
+        except SchemaError as err:
+            raise UsageError(f"{path}: {err}") from None
+        _agree(spec)
+        if spec["onnx"]["file"] != onnx_path.name:
+            raise UsageError(
+                f"{path}: describes {spec['onnx']['file']!r}, not {onnx_path.name!r} (renamed?)"
+            )
+        data = read_in_bundle(folder, spec["onnx"]["file"], "ONNX file")
+        if _sha256(data) != spec["onnx"]["sha256"]:
             raise UsageError(f"onnx={onnx_path}: its SHA-256 differs from the bundle's record")
         return cls(onnx_path, spec)
 
     def scene(self, course: str) -> mujoco.MjModel:
         """The compiled scene of ``course`` (gzipped MJB, loaded from memory)."""
-        entry = self.spec["courses"][course]
-        path = self.onnx_path.parent / entry["scene"]
-        if not path.is_file():
-            raise UsageError(f"{path}: the bundle's {course} scene is missing")
-        packed = path.read_bytes()
+        courses = self.spec["courses"]
+        if course not in courses:
+            raise UsageError(f"course={course}: the bundle has {', '.join(courses)}")
+        entry = courses[course]
+        folder = self.onnx_path.parent
+        packed = read_in_bundle(folder, entry["scene"], f"{course} scene")
+        path = folder / entry["scene"]
         if _sha256(packed) != entry["sha256"]:
             raise UsageError(f"{path}: its SHA-256 differs from the bundle's record")
-        return mujoco.MjModel.from_binary_path("scene.mjb", {"scene.mjb": gzip.decompress(packed)})
+        try:
+            raw = gzip.decompress(packed)
+            return mujoco.MjModel.from_binary_path("scene.mjb", {"scene.mjb": raw})
+        except (OSError, EOFError, zlib.error, ValueError) as err:
+            raise UsageError(f"{path}: not a MuJoCo {mujoco.__version__} scene ({err})") from None
 
     def cell(self, course: str, difficulty: float, seed: int) -> dict[str, Any]:
         """The course cell: hardware's only one; stones: nearest level, column seed mod C."""
-        grid = self.spec["courses"][course]["cells"]
+        if course not in self.spec["courses"]:
+            raise UsageError(f"course={course}: the bundle has {', '.join(self.spec['courses'])}")
+        grid = self.spec["courses"][course]["cells"]  # non-empty rows (the schema)
         if course == "hardware":
             return grid[0][0]
         row = min(range(len(grid)), key=lambda r: abs(grid[r][0]["difficulty"] - difficulty))

@@ -37,6 +37,7 @@ import onnxruntime as ort
 from march.sim2sim.deploy_bundle import INPUTS, OUTPUT, Bundle, UsageError
 from march.sim2sim.depth_camera import DepthCamera
 from march.sim2sim.guard import RangeGuard
+from march.sim2sim.motors import MotorBus, MotorTableError, motor_table
 
 
 @dataclass
@@ -75,6 +76,14 @@ class Delays:
         d_lo, d_hi = (int(v) for v in latency["depth_delay_steps"])
         return cls(lag, (d_lo, d_hi), rng)
 
+    @classmethod
+    def measured(cls, spec: dict[str, Any], seed: int = 0) -> Delays:
+        """The bundle's measured policy latency as the control delay, rounded up to the physics
+        step (the target cannot reach the motors before the policy has answered)."""
+        ms = spec["deploy"]["measured_latency_ms"] or 0.0
+        lag = int(math.ceil(float(ms) / (spec["rates"]["physics_dt_s"] * 1e3) - 1e-9))
+        return cls(lag, (0, 0), np.random.default_rng(seed))
+
     def draw_depth_lag(self) -> int:
         lo, hi = self.depth_lag
         return lo if lo == hi else int(self.rng.integers(lo, hi + 1))
@@ -91,6 +100,16 @@ class Sim2Sim:
     """One G1 in a bundle's scene, driven by the exported student."""
 
     def __init__(self, bundle: Bundle, course: str, threads: int = 1) -> None:
+        try:
+            self._bind(bundle, course)
+        except (KeyError, IndexError) as err:  # a name the bundle gives that its scene lacks
+            raise UsageError(
+                f"the bundle's {course} scene does not fit its deploy.json: {err}"
+            ) from None
+        self.session = policy_session(bundle.onnx_path, threads)
+
+    def _bind(self, bundle: Bundle, course: str) -> None:
+        """Find everything deploy.json names in the scene."""
         spec = bundle.spec
         self.spec = spec
         self.model = bundle.scene(course)
@@ -108,14 +127,21 @@ class Sim2Sim:
         self.root_q = int(m.jnt_qposadr[root.id])
         self.root_v = int(m.jnt_dofadr[root.id])
         self.root_body = m.body(pre + robot["root_body"]).id
-        names = [pre + n for n in robot["joint_names"]]
-        self.qadr = np.array([m.jnt_qposadr[m.joint(n).id] for n in names])
-        self.vadr = np.array([m.jnt_dofadr[m.joint(n).id] for n in names])
+        # The simulated robot's wiring (slot -> joint, actuator) and the bundle's motor table
+        # (policy joint -> slot): joints are reached through motor slots, never by name.
+        self.bus = MotorBus(m, pre)
+        try:
+            self.motor_index = motor_table(spec)
+        except MotorTableError as err:
+            raise UsageError(f"deploy.json joints: {err}") from None
+        if (self.motor_index >= self.bus.num_motors).any():
+            raise UsageError("deploy.json joints: a motor_index names a slot this G1 leaves unused")
+        if act["joint_names"] != robot["joint_names"]:
+            raise UsageError("deploy.json: action.joint_names is not robot.joint_names")
+        self.qadr = self.bus.qadr[self.motor_index]  # policy order
+        self.vadr = self.bus.vadr[self.motor_index]
+        self.act_ids = self.bus.act[self.motor_index]
         self.default = np.asarray(robot["default_joint_pos"], dtype=np.float64)
-        self.act_ids = np.array([m.actuator(pre + n).id for n in act["actuator_names"]])
-        for a, n in zip(self.act_ids, act["joint_names"], strict=True):
-            if m.actuator_trnid[a, 0] != m.joint(pre + n).id:
-                raise UsageError(f"actuator {m.actuator(a).name} does not drive joint {n}")
         self.scale = np.asarray(act["scale"], dtype=np.float64)
         self.offset = np.asarray(act["offset"], dtype=np.float64)
         gyro = m.sensor(pre + obs["base_ang_vel_sensor"])
@@ -133,7 +159,6 @@ class Sim2Sim:
         self.targets: list[np.ndarray] = []
         self.depth_frames: list[np.ndarray] = []
         self.guard = RangeGuard(spec)
-        self.session = policy_session(bundle.onnx_path, threads)
 
     # -- state -------------------------------------------------------------------------------
 
@@ -173,7 +198,7 @@ class Sim2Sim:
         self.last_action = np.zeros(self.num_actions)
         self.history = History(self.history.length)
         self.depth_frames = []
-        rest = self.offset + self.scale * self.last_action  # the default-pose target
+        rest = self.joint_targets(self.last_action)  # the default-pose target
         self.targets = [rest.copy() for _ in range(self.delays.control_lag + 1)]
         self.data.ctrl[self.act_ids] = rest
         self.observe()
@@ -248,12 +273,24 @@ class Sim2Sim:
         out = self.session.run([OUTPUT], feeds)[0]
         return out[0].astype(np.float64), (time.perf_counter() - t0) * 1e3
 
+    def joint_targets(self, action: np.ndarray) -> np.ndarray:
+        """Position targets [rad] of an action, policy order (mjlab's JointPositionAction:
+        default pose + scale * action, no clip)."""
+        return self.offset + self.scale * action
+
+    def stored_action(self, action: np.ndarray) -> np.ndarray:
+        """What the next observation reports as the previous action: the raw policy output,
+        unclipped (mjlab's ``last_action`` reads the action manager's raw action)."""
+        return action.copy()
+
     def step(self, action: np.ndarray) -> None:
-        """One control step: targets held for ``decimation`` physics steps (each through the
-        command delay), then the observation of the new state."""
+        """One control step: the raw action kept as the next observation's previous action,
+        its targets held for ``decimation`` physics steps (each through the command delay,
+        written to motor slot ``motor_index[i]``), then the observation of the new state."""
         m, d = self.model, self.data
-        self.last_action = action
-        target = self.offset + self.scale * action
+        action = np.asarray(action, dtype=np.float64)
+        self.last_action = self.stored_action(action)
+        target = self.joint_targets(action)
         for _ in range(self.decimation):
             self.targets = self.targets[1:] + [target]
             d.ctrl[self.act_ids] = self.targets[0]  # control_lag physics steps old
