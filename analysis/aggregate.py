@@ -23,12 +23,13 @@ arm pair A:B (default clf:modelfree), (variant - full) / full for the ablation.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
 
 from analysis.arms import Comparisons
+from analysis.groups import GroupKey, primary, series_names
 from analysis.rundirs import Run, eval_rows, stage_rows
 
 # metric key in eval.csv / summary.json (mean_<key>, se_<key>) -> short name, axis label
@@ -38,8 +39,11 @@ METRICS = {
     "abs_torque_nm": ("torque", "mean |joint torque| [Nm]"),
     "abs_ang_jerk": ("jerk", "mean |angular jerk| [rad/s^3]"),
     "reward": ("return", "episode return (teacher's full reward)"),
+    "reward_per_step": ("reward/step", "teacher's full reward per step"),
+    "torque_success": ("torque (success)", "|joint torque|, successful rollouts [Nm]"),
+    "jerk_success": ("jerk (success)", "|angular jerk|, successful rollouts [rad/s^3]"),
 }
-OWN_REWARD_METRICS = ("reward",)  # measured under each arm's own reward set
+OWN_REWARD_METRICS = ("reward", "reward_per_step")  # under each arm's own reward set
 COUNT_KEYS = ("n_torque", "n_jerk")  # rollouts long enough for the torque / jerk means
 TEACHER_PANELS = [
     ("mean_reward", "mean reward per step"),
@@ -65,8 +69,9 @@ class Curves:
 def combine(means, ses=None, mode: str = "seeds") -> tuple[float, float, int]:
     """Combine per-run (mean, se) into (mean, se, n).
 
-    ``seeds``: mean of the run means; SE across runs std(ddof=1)/sqrt(n), a single run keeps its
-    own rollout SE. ``pooled``: SE of the mean of independent run means, sqrt(sum se_i^2)/n.
+    ``seeds``: mean of the run means; SE across runs std(ddof=1)/sqrt(n); a single run has no
+    SE across seeds (NaN: drawn without a bar, labelled n=1; never its rollout SE, another
+    unit). ``pooled``: SE of the mean of independent run means, sqrt(sum se_i^2)/n.
     Runs whose mean is NaN are left out.
     """
     m = np.asarray(means, dtype=float)
@@ -82,7 +87,7 @@ def combine(means, ses=None, mode: str = "seeds") -> tuple[float, float, int]:
     elif n >= 2:
         se = float(m.std(ddof=1) / math.sqrt(n))
     else:
-        se = float(s[0])
+        se = math.nan
     return mean, se, n
 
 
@@ -156,13 +161,23 @@ def _eval_curves(
     return out
 
 
+def _namer(runs: list[Run], by: str, teacher: bool = False):
+    """run -> its series name: its group (:class:`analysis.groups.GroupKey`, or the teacher
+    part of it) named by ``by`` plus what tells it from the other groups of that name."""
+    key = (lambda r: GroupKey.of(r).teacher_part()) if teacher else GroupKey.of
+    names = series_names(list(dict.fromkeys(key(r) for r in runs)), by)
+    return lambda r: names[key(r)]
+
+
 def baseline_data(runs: list[Run], mode: str, notes: list[str], comp: Comparisons) -> Curves:
-    """reward -> eval.csv student rows of the runs with the reference student variant."""
+    """group -> eval.csv student rows of the runs with the reference student variant that
+    trained their own teacher (stage all), one series per group (analysis.groups)."""
     ref = comp.reference_variant
+    chosen = [r for r in runs if r.variant == ref and r.stage in ("all", "?")]
     out = _eval_curves(
-        runs=[r for r in runs if r.variant == ref],
+        runs=chosen,
         stage="student",
-        key_of=lambda r: r.reward,
+        key_of=_namer(chosen, "reward"),
         series=comp.expected_arms,
         order=comp.arm_order,
         mode=mode,
@@ -176,11 +191,22 @@ def baseline_data(runs: list[Run], mode: str, notes: list[str], comp: Comparison
 def sample_efficiency_data(
     runs: list[Run], mode: str, notes: list[str], comp: Comparisons
 ) -> Curves:
-    """reward -> eval.csv teacher rows (every teacher.eval_interval teacher iterations)."""
+    """teacher group -> eval.csv teacher rows (every teacher.eval_interval teacher iterations).
+    Runs that share a teacher group and seed (students of one teacher) count once."""
+    chosen, seen = [], set()
+    for r in runs:
+        if eval_rows(r, "teacher") is None:
+            continue
+        ident = (GroupKey.of(r).teacher_part(), r.seed)
+        if ident in seen:
+            notes.append(f"sample_efficiency: {r.label} repeats the teacher of seed {r.seed}")
+            continue
+        seen.add(ident)
+        chosen.append(r)
     out = _eval_curves(
-        runs=runs,
+        runs=chosen,
         stage="teacher",
-        key_of=lambda r: r.reward,
+        key_of=_namer(chosen, "reward", teacher=True),
         series=comp.expected_arms,
         order=comp.arm_order,
         mode=mode,
@@ -202,7 +228,7 @@ def ablation_data(runs: list[Run], mode: str, notes: list[str], comp: Comparison
     out = _eval_curves(
         runs=cand,
         stage="student",
-        key_of=lambda r: r.variant,
+        key_of=_namer(cand, "variant"),
         series=comp.expected_variants,
         order=comp.variant_order,
         mode=mode,
@@ -233,26 +259,52 @@ SE_COLUMNS = [
 ]
 
 
+def relative_target(curves: Curves, fraction: float) -> float:
+    """``fraction`` x the better series' final seed-mean evaluation distance (NaN if none)."""
+    finals = [
+        float(c["mean_distance_m"].dropna().iloc[-1])
+        for c in curves.series.values()
+        if c["mean_distance_m"].notna().any()
+    ]
+    return fraction * max(finals) if finals else math.nan
+
+
 def sample_efficiency(
-    runs: list[Run], curves: Curves, target: float, notes: list[str], comp: Comparisons
+    runs: list[Run],
+    curves: Curves,
+    target: float | None,
+    notes: list[str],
+    comp: Comparisons,
+    fraction: float = 0.9,
 ) -> pd.DataFrame:
-    """Per reward: first teacher iteration (and env steps) at which the seed-mean evaluation
-    distance (eval.csv teacher rows, no smoothing) reaches ``target``; per run the same."""
+    """Per teacher group: first teacher iteration (and env steps) at which the seed-mean
+    evaluation distance (eval.csv teacher rows, no smoothing) reaches the target: ``target``
+    [m] if given, else ``fraction`` x the better group's final distance (the paper's "reaches
+    the model-free distance"); per run the same. Pairs compare each arm's primary group."""
+    if target is None:
+        target = relative_target(curves, fraction)
+        source = f"{fraction:.0%} of the better final distance"
+    else:
+        source = "--target-distance"
+    chosen = [r for r in runs if eval_rows(r, "teacher") is not None]
+    name_of = _namer(chosen, "reward", teacher=True) if chosen else None
     records = []
-    for reward, curve in curves.series.items():
+    for series, curve in curves.series.items():
         idx = first_reach(curve["iteration"], curve["mean_distance_m"], target)
         it = None if idx is None else int(curve["iteration"].iloc[idx])
         steps = None if idx is None else float(curve["env_steps"].iloc[idx])
         per_run = []
-        for r in runs:
-            rows = eval_rows(r, "teacher") if r.reward == reward else None
-            if rows is None or "mean_distance_m" not in rows.columns:
+        for r in chosen:
+            if name_of(r) != series:
+                continue
+            rows = eval_rows(r, "teacher")
+            if "mean_distance_m" not in rows.columns:
                 continue
             j = first_reach(rows["iteration"], rows["mean_distance_m"], target)
             per_run.append(f"{r.label}:{'not reached' if j is None else int(rows['iteration'][j])}")
         records.append(
             {
-                "reward": reward,
+                "reward": series,
                 "n_runs": int(curve["n"].max()),
                 "target_distance_m": target,
                 "iteration": it,
@@ -261,14 +313,19 @@ def sample_efficiency(
                 "compared_to": "",
                 "relative": "",
                 "per_run": " ".join(per_run),
-                "source": "eval.csv teacher rows (fixed stone evaluation set)",
+                "source": f"eval.csv teacher rows (fixed stone evaluation set); target {source}",
             }
         )
     eff = pd.DataFrame(records, columns=SE_COLUMNS)
+    keys = list(dict.fromkeys(GroupKey.of(r).teacher_part() for r in chosen))
+    names = series_names(keys, "reward")
     by = {row["reward"]: row for _, row in eff.iterrows()}
     for a, b in comp.pairs:
-        arm, ref = by.get(a), by.get(b)
-        if arm is None or ref is None or (eff["reward"] == a).sum() != 1:
+        ka, kb = primary(keys, a), primary(keys, b)
+        if ka is None or kb is None:
+            continue
+        arm, ref = by.get(names[ka]), by.get(names[kb])
+        if arm is None or ref is None:
             continue
         if arm["result"] == ref["result"] == "reached":
             rel_it = rel_diff(arm["iteration"], ref["iteration"])
@@ -276,15 +333,15 @@ def sample_efficiency(
             text = f"iterations {format_rel(rel_it)}, env steps {format_rel(rel_steps)}"
         else:
             text = "n/a (target not reached by both)"
-        row = eff["reward"] == a
+        row = eff["reward"] == names[ka]
         if eff.loc[row, "compared_to"].iloc[0]:  # several references: one line each
-            text = f"{eff.loc[row, 'relative'].iloc[0]}; vs {b}: {text}"
-            eff.loc[row, "compared_to"] = eff.loc[row, "compared_to"] + f",{b}"
+            text = f"{eff.loc[row, 'relative'].iloc[0]}; vs {names[kb]}: {text}"
+            eff.loc[row, "compared_to"] = eff.loc[row, "compared_to"] + f",{names[kb]}"
         else:
-            eff.loc[row, "compared_to"] = b
+            eff.loc[row, "compared_to"] = names[kb]
         eff.loc[row, "relative"] = text
     if not eff.empty and (eff["result"] == "not reached").all():
-        notes.append(f"sample_efficiency: no arm reaches {target:g} m (see --target-distance)")
+        notes.append(f"sample_efficiency: no arm reaches {target:g} m ({source})")
     return eff
 
 
@@ -307,12 +364,13 @@ def teacher_training_data(
 ) -> dict[str, dict]:
     """reward -> {metrics.csv column: smoothed curve, mean and SE across runs} (diagnostic)."""
     out: dict[str, dict] = {}
-    for reward in _ordered({r.reward for r in runs}, comp.arm_order):
+    name_of = _namer(runs, "reward", teacher=True) if runs else None
+    for reward in _ordered({name_of(r) for r in runs}, comp.arm_order):
         curves = {}
         for col, _ in TEACHER_PANELS:
             per_run = []
             for r in runs:
-                rows = stage_rows(r.metrics, "teacher", col) if r.reward == reward else None
+                rows = stage_rows(r.metrics, "teacher", col) if name_of(r) == reward else None
                 if rows is None:
                     continue
                 d = {"iteration": rows["iteration"].to_numpy(), col: smooth(rows[col], window)}
@@ -369,16 +427,23 @@ def final_table(runs: list[Run], mode: str, notes: list[str], comp: Comparisons)
     done = _final_runs(runs, notes)
     arm_rank = {n: i for i, n in enumerate(comp.arm_order)}
     var_rank = {n: i for i, n in enumerate(comp.variant_order)}
+    # One row per group (analysis.groups): the arm named by its reward plus what tells it
+    # from the other groups of that reward, the variant in its own column.
+    arm_keys = {r.path: replace(GroupKey.of(r), variant="") for r in done}
+    arm_name = series_names(list(dict.fromkeys(arm_keys.values())), "reward")
+    name_of = {p: arm_name[k] for p, k in arm_keys.items()}
+    primary_name = {}
+    for rw in {k.reward for k in arm_keys.values()}:
+        pk = primary(list(dict.fromkeys(arm_keys.values())), rw)
+        if pk is not None:
+            primary_name[rw] = arm_name[pk]
     groups = sorted(
-        {(r.reward, r.variant) for r in done},
+        {(name_of[r.path], r.variant) for r in done},
         key=lambda g: (arm_rank.get(g[0], 999), var_rank.get(g[1], 999), g),
     )
     records = []
     for reward, variant in groups:
-        members = [r for r in done if (r.reward, r.variant) == (reward, variant)]
-        computes = sorted({r.compute for r in members})
-        if len(computes) > 1:
-            notes.append(f"final_metrics: {reward}/{variant} mixes compute {computes}")
+        members = [r for r in done if (name_of[r.path], r.variant) == (reward, variant)]
         rec = {"reward": reward, "variant": variant, "n_runs": len(members)}
         rec["n_rollouts"] = sum(int(r.summary.get("n_rollouts") or 0) for r in members)
         rec["iteration"] = _span(r.summary.get("iteration") for r in members)
@@ -402,8 +467,16 @@ def final_table(runs: list[Run], mode: str, notes: list[str], comp: Comparisons)
         table[f"rel_{key}"] = math.nan
     index = {(row.reward, row.variant): i for i, row in enumerate(table.itertuples())}
     full, teacher = comp.reference_variant, comp.ablation_teacher
-    pairs = [((a, full), (b, full)) for a, b in comp.pairs]
-    pairs += [((teacher, v), (teacher, full)) for (rw, v) in index if rw == teacher and v != full]
+    pairs = [
+        ((primary_name[a], full), (primary_name[b], full))
+        for a, b in comp.pairs
+        if a in primary_name and b in primary_name
+    ]
+    pairs += [
+        ((name, v), (name, full))
+        for (name, v) in index
+        if name.split(" [")[0] == teacher and v != full and (name, full) in index
+    ]
     for group, ref in pairs:
         if group not in index:
             continue
@@ -416,7 +489,7 @@ def final_table(runs: list[Run], mode: str, notes: list[str], comp: Comparisons)
         i, j = index[group], index[ref]
         parts = []
         for key, (short, _) in METRICS.items():
-            if key in OWN_REWARD_METRICS and group[0] != ref[0]:
+            if key in OWN_REWARD_METRICS and group[0].split(" [")[0] != ref[0].split(" [")[0]:
                 # Each arm's return is under its own teacher's reward set: clf and modelfree
                 # returns are different functions, so their ratio means nothing.
                 parts.append(f"{short} n/a (different reward sets)")

@@ -70,6 +70,8 @@ from analysis.aggregate import (  # noqa: E402
     teacher_training_data,
 )
 from analysis.arms import choose, parse_pair  # noqa: E402
+from analysis.claims import ClaimsInput, claims, claims_markdown  # noqa: E402
+from analysis.groups import DuplicateRunsError, group_runs  # noqa: E402
 from analysis.plotting import (  # noqa: E402
     ABLATION,
     BASELINE,
@@ -87,23 +89,30 @@ from analysis.rundirs import discover, runs_frame  # noqa: E402
 def analyze(
     dirs: list[Path],
     out: Path,
-    target: float = 2.0,
+    target: float | None = None,
     window: int = 20,
     mode: str = "seeds",
     compare: list[str] | None = None,
     reference_variant: str | None = None,
     ablation_teacher: str | None = None,
+    allow_duplicates: bool = False,
+    threshold_fraction: float = 0.9,
 ) -> dict:
     """Load runs, write figures and tables into ``out``; returns what was computed.
 
     ``compare``: arm pairs ``A:B`` (default: the runs' ``figures.compare``, else clf:modelfree);
     ``reference_variant`` / ``ablation_teacher``: the ablation's reference (full) and teacher
-    (clf). A malformed pair raises ValueError before anything is written."""
-    runs = discover(dirs)
+    (clf). A malformed pair raises ValueError, two runs of one group with the same seed
+    DuplicateRunsError (unless ``allow_duplicates``: the newest is kept), before anything is
+    written."""
+    found = discover(dirs)
     notes: list[str] = []
     written: list[Path] = []
-    if not runs:
-        return {"runs": runs, "notes": notes, "written": written}
+    if not found:
+        return {"runs": found, "notes": notes, "written": written}
+    groups = group_runs(found, allow_duplicates, notes)
+    kept = {id(r) for members in groups.values() for r in members}
+    runs = [r for r in found if id(r) in kept]
     comp = choose(runs, dirs, compare, reference_variant, ablation_teacher, notes)
     out.mkdir(parents=True, exist_ok=True)
     all_points = []
@@ -121,7 +130,9 @@ def analyze(
         )
 
     se_curves = sample_efficiency_data(runs, mode, notes, comp)
-    eff = sample_efficiency(runs, se_curves, target, notes, comp)
+    eff = sample_efficiency(runs, se_curves, target, notes, comp, threshold_fraction)
+    if not eff.empty:
+        target = float(eff["target_distance_m"].iloc[0])
     if se_curves:
         pts = eval_points(SAMPLE_EFFICIENCY, se_curves)
         axes_notes["sample_efficiency"] = plot_eval_figure(
@@ -151,6 +162,21 @@ def analyze(
         notes.append("skip teacher_curves: no metrics.csv teacher rows with values in any run")
 
     table = final_table(runs, mode, notes, comp)
+    pairs = comp.pairs[0] if comp.pairs else ("clf", "modelfree")
+    claim_rows = claims(
+        ClaimsInput(
+            groups,
+            arm=pairs[0],
+            reference=pairs[1],
+            full=comp.reference_variant,
+            ablation_teacher=comp.ablation_teacher,
+            threshold_fraction=threshold_fraction,
+        ),
+        notes,
+    )
+    claim_rows.to_csv(out / "claims.csv", index=False)
+    (out / "claims.md").write_text(claims_markdown(claim_rows))
+    written += [out / "claims.csv", out / "claims.md"]
     if table.empty:
         notes.append("skip final_metrics: no complete run with a student summary.json")
     listing = runs_frame(runs)
@@ -174,6 +200,7 @@ def analyze(
         "axes_notes": axes_notes,
         "final": table,
         "listing": listing,
+        "claims": claim_rows,
     }
 
 
@@ -182,10 +209,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("dirs", nargs="+", type=Path, help="run dirs or Hydra sweep dirs")
     ap.add_argument("--out", type=Path, default=None, help="output dir (default <first>/figures)")
     ap.add_argument(
+        "--threshold-fraction",
+        type=float,
+        default=0.9,
+        help="sample efficiency: the distance to reach, as a fraction of the better arm's final "
+        "teacher evaluation distance (default 0.9)",
+    )
+    ap.add_argument(
         "--target-distance",
         type=float,
-        default=2.0,
-        help="sample efficiency: teacher evaluation distance [m] to reach (default 2.0)",
+        default=None,
+        help="sample efficiency: an absolute distance [m] to reach instead (figures only; the "
+        "claims use --threshold-fraction)",
+    )
+    ap.add_argument(
+        "--allow-duplicates",
+        action="store_true",
+        help="two runs of one group with the same seed: keep the newest (said in the output) "
+        "instead of refusing",
     )
     ap.add_argument(
         "--smooth",
@@ -234,16 +275,25 @@ def main(argv: list[str] | None = None) -> int:
             )
             return 2
     out = args.out if args.out is not None else args.dirs[0] / "figures"
-    res = analyze(
-        args.dirs,
-        out,
-        args.target_distance,
-        args.smooth,
-        args.se_mode,
-        args.compare,
-        args.reference_variant,
-        args.ablation_teacher,
-    )
+    if not 0.0 < args.threshold_fraction <= 1.0:
+        print("figures.py: --threshold-fraction must be in (0, 1]", file=sys.stderr)
+        return 2
+    try:
+        res = analyze(
+            args.dirs,
+            out,
+            args.target_distance,
+            args.smooth,
+            args.se_mode,
+            args.compare,
+            args.reference_variant,
+            args.ablation_teacher,
+            args.allow_duplicates,
+            args.threshold_fraction,
+        )
+    except DuplicateRunsError as err:
+        print(f"figures.py: {err}", file=sys.stderr)
+        return 2
     if not res["runs"]:
         where = ", ".join(str(d) for d in args.dirs)
         print(

@@ -32,6 +32,13 @@ class Run:
     seed: object = None
     stage: str = "?"
     compute: str = "?"
+    teacher_budget: object = None  # teacher.max_iterations x teacher.budget_scale
+    distill_budget: object = None  # distill.max_iterations
+    budget_scale: object = None
+    observe_reference: bool = False
+    mtime: float = 0.0  # newest of the run's files: "the newest run" of duplicates
+    levels: pd.DataFrame | None = None  # eval_levels.csv
+    rollouts: pd.DataFrame | None = None  # eval_rollouts.csv
     state: str = "no status.json"
     error: str | None = None
     metrics: pd.DataFrame | None = None
@@ -94,10 +101,17 @@ def find_run_dirs(root: Path) -> list[Path]:
 
 
 def _cfg_get(cfg, key: str):
-    try:
-        return OmegaConf.select(cfg, key, default=None, throw_on_resolution_failure=False)
-    except Exception:  # noqa: BLE001 - a broken interpolation must not kill the analysis
+    """``key`` (dotted) of a config read WITHOUT resolving interpolations: a value that is an
+    interpolation (``${...}``, which could name an environment variable or a resolver) or is
+    missing reads as None."""
+    node = cfg
+    for part in key.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return None
+        node = node[part]
+    if isinstance(node, str) and "${" in node:
         return None
+    return node
 
 
 def read_csv_tolerant(path: Path) -> tuple[pd.DataFrame | None, list[str], bool]:
@@ -153,10 +167,12 @@ def load_run(path: Path) -> Run:
     if not cfg_path.is_file():
         cfg_path = path / ".hydra" / "config.yaml"
     try:
-        cfg = OmegaConf.load(cfg_path)
+        cfg = OmegaConf.to_container(OmegaConf.load(cfg_path), resolve=False)
     except Exception as exc:  # noqa: BLE001
-        cfg = OmegaConf.create({})
+        cfg = {}
         run.issues.append(f"{cfg_path.name} unreadable ({type(exc).__name__})")
+    if not isinstance(cfg, dict):
+        cfg = {}
     for attr, key in [
         ("reward", "reward.name"),
         ("variant", "student.variant"),
@@ -168,14 +184,21 @@ def load_run(path: Path) -> Run:
         if val is not None:
             setattr(run, attr, str(val))
     run.seed = _cfg_get(cfg, "seed")
+    iters, scale = _cfg_get(cfg, "teacher.max_iterations"), _cfg_get(cfg, "teacher.budget_scale")
+    run.budget_scale = 1.0 if scale is None else scale
+    try:
+        run.teacher_budget = (
+            None if iters is None else round(float(iters) * float(run.budget_scale))
+        )
+    except (TypeError, ValueError):
+        run.teacher_budget = None
+    run.distill_budget = _cfg_get(cfg, "distill.max_iterations")
+    run.observe_reference = bool(_cfg_get(cfg, "reward.observe_reference") or False)
     for group in ("reward", "student"):
         run.meta[group] = {k: _cfg_get(cfg, f"{group}.{k}") for k in ("label", "color", "order")}
     figures = _cfg_get(cfg, "figures")
     if figures is not None:
-        try:
-            run.figures = OmegaConf.to_container(figures, resolve=False) or {}
-        except Exception:  # noqa: BLE001
-            run.figures = {}
+        run.figures = figures if isinstance(figures, dict) else {}
 
     status_path = path / "status.json"
     if status_path.is_file():
@@ -194,6 +217,12 @@ def load_run(path: Path) -> Run:
         run.csv_problem |= problem
     if run.metrics is None and not (path / "metrics.csv").is_file():
         run.issues.append("metrics.csv missing")
+
+    for attr, fname in [("levels", "eval_levels.csv"), ("rollouts", "eval_rollouts.csv")]:
+        df, issues, _ = read_csv_tolerant(path / fname)  # optional files (newer runs)
+        setattr(run, attr, df)
+        run.issues.extend(issues)
+    run.mtime = max((p.stat().st_mtime for p in path.iterdir() if p.is_file()), default=0.0)
 
     summary_path = path / "summary.json"
     if summary_path.is_file():
