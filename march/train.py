@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 import random
+import socket
 import sys
 import time
 from pathlib import Path
@@ -31,9 +32,11 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from march.config import ConfigError, MarchConfig, to_march_config
-from march.config.cli import fail, resolve_compute
-from march.learn import distributed
-from march.learn.checkpoint import CheckpointError, write_json_atomic
+from march.config.cli import duplicate_overrides, fail, resolve_compute
+from march.config.memory import check_memory
+from march.learn import distributed, preemption, run_lock
+from march.learn import run_dir as run_files
+from march.learn.checkpoint import CheckpointError, write_json_atomic, write_text_durably
 from march.learn.eta import ETA_ITERATIONS, EtaMetricsLog, EtaWatch
 from march.learn.faults import NumericalFault
 
@@ -151,6 +154,7 @@ def apply_policy_checkpoint(
     """``cfg`` with its policy taken from the checkpoint it runs (march.learn.provenance), and
     one line per value the checkpoint changed. Raises ConfigError on a conflicting explicit
     command-line choice, CheckpointError on an unreadable checkpoint: before any simulation."""
+    from march.config.resume import check_checkpoint
     from march.learn.checkpoint import load_checkpoint
     from march.learn.provenance import apply_checkpoint_config, policy_changes
 
@@ -160,6 +164,8 @@ def apply_policy_checkpoint(
     kind, path, distill = which
     if payload is None:
         payload = load_checkpoint(path, kind, "cpu")
+    # Its config, iteration and env steps pass the command line's checks before any use.
+    check_checkpoint(payload, kind, f"{kind}_ckpt={path}")
     new = apply_checkpoint_config(cfg, payload, explicit_overrides, path, kind, distill=distill)
     changes = policy_changes(cfg, new, kind)
     notes = [f"[checkpoint] {kind}_ckpt={path} defines the policy: {c}" for c in changes]
@@ -340,16 +346,17 @@ def main(dcfg: DictConfig) -> float | None:
         if not cfg.resume:  # a resumed run continues with its saved (already applied) config
             cfg, notes = apply_policy_checkpoint(cfg, overrides)
     except (ConfigError, CheckpointError) as err:
+        job_dir = Path(hc.runtime.output_dir)
         if hc.mode == RunMode.MULTIRUN:
             # The sweep records this job as failed in its own directory (the figures list it)
-            # and Hydra goes on with the others.
-            job_dir = Path(hc.runtime.output_dir)
-            job_dir.mkdir(parents=True, exist_ok=True)
-            _write_status(
-                job_dir, "failed", stage=str(dcfg.stage), error=f"{type(err).__name__}: {err}"
-            )
+            # and Hydra goes on with the others; another run's directory is left alone.
+            if not run_files.holds_run(job_dir):
+                job_dir.mkdir(parents=True, exist_ok=True)
+                _write_status(
+                    job_dir, "failed", stage=str(dcfg.stage), error=f"{type(err).__name__}: {err}"
+                )
             raise
-        _drop_refused_run_dir(Path(hc.runtime.output_dir))
+        _drop_refused_run_dir(job_dir)
         fail(str(err))
     # N processes (torchrun, srun): join the group; rank 0's run directory is everyone's.
     dist = distributed.init(cfg.compute.device)
@@ -358,27 +365,48 @@ def main(dcfg: DictConfig) -> float | None:
     run_dir = Path(cfg.resume) if cfg.resume else Path(hc.runtime.output_dir)
     run_dir = Path(distributed.agree(str(run_dir)))
     run_dir.mkdir(parents=True, exist_ok=True)
-    if cfg.resume and (run_dir / "config.yaml").is_file():
-        # Continue with the run's own config (its sizes and seed), not today's defaults; an
-        # override safe on resume applies (and goes into config.yaml), any other is refused.
-        from march.config.resume import resume_config
+    option = "resume" if cfg.resume else "hydra.run.dir"
+    try:
+        if dist.main:  # one writer per run directory, for the whole run; no link written through
+            notes += run_files.claim(run_dir, option)
+        if cfg.resume and (run_dir / "config.yaml").is_file():
+            # Continue with the run's own config (its sizes and seed), not today's defaults; an
+            # override safe on resume applies (and goes into config.yaml), any other is refused.
+            from march.config.resume import resume_config
 
-        try:
             cfg, resumed = resume_config(run_dir, cfg, overrides)
-        except ConfigError as err:
-            if hc.mode == RunMode.MULTIRUN:
-                raise
-            _drop_refused_run_dir(Path(hc.runtime.output_dir))  # the one Hydra made, not the run's
-            fail(str(err))
-        notes += resumed
-        auto = False  # the run's own compute preset, whatever compute= composed to today
+            notes += resumed
+            auto = False  # the run's own compute preset, whatever compute= composed to today
+        elif run_files.holds_run(run_dir):  # a new run pointed at a run: the same comparison
+            from march.config.resume import adopt_config
+
+            if not (run_dir / "config.yaml").is_file():
+                raise ConfigError(
+                    f"{option}={run_dir} holds a run's files but no config.yaml; a new run does "
+                    "not take them over: give it its own hydra.run.dir"
+                )
+            cfg, adopted = adopt_config(run_dir, cfg)
+            notes += adopted
+        check_memory(cfg)
+        notes += run_files.check_run_checkpoints(run_dir, cfg, option)  # before any env
+    except (ConfigError, CheckpointError) as err:
+        run_lock.release_all()  # ours only (a lock another process holds was never ours)
+        if hc.mode == RunMode.MULTIRUN:
+            raise
+        _drop_refused_run_dir(Path(hc.runtime.output_dir))  # the one Hydra made, not the run's
+        fail(str(err))
     distributed.barrier()  # every rank has read config.yaml before rank 0 rewrites it
     if dist.main:
-        OmegaConf.save(OmegaConf.structured(cfg), run_dir / "config.yaml")
+        write_text_durably(run_dir / "config.yaml", OmegaConf.to_yaml(OmegaConf.structured(cfg)))
     os.environ.setdefault("WANDB_MODE", "offline")
-    _write_status(run_dir, "running", stage=cfg.stage, pid=os.getpid())
+    _write_status(run_dir, "running", stage=cfg.stage, pid=os.getpid(), host=socket.gethostname())
+    preemption.install(immediate=cfg.stage == "eval")
     try:
         summary = run_pipeline(distributed.rank_config(cfg), run_dir, auto=auto, notes=notes)
+        if dist.main:
+            _write_status(run_dir, "done", stage=cfg.stage)
+    except preemption.Preempted as stop:
+        preemption.exit_preempted(stop, lambda state, **kw: _write_status(run_dir, state, **kw))
     except BaseException as err:
         _write_status(run_dir, "failed", stage=cfg.stage, error=f"{type(err).__name__}: {err}")
         # A single run ends with one clear line; in a sweep the error is raised so that Hydra
@@ -389,9 +417,9 @@ def main(dcfg: DictConfig) -> float | None:
             fail(str(err))
         raise
     finally:
+        preemption.uninstall()
         distributed.shutdown()  # after this every process reads as rank 0: decide before
-    if dist.main:
-        _write_status(run_dir, "done", stage=cfg.stage)
+        run_lock.release_all()  # the run's last write is done (a sweep's next job may start)
     # What a sweeper optimises: the final evaluation's objective (None without one).
     return None if summary is None else float(summary[cfg.objective])
 
@@ -434,9 +462,19 @@ def _resume_argv(argv: list[str]) -> list[str]:
 
 
 if __name__ == "__main__":
-    from march.config.sweeps import sweep_problem
+    from march.config.sweeps import MULTIRUN_FLAGS, sweep_problem
 
     if problem := sweep_problem(sys.argv[1:]):
         fail(problem)
+    if twice := duplicate_overrides(sys.argv[1:]):
+        fail(twice)
     sys.argv = _resume_argv(_rank_argv(sys.argv))
+    try:  # the output directory, and a run already there locked, before Hydra writes anything
+        sys.argv = run_files.before_hydra(
+            sys.argv,
+            multirun=any(a in MULTIRUN_FLAGS for a in sys.argv[1:]),
+            rank0=distributed.env_world()[0] == 0,
+        )
+    except ConfigError as err:
+        fail(str(err))
     main()

@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import hydra
 from hydra.core.override_parser.overrides_parser import OverridesParser
@@ -100,16 +101,82 @@ def run_tool(
     bad = [a for a in args if "=" not in a]
     if bad:
         fail(f"expected key=value overrides, got {bad}. {usage}")
+    if twice := duplicate_overrides(args):
+        fail(twice)
     try:
         cfg = load(args)
     except (HydraException, OmegaConfBaseException, ConfigError) as err:
         fail(_one_line(err))
+    try:
+        from march.config.memory import check_memory
+
+        check_memory(cfg)
+    except ConfigError as err:
+        fail(str(err))
     if cfg.compute.torch_threads:
         import torch
 
         torch.set_num_threads(cfg.compute.torch_threads)
     os.environ.setdefault("WANDB_MODE", "offline")
     return fn(cfg)
+
+
+def duplicate_overrides(args: Sequence[str]) -> str | None:
+    """One line when a key is set twice on the command line (``compute.num_envs=4
+    compute.num_envs=8``: Hydra silently keeps the last), else None."""
+    seen: dict[str, str] = {}
+    for arg in args:
+        if "=" not in arg or arg.startswith("-"):
+            continue
+        try:
+            (ov,) = OverridesParser.create().parse_overrides([arg])
+        except Exception:  # noqa: BLE001 - Hydra reports a malformed override itself
+            continue
+        key = ov.key_or_group.lstrip("+~")
+        if key in seen:
+            return (
+                f"{key} is set twice ({seen[key]} and {arg}); give each key once (Hydra would "
+                "silently keep the last)"
+            )
+        seen[key] = arg
+    return None
+
+
+def literal_prefix(template: str) -> Path:
+    """The part of a directory template before its first interpolation, up to a whole path
+    component (``outputs/${now:...}/x`` -> ``outputs``): what exists before Hydra resolves it."""
+    head = template.split("${", 1)[0]
+    if "${" in template and not head.endswith("/"):
+        head = head.rsplit("/", 1)[0] if "/" in head else ""
+    return Path(head or ".")
+
+
+def check_output_dir(path: str | Path, option: str) -> None:
+    """``path`` can be created (or is a directory) and written: raise one line otherwise.
+
+    The nearest existing ancestor must be a directory that takes a new entry (a probe directory
+    made and removed at once: this also holds for root, for whom permission bits do not), and
+    an existing ``path`` must itself be a writable directory."""
+    p = Path(path)
+    probe = p
+    while not os.path.lexists(probe) and probe.parent != probe:
+        probe = probe.parent
+    if os.path.islink(probe) and not probe.exists():
+        raise ConfigError(f"{option}={path}: {probe} is a broken symbolic link")
+    if not probe.is_dir():
+        raise ConfigError(
+            f"{option}={path}: {probe} is a file, not a directory; choose another directory"
+        )
+    try:
+        import tempfile
+
+        os.rmdir(tempfile.mkdtemp(prefix=".march-write-probe-", dir=probe))
+    except OSError as err:
+        why = os.strerror(err.errno) if err.errno else str(err)
+        what = "write into" if probe == p else "create directories in"
+        raise ConfigError(
+            f"{option}={path}: cannot {what} {probe} ({why}); choose a writable directory"
+        ) from None
 
 
 def _one_line(err: BaseException) -> str:

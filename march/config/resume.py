@@ -17,7 +17,7 @@ Pure data: no simulator import.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import asdict, is_dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +35,7 @@ RESUME_SAFE = (
     "teacher.max_nonfinite_updates",
     "distill.max_nonfinite_updates",
     "compute.torch_threads",  # speed only
+    "compute.dist_timeout_s",  # how long a rank waits for the others
     "compute.compile_math",  # speed only (agrees with eager within 1e-4)
     "figures",  # what the figures compare: labels only
     "compute.device",  # where it runs: every saved state is carried to the new device
@@ -90,7 +91,7 @@ def _interpolations(node: Any, where: str = "") -> list[str]:
     return found
 
 
-def load_saved_config(run_dir: Path) -> MarchConfig:
+def load_saved_config(run_dir: Path, option: str = "resume") -> MarchConfig:
     """The run's config.yaml, validated. A value holding an interpolation or a resolver call
     (``${...}``, ``${oc.env:...}``, ``${oc.decode:...}``, however the YAML spells it: escapes
     such as ``"\\x24{"`` are decoded by the parser first) is refused, naming its key, and
@@ -102,20 +103,20 @@ def load_saved_config(run_dir: Path) -> MarchConfig:
         bad = _interpolations(OmegaConf.to_container(raw, resolve=False))
     except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise ConfigError(f"resume={run_dir}: its config.yaml cannot be read ({first})") from None
+        raise ConfigError(f"{option}={run_dir}: its config.yaml cannot be read ({first})") from None
     if bad:
         raise ConfigError(
-            f"resume={run_dir}: {path} key {bad[0]} holds a '${{...}}' interpolation or resolver"
+            f"{option}={run_dir}: {path} key {bad[0]} holds a '${{...}}' interpolation or resolver"
             f"{f' (and {len(bad) - 1} more key(s))' if len(bad) > 1 else ''}, which march never "
             "writes; refusing to resolve a modified config (restore the file or start a new run)"
         )
     try:
         return to_march_config(OmegaConf.merge(OmegaConf.structured(MarchConfig), raw))
     except ConfigError as err:
-        raise ConfigError(f"resume={run_dir}: its config.yaml is not valid: {err}") from None
+        raise ConfigError(f"{option}={run_dir}: its config.yaml is not valid: {err}") from None
     except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise ConfigError(f"resume={run_dir}: its config.yaml cannot be read ({first})") from None
+        raise ConfigError(f"{option}={run_dir}: its config.yaml cannot be read ({first})") from None
 
 
 def check_device(run_dir: Path, saved: MarchConfig, cfg: MarchConfig) -> None:
@@ -210,3 +211,111 @@ def resume_config(
     cfg = replace(saved, resume=composed.resume, **new)
     check_device(run_dir, saved, cfg)
     return cfg, notes
+
+
+def _leaves(node: Any, prefix: str = "") -> dict[str, Any]:
+    """Dotted path -> value of every leaf of a dataclass / dict tree."""
+    if is_dataclass(node) and not isinstance(node, type):
+        node = asdict(node)
+    if not isinstance(node, dict):
+        return {prefix: node}
+    out: dict[str, Any] = {}
+    for k, v in node.items():
+        out.update(_leaves(v, f"{prefix}.{k}" if prefix else str(k)))
+    return out
+
+
+def config_differences(saved: MarchConfig, new: MarchConfig) -> tuple[list[str], list[str]]:
+    """(unsafe, safe) differences between two configs, each ``key: saved -> new``."""
+    a, b = _leaves(saved), _leaves(new)
+    unsafe, safe = [], []
+    for key in sorted(set(a) | set(b)):
+        if key == "resume" or a.get(key) == b.get(key):
+            continue
+        text = f"{key}: {a.get(key)!r} -> {b.get(key)!r}"
+        (safe if _safe(key) else unsafe).append(text)
+    return unsafe, safe
+
+
+def _listed(items: list[str], most: int = 6) -> str:
+    more = f" (and {len(items) - most} more)" if len(items) > most else ""
+    return "; ".join(items[:most]) + more
+
+
+def adopt_config(run_dir: Path, composed: MarchConfig) -> tuple[MarchConfig, list[str]]:
+    """A new run started in ``run_dir``, which already holds a run (its config.yaml): the same
+    rule as ``resume=``. The identical config (the same command run again, a Slurm requeue)
+    continues the run; differences in :data:`RESUME_SAFE` apply (iterations only upwards);
+    any other difference is refused in one line naming the keys, before anything is written."""
+    saved = load_saved_config(run_dir, "hydra.run.dir")
+    unsafe, safe = config_differences(saved, composed)
+    if unsafe:
+        raise ConfigError(
+            f"hydra.run.dir={run_dir} already holds a run with another config ({_listed(unsafe)})"
+            f"; a new run does not take over another run's directory: continue that run with "
+            f"resume={run_dir}, or give this one its own hydra.run.dir"
+        )
+    for path in GROWING:
+        if _get(composed, path) < _get(saved, path):
+            raise ConfigError(
+                f"hydra.run.dir={run_dir}: {path}={_get(composed, path)} is below the run's "
+                f"{_get(saved, path)}; a run's iterations can only be added"
+            )
+    notes = [f"[run dir] {run_dir} holds this run: continuing it"]
+    notes += [f"[run dir] {d}" for d in safe]
+    check_device(run_dir, saved, composed)
+    return composed, notes
+
+
+ITERATION_MAX = 10**9
+"""No march stage runs anywhere near this many iterations: a larger count is not a checkpoint's."""
+
+
+def check_checkpoint(payload: dict[str, Any], kind: str, label: str) -> MarchConfig | None:
+    """A checkpoint's config, iteration and env-step count through the command line's checks:
+    types and ranges, no interpolation or resolver, the config's own checks and the memory
+    bound. Returns the checkpoint's config (None when it has none: an older checkpoint).
+    Raises :class:`ConfigError` naming the file (``label``) and the bad entry."""
+    from omegaconf import OmegaConf
+
+    from march.config.memory import check_memory
+
+    def refuse(what: str) -> ConfigError:
+        return ConfigError(f"{label}: {what}; not a checkpoint march wrote (retrain or restore it)")
+
+    it = payload.get("iteration")
+    if type(it) is not int or not 0 <= it <= ITERATION_MAX:
+        raise refuse(f"its iteration {it!r} is not a whole number in [0, {ITERATION_MAX}]")
+    steps = payload.get("env_steps")
+    if type(steps) is not int or steps < 0:
+        raise refuse(f"its env_steps {steps!r} is not a whole number >= 0")
+    wall = payload.get("wall_s", 0.0)
+    if type(wall) not in (int, float) or not 0 <= wall < float("inf"):
+        raise refuse(f"its wall_s {wall!r} is not a finite number >= 0")
+    raw = payload.get("config")
+    if raw is None:
+        return None
+    if not isinstance(raw, dict):
+        raise refuse(f"its config is a {type(raw).__name__}, not a mapping")
+    bad = _interpolations(raw)
+    if bad:
+        raise refuse(f"its config key {bad[0]} holds a '${{...}}' interpolation or resolver")
+    try:
+        cfg = to_march_config(OmegaConf.merge(OmegaConf.structured(MarchConfig), raw))
+    except ConfigError as err:
+        raise refuse(f"its config is not valid: {err}") from None
+    except Exception as err:  # noqa: BLE001 - any malformed config is the same error
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise refuse(f"its config is not valid ({first})") from None
+    check_memory(cfg, f"{label}: its config: ")
+    section = cfg.teacher if kind == "teacher" else cfg.distill
+    per_it = section.num_steps_per_env * cfg.compute.num_envs
+    limit = cfg.teacher.iterations if kind == "teacher" else cfg.distill.max_iterations
+    if it > limit:
+        raise refuse(f"its iteration {it} is past its config's {limit} iterations")
+    if steps < it * per_it or steps % per_it:
+        raise refuse(
+            f"its env_steps {steps} is not a multiple of {per_it} (steps x envs of an "
+            f"iteration) of at least iteration x {per_it}"
+        )
+    return cfg

@@ -21,7 +21,7 @@ from tensordict import TensorDict
 
 from march.config import MarchConfig
 from march.env.course import CourseRuler
-from march.learn import distributed
+from march.learn import distributed, preemption
 from march.learn.checkpoint import (
     check_layout,
     ensure_model_file,
@@ -355,8 +355,11 @@ class DistillRunner:
                 and (d.eval_interval and self.iteration % d.eval_interval == 0)
             ):
                 self.evaluate_fn(self.student, self.iteration, self.env_steps)
-            if self.iteration % d.save_interval == 0 or last:
+            saved = self.iteration % d.save_interval == 0 or last
+            if saved:
                 self._save()
+            # SIGTERM / USR2: stop here with this iteration checkpointed (march.learn.preemption).
+            preemption.stop_if_requested("student", self.iteration, None if saved else self._save)
         if distributed.agree(latest_checkpoint(self.ckpt_dir) is None):  # rank 0 owns the files
             self._save()
         return self.ckpt_dir / "latest.pt"

@@ -107,11 +107,15 @@ def open_run_file(path: Path, mode: str = "a") -> IO[str]:
     except OSError as err:
         if err.errno != errno.ELOOP:
             raise
-        raise ConfigError(
-            f"{path} is a symbolic link; march writes no run file through a link (remove it, "
-            "then continue with resume=<run dir>)"
-        ) from None
+        raise _link_error(path) from None
     return os.fdopen(fd, mode, newline="")
+
+
+def _link_error(path: Path) -> ConfigError:
+    return ConfigError(
+        f"{path} is a symbolic link; march writes no run file through a link (remove it, "
+        "then continue with resume=<run dir>)"
+    )
 
 
 def drop_torn_row(path: Path) -> bool:
@@ -187,6 +191,8 @@ def append_rows(path: Path, columns: tuple[str, ...], rows: list[dict[str, Any]]
     empty. In a run over N processes only rank 0 writes (march.learn.distributed)."""
     if not writes_files():
         return
+    if path.is_symlink():
+        raise _link_error(path)
     new = not path.is_file()
     if not new:
         with path.open(newline="") as f:

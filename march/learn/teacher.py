@@ -24,7 +24,7 @@ from tensordict import TensorDict
 from march.config import MarchConfig, TeacherCfg
 from march.env.build import rsl_rl_env
 from march.env.course import CourseRuler
-from march.learn import distributed
+from march.learn import distributed, preemption
 from march.learn.checkpoint import (
     check_layout,
     ensure_model_file,
@@ -417,8 +417,13 @@ class TeacherRunner:
             final = self.iteration == total_iterations
             if t.eval_interval and self.iteration % t.eval_interval == 0 and not final:
                 self.evaluate()
-            if self.iteration % t.save_interval == 0 or final:
+            saved = self.iteration % t.save_interval == 0 or final
+            if saved:
                 last = self.save()
+            # SIGTERM / USR2: stop here with this iteration checkpointed (march.learn.preemption).
+            preemption.stop_if_requested(
+                "teacher", self.iteration, None if saved else self.save, last
+            )
         if last is None:
             last = self.save()
         # The stage's last teacher is always evaluated once (also when a finished stage is

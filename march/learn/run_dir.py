@@ -1,0 +1,130 @@
+"""A run directory is owned and guarded (``march.train``; docs/reliability.md).
+
+- :func:`before_hydra`: on the command line as typed, before Hydra creates or writes anything:
+  a key set twice is refused; the output directory (``hydra.run.dir`` / ``hydra.sweep.dir``,
+  or the literal part of the configured template) must be creatable and writable; a directory
+  that already holds a run is checked for links and locked now (:mod:`march.learn.run_lock`),
+  and Hydra is told not to rewrite the run's ``.hydra/``.
+- :func:`claim`: in ``main``, the lock for the run's whole life (taken here if
+  :func:`before_hydra` could not: a new directory, a sweep job) and no link among its files.
+- :func:`check_run_checkpoints`: the run's newest teacher and student checkpoints read and
+  validated (config, iteration, env steps) before any env is built.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from march.config import ConfigError, MarchConfig
+from march.config.cli import check_output_dir, duplicate_overrides, literal_prefix
+from march.config.registry import CONF_DIR
+from march.learn import run_lock
+
+RUN_FILES = (
+    "config.yaml",
+    "metrics.csv",
+    "eval.csv",
+    "status.json",
+    "summary.json",
+    "teacher",
+    "student",
+)
+"""What a march run writes into its directory (besides Hydra's ``train.log`` and ``.hydra/``)."""
+CHECKED_FOR_LINKS = ("", "teacher", "student", ".hydra")
+"""The run directory itself and the folders march writes in: none of their entries may be a
+symbolic link (wandb's own folder keeps its ``latest-run`` link)."""
+
+
+def holds_run(run_dir: Path) -> bool:
+    """Whether ``run_dir`` holds (part of) a march run."""
+    return any(os.path.lexists(Path(run_dir) / name) for name in RUN_FILES)
+
+
+def refuse_links(run_dir: Path, option: str) -> None:
+    """One line if a file march writes in ``run_dir`` is a symbolic link (it would write
+    through it, somewhere else)."""
+    for sub in CHECKED_FOR_LINKS:
+        folder = Path(run_dir) / sub
+        if sub and os.path.islink(folder):
+            found = [folder]
+        elif folder.is_dir():
+            found = sorted(p for p in folder.iterdir() if p.is_symlink())
+        else:
+            continue
+        if found:
+            raise ConfigError(
+                f"{option}={run_dir}: {found[0]} is a symbolic link (to {os.readlink(found[0])}); "
+                "march writes no run file through a link: replace it with the file itself"
+            )
+
+
+def claim(run_dir: Path, option: str) -> list[str]:
+    """Lock ``run_dir`` for this process's life and refuse links in it; note lines."""
+    refuse_links(run_dir, option)
+    lock = run_lock.acquire(run_dir, option)
+    return [n] if (n := run_lock.stale_note(lock)) else []
+
+
+def _value(args: Sequence[str], key: str) -> str | None:
+    found = [a.split("=", 1)[1] for a in args if a.lstrip("+").startswith(key + "=")]
+    return found[-1] if found else None
+
+
+def before_hydra(argv: list[str], multirun: bool, rank0: bool = True) -> list[str]:
+    """Checks on the command line before Hydra starts; returns argv (with
+    ``hydra.output_subdir=null`` added for a directory that already holds a run). Raises
+    :class:`ConfigError` with one line."""
+    args = argv[1:]
+    if twice := duplicate_overrides(args):
+        raise ConfigError(twice)
+    key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+    explicit = _value(args, key)
+    if explicit is None:
+        template = OmegaConf.load(CONF_DIR / "config.yaml").hydra.run
+        if multirun:
+            template = OmegaConf.load(CONF_DIR / "config.yaml").hydra.sweep
+        template = OmegaConf.to_container(template, resolve=False)["dir"]
+        check_output_dir(literal_prefix(str(template)), key)
+        return argv
+    check_output_dir(literal_prefix(explicit), key)
+    run_dir = Path(explicit)
+    if multirun or "${" in explicit or not rank0 or not holds_run(run_dir):
+        return argv
+    # An existing run: checked and locked before Hydra writes its job log there; Hydra's record
+    # of the run's first launch (.hydra/) is left as it was.
+    resumed = _value(args, "resume")
+    claim(run_dir, "resume" if resumed else key)
+    if _value(args, "hydra.output_subdir") is None:
+        argv = [*argv, "hydra.output_subdir=null"]
+    return argv
+
+
+def check_run_checkpoints(run_dir: Path, cfg: MarchConfig, option: str) -> list[str]:
+    """Read the run's newest checkpoints (CPU) and check them like the command line, and that
+    they belong to this run (no difference a resume could not make); before any env is built."""
+    from march.config.resume import check_checkpoint, config_differences
+    from march.learn.checkpoint import latest_checkpoint, load_checkpoint
+
+    notes = []
+    for kind in ("teacher", "student"):
+        folder = Path(run_dir) / kind
+        path = latest_checkpoint(folder) if folder.is_dir() else None
+        if path is None:
+            continue
+        label = f"{option}={run_dir}: {path}"
+        payload = load_checkpoint(path, kind, "cpu", source=label)
+        saved = check_checkpoint(payload, kind, label)
+        if saved is not None:
+            # Rank 0 writes checkpoints with the run's own seed (march.learn.distributed).
+            unsafe, _ = config_differences(saved, cfg)
+            if unsafe:
+                raise ConfigError(
+                    f"{label}: written by another config than the run's config.yaml "
+                    f"({'; '.join(unsafe[:4])}); it does not belong to this run"
+                )
+        notes.append(f"[{kind}] checked {path}: iteration {payload['iteration']}")
+    return notes
