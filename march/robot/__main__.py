@@ -1,0 +1,3 @@
+from march.robot.robot_command import main
+
+main()

@@ -1,0 +1,349 @@
+"""The robot-side loop: LowState (+ depth) -> observation by ``motor_index`` -> ONNX -> LowCmd.
+
+:class:`Controller` is one control step without a clock or DDS: from a LowState and a depth
+image it builds the observation exactly as :class:`march.sim2sim.runner.Sim2Sim` does (IMU
+gyroscope, gravity from the IMU quaternion, joints read from motor slot ``motor_index[i]``,
+previous raw action, the command with the heading controller on the IMU yaw), asks the safety
+state machine (:mod:`march.robot.states`) which state this step is in, runs the policy in the
+``policy`` state, checks the guards, and fills a LowCmd (kp / kd / targets per slot, the
+hardware variant, the CRC). :func:`run` drives it on a fixed-rate clock (tick k starts at
+t0 + k * period, whatever the work took; a command written after its period's end is a missed
+deadline) over DDS, until the state machine is done.
+
+The depth image comes through :class:`DepthSource` (``latest()`` -> metres, tick): the DDS
+depth topic here; a camera driver (RealSense) can fill the same interface in-process.
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import time
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from march.robot import hg
+from march.robot.states import DONE, POLICY, RAMP, MotorCommand, SafetyMachine, Tick, Timing
+from march.robot.states import command_for as state_command
+from march.sim2sim.deploy_bundle import INPUTS, OUTPUT, Bundle, UsageError
+from march.sim2sim.depth_camera import normalize_depth
+from march.sim2sim.guard import RangeGuard
+from march.sim2sim.motors import motor_table
+from march.sim2sim.runner import History, policy_session
+
+
+class DepthSource(Protocol):
+    def latest(self) -> tuple[np.ndarray | None, int]:
+        """The newest planar depth image in metres (H, W; 0 or NaN: no return) and its tick."""
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = (float(v) for v in q / np.linalg.norm(q))
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def yaw_of(rot: np.ndarray) -> float:
+    """Heading: atan2 of the body x axis in the horizontal plane (as the sim2sim runner)."""
+    return math.atan2(rot[1, 0], rot[0, 0])
+
+
+@dataclass
+class StepLog:
+    """What one control step did (for the self-test and the report)."""
+
+    state: str
+    lowstate_tick: int
+    depth_tick: int
+    action: np.ndarray | None
+    heading_ref: float
+    work_ms: float = 0.0
+    missed: bool = False
+    flags: tuple[str, ...] = ()
+
+
+@dataclass
+class Controller:
+    """One control step of the robot loop (no clock, no DDS)."""
+
+    bundle: Bundle
+    timing: Timing
+    command: tuple[float, float] = (math.nan, math.nan)
+    guard_action: str = "damp"  # damp: a guard flag enters damping; report: only recorded
+    log: list[StepLog] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        spec = self.bundle.spec
+        self.spec, dep = spec, spec["deploy"]
+        self.motor_index = motor_table(spec)
+        self.default = np.asarray(spec["robot"]["default_joint_pos"], dtype=np.float64)
+        self.kp = np.array([j["kp"] for j in spec["joints"]])
+        self.kd = np.array([j["kd"] for j in spec["joints"]])
+        self.scale = np.asarray(spec["action"]["scale"], dtype=np.float64)
+        self.offset = np.asarray(spec["action"]["offset"], dtype=np.float64)
+        self.vel_limit = np.asarray(dep["joint_vel_limits"], dtype=np.float64)
+        self.terms = [(t["name"], int(t["dim"])) for t in spec["observation"]["proprio_terms"]]
+        self.history = History(int(spec["observation"]["history_len"]))
+        self.guard = RangeGuard(spec)
+        self.act_lo, self.act_hi = self._action_range()
+        self.machine = SafetyMachine(self.timing)
+        self.session = policy_session(self.bundle.onnx_path, 1)
+        c = spec["command"]
+        vx = c["lin_vel_x"] if math.isnan(self.command[0]) else self.command[0]
+        vy = c["lin_vel_y"] if math.isnan(self.command[1]) else self.command[1]
+        self.cmd = np.array([vx, vy, 0.0])
+        self.last_action = np.zeros(len(self.default))
+        self.heading_ref = 0.0
+        self.ramp_from = self.default.copy()
+        self.depth = spec["depth"]
+        self.mode_machine = int(dep["mode_machine"])
+        self.mode_pr = int(dep["mode_pr"])
+
+    def _action_range(self) -> tuple[np.ndarray, np.ndarray]:
+        rng = self.spec["observation"]["training_range"]
+        r, eps, margin = rng["actions"], float(rng["eps"]), float(rng["margin_sigmas"])
+        sig = np.asarray(r["std"]) + eps
+        return np.asarray(r["lo"]) - margin * sig, np.asarray(r["hi"]) + margin * sig
+
+    # -- observation ---------------------------------------------------------------------------
+
+    def read(self, ls: hg.LowState_) -> dict[str, np.ndarray]:
+        """Joint, IMU values of a LowState in the policy's joint order."""
+        q = np.array([m.q for m in ls.motor_state], dtype=np.float64)
+        dq = np.array([m.dq for m in ls.motor_state], dtype=np.float64)
+        rot = quat_to_matrix(np.asarray(ls.imu_state.quaternion, dtype=np.float64))
+        return {
+            "q": q[self.motor_index],
+            "dq": dq[self.motor_index],
+            "gyro": np.asarray(ls.imu_state.gyroscope, dtype=np.float64),
+            "rot": rot,
+        }
+
+    def update_command(self, rot: np.ndarray) -> None:
+        c = self.spec["command"]
+        if not c["heading_control"]:
+            self.cmd[2] = c["ang_vel_z"]
+            return
+        err = (self.heading_ref - yaw_of(rot) + math.pi) % (2.0 * math.pi) - math.pi
+        lo, hi = c["ang_vel_z_range"]
+        self.cmd[2] = min(max(c["heading_stiffness"] * err, lo), hi)
+
+    def proprio(self, x: dict[str, np.ndarray]) -> np.ndarray:
+        values = {
+            "base_ang_vel": x["gyro"],
+            "projected_gravity": x["rot"].T @ np.array([0.0, 0.0, -1.0]),
+            "joint_pos": x["q"] - self.default,
+            "joint_vel": x["dq"],
+            "actions": self.last_action.copy(),
+            "command": self.cmd.copy(),
+        }
+        return np.concatenate([values[name] for name, _ in self.terms])
+
+    def depth_input(self, image_m: np.ndarray | None) -> tuple[np.ndarray, list[str]]:
+        d = self.depth
+        h, w = int(d["height"]), int(d["width"])
+        if image_m is None or np.shape(image_m) != (h, w):
+            return np.ones((1, 1, h, w), np.float32), ["depth: no image of the camera's size"]
+        img = np.asarray(image_m, dtype=np.float64)
+        flags = []
+        if not np.any(np.isfinite(img) & (img > 0)):
+            flags.append("depth: image all NaN / zero")
+        img = np.where(np.isfinite(img), img, 0.0)
+        norm = normalize_depth(img, float(d["min_range_m"]), float(d["max_range_m"]))
+        return norm.astype(np.float32)[None, None], flags
+
+    # -- one step --------------------------------------------------------------------------------
+
+    def step(
+        self,
+        ls: hg.LowState_ | None,
+        lowstate_age: float | None,
+        depth: tuple[np.ndarray | None, int],
+        now: float,
+        missed: bool = False,
+        start: bool = False,
+        stop: bool = False,
+    ) -> hg.LowCmd_:
+        """This step's LowCmd from the newest LowState (``None`` before the first)."""
+        x = self.read(ls) if ls is not None else None
+        variant_ok = ls is None or int(ls.mode_machine) == self.mode_machine
+        flags: list[str] = []
+        prev = self.machine.state
+        if x is not None and prev == POLICY:
+            flags += [f"dq over the limit at {n}" for n in self._too_fast(x["dq"])]
+        state = self.machine.tick(
+            Tick(now, lowstate_age, missed, tuple(flags), start, stop, variant_ok)
+        )
+        elapsed = now - (self.machine.since or now)
+        action, target = None, None
+        if state == POLICY and x is not None:
+            if prev != POLICY:  # the episode starts: history back-filled, previous action 0
+                self.heading_ref = yaw_of(x["rot"])
+                self.history = History(self.history.length)
+                self.last_action = np.zeros_like(self.last_action)
+            self.update_command(x["rot"])
+            p = self.proprio(x)
+            self.history.push(p)
+            image, dflags = self.depth_input(depth[0])
+            inputs = (self.history.array(), self.cmd.astype(np.float32)[None], image)
+            feeds = dict(zip(INPUTS, inputs, strict=True))
+            action = self.session.run([OUTPUT], feeds)[0][0].astype(np.float64)
+            flags = [f.line() for f in self.guard.check(p)] + dflags
+            bad = ~np.isfinite(action) | (action < self.act_lo) | (action > self.act_hi)
+            if bad.any():
+                flags.append(f"action out of range at {int(np.flatnonzero(bad)[0])}")
+                action = np.where(np.isfinite(action), action, 0.0)
+            self.last_action = action.copy()
+            target = self.offset + self.scale * action
+            if flags and self.guard_action == "damp":  # acted on now: this step damps
+                state = self.machine.fault(now, "guard: " + "; ".join(flags[:3]))
+                elapsed = 0.0
+        if state == RAMP and prev != RAMP and x is not None:
+            self.ramp_from = x["q"].copy()
+        cmd = state_command(
+            state,
+            elapsed=elapsed,
+            ramp_from=self.ramp_from,
+            default=self.default,
+            kp=self.kp,
+            kd=self.kd,
+            timing=self.timing,
+            policy_target=target,
+        )
+        self.log.append(
+            StepLog(
+                state,
+                int(ls.tick) if ls is not None else -1,
+                int(depth[1]),
+                action if state == POLICY else None,
+                self.heading_ref,
+                flags=tuple(flags),
+            )
+        )
+        return self.lowcmd(cmd)
+
+    def _too_fast(self, dq: np.ndarray) -> list[str]:
+        names = self.spec["robot"]["joint_names"]
+        return [names[i] for i in np.flatnonzero(np.abs(dq) > self.vel_limit)]
+
+    def lowcmd(self, cmd: MotorCommand) -> hg.LowCmd_:
+        msg = hg.LowCmd_(mode_pr=self.mode_pr, mode_machine=self.mode_machine)
+        enable = int(self.spec["deploy"]["motor_mode_enable"])
+        for i, slot in enumerate(self.motor_index):
+            m = msg.motor_cmd[int(slot)]
+            m.mode = enable
+            m.q, m.kp, m.kd = float(cmd.q[i]), float(cmd.kp[i]), float(cmd.kd[i])
+        msg.crc = hg.lowcmd_crc(msg)
+        return msg
+
+
+# ---------------------------------------------------------------------------------------------
+# The loop over DDS on a fixed-rate clock.
+
+
+class DdsDepth:
+    """The depth topic as a :class:`DepthSource`."""
+
+    def __init__(self, box: Any) -> None:
+        self.box = box
+
+    def latest(self) -> tuple[np.ndarray | None, int]:
+        msg, _ = self.box.take()
+        if msg is None:
+            return None, -1
+        img = np.asarray(msg.depth_m, dtype=np.float64).reshape(msg.height, msg.width)
+        return img, int(msg.tick)
+
+
+def run(
+    ctl: Controller,
+    domain: int,
+    interface: str,
+    start: str = "enter",
+    policy_seconds: float = math.inf,
+    max_seconds: float = math.inf,
+    depth: DepthSource | None = None,
+) -> list[StepLog]:
+    """Drive ``ctl`` at the control rate until done. ``start``: ``enter`` (a line on stdin
+    starts the policy from hold) or ``auto``; the policy runs ``policy_seconds`` then stops
+    (damping); SIGINT / SIGTERM stop it too."""
+    from march.robot import dds
+
+    dp = dds.participant(domain, interface)
+    dep = ctl.spec["deploy"]
+    state_box = dds.Latest(dp, dep["lowstate_topic"], hg.LowState_)
+    cmd_writer = dds.writer(dp, dep["lowcmd_topic"], hg.LowCmd_)
+    source = depth or DdsDepth(dds.Latest(dp, dds.DEPTH_TOPIC, dds.DepthImage_))
+    stop = {"flag": False}
+
+    def on_signal(signum, frame):  # noqa: ARG001
+        stop["flag"] = True
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    enter = _stdin_lines() if start == "enter" else None
+    period = float(ctl.spec["rates"]["control_dt_s"])
+    t0 = time.perf_counter()
+    k, missed, policy_t0 = 0, False, None
+    try:
+        while ctl.machine.state != DONE:
+            tick_start = t0 + k * period
+            wait = tick_start - time.perf_counter()
+            if wait > 0:
+                time.sleep(wait)
+            now = time.perf_counter()
+            ls, arrived = state_box.take()
+            age = None if arrived is None else now - arrived
+            want_start = start == "auto" or (enter is not None and enter())
+            over = policy_t0 is not None and now - policy_t0 >= policy_seconds
+            quit_now = stop["flag"] or over or now - t0 >= max_seconds
+            cmd = ctl.step(ls, age, source.latest(), now - t0, missed, want_start, quit_now)
+            cmd_writer.write(cmd)
+            done = time.perf_counter()
+            if ctl.machine.state == POLICY and policy_t0 is None:
+                policy_t0 = now
+            missed = done > tick_start + period  # the command went out after its period
+            ctl.log[-1].work_ms, ctl.log[-1].missed = (done - now) * 1e3, missed
+            k += 1
+            behind = time.perf_counter() - (t0 + k * period)
+            if behind > period:  # more than a whole period late: skip to the grid
+                k += int(behind // period)
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    return ctl.log
+
+
+def _stdin_lines():
+    """A non-blocking 'has a line arrived on stdin' check."""
+    import select
+    import sys
+
+    def ready() -> bool:
+        r, _, _ = select.select([sys.stdin], [], [], 0)
+        if r:
+            sys.stdin.readline()
+            return True
+        return False
+
+    return ready
+
+
+def load_bundle(path: str) -> Bundle:
+    """``bundle=<dir>`` (holding one ``*.deploy.json``) or ``bundle=<file>.onnx``."""
+    from pathlib import Path
+
+    p = Path(path)
+    if p.is_dir():
+        found = sorted(p.glob("*.deploy.json"))
+        if len(found) != 1:
+            raise UsageError(f"bundle={path}: {len(found)} *.deploy.json files, expected one")
+        p = found[0].with_name(found[0].name.removesuffix(".deploy.json") + ".onnx")
+    return Bundle.load(p)

@@ -1,0 +1,199 @@
+"""``python -m march.robot <job> bundle=<dir> [key=value ...]``: the jobs and their arguments.
+
+    python -m march.robot policy bundle=<dir> [domain=0 interface=eth0 start=enter]
+    python -m march.robot sim bundle=<dir> [domain=1 interface=lo band=5 lockstep=false]
+    python -m march.robot selftest bundle=<dir> [seconds=5]
+
+``bundle``: the folder ``python -m march.export`` wrote (one ``*.deploy.json``), or its ONNX
+file. ``policy``: the robot loop (:mod:`march.robot.policy_loop`); ``start=enter`` waits in hold
+for a line on stdin, ``start=auto`` starts after ``hold_s``; ``seconds``: how long the policy
+runs before damping (default: until Ctrl-C); ``vx`` / ``vy`` the command [m/s, body frame];
+``guard=damp`` (default: a guard flag enters damping) or ``report`` (flags only recorded; sim
+only); ``zero_torque_s`` / ``ramp_s`` / ``hold_s`` / ``damping_s`` override the bundle's
+timings; ``log=<file.json>`` writes every step. ``sim``: the MuJoCo robot
+(:mod:`march.robot.sim_robot`). ``selftest``: both on loopback (:mod:`march.robot.selftest`).
+Bad input is one line on stderr and exit status 2, before anything starts.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from march.sim2sim.deploy_bundle import UsageError
+
+JOBS = ("policy", "sim", "selftest")
+USAGE = (
+    "usage: python -m march.robot policy|sim|selftest bundle=<dir> [domain=N] [interface=lo] "
+    "[seconds=S] [start=enter|auto] [guard=damp|report] [band=S] [lockstep=true] [log=<file>]"
+)
+KEYS: dict[str, Any] = {
+    "bundle": str,
+    "domain": int,
+    "interface": str,
+    "seconds": float,
+    "start": str,
+    "guard": str,
+    "vx": float,
+    "vy": float,
+    "course": str,
+    "band": float,
+    "lockstep": str,
+    "log": str,
+    "keep": str,
+    "zero_torque_s": float,
+    "ramp_s": float,
+    "hold_s": float,
+    "damping_s": float,
+    "max_seconds": float,
+}
+ALLOWED = {
+    "policy": {"bundle", "domain", "interface", "seconds", "start", "guard", "vx", "vy", "log",
+               "zero_torque_s", "ramp_s", "hold_s", "damping_s", "max_seconds"},
+    "sim": {"bundle", "domain", "interface", "seconds", "course", "band", "lockstep", "log"},
+    "selftest": {"bundle", "domain", "interface", "seconds", "guard", "course", "keep"},
+}  # fmt: skip
+
+
+def parse(argv: Sequence[str]) -> tuple[str, dict[str, Any]]:
+    if not argv or argv[0] not in JOBS:
+        raise UsageError(f"first word: one of {', '.join(JOBS)}. {USAGE}")
+    job, args = argv[0], {}
+    for word in argv[1:]:
+        key, eq, value = word.partition("=")
+        if not eq:
+            raise UsageError(f"expected key=value, got {word!r}. {USAGE}")
+        if key not in ALLOWED[job]:
+            raise UsageError(f"{job}: unknown key {key!r}; keys: {', '.join(sorted(ALLOWED[job]))}")
+        if key in args:
+            raise UsageError(f"{key} given twice")
+        try:
+            typed = KEYS[key](value)
+        except ValueError:
+            raise UsageError(f"{key}={value}: not a {KEYS[key].__name__}") from None
+        if isinstance(typed, float) and math.isnan(typed):
+            raise UsageError(f"{key}={value}: not a number")
+        args[key] = typed
+    if "bundle" not in args:
+        raise UsageError(f"give bundle=<dir> (written by python -m march.export). {USAGE}")
+    checks = {
+        "domain": lambda v: 0 <= v <= 232,
+        "seconds": lambda v: v > 0,
+        "start": lambda v: v in ("enter", "auto"),
+        "guard": lambda v: v in ("damp", "report"),
+        "lockstep": lambda v: v in ("true", "false"),
+        "band": lambda v: 0 <= v < math.inf,
+        "course": lambda v: v in ("hardware", "stones"),
+        "vx": math.isfinite,
+        "vy": math.isfinite,
+        **{k: (lambda v: 0 <= v < 600) for k in ("zero_torque_s", "ramp_s", "hold_s", "damping_s")},
+    }
+    for key, ok in checks.items():
+        if key in args and not ok(args[key]):
+            raise UsageError(f"{key}={args[key]}: not allowed ({USAGE})")
+    if job == "policy" and args.get("guard") == "report" and args.get("interface", "eth0") != "lo":
+        raise UsageError("guard=report only on the loopback interface (a simulated robot)")
+    return job, args
+
+
+def policy(args: dict[str, Any]) -> int:
+    from march.robot.policy_loop import Controller, load_bundle, run
+    from march.robot.states import Timing
+    from march.sim2sim.guard import CommandRefused, check_command
+
+    bundle = load_bundle(args["bundle"])
+    spec = bundle.spec
+    over = {k: args.get(k) for k in ("zero_torque_s", "ramp_s", "hold_s", "damping_s")}
+    timing = Timing.from_spec(spec["deploy"], **over)
+    vx = args.get("vx", spec["command"]["lin_vel_x"])
+    vy = args.get("vy", spec["command"]["lin_vel_y"])
+    try:
+        check_command(spec, (vx, vy, 0.0))
+    except CommandRefused as err:
+        raise UsageError(str(err)) from None
+    ctl = Controller(bundle, timing, (vx, vy), args.get("guard", "damp"))
+    domain, iface = args.get("domain", 0), args.get("interface", "eth0")
+    print(f"[policy] domain {domain}, interface {iface}; zero torque until LowState", flush=True)
+    log = run(
+        ctl,
+        domain,
+        iface,
+        args.get("start", "enter"),
+        args.get("seconds", math.inf),
+        args.get("max_seconds", math.inf),
+    )
+    for t, a, b, why in ctl.machine.transitions:
+        print(f"[policy] {t:7.3f} s  {a} -> {b}  ({why})", flush=True)
+    missed = sum(s.missed for s in log)
+    print(f"[policy] {len(log)} steps, {missed} missed deadlines", flush=True)
+    if args.get("log"):
+        out = {
+            "period_s": float(spec["rates"]["control_dt_s"]),
+            "command": [float(vx), float(vy)],
+            "guard": ctl.guard_action,
+            "transitions": ctl.machine.transitions,
+            "steps": [
+                {
+                    "state": s.state,
+                    "lowstate_tick": s.lowstate_tick,
+                    "depth_tick": s.depth_tick,
+                    "action": None if s.action is None else [float(v) for v in s.action],
+                    "heading_ref": s.heading_ref,
+                    "work_ms": s.work_ms,
+                    "missed": s.missed,
+                    "flags": list(s.flags),
+                }
+                for s in log
+            ],
+        }
+        tmp = Path(args["log"]).with_suffix(".tmp")
+        tmp.write_text(json.dumps(out))
+        tmp.replace(args["log"])
+    return 0
+
+
+def sim(args: dict[str, Any]) -> int:
+    from march.robot.policy_loop import load_bundle
+    from march.robot.sim_robot import SimRobot, serve
+
+    bundle = load_bundle(args["bundle"])
+    robot = SimRobot(bundle, args.get("course", "hardware"), args.get("band", 0.0))
+    stats = serve(
+        robot,
+        args.get("domain", 1),
+        args.get("interface", "lo"),
+        args.get("lockstep", "false") == "true",
+        args.get("seconds", math.inf),
+        args.get("log", ""),
+    )
+    print("[sim] done: " + ", ".join(f"{k} {v}" for k, v in stats.items()), flush=True)
+    return 0
+
+
+def selftest(args: dict[str, Any]) -> int:
+    from march.robot.selftest import run_selftest
+
+    return run_selftest(
+        args["bundle"],
+        args.get("seconds", 5.0),
+        args.get("domain", 1),
+        args.get("interface", "lo"),
+        args.get("guard", "report"),
+        args.get("course", "hardware"),
+        args.get("keep", ""),
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    words = list(sys.argv[1:] if argv is None else argv)
+    try:
+        job, args = parse(words)
+        rc = {"policy": policy, "sim": sim, "selftest": selftest}[job](args)
+    except UsageError as err:
+        print(f"error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+    raise SystemExit(rc)
