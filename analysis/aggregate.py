@@ -188,21 +188,29 @@ def baseline_data(runs: list[Run], mode: str, notes: list[str], comp: Comparison
     return out
 
 
-def sample_efficiency_data(
-    runs: list[Run], mode: str, notes: list[str], comp: Comparisons
-) -> Curves:
-    """teacher group -> eval.csv teacher rows (every teacher.eval_interval teacher iterations).
-    Runs that share a teacher group and seed (students of one teacher) count once."""
+def teacher_runs(runs: list[Run], notes: list[str] | None = None) -> list[Run]:
+    """Runs with eval.csv teacher rows, one per (teacher group, seed): a second run that trained
+    the same teacher again (another student variant of it) is left out and named."""
     chosen, seen = [], set()
     for r in runs:
         if eval_rows(r, "teacher") is None:
             continue
         ident = (GroupKey.of(r).teacher_part(), r.seed)
         if ident in seen:
-            notes.append(f"sample_efficiency: {r.label} repeats the teacher of seed {r.seed}")
+            if notes is not None:
+                notes.append(f"sample_efficiency: {r.label} repeats the teacher of seed {r.seed}")
             continue
         seen.add(ident)
         chosen.append(r)
+    return chosen
+
+
+def sample_efficiency_data(
+    runs: list[Run], mode: str, notes: list[str], comp: Comparisons
+) -> Curves:
+    """teacher group -> eval.csv teacher rows (every teacher.eval_interval teacher iterations).
+    Runs that share a teacher group and seed (students of one teacher) count once."""
+    chosen = teacher_runs(runs, notes)
     out = _eval_curves(
         runs=chosen,
         stage="teacher",
@@ -221,10 +229,24 @@ def ablation_data(runs: list[Run], mode: str, notes: list[str], comp: Comparison
     """variant -> eval.csv student rows of the ablation teacher's (clf's) students."""
     teacher = comp.ablation_teacher
     rewards = {r.reward for r in runs if eval_rows(r, "student") is not None}
-    cand = [r for r in runs if r.reward == teacher]
+    cand = [r for r in runs if r.reward == teacher and eval_rows(r, "student") is not None]
     if rewards - {teacher}:
         others = ", ".join(sorted(rewards - {teacher}))
         notes.append(f"ablation: {teacher} teacher only; student rows of reward {others} not used")
+    # One ablation: the students of one fixed teacher (stage student, the ablation sweep) are
+    # not pooled with students that trained their own teacher (stage all). The stage whose runs
+    # cover the most variants is the ablation; ties go to the fixed teacher.
+    stages = {r.stage for r in cand}
+    if len(stages) > 1:
+        chosen = max(
+            sorted(stages),
+            key=lambda st: (len({r.variant for r in cand if r.stage == st}), st == "student"),
+        )
+        notes.append(
+            f"ablation: students of stage {chosen} only ({', '.join(sorted(stages - {chosen}))} "
+            "left out: another teacher)"
+        )
+        cand = [r for r in cand if r.stage == chosen]
     out = _eval_curves(
         runs=cand,
         stage="student",
@@ -286,7 +308,7 @@ def sample_efficiency(
         source = f"{fraction:.0%} of the better final distance"
     else:
         source = "--target-distance"
-    chosen = [r for r in runs if eval_rows(r, "teacher") is not None]
+    chosen = teacher_runs(runs)
     name_of = _namer(chosen, "reward", teacher=True) if chosen else None
     records = []
     for series, curve in curves.series.items():
@@ -472,6 +494,12 @@ def final_table(runs: list[Run], mode: str, notes: list[str], comp: Comparisons)
         for a, b in comp.pairs
         if a in primary_name and b in primary_name
     ]
+    for a, b in comp.pairs:
+        if a in primary_name and b not in primary_name:
+            notes.append(
+                f"final_metrics: {b}/{full} has no complete runs (or no single group); "
+                f"no relative differences for {a}/{full}"
+            )
     pairs += [
         ((name, v), (name, full))
         for (name, v) in index

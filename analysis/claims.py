@@ -315,11 +315,14 @@ def _ablation_rows(inp: ClaimsInput, notes: list[str]) -> list[dict]:
         if kf is None:
             notes.append(f"claims: ablation {kv.variant} has no {inp.full} group to compare with")
             continue
-        v, f = inp.groups[kv], inp.groups[kf]
         column = "mean_reward_per_step"
-        fv, ff = _final(v, column), _final(f, column)
-        if np.isnan(fv).all() or np.isnan(ff).all():
-            notes.append(f"claims: ablation {kv.variant}: no {column} (older eval.csv)")
+        fv, ff = _final(inp.groups[kv], column), _final(inp.groups[kf], column)
+        v = [r for r, x in zip(inp.groups[kv], fv, strict=True) if np.isfinite(x)]
+        f = [r for r, x in zip(inp.groups[kf], ff, strict=True) if np.isfinite(x)]
+        fv, ff = fv[np.isfinite(fv)], ff[np.isfinite(ff)]
+        if not v or not f:
+            notes.append(f"claims: ablation {kv.variant} (stage {kv.stage}): no {column} rows")
+            continue
         stat = bootstrap(rel_of_means, fv, ff)
         rows.append(
             _row(
@@ -366,6 +369,7 @@ def claims_markdown(table: pd.DataFrame) -> str:
         "| claim | paper | measured | 95% CI | n seeds | scale | verdict |",
         "|---|---|---|---|---|---|---|",
     ]
+
     def cell(text) -> str:
         return str(text).replace("|", "\\|")
 

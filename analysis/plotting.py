@@ -47,9 +47,11 @@ BASELINE = FigureSpec(
     stem="baseline",
     panels=(
         ("distance_m", "iteration"),
+        ("torque_success", "iteration"),
+        ("jerk_success", "iteration"),
+        ("success_rate", "iteration"),
         ("abs_torque_nm", "iteration"),
         ("abs_ang_jerk", "iteration"),
-        ("success_rate", "iteration"),
     ),
     err_mult=BASELINE_ERR_MULT,
     group="reward",
@@ -72,7 +74,11 @@ SAMPLE_EFFICIENCY = FigureSpec(
 )
 ABLATION = FigureSpec(
     stem="ablation",
-    panels=(("reward", "iteration"), ("distance_m", "iteration"), ("success_rate", "iteration")),
+    panels=(
+        ("reward_per_step", "iteration"),
+        ("distance_m", "iteration"),
+        ("success_rate", "iteration"),
+    ),
     err_mult=1.0,
     group="student",
     xstage="student",
@@ -87,7 +93,8 @@ def se_text(mode: str) -> str:
 
 def eval_points(spec: FigureSpec, curves: Curves) -> pd.DataFrame:
     """The tidy points of an evaluation figure: per panel and series, every iteration whose
-    metric has a value; ``yerr`` = err_mult x SE (0 where the SE is unknown)."""
+    metric has a value; ``yerr`` = err_mult x SE (NaN where there is no SE across seeds, e.g.
+    n=1: drawn without a bar, never as a zero-length one)."""
     frames = []
     for key, xcol in spec.panels:
         for name, curve in curves.series.items():
@@ -107,7 +114,7 @@ def eval_points(spec: FigureSpec, curves: Curves) -> pd.DataFrame:
                         "x": rows[xcol].to_numpy(dtype=float),
                         "y": rows[f"mean_{key}"].to_numpy(dtype=float),
                         "se": se.to_numpy(dtype=float),
-                        "yerr": (spec.err_mult * se.fillna(0.0)).to_numpy(dtype=float),
+                        "yerr": (spec.err_mult * se).to_numpy(dtype=float),
                         "n": rows[f"n_{key}"].to_numpy(dtype=int),
                     }
                 )
@@ -160,42 +167,61 @@ def plot_eval_figure(
     """
     styles = comp.arms if spec.group == "reward" else comp.variants
     n_panels = len(spec.panels)
-    fig, axes = plt.subplots(1, n_panels, figsize=(4.2 * n_panels, 3.8), squeeze=False)
+    ncols = min(3, n_panels)
+    nrows = -(-n_panels // ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(4.6 * ncols, 3.6 * nrows), squeeze=False)
+    for ax in axes.flat[n_panels:]:
+        ax.set_visible(False)
     names = list(curves.series) + [m for m in curves.missing if m not in curves.series]
     panel_notes: dict[str, list[str]] = {}
-    for ax, (key, xcol) in zip(axes[0], spec.panels, strict=True):
+    legend: dict[str, object] = {}
+    for ax, (key, xcol) in zip(axes.flat, spec.panels, strict=False):
         notes = [f"no data: {m} ({why})" for m, why in curves.missing.items()]
         sel = points[(points["panel"] == key) & (points["x_name"] == xcol)]
+        xs = np.unique(sel["x"].to_numpy(dtype=float))
+        step = float(np.min(np.diff(xs))) if xs.size > 1 else 1.0
+        drawn = [n for n in names if not sel[sel["series"] == n].empty]
         for name in names:
             pts = sel[sel["series"] == name]
             if pts.empty:
                 if name in curves.series:
-                    notes.append(f"{name}: no mean_{key} in eval.csv (older file?)")
+                    notes.append(
+                        f"{name}: no mean_{key} (no rollout defines it, e.g. none succeeded; or an older eval.csv)"
+                    )
                 continue
             color, label = _style(styles, name)
-            ax.errorbar(
-                pts["x"],
+            # Arms side by side: each series shifted by a fraction of the x spacing.
+            k = drawn.index(name)
+            shift = (k - (len(drawn) - 1) / 2) * 0.12 * step if xcol == "iteration" else 0.0
+            n = int(pts["n"].max())
+            text = f"{label} (n={n}{', no SE bar' if n < 2 and spec.err_mult else ''})"
+            handle = ax.errorbar(
+                pts["x"] + shift,
                 pts["y"],
                 yerr=pts["yerr"],
                 marker="o",
                 ms=4,
                 capsize=3,
                 color=color,
-                label=f"{label} (n={int(pts['n'].max())})",
+                label=text,
             )
+            legend.setdefault(text, handle)
             if target is not None and key == "distance_m" and reach is not None:
                 hit = reach[(reach["reward"] == name) & reach["iteration"].notna()]
                 if not hit.empty and not pd.isna(hit.iloc[0][xcol]):
                     ax.axvline(float(hit.iloc[0][xcol]), color=color, ls=":", lw=1)
-        if target is not None and key == "distance_m":
-            ax.axhline(target, color="gray", ls="--", lw=1, label=f"target {target:g} m")
+        if target is not None and key == "distance_m" and not np.isnan(target):
+            line = ax.axhline(target, color="gray", ls="--", lw=1)
+            legend.setdefault(f"target {target:.3g} m (reach: dotted lines)", line)
         ax.set_xlabel(X_LABELS[spec.xstage].get(xcol, xcol))
-        if xcol == "iteration":
+        if xcol == "iteration" and 0 < xs.size <= 8:
+            ax.set_xticks(xs)
+            ax.set_xticklabels([f"{int(x)}" for x in xs])
+            ax.set_xlim(xs[0] - 0.6 * step, xs[-1] + 0.6 * step)
+        elif xcol == "iteration":
             ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_ylabel(METRICS[key][1])
         ax.grid(alpha=0.3)
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=8, loc="lower right")
         _note(ax, notes)
         panel_notes[key] = notes
     title = spec.title.format(
@@ -206,16 +232,37 @@ def plot_eval_figure(
     )
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
+    if legend:  # one legend for the figure, below the panels: never over a data point
+        fig.legend(
+            list(legend.values()),
+            list(legend),
+            loc="upper center",
+            bbox_to_anchor=(0.5, 0.0),
+            ncol=min(4, len(legend)),
+            fontsize=8,
+            frameon=False,
+        )
     save(fig, out, spec.stem, written)
     return panel_notes
 
 
+EXTRA_COLORS = ("tab:green", "tab:orange", "tab:purple", "tab:brown", "tab:olive", "tab:cyan")
+
+
 def _style(styles: dict[str, Series], name: str) -> tuple[str | None, str]:
-    """(colour, legend label) of a series; a name the registry lacks keeps matplotlib's."""
+    """(colour, legend label) of a series. A group series (``modelfree [stones, 2 it]``, a
+    control) keeps its arm's label with the bracket and gets a colour no arm has."""
     info = styles.get(name)
-    if info is None:
-        return None, name
-    return info.color, name if info.label == name else f"{info.label} [{name}]"
+    if info is not None:
+        return info.color, name if info.label == name else f"{info.label} [{name}]"
+    base, _, rest = name.partition(" [")
+    base_info = styles.get(base)
+    used = {s.color for s in styles.values()}
+    free = [c for c in EXTRA_COLORS if c not in used] or list(EXTRA_COLORS)
+    color = free[sum(map(ord, name)) % len(free)]
+    if base_info is None:
+        return color, name
+    return color, f"{base_info.label} [{rest}" if rest else base_info.label
 
 
 def teacher_points(data: dict[str, dict]) -> pd.DataFrame:
@@ -272,20 +319,23 @@ def plot_teacher_training(
     per_iter = _steps_per_iteration(data)
     if per_iter is None and points["x_name"].eq("env_steps").any():
         notes.append("teacher_curves: steps per iteration differ between runs; no iteration axis")
-    for ax, (col, label) in zip(axes, TEACHER_PANELS, strict=True):
+    legend: dict[str, object] = {}
+    for ax, (col, ylabel) in zip(axes, TEACHER_PANELS, strict=True):
         sel = points[points["panel"] == col]
         for reward in data:
             pts = sel[sel["series"] == reward]
             if pts.empty:
                 continue
-            color, label = _style(comp.arms, reward)
-            ax.plot(pts["x"], pts["y"], color=color, label=f"{label} (n={int(pts['n'].max())})")
+            color, series_label = _style(comp.arms, reward)
+            text = f"{series_label} (n={int(pts['n'].max())})"
+            (line,) = ax.plot(pts["x"], pts["y"], color=color, label=text)
+            legend.setdefault(text, line)
             ax.fill_between(
                 pts["x"], pts["y"] - pts["yerr"], pts["y"] + pts["yerr"], color=color, alpha=0.25
             )
         xname = sel["x_name"].iloc[0] if not sel.empty else "env_steps"
         ax.set_xlabel("teacher env steps" if xname == "env_steps" else "teacher iteration")
-        ax.set_ylabel(label)
+        ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
         if per_iter and xname == "env_steps":
             top = ax.secondary_xaxis(
@@ -293,7 +343,16 @@ def plot_teacher_training(
             )
             top.set_xlabel("teacher iteration", fontsize=8)
             top.tick_params(labelsize=7)
-    axes[-1].legend(fontsize=8)
+    if legend:
+        fig.legend(
+            list(legend.values()),
+            list(legend),
+            loc="upper center",
+            bbox_to_anchor=(0.5, 0.0),
+            ncol=min(4, len(legend)),
+            fontsize=8,
+            frameon=False,
+        )
     fig.suptitle(
         f"DIAGNOSTIC, not a comparison: teacher TRAINING rollouts (metrics.csv; each arm on its "
         f"own curriculum), moving avg {window}, band = SE across seeds",

@@ -157,7 +157,7 @@ def report(res: dict, out: Path) -> str:
             for _, row in base[base["compared_to"] != ""].iterrows():
                 ref = row["compared_to"].split(",")[0].split("/")[0]
                 print(f"  {row['reward']} vs {ref}: {row['relative']}", file=buf)
-        abl = table[table["reward"] == teacher]
+        abl = table[table["reward"].str.split(" [", regex=False).str[0] == teacher]
         if (abl["variant"] != full).any():
             print(
                 f"ablation, final evaluation ({teacher} teacher; relative = "
@@ -168,8 +168,8 @@ def report(res: dict, out: Path) -> str:
                 own = row["variant"] != full and row["compared_to"]
                 vs = f"; vs {full}: {row['relative']}" if own else ""
                 print(
-                    f"  {row['variant']} (n={row['n_runs']}): "
-                    + _values(row, ["reward", "distance_m", "success_rate"])
+                    f"  {row['variant']} ({row['reward']}, n={row['n_runs']}): "
+                    + _values(row, ["reward_per_step", "distance_m", "success_rate"])
                     + vs,
                     file=buf,
                 )

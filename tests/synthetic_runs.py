@@ -100,6 +100,9 @@ def _eval_row(stage: str, it: int, steps: int, values: dict[str, float]) -> dict
     for k in KEYS:
         row[f"mean_{k}"] = values[k]
         row[f"se_{k}"] = EVAL_SE
+    # The ablation metric: the return over a 50-step episode, per step.
+    row["mean_reward_per_step"] = values["reward"] / 50.0
+    row["se_reward_per_step"] = EVAL_SE / 50.0
     row["n_torque"] = 64  # extra count columns at the end (rollouts long enough for the metric)
     row["n_jerk"] = 63
     return row

@@ -86,14 +86,17 @@ def test_discovery_and_listing_names_crashed_run(tree):
 def test_final_table_relative_differences_in_the_papers_convention(tree):
     table = pd.read_csv(tree["out"] / "final_metrics.csv")
     table[["compared_to", "relative"]] = table[["compared_to", "relative"]].fillna("")
-    assert len(table) == 4  # clf/full, clf/no_transformer, clf/no_mdn, modelfree/full
+    # One row per group: the baseline's clf students (stage all, own teachers) are not pooled
+    # with the ablation sweep's clf/full student of a fixed teacher (stage student).
+    assert len(table) == 5
     by = {(r.reward, r.variant): r for r in table.itertuples()}
-    clf, mf = by[("clf", "full")], by[("modelfree", "full")]
-    assert clf.n_runs == 3 and mf.n_runs == 2
-    assert (clf.n_rollouts, clf.n_torque, clf.n_jerk) == (3 * 64, 3 * 64, 3 * 63)
+    clf, mf = by[("clf [stage all]", "full")], by[("modelfree", "full")]
+    assert clf.n_runs == 2 and mf.n_runs == 2
+    assert by[("clf [stage student]", "full")].n_runs == 1
+    assert (clf.n_rollouts, clf.n_torque, clf.n_jerk) == (2 * 64, 2 * 64, 2 * 63)
     assert clf.mean_abs_torque_nm == pytest.approx(8.8) and mf.mean_abs_torque_nm == 10.0
-    # SE across seeds: std(ddof=1)/sqrt(n)
-    assert clf.se_abs_torque_nm == pytest.approx(0.2 / math.sqrt(3))
+    # SE across seeds: std(8.6, 9.0; ddof=1)/sqrt(2)
+    assert clf.se_abs_torque_nm == pytest.approx(0.2)
     assert mf.se_abs_torque_nm == pytest.approx(0.5)
     # (clf - modelfree) / modelfree, by hand from the seed means
     assert clf.compared_to == "modelfree/full"
@@ -102,35 +105,41 @@ def test_final_table_relative_differences_in_the_papers_convention(tree):
     assert clf.rel_distance_m == pytest.approx((4.0 - 3.2) / 3.2)
     # returns of different reward sets are not compared
     assert math.isnan(clf.rel_reward)
-    assert (
-        clf.relative
-        == "distance +25%, success +100%, torque -12%, jerk -39%, return n/a (different reward sets)"
+    assert clf.relative.startswith(
+        "distance +25%, success +100%, torque -12%, jerk -39%, return n/a (different reward sets)"
     )
     assert mf.compared_to == "" and mf.relative == ""
     # (variant - full) / full, clf teacher
-    nt, nm = by[("clf", "no_transformer")], by[("clf", "no_mdn")]
-    assert nt.compared_to == nm.compared_to == "clf/full"
-    assert nt.relative == "distance -10%, success -25%, torque +10%, jerk +20%, return -20%"
-    assert nm.relative == "distance -25%, success -50%, torque +25%, jerk +50%, return -40%"
+    nt, nm = by[("clf [stage student]", "no_transformer")], by[("clf [stage student]", "no_mdn")]
+    assert nt.compared_to == nm.compared_to == "clf [stage student]/full"
+    assert nt.relative.startswith(
+        "distance -10%, success -25%, torque +10%, jerk +20%, return -20%"
+    )
+    assert nm.relative.startswith(
+        "distance -25%, success -50%, torque +25%, jerk +50%, return -40%"
+    )
     assert nt.rel_reward == pytest.approx((1.2 - 1.5) / 1.5)
-    assert nt.n_runs == 1 and nt.se_abs_torque_nm == pytest.approx(syn.RUN_SE)
+    assert nt.n_runs == 1 and math.isnan(nt.se_abs_torque_nm)  # n=1: no SE across seeds
     md = (tree["out"] / "final_metrics.md").read_text()
     mf_line = next(ln for ln in md.splitlines() if ln.startswith("| modelfree | full |"))
     assert "| 10 ± 0.5 |" in mf_line
     assert (
-        "- baseline clf vs modelfree ((clf - modelfree) / modelfree, student full): "
-        "distance +25%, success +100%, torque -12%, jerk -39%, return n/a (different reward sets)"
-        in md
+        "- baseline clf [stage all] vs modelfree ((clf [stage all] - modelfree) / modelfree, "
+        "student full): distance +25%, success +100%, torque -12%, jerk -39%, return n/a "
+        "(different reward sets)" in md
     )
     assert "- ablation no_mdn vs full ((variant - full) / full, clf teacher): distance -25%" in md
     out = tree["stdout"]
-    assert "clf (n=3, it 49): distance 4 m, success 80%, torque 8.8 Nm, jerk 30.5 rad/s^3" in out
-    assert "  clf vs modelfree: distance +25%, success +100%, torque -12%, jerk -39%" in out
-    assert "  no_transformer (n=1): return 1.2, distance 3.6 m, success 60%; vs full: " in out
+    assert (
+        "clf [stage all] (n=2, it 49): distance 4 m, success 80%, torque 8.8 Nm, jerk 30.5 rad/s^3"
+        in out
+    )
+    assert "  clf [stage all] vs modelfree: distance +25%, success +100%, torque -12%" in out
+    assert "no_transformer (clf [stage student], n=1): reward/step n/a, distance 3.6 m" in out
 
 
 def test_baseline_plots_student_eval_rows(tree):
-    seeds = {"clf": [0, 1, 2], "modelfree": [0, 1]}
+    seeds = {"clf": [0, 1], "modelfree": [0, 1]}  # not the ablation's fixed-teacher student
     for reward, ss in seeds.items():
         for key in ("distance_m", "abs_torque_nm", "abs_ang_jerk", "success_rate"):
             pts = _pts(tree, "baseline", key, reward)
@@ -154,21 +163,26 @@ def test_sample_efficiency_reads_teacher_eval_rows(tree):
     )
     by = {r.reward: r for r in eff.itertuples()}
     # seed-mean evaluation distance 0.06 * it (clf), 0.03 * it (modelfree), evaluated every 10
-    # iterations: first >= 2.0 m at 40 (2.4 m) and 70 (2.1 m). Training rows (50 + it m) would
+    # iterations; the target is 90% of the better final seed mean (modelfree at 110: 3.3 m),
+    # 2.97 m: first reached at 50 (3.0 m) and 100 (3.0 m). Training rows (50 + it m) would
     # give iteration 0.
-    assert (by["clf"].iteration, by["modelfree"].iteration) == (40, 70)
-    assert by["clf"].env_steps == 40 * syn.STEPS_PER_IT
-    assert by["modelfree"].env_steps == 70 * syn.STEPS_PER_IT
-    assert by["clf"].relative == "iterations -43%, env steps -43%"  # (40 - 70) / 70
+    assert by["clf"].target_distance_m == pytest.approx(0.9 * 3.3)
+    assert (by["clf"].iteration, by["modelfree"].iteration) == (50, 100)
+    assert by["clf"].env_steps == 50 * syn.STEPS_PER_IT
+    assert by["modelfree"].env_steps == 100 * syn.STEPS_PER_IT
+    assert by["clf"].relative == "iterations -50%, env steps -50%"  # (50 - 100) / 100
     assert by["clf"].compared_to == "modelfree"
     assert by["modelfree"].relative == by["modelfree"].compared_to == ""
-    assert "sweep_base/0:40" in by["clf"].per_run and "sweep_base/3:70" in by["modelfree"].per_run
+    assert "sweep_base/1:50" in by["clf"].per_run and "sweep_base/3:100" in by["modelfree"].per_run
     assert "sweep_abl/3:not reached" in by["clf"].per_run  # the crashed run still contributes
+    # sweep_abl/4 trained the teacher of seed 1 again: counted once, not twice
+    assert "sweep_abl/4" not in by["clf"].per_run
+    assert "sweep_abl/4 repeats the teacher of seed 1" in tree["stdout"]
     assert "eval.csv teacher rows" in by["clf"].source
     clf = _pts(tree, "sample_efficiency", "distance_m", "clf")
     assert list(clf.index) == list(range(0, 60, 10))
-    # it 0: four runs (seed offsets -0.1, +0.1, 0, +0.1); 10, 20: three; from 30 on: two
-    assert clf.loc[0, "y"] == pytest.approx(0.1 / 4) and clf.loc[0, "n"] == 4
+    # it 0: three seeds (offsets -0.1, +0.1, 0); 10, 20: three; from 30 on: two
+    assert clf.loc[0, "y"] == pytest.approx(0.0) and clf.loc[0, "n"] == 3
     assert clf.loc[10, "y"] == pytest.approx(0.6) and clf.loc[10, "n"] == 3
     assert clf.loc[40, "y"] == pytest.approx(2.4) and clf.loc[40, "n"] == 2
     # 1 x SE across seeds: std(2.3, 2.5; ddof=1) / sqrt(2) = 0.1
@@ -181,22 +195,23 @@ def test_sample_efficiency_reads_teacher_eval_rows(tree):
     succ = _pts(tree, "sample_efficiency", "success_rate", "clf")
     assert succ.loc[40, "y"] == pytest.approx(2.4 / 4)
     out = tree["stdout"]
-    assert "clf: iteration 40 (3.932e+06 env steps)" in out
-    assert "modelfree: iteration 70" in out and "clf vs modelfree: iterations -43%" in out
+    assert "clf: iteration 50 (4.915e+06 env steps)" in out
+    assert "modelfree: iteration 100" in out and "clf vs modelfree: iterations -50%" in out
 
 
 def test_ablation_plots_episode_return_from_student_eval_rows(tree):
-    seeds = {"full": [0, 1, 2], "no_transformer": [0], "no_mdn": [0]}
+    seeds = {"full": [2], "no_transformer": [0], "no_mdn": [0]}  # the fixed teacher's students
     for variant, ss in seeds.items():
-        for key in ("reward", "distance_m", "success_rate"):
+        for key in ("reward_per_step", "distance_m", "success_rate"):
             pts = _pts(tree, "ablation", key, variant)
             assert list(pts.index) == list(syn.STUDENT_EVAL_ITS)
-            vals = [syn.student_eval_value("clf", variant, s, key, 49) for s in ss]
+            scale = 1 / 50 if key == "reward_per_step" else 1.0
+            src = "reward" if key == "reward_per_step" else key
+            vals = [scale * syn.student_eval_value("clf", variant, s, src, 49) for s in ss]
             assert pts.loc[49, "y"] == pytest.approx(np.mean(vals))
-            se = np.std(vals, ddof=1) / math.sqrt(len(vals)) if len(vals) > 1 else syn.EVAL_SE
-            assert pts.loc[49, "yerr"] == pytest.approx(se)  # 1 x SE
-    full = _pts(tree, "ablation", "reward", "full")
-    assert full.loc[49, "y"] == pytest.approx(1.5) and full.loc[49, "n"] == 3
+            assert math.isnan(pts.loc[49, "yerr"])  # n=1: no bar, never the rollout SE
+    full = _pts(tree, "ablation", "reward_per_step", "full")
+    assert full.loc[49, "y"] == pytest.approx(1.5 / 50) and full.loc[49, "n"] == 1
     abl = tree["pts"].query("figure == 'ablation'")
     assert set(abl["series"]) == {"full", "no_transformer", "no_mdn"}  # no modelfree student
     assert (abl["y"] != syn.TRAIN_TEACHER_REWARD).all() and abl["y"].min() >= 0
@@ -219,15 +234,16 @@ def test_every_figure_written(tree):
         pdf = (tree["out"] / f"{stem}.pdf").read_bytes()
         assert pdf[:5] == b"%PDF-" and len(pdf) > 1000
     written = [ln for ln in tree["stdout"].splitlines() if ln.startswith("wrote ")]
-    assert len(written) == 1 and written[0].startswith("wrote 14 files")
+    assert len(written) == 1 and written[0].startswith("wrote 16 files")
 
 
 def test_combine_and_relative_rules():
     assert agg.combine([9.5, 10.5], [0.3, 0.4]) == pytest.approx((10.0, 0.5, 2))
-    assert agg.combine([8.0], [0.3]) == pytest.approx((8.0, 0.3, 1))
+    mean, se, n = agg.combine([8.0], [0.3])  # one seed: no SE across seeds (not its rollout SE)
+    assert (mean, n) == (8.0, 1) and math.isnan(se)
     assert agg.combine([9.5, 10.5], [0.3, 0.4], "pooled") == pytest.approx((10.0, 0.25, 2))
     mean, se, n = agg.combine([1.0, float("nan")], [0.1, 0.2])
-    assert (mean, se, n) == (1.0, 0.1, 1)
+    assert (mean, n) == (1.0, 1) and math.isnan(se)
     assert agg.rel_diff(8.8, 10.0) == pytest.approx(-0.12)
     assert agg.rel_diff(-3.0, -2.0) == pytest.approx(-0.5)  # (value - ref) / |ref|
     assert math.isnan(agg.rel_diff(1.0, 0.0)) and math.isnan(agg.rel_diff(float("nan"), 1.0))
@@ -273,12 +289,13 @@ def test_missing_rows_are_named_never_a_crash(tmp_path):
     assert res["axes_notes"]["baseline"]["distance_m"] == [
         "no data: modelfree (no full-student runs)"
     ]
-    assert res["axes_notes"]["ablation"]["reward"] == [
+    assert res["axes_notes"]["ablation"]["reward_per_step"] == [
         "no data: no_transformer (no clf runs)",
         "no data: no_mdn (no clf runs)",
-        "clf: no mean_reward in eval.csv (older file?)".replace("clf", "full"),
+        "full: no mean_reward_per_step (no rollout defines it, e.g. none succeeded; or an older "
+        "eval.csv)",
     ]
-    assert res["points"].query("figure == 'ablation' and panel == 'reward'").empty
+    assert res["points"].query("figure == 'ablation' and panel == 'reward_per_step'").empty
     assert not (out / "sample_efficiency.png").exists()
     assert {"baseline.png", "ablation.png", "teacher_curves.png"} <= {p.name for p in out.iterdir()}
     table = pd.read_csv(out / "final_metrics.csv", keep_default_na=False)
@@ -294,6 +311,8 @@ def test_teacher_only_run(tmp_path):
     out = run / "figures"
     assert code == 0
     assert sorted(p.name for p in out.iterdir()) == [
+        "claims.csv",
+        "claims.md",
         "figure_data.csv",
         "runs.csv",
         "runs.md",
@@ -344,7 +363,8 @@ def test_script_runs_from_anywhere(tmp_path):
         cwd=tmp_path,
     )
     assert proc.returncode == 0, proc.stderr
-    assert "modelfree: iteration 70" in proc.stdout
+    # the target: 90% of its final distance (0.03 * 110 - 0.1 = 3.2 m), 2.88 m, first at 100
+    assert "modelfree: iteration 100" in proc.stdout
     assert (tmp_path / "o" / "sample_efficiency.png").is_file()
 
 
