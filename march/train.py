@@ -34,7 +34,7 @@ from omegaconf import DictConfig, OmegaConf
 from march.config import ConfigError, MarchConfig, to_march_config
 from march.config.cli import duplicate_overrides, fail, resolve_compute
 from march.config.memory import check_memory
-from march.learn import distributed, preemption, run_lock
+from march.learn import distributed, preemption, run_lock, tuning
 from march.learn import run_dir as run_files
 from march.learn.checkpoint import CheckpointError, write_json_atomic, write_text_durably
 from march.learn.eta import ETA_ITERATIONS, EtaMetricsLog, EtaWatch
@@ -244,6 +244,9 @@ def run_pipeline(
                 f"{100 * row['mean_success_rate']:.0f}%, reward {row['mean_reward']:.3g}",
                 flush=True,
             )
+            # An Optuna trial (hydra/sweeper=march_optuna): report, maybe stop here (pruned).
+            step = iteration + (cfg.teacher.max_iterations if stage == "student" else 0)
+            tuning.report(float(row[cfg.objective]), step)
             return row
 
         def eval_teacher(actor, iteration: int, env_steps: int) -> dict[str, Any]:
@@ -359,12 +362,11 @@ def main(dcfg: DictConfig) -> float | None:
         _drop_refused_run_dir(job_dir)
         fail(str(err))
     # N processes (torchrun, srun): join the group; rank 0's run directory is everyone's.
-    dist = distributed.init(cfg.compute.device)
-    if not dist.main:
-        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 (rank 0 alone prints)
+    dist = distributed.init(cfg.compute.device, cfg.compute.dist_timeout_s)
     run_dir = Path(cfg.resume) if cfg.resume else Path(hc.runtime.output_dir)
     run_dir = Path(distributed.agree(str(run_dir)))
     run_dir.mkdir(parents=True, exist_ok=True)
+    distributed.rank_log(run_dir)  # ranks > 0 print into <run>/ranks/rank<r>.log
     option = "resume" if cfg.resume else "hydra.run.dir"
     try:
         if dist.main:  # one writer per run directory, for the whole run; no link written through
@@ -408,6 +410,13 @@ def main(dcfg: DictConfig) -> float | None:
     except preemption.Preempted as stop:
         preemption.exit_preempted(stop, lambda state, **kw: _write_status(run_dir, state, **kw))
     except BaseException as err:
+        if tuning.is_pruned(err):  # an Optuna trial stopped by the study's pruner
+            _write_status(run_dir, "pruned", stage=cfg.stage, error=str(err))
+            raise
+        if lost := distributed.lost_rank(err):  # a dead or hung rank: stop now, in one line
+            _write_status(run_dir, "failed", stage=cfg.stage, error=lost)
+            distributed.abort()  # no teardown collective: the others may be gone
+            fail(f"{lost}; the run's checkpoints are in {run_dir}: resume={run_dir}")
         _write_status(run_dir, "failed", stage=cfg.stage, error=f"{type(err).__name__}: {err}")
         # A single run ends with one clear line; in a sweep the error is raised so that Hydra
         # records this job as failed and goes on with the others.
@@ -437,7 +446,9 @@ def _rank_argv(argv: list[str]) -> list[str]:
 
     tmp = tempfile.mkdtemp(prefix=f"march-rank{rank}-")
     atexit.register(shutil.rmtree, tmp, True)
-    return [*argv, f"hydra.run.dir={tmp}", "hydra.output_subdir=null"]
+    own = ("hydra.run.dir=", "hydra.output_subdir=")  # rank 0's: replaced, not set twice
+    kept = [a for a in argv if not a.lstrip("+").startswith(own)]
+    return [*kept, f"hydra.run.dir={tmp}", "hydra.output_subdir=null"]
 
 
 def _resume_argv(argv: list[str]) -> list[str]:

@@ -4,7 +4,10 @@
 
 After each PPO update and each distillation update, every rank saves (into MARCH_TRACE_DIR)
 ``<stage>_<n>_rank<r>.pt``: the networks' state dicts (normaliser buffers included), the
-learning rate, the rollout that update learned from and whether that rank writes run files.
+learning rate, the rollout that update learned from and whether that rank writes run files; at
+each teacher checkpoint and after a teacher resume, the rank's own state (levels, clocks,
+commands, streams: ``teacher_save_<it>_rank<r>.pt``, ``teacher_restored_<it>_rank<r>.pt``).
+``MARCH_TRACE_TAG`` prefixes every file name (a resumed launch's files apart).
 Nothing else changes: the real entry point, envs, runners and files.
 """
 
@@ -19,16 +22,19 @@ from rsl_rl.algorithms import PPO
 
 from march.learn import distributed
 from march.learn.distill import DistillRunner
+from march.learn.teacher import TeacherRunner
+from march.learn.train_state import collect_state
 
 OUT = Path(os.environ["MARCH_TRACE_DIR"])
 RANK = int(os.environ.get("RANK", "0"))
+TAG = os.environ.get("MARCH_TRACE_TAG", "")  # a prefix: a resumed launch's files apart
 _count = {"teacher": 0, "student": 0}
 
 
 def _dump(stage: str, state: dict[str, torch.Tensor], rollout: dict[str, torch.Tensor]) -> None:
     _count[stage] += 1
     payload = {"state": state, "rollout": rollout, "writes_files": distributed.writes_files()}
-    torch.save(payload, OUT / f"{stage}_{_count[stage]}_rank{RANK}.pt")
+    torch.save(payload, OUT / f"{TAG}{stage}_{_count[stage]}_rank{RANK}.pt")
 
 
 _ppo_update = PPO.update
@@ -54,6 +60,30 @@ def _traced_distill_update(self: DistillRunner, steps: list) -> dict[str, float]
     return info
 
 
+_teacher_save = TeacherRunner.save
+_teacher_resume = TeacherRunner.try_resume
+
+
+def _rank_state(self: TeacherRunner) -> dict:
+    """This rank's own part of a checkpoint as its env and process hold it now."""
+    return collect_state(self.env.unwrapped, self.device)
+
+
+def _traced_save(self: TeacherRunner):
+    torch.save(_rank_state(self), OUT / f"{TAG}teacher_save_{self.iteration}_rank{RANK}.pt")
+    return _teacher_save(self)
+
+
+def _traced_resume(self: TeacherRunner) -> bool:
+    resumed = _teacher_resume(self)
+    if resumed:
+        name = f"{TAG}teacher_restored_{self.iteration}_rank{RANK}.pt"
+        torch.save(_rank_state(self), OUT / name)
+    return resumed
+
+
+TeacherRunner.save = _traced_save  # type: ignore[method-assign]
+TeacherRunner.try_resume = _traced_resume  # type: ignore[method-assign]
 PPO.update = _traced_ppo_update  # type: ignore[method-assign]
 DistillRunner._update = _traced_distill_update  # type: ignore[method-assign]
 

@@ -21,7 +21,7 @@ import torch
 import torch.multiprocessing as mp
 
 from march.learn import distributed
-from march.learn.distributed import Dist, eval_share, rank_seed, restore_rank_states
+from march.learn.distributed import Dist, eval_share, rank_seed
 
 ROOT = Path(__file__).resolve().parent.parent
 TORCHRUN = str(Path(sys.executable).with_name("torchrun"))
@@ -57,23 +57,55 @@ def test_eval_shares_partition_the_rollout_indices(n, world):
     assert idx == list(range(n))  # every rollout once, in the one-process order
 
 
-def test_resume_restores_each_ranks_stream_or_says_why(monkeypatch):
-    states = []
-    for s in (11, 22):
-        torch.manual_seed(s)
-        states.append({"rng": torch.get_rng_state(), "generator": torch.Generator().get_state()})
-    payload = {"rank_rng": states, "world_size": 2, "config": {"seed": 3}, "iteration": 5}
-    monkeypatch.setattr(distributed, "_DIST", Dist(rank=1, world=2))
-    assert restore_rank_states(payload) is None
-    assert torch.equal(torch.get_rng_state(), states[1]["rng"])
-    # A third rank (resume with N=3 of a 2-rank run): a fresh stream, and one line saying so.
-    monkeypatch.setattr(distributed, "_DIST", Dist(rank=2, world=3))
-    note = restore_rank_states(payload)
-    assert note == f"rank 2: checkpoint written by 2 rank(s); fresh random stream {rank_seed(8, 2)}"
-    expected = torch.Generator().manual_seed(rank_seed(8, 2)).get_state()
-    torch.manual_seed(0)
-    restore_rank_states(payload)
-    assert torch.equal(torch.get_rng_state(), expected)
+def _state(seed: int) -> dict:
+    torch.manual_seed(seed)
+    return {
+        "curriculum": {"terrain_levels": torch.randint(0, 9, (4,))},
+        "episode": {"episode_length_buf": torch.randint(0, 999, (4,))},
+        "streams": {"torch": torch.get_rng_state(), "planner": torch.Generator().get_state()},
+        "rng": torch.get_rng_state(),
+    }
+
+
+def test_each_rank_takes_its_own_entry_and_another_rank_count_is_refused():
+    from march.learn.checkpoint import CheckpointError
+    from march.learn.train_state import rank_payload
+
+    states = [_state(11), _state(22), _state(33)]
+    payload = {**states[0], "rank_states": states, "world_size": 3, "iteration": 5}
+    for r in range(3):
+        mine = distributed.own_rank_state(payload, Dist(rank=r, world=3))
+        for key in ("curriculum", "episode", "streams", "rng"):
+            assert mine[key] is states[r][key], (r, key)
+        assert mine["iteration"] == 5 and mine["rank_states"] is states
+    for world in (1, 2, 4):
+        assert distributed.world_mismatch(payload, world) == (
+            f"written by 3 rank(s), this run has {world}: resume it with 3 process(es) "
+            "(torchrun --nproc_per_node / Slurm tasks x nodes = 3)"
+        )
+    assert distributed.world_mismatch(payload, 3) is None
+    assert distributed.world_mismatch({"iteration": 1}, 1) is None  # a one-process run
+    with pytest.raises(CheckpointError, match=r"^resume=x: written by 2 rank\(s\), this run has 1"):
+        rank_payload({"world_size": 2}, "resume=x")  # this process is a one-process run
+    assert "written by 1 rank(s), this run has 2" in distributed.world_mismatch({}, 2)
+
+
+def test_a_checkpoint_from_before_rank_states_gives_each_rank_its_torch_streams():
+    s0, s1 = _state(1), _state(2)
+    payload = {**s0, "rank_rng": [{"rng": s0["rng"]}, {"rng": s1["rng"]}], "world_size": 2}
+    mine = distributed.own_rank_state(payload, Dist(rank=1, world=2))
+    assert mine["rng"] is s1["rng"] and mine["streams"]["torch"] is s1["rng"]
+    assert mine["streams"]["planner"] is s0["streams"]["planner"]  # only torch's was per rank
+    assert distributed.own_rank_state(payload, Dist(rank=0, world=2)) is payload
+
+
+def test_the_device_is_what_the_task_sees():
+    from march.errors import ConfigError
+
+    assert distributed.visible_device(3, count=1) == "cuda:0"  # one GPU bound per task
+    assert distributed.visible_device(3, count=4) == "cuda:3"
+    with pytest.raises(ConfigError, match="^local rank 2 sees 2 CUDA device"):
+        distributed.visible_device(2, count=2)
 
 
 def test_ranks_from_a_slurm_step_of_several_tasks():
@@ -111,8 +143,10 @@ def test_rank_config_changes_seed_and_device_only():
     assert r1.seed == rank_seed(5, 1) and r1.compute.device == "cpu"
     assert r1.compute.num_envs == cfg.compute.num_envs and r1.curriculum == cfg.curriculum
     gpu = load(["compute=gpu", "seed=5"])
-    r3 = distributed.rank_config(gpu, Dist(rank=3, world=4, local_rank=3, backend="nccl"))
+    r3 = distributed.rank_config(gpu, Dist(rank=3, world=4, local_rank=3, backend="nccl"), 4)
     assert r3.compute.device == "cuda:3" and r3.seed == rank_seed(5, 3)
+    r3 = distributed.rank_config(gpu, Dist(rank=3, world=4, local_rank=3, backend="nccl"), 1)
+    assert r3.compute.device == "cuda:0"  # Slurm bound one GPU to the task
 
 
 # -- collectives on two real gloo ranks ---------------------------------------------------------
@@ -124,15 +158,36 @@ def _collectives_rank(rank: int, port: int, out: str) -> None:
         | {"WORLD_SIZE": "2", "LOCAL_RANK": str(rank)}
     )
     from rsl_rl.modules.normalization import EmpiricalNormalization
+    from test_syncs import SyncCounter
+
+    from march.learn import rank_normalizers
 
     d = distributed.init("cpu")
     gen = torch.Generator().manual_seed(100 + rank)
-    # Normaliser: rank 0 sees 3 rows, rank 1 five, twice.
-    norm = EmpiricalNormalization(4)
-    assert distributed.sync_normalizers(torch.nn.Sequential(norm)) == 1
-    batches = [torch.randn(3 + 2 * rank, 4, generator=gen) * (1 + rank) for _ in range(2)]
-    for b in batches:
-        norm.update(b)
+    # Two normalisers (a PPO actor's and critic's), 24 env steps of one iteration: rank 0 sees 3
+    # rows per step, rank 1 five. Nothing may be read back or communicated during the steps;
+    # one flush then issues exactly one collective for both.
+    norm, norm2 = EmpiricalNormalization(4), EmpiricalNormalization(2)
+    assert rank_normalizers.sync_normalizers(torch.nn.Sequential(norm, norm2)) == 2
+    batches = [torch.randn(3 + 2 * rank, 4, generator=gen) * (1 + rank) for _ in range(24)]
+    batches2 = [torch.randn(3 + 2 * rank, 2, generator=gen) + rank for _ in range(24)]
+    import torch.distributed as td
+
+    calls: list[str] = []
+    names = ("all_gather", "all_gather_into_tensor", "all_reduce", "broadcast", "gather")
+    saved = {n: getattr(td, n) for n in names}
+    for n, f in saved.items():
+        setattr(td, n, lambda *a, _n=n, _f=f, **k: (calls.append(_n), _f(*a, **k))[1])
+    with SyncCounter() as steps_sc:
+        for b, b2 in zip(batches, batches2, strict=True):
+            norm.update(b)
+            norm2.update(b2)
+    step_calls = list(calls)
+    with SyncCounter() as flush_sc:
+        issued = rank_normalizers.flush_normalizers()
+    flush_calls = calls[len(step_calls) :]
+    for n, f in saved.items():
+        setattr(td, n, f)
     # Gradients: rank r's gradient is r + 1 everywhere -> mean 1.5.
     lin = torch.nn.Linear(3, 2)
     for p in lin.parameters():
@@ -154,7 +209,10 @@ def _collectives_rank(rank: int, port: int, out: str) -> None:
     torch.save(
         {
             "norm": {k: v.clone() for k, v in norm.state_dict().items()},
+            "norm2": {k: v.clone() for k, v in norm2.state_dict().items()},
             "batches": batches,
+            "batches2": batches2,
+            "syncs": (steps_sc.hits, flush_sc.hits, step_calls, flush_calls, issued),
             "grads": [p.grad.clone() for p in lin.parameters()],
             "means": means,
             "total": total,
@@ -173,17 +231,25 @@ def test_collectives_on_two_gloo_ranks(tmp_path):
 
     mp.spawn(_collectives_rank, args=(_free_port(), str(tmp_path)), nprocs=2, join=True)
     r0, r1 = (torch.load(tmp_path / f"rank{r}.pt") for r in (0, 1))
-    # Normalisers: bitwise the same on both ranks, and equal to one normaliser fed both batches.
-    for k in r0["norm"]:
-        assert torch.equal(r0["norm"][k], r1["norm"][k]), k
-    ref = EmpiricalNormalization(4).double()
-    for i in range(2):
-        ref.update(torch.cat([r0["batches"][i], r1["batches"][i]]).double())
-    assert int(r0["norm"]["count"]) == 2 * (3 + 5)
-    for k in ("_mean", "_var", "_std"):
-        torch.testing.assert_close(
-            r0["norm"][k].double(), ref.state_dict()[k], rtol=1e-5, atol=1e-6
-        )
+    # Normalisers: bitwise the same on both ranks, and equal to one normaliser fed every batch
+    # of both ranks (rsl-rl's per-step update in one process).
+    for name, dim, key in (("norm", 4, "batches"), ("norm2", 2, "batches2")):
+        for k in r0[name]:
+            assert torch.equal(r0[name][k], r1[name][k]), k
+        ref = EmpiricalNormalization(dim).double()
+        for i in range(24):
+            ref.update(torch.cat([r0[key][i], r1[key][i]]).double())
+        assert int(r0[name]["count"]) == 24 * (3 + 5)
+        for k in ("_mean", "_var", "_std"):
+            torch.testing.assert_close(
+                r0[name][k].double(), ref.state_dict()[k], rtol=1e-5, atol=1e-6
+            )
+    # Syncs of the 2-rank run: none during the 24 steps (no host read, no collective), one
+    # all-gather and still no host read for the iteration's flush of both normalisers.
+    for r in (r0, r1):
+        step_reads, flush_reads, step_calls, flush_calls, issued = r["syncs"]
+        assert step_reads == [] and step_calls == [], (step_reads, step_calls)
+        assert flush_reads == [] and flush_calls == ["all_gather"] and issued == 1
     for g0, g1 in zip(r0["grads"], r1["grads"], strict=True):
         assert torch.equal(g0, g1) and torch.all(g0 == 1.5)
     assert r0["means"]["a"] == r1["means"]["a"] == 0.5
@@ -291,8 +357,12 @@ def test_two_ranks_run_one_policy_and_rank0_writes(tmp_path):
     assert log.count("Actor Model") == 1  # rsl-rl's network print: rank 0's only
     assert {p.name for p in run.iterdir()} == {
         ".hydra", "config.yaml", "env.log", "eval.csv", "metrics.csv", "status.json",
-        "student", "summary.json", "teacher", "train.log",
+        "student", "summary.json", "teacher", "train.log", "eval_levels.csv",
+        "eval_rollouts.csv", "ranks",
     }  # fmt: skip
+    # Rank 1 printed into its own log file; Hydra's files are rank 0's alone.
+    assert [p.name for p in (run / "ranks").iterdir()] == ["rank1.log"]
+    assert "[teacher]" not in (run / "ranks" / "rank1.log").read_text()
     ckpt = torch.load(run / "teacher" / "latest.pt", weights_only=True)
     assert ckpt["world_size"] == 2 and len(ckpt["rank_rng"]) == 2
     assert not torch.equal(ckpt["rank_rng"][0]["rng"], ckpt["rank_rng"][1]["rng"])
@@ -341,3 +411,138 @@ def test_kill_and_resume_of_a_two_rank_run(tmp_path):
     ]
     assert [r["iteration"] for r in _rows(run / "eval.csv")] == ["3"]
     assert '"done"' in (run / "status.json").read_text()
+
+
+def _same(a, b, where: str = "state") -> list[str]:
+    """Where two nested checkpoint entries differ (tensors compared exactly)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        if a.keys() != b.keys():
+            return [f"{where}: keys {sorted(a)} vs {sorted(b)}"]
+        return [d for k in a for d in _same(a[k], b[k], f"{where}.{k}")]
+    if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
+        ok = a.shape == b.shape and a.dtype == b.dtype and torch.equal(a, b)
+        return [] if ok else [where]
+    return [] if a == b else [where]
+
+
+@pytest.mark.sim
+@pytest.mark.slow
+def test_a_dead_rank_stops_the_other_and_each_rank_resumes_its_own_state(tmp_path):
+    """Two ranks started as srun starts them (no torchrun agent to kill the survivor): rank 1
+    is SIGKILLed after the first checkpoint; rank 0 must stop by itself within the process
+    group's timeout, with one line. A torchrun resume then gives every rank its own pre-kill
+    state exactly, and the ranks still roll out different data."""
+    run, trace = tmp_path / "run", tmp_path / "trace"
+    trace.mkdir()
+    timeout_s = 60
+    args = [*SMALL, "stage=teacher", "teacher.max_iterations=3", "compute.torch_threads=1"]
+    args += [f"compute.dist_timeout_s={timeout_s}", f"hydra.run.dir={run}"]
+    port = str(_free_port())
+    procs = []
+    for r in (0, 1):
+        env = _env() | {"MASTER_ADDR": "127.0.0.1", "MASTER_PORT": port, "WORLD_SIZE": "2"}
+        env |= {"RANK": str(r), "LOCAL_RANK": str(r), "MARCH_TRACE_DIR": str(trace)}
+        env |= {"MARCH_TRACE_TAG": "first_"}
+        procs.append(
+            subprocess.Popen(
+                [sys.executable, "tests/ddp_trace.py", *args],
+                cwd=ROOT,
+                env=env,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+        )
+    deadline = time.time() + 900
+    try:
+        while not (trace / "first_teacher_save_1_rank1.pt").exists():
+            assert all(p.poll() is None for p in procs), procs[0].communicate()[1][-3000:]
+            assert time.time() < deadline, "no checkpoint after 900 s"
+            time.sleep(0.2)
+        os.kill(procs[1].pid, signal.SIGKILL)
+        killed = time.time()
+        _, err = procs[0].communicate(timeout=timeout_s + 60)
+        waited = time.time() - killed
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+            p.wait()
+    assert procs[0].returncode != 0
+    assert waited < timeout_s + 30, f"rank 0 took {waited:.0f} s to stop"
+    lines = [ln for ln in err.splitlines() if ln.strip() and "Warning" not in ln]
+    assert "Traceback" not in err, err[-3000:]
+    assert "another rank of this 2-rank run stopped" in lines[-1], err[-2000:]
+    assert lines[-1].endswith(f"resume={run}")
+    assert '"failed"' in (run / "status.json").read_text()
+    assert (run / "ranks" / "rank1.log").is_file()
+    print(f"rank 0 stopped {waited:.1f} s after rank 1 was killed: {lines[-1]}")
+
+    out = _torchrun(
+        ["tests/ddp_trace.py"],
+        f"resume={run}",
+        env={"MARCH_TRACE_DIR": str(trace), "MARCH_TRACE_TAG": "resumed_"},
+    )
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    at = int(out.stdout.split("[teacher] resuming from ")[1].split(" at iteration ")[1].split()[0])
+    before = [torch.load(trace / f"first_teacher_save_{at}_rank{r}.pt") for r in (0, 1)]
+    after = [torch.load(trace / f"resumed_teacher_restored_{at}_rank{r}.pt") for r in (0, 1)]
+    for r in (0, 1):  # each rank's levels, clocks, commands and every stream, exactly
+        assert _same(before[r], after[r]) == [], f"rank {r}"
+    differ = _same(before[0], before[1])
+    assert "state.streams.torch" in differ and "state.streams.numpy.keys" in differ, differ
+    assert "state.streams.planner" in differ and "state.episode.episode_length_buf" in differ
+    for k in range(1, 4 - at):  # the ranks' rollouts after the resume still differ
+        r0, r1 = (torch.load(trace / f"resumed_teacher_{k}_rank{r}.pt") for r in (0, 1))
+        for key, v in r0["rollout"].items():
+            assert not torch.equal(v, r1["rollout"][key]), f"update {k}: same {key}"
+        for key, v in r0["state"].items():
+            assert torch.equal(v, r1["state"][key]), f"update {k}: {key} differs"
+    rows = _rows(run / "metrics.csv")
+    assert [(r["iteration"], r["env_steps"]) for r in rows] == [
+        ("1", "64"),
+        ("2", "128"),
+        ("3", "192"),
+    ]
+    assert '"done"' in (run / "status.json").read_text()
+    ckpt = torch.load(run / "teacher" / "latest.pt", weights_only=True)
+    assert ckpt["world_size"] == 2 and len(ckpt["rank_states"]) == 2
+
+
+def test_the_slurm_ddp_launcher_kills_the_step_when_one_task_fails():
+    from omegaconf import OmegaConf
+    from submitit.slurm.slurm import _make_sbatch_string
+
+    launcher = OmegaConf.load(ROOT / "conf" / "hydra" / "launcher" / "march_slurm_ddp.yaml")
+    params = OmegaConf.to_container(launcher.additional_parameters)
+    script = _make_sbatch_string(
+        command="python -m march.train", folder="/tmp/x", additional_parameters=params
+    )
+    assert "#SBATCH --kill-on-bad-exit=1" in script.splitlines()
+
+
+def _hung_rank(rank: int, port: int, out: str) -> None:
+    os.environ.update(
+        {"MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port), "RANK": str(rank)}
+        | {"WORLD_SIZE": "2", "LOCAL_RANK": str(rank)}
+    )
+    distributed.init("cpu", timeout_s=3)
+    if rank == 1:  # alive, but never joins the collective (a stuck or stopped process)
+        time.sleep(20)
+        os._exit(0)
+    t0 = time.time()
+    try:
+        distributed.mean_over_ranks({"x": 1.0})
+        line = None
+    except Exception as err:  # noqa: BLE001 - what the run would see
+        line = distributed.lost_rank(err)
+    Path(out, "rank0.txt").write_text(f"{time.time() - t0:.2f}\n{line}")
+    os._exit(0)
+
+
+def test_a_hung_rank_is_given_up_after_the_timeout_in_one_line(tmp_path):
+    mp.spawn(_hung_rank, args=(_free_port(), str(tmp_path)), nprocs=2, join=True)
+    waited, line = (tmp_path / "rank0.txt").read_text().split("\n", 1)
+    assert 2.5 < float(waited) < 15, waited  # compute.dist_timeout_s=3, not gloo's 30 min
+    assert line.startswith("rank 0: another rank of this 2-rank run stopped or stopped answering")
+    assert "\n" not in line

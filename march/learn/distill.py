@@ -21,7 +21,7 @@ from tensordict import TensorDict
 
 from march.config import MarchConfig
 from march.env.course import CourseRuler
-from march.learn import distributed, preemption
+from march.learn import distributed, preemption, rank_normalizers
 from march.learn.checkpoint import (
     check_layout,
     ensure_model_file,
@@ -32,7 +32,12 @@ from march.learn.checkpoint import (
 from march.learn.faults import EnvFaults, UpdateGuard
 from march.learn.metrics import MetricsLog, Progress, truncate_rows
 from march.learn.teacher import EpisodeStats, build_teacher_actor, teacher_obs
-from march.learn.train_state import collect_state, mean_terrain_level, restore_state
+from march.learn.train_state import (
+    collect_state,
+    mean_terrain_level,
+    rank_payload,
+    restore_state,
+)
 from march.policies.student import StudentPolicy
 
 if TYPE_CHECKING:
@@ -159,7 +164,7 @@ class DistillRunner:
         self.student = build_student(cfg, self.layout, self.device)
         # N ranks: rank 0's initial student everywhere, normalisers learning from every rank.
         distributed.broadcast_module(self.student)
-        distributed.sync_normalizers(self.student)
+        rank_normalizers.sync_normalizers(self.student)
         self.world = distributed.current().world
         d = cfg.distill
         self.optimizer = torch.optim.Adam(self.student.parameters(), lr=d.learning_rate)
@@ -203,7 +208,7 @@ class DistillRunner:
 
     def _save(self) -> Path:
         # Every rank's random states go in (a collective); rank 0 alone writes the files.
-        payload = distributed.with_rank_states(self.payload(), self.generator)
+        payload = distributed.with_rank_states(self.payload())
         return save_checkpoint(payload, self.ckpt_dir, self.iteration)
 
     def try_resume(self) -> bool:
@@ -217,6 +222,8 @@ class DistillRunner:
             return False
         where = f"resume={self.run_dir}: {path}"
         payload = load_checkpoint(path, "student", self.device, source=where)
+        # N ranks: this rank's own levels, clocks and streams (another rank count: refused).
+        payload = rank_payload(payload, where)
         if path.name == "latest.pt":  # a kill may have cut the write of its model_<it>.pt
             ensure_model_file(payload, self.ckpt_dir)
         check_layout(payload["layout"], self.layout, "student", path)
@@ -230,10 +237,6 @@ class DistillRunner:
         notes = restore_state(
             self.env, payload, self.device, self.cfg.seed, where, {"distill": self.generator}
         )
-        # N processes: rank r > 0 then takes its own torch and generator streams (rank 0's are
-        # the ones just restored).
-        if note := distributed.restore_rank_states(payload, self.generator):
-            notes.append(note)
         self.obs = self.env.obs_buf  # the observations of that reset
         self.env.common_step_counter = payload.get("common_step_counter", 0)
         self.log.resume_from("student", self.iteration)
@@ -274,6 +277,7 @@ class DistillRunner:
         self.student.train()
         for proprio, command, _, _, _ in steps:
             self.student.update_normalization(proprio, command)
+        rank_normalizers.flush_normalizers()  # N ranks: every rank's batches, once
 
         def step_loss(step: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, dict[str, float]]:
             proprio, command, depth, mean, std = step

@@ -12,9 +12,10 @@ run's seed, so a one-process run is unchanged). The policy is the same on every 
   algorithm's collective calls work with any backend, so march initialises the process group
   itself (nccl on CUDA, gloo on CPU) and hands PPO the ``multi_gpu`` dict;
 - distillation averages its gradients the same way (:func:`average_gradients`);
-- every observation normaliser is updated with the moments of all ranks' batches
-  (:func:`sync_normalizers`: one all-gather of (count, mean, var) per update, combined in rank
-  order, so every rank computes the same bits; rsl-rl leaves them per rank);
+- every observation normaliser learns the moments of all ranks' batches once per iteration
+  (:mod:`march.learn.rank_normalizers`: per-rank moments kept on the device
+  during the rollout, then one all-gather for all normalisers, combined in rank order, so
+  every rank computes the same bits; rsl-rl leaves them per rank);
 - episode statistics, losses, fault counts and evaluation rollouts are reduced over the ranks;
 - rank 0 alone writes files (:func:`writes_files` gates march's writers) and prints.
 
@@ -25,7 +26,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import types
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -109,29 +109,108 @@ def rank_seed(seed: int, rank: int) -> int:
     return int(np.random.SeedSequence([int(seed), int(rank)]).generate_state(1)[0] % 2**31)
 
 
-def init(device: str) -> Dist:
+DEFAULT_TIMEOUT_S = 300.0
+"""The process group's timeout (``compute.dist_timeout_s``): a collective that waits longer for a
+rank (dead, hung, or stopped by the scheduler) raises instead of holding every device; torch's
+own defaults are 10 min (nccl) and 30 min (gloo)."""
+
+
+def visible_device(local_rank: int, count: int | None = None) -> str:
+    """The CUDA device of a rank from what its process can see: one visible GPU (a cluster that
+    binds one GPU per task, ``CUDA_VISIBLE_DEVICES`` set per task) is ``cuda:0`` whatever the
+    local rank; several are indexed by the local rank. One line when the rank has none."""
+    count = torch.cuda.device_count() if count is None else count
+    if count == 1:
+        return "cuda:0"
+    if local_rank >= count:
+        from march.errors import ConfigError
+
+        raise ConfigError(
+            f"local rank {local_rank} sees {count} CUDA device(s): start at most {count} "
+            "processes per node (torchrun --nproc_per_node, Slurm --ntasks-per-node) or bind "
+            "one GPU per task"
+        )
+    return f"cuda:{local_rank}"
+
+
+def init(device: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> Dist:
     """Join the process group described by the environment (no-op for one process).
 
-    nccl with ``cuda:<local_rank>`` when ``device`` is CUDA, gloo on CPU. Returns the rank's place.
+    nccl on the rank's visible CUDA device (:func:`visible_device`) when ``device`` is CUDA, gloo
+    on CPU; every collective gives up after ``timeout_s`` (:func:`lost_rank` words the error).
+    Returns the rank's place.
     """
     global _DIST
     rank, world, local = env_world()
     if world <= 1:
         _DIST = Dist()
         return _DIST
+    import datetime
+
     import torch.distributed as td
 
     backend = "nccl" if device.startswith("cuda") else "gloo"
     if not td.is_initialized():
         if backend == "nccl":
-            torch.cuda.set_device(local)
-        td.init_process_group(backend=backend, rank=rank, world_size=world)
+            torch.cuda.set_device(torch.device(visible_device(local)))
+        td.init_process_group(
+            backend=backend,
+            rank=rank,
+            world_size=world,
+            timeout=datetime.timedelta(seconds=float(timeout_s)),
+        )
     _DIST = Dist(rank=rank, world=world, local_rank=local, backend=backend)
     return _DIST
 
 
+def lost_rank(err: BaseException) -> str | None:
+    """One line for an error that means another rank of the run is gone or hung (a collective
+    that failed or timed out), or None for any other error."""
+    import torch.distributed as td
+
+    text = str(err).strip()
+    dist_error = isinstance(err, getattr(td, "DistError", ()))
+    words = ("gloo", "nccl", "connection closed", "connection reset", "timed out")
+    if not _DIST.active or not (dist_error or any(w in text.lower() for w in words)):
+        return None
+    first = text.splitlines()[0] if text else type(err).__name__
+    first = first.split("] ", 1)[-1][:160]  # gloo's messages start with a source location
+    return (
+        f"rank {_DIST.rank}: another rank of this {_DIST.world}-rank run stopped or stopped "
+        f"answering ({type(err).__name__}: {first})"
+    )
+
+
+def abort() -> None:
+    """Leave the process group after a lost rank without waiting for the others."""
+    global _DIST
+    from march.learn import rank_normalizers
+
+    rank_normalizers.reset()
+    _DIST = Dist()
+
+
+def rank_log(run_dir: Any) -> Any:
+    """Ranks > 0 print into ``<run>/ranks/rank<r>.log`` (stdout and stderr, line-buffered; a
+    traceback lands there too); rank 0 keeps the console and Hydra's ``train.log``. Returns the
+    file's path (None on rank 0 or for one process)."""
+    import sys
+    from pathlib import Path
+
+    if not _DIST.active or _DIST.main:
+        return None
+    path = Path(run_dir) / "ranks" / f"rank{_DIST.rank}.log"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    f = path.open("a", buffering=1)
+    sys.stdout = sys.stderr = f
+    return path
+
+
 def shutdown() -> None:
     global _DIST
+    from march.learn import rank_normalizers
+
+    rank_normalizers.reset()
     if _DIST.active:
         import torch.distributed as td
 
@@ -140,24 +219,25 @@ def shutdown() -> None:
     _DIST = Dist()
 
 
-def rank_device(device: str, d: Dist | None = None) -> str:
-    """A CUDA run puts rank r on ``cuda:<local_rank>``; CPU stays CPU."""
+def rank_device(device: str, d: Dist | None = None, count: int | None = None) -> str:
+    """A CUDA run puts rank r on its visible device (:func:`visible_device`); CPU stays CPU."""
     d = d or _DIST
     if d.active and device.startswith("cuda"):
-        return f"cuda:{d.local_rank}"
+        return visible_device(d.local_rank, count)
     return device
 
 
-def rank_config(cfg: Any, d: Dist | None = None) -> Any:
+def rank_config(cfg: Any, d: Dist | None = None, count: int | None = None) -> Any:
     """The rank's copy of the run config: its own seed and device, everything else shared."""
     d = d or _DIST
     if not d.active:
         return cfg
-    compute = dataclasses.replace(cfg.compute, device=rank_device(cfg.compute.device, d))
+    device = rank_device(cfg.compute.device, d, count)
+    compute = dataclasses.replace(cfg.compute, device=device)
     return dataclasses.replace(cfg, seed=rank_seed(cfg.seed, d.rank), compute=compute)
 
 
-def _device() -> torch.device:
+def collective_device() -> torch.device:
     """The device collectives run on (nccl needs CUDA tensors)."""
     if _DIST.backend == "nccl":
         return torch.device("cuda", torch.cuda.current_device())
@@ -196,7 +276,7 @@ def gather_objects(obj: Any) -> list[Any]:
 def _all_reduce_sum(x: torch.Tensor) -> torch.Tensor:
     import torch.distributed as td
 
-    y = x.to(_device()).clone()
+    y = x.to(collective_device()).clone()
     td.all_reduce(y, op=td.ReduceOp.SUM)
     return y.to(x.device)
 
@@ -255,7 +335,7 @@ def average_gradients(parameters: Iterable[torch.nn.Parameter]) -> None:
         return
     import torch.distributed as td
 
-    flat = torch.cat([p.grad.reshape(-1) for p in params]).to(_device())
+    flat = torch.cat([p.grad.reshape(-1) for p in params]).to(collective_device())
     td.all_reduce(flat, op=td.ReduceOp.SUM)
     flat /= _DIST.world
     offset = 0
@@ -272,89 +352,63 @@ def ppo_multi_gpu() -> dict[str, int] | None:
     return {"global_rank": _DIST.rank, "local_rank": _DIST.local_rank, "world_size": _DIST.world}
 
 
-def _combined_update(norm: Any, x: torch.Tensor) -> None:
-    """rsl-rl's ``EmpiricalNormalization.update`` with the batch of all ranks: the ranks'
-    (count, mean, var) are gathered and combined in rank order (same bits on every rank)."""
-    if not norm.training:
-        return
-    if norm.until is not None and norm.count >= norm.until:
-        return
-    import torch.distributed as td
-
-    x = x.reshape(-1, x.shape[-1]) if x.dim() > 2 else x
-    dim = x.shape[-1]
-    local = torch.empty(1 + 2 * dim, dtype=torch.float64, device=_device())
-    local[0] = x.shape[0]
-    local[1 : 1 + dim] = x.double().mean(0).to(local.device)
-    local[1 + dim :] = x.double().var(0, unbiased=False).to(local.device)
-    parts = [torch.empty_like(local) for _ in range(_DIST.world)]
-    td.all_gather(parts, local)
-    stacked = torch.stack(parts).to(x.device)  # (world, 1 + 2 dim), rank order
-    counts = stacked[:, :1]
-    n = counts.sum()
-    mean_x = (counts * stacked[:, 1 : 1 + dim]).sum(0) / n
-    var_x = (counts * (stacked[:, 1 + dim :] + (stacked[:, 1 : 1 + dim] - mean_x) ** 2)).sum(0) / n
-    dtype = norm._mean.dtype
-    mean_x, var_x = mean_x.to(dtype).unsqueeze(0), var_x.to(dtype).unsqueeze(0)
-    count_x = int(n.item())
-    norm.count += count_x
-    rate = count_x / norm.count
-    delta_mean = mean_x - norm._mean
-    norm._mean += rate * delta_mean
-    norm._var += rate * (var_x - norm._var + delta_mean * (mean_x - norm._mean))
-    norm._std = torch.sqrt(norm._var)
+RANK_KEYS = ("curriculum", "episode", "streams", "rng", "generator")
+"""Checkpoint entries that belong to one rank: its envs' levels, clocks and commands and every
+random stream it draws from. The top-level entries are rank 0's (a one-process reader's view);
+``rank_states[r]`` holds rank r's."""
 
 
-def sync_normalizers(*modules: torch.nn.Module) -> int:
-    """Make every rsl-rl ``EmpiricalNormalization`` inside ``modules`` learn from all ranks'
-    batches (see :func:`_combined_update`); returns how many were found. No-op for one process."""
-    if not _DIST.active:
-        return 0
-    from rsl_rl.modules.normalization import EmpiricalNormalization
-
-    found = 0
-    for module in modules:
-        for sub in module.modules():
-            if isinstance(sub, EmpiricalNormalization):
-                sub.update = types.MethodType(_combined_update, sub)  # type: ignore[method-assign]
-                found += 1
-    return found
-
-
-def with_rank_states(payload: dict[str, Any], generator: torch.Generator | None = None) -> dict:
-    """``payload`` plus every rank's random states (``rank_rng``: torch's global state and the
-    runner's generator per rank), so that a resume of an N-rank run restores each rank's own
-    stream. A collective: every rank calls it; one process returns ``payload`` unchanged."""
+def with_rank_states(payload: dict[str, Any]) -> dict:
+    """``payload`` plus ``rank_states``: every rank's :data:`RANK_KEYS` entries, gathered on
+    rank 0 (the rank that writes; the other ranks' payloads are not written), and
+    ``world_size``. A collective: every rank calls it; one process returns ``payload``."""
     if not _DIST.active:
         return payload
-    mine = {"rng": torch.get_rng_state()}
-    if generator is not None:
-        mine["generator"] = generator.get_state().cpu()
-    states = gather_objects(mine)
-    return {**payload, "rank_rng": states, "world_size": _DIST.world}
+    import torch.distributed as td
+
+    mine = {k: payload[k] for k in RANK_KEYS if k in payload}
+    out: list[Any] | None = [None] * _DIST.world if _DIST.main else None
+    td.gather_object(mine, out, dst=0)
+    return {**payload, "rank_states": out or [], "world_size": _DIST.world}
 
 
-def restore_rank_states(
-    payload: dict[str, Any], generator: torch.Generator | None = None
-) -> str | None:
-    """After a resume has loaded rank 0's states (``rng``, ``generator``): rank r takes its own
-    from ``rank_rng``. A rank the checkpoint has no states for (a resume with more ranks than it
-    was written by) seeds a fresh stream from its rank seed and the iteration; returns a note."""
-    d = _DIST
-    states = payload.get("rank_rng")
-    if states is not None and d.rank < len(states):
-        torch.set_rng_state(states[d.rank]["rng"])
-        if generator is not None and "generator" in states[d.rank]:
-            generator.set_state(states[d.rank]["generator"])
+def written_by(payload: Mapping[str, Any]) -> int:
+    """The number of ranks that wrote a checkpoint (1: a one-process run)."""
+    return int(payload.get("world_size", 1))
+
+
+def world_mismatch(payload: Mapping[str, Any], world: int | None = None) -> str | None:
+    """Why this run cannot resume ``payload``, or None. A run resumes only on the number of
+    ranks that wrote it (docs/scaling.md): rank r's envs, levels and streams are rank r's, and
+    N ranks' state does not split or merge into M ranks' without changing what the run learns."""
+    world = _DIST.world if world is None else world
+    written = written_by(payload)
+    if written == world:
         return None
-    if d.rank == 0:
-        return None
-    seed = rank_seed(int(payload["config"]["seed"]) + int(payload["iteration"]), d.rank)
-    torch.manual_seed(seed)
-    if generator is not None:
-        generator.manual_seed(seed)
-    written = int(payload.get("world_size", 1))
-    return f"rank {d.rank}: checkpoint written by {written} rank(s); fresh random stream {seed}"
+    return (
+        f"written by {written} rank(s), this run has {world}: resume it with {written} "
+        f"process(es) (torchrun --nproc_per_node / Slurm tasks x nodes = {written})"
+    )
+
+
+def own_rank_state(payload: dict[str, Any], d: Dist | None = None) -> dict[str, Any]:
+    """``payload`` with this rank's entries of ``rank_states`` in place of rank 0's (the ranks
+    must match: :func:`world_mismatch`). A multi-rank checkpoint written before ``rank_states``
+    (``rank_rng``: torch streams only) gives rank r its torch streams and rank 0's others."""
+    d = d or _DIST
+    states = payload.get("rank_states")
+    if isinstance(states, list) and d.rank < len(states) and isinstance(states[d.rank], dict):
+        return {**payload, **states[d.rank]}
+    legacy = payload.get("rank_rng")
+    if isinstance(legacy, list) and d.rank < len(legacy) and d.rank > 0:
+        mine = dict(legacy[d.rank])
+        out = {**payload, **mine}
+        if isinstance(payload.get("streams"), dict):
+            out["streams"] = {**payload["streams"], "torch": mine["rng"]}
+            if "generator" in mine and "distill" in payload["streams"]:
+                out["streams"]["distill"] = mine["generator"]
+        return out
+    return payload
 
 
 def eval_share(num_rollouts: int, d: Dist | None = None) -> tuple[int, int]:

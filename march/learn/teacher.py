@@ -24,7 +24,7 @@ from tensordict import TensorDict
 from march.config import MarchConfig, TeacherCfg
 from march.env.build import rsl_rl_env
 from march.env.course import CourseRuler
-from march.learn import distributed, preemption
+from march.learn import distributed, preemption, rank_normalizers
 from march.learn.checkpoint import (
     check_layout,
     ensure_model_file,
@@ -34,7 +34,12 @@ from march.learn.checkpoint import (
 )
 from march.learn.faults import EnvFaults, UpdateGuard
 from march.learn.metrics import MetricsLog, Progress, has_row, truncate_rows
-from march.learn.train_state import collect_state, mean_terrain_level, restore_state
+from march.learn.train_state import (
+    collect_state,
+    mean_terrain_level,
+    rank_payload,
+    restore_state,
+)
 
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv
@@ -241,7 +246,7 @@ class TeacherRunner:
             )
         if self.alg.is_multi_gpu:  # N ranks: rank 0's networks everywhere, shared normalisers
             self.alg.broadcast_parameters()
-            distributed.sync_normalizers(self.alg.actor, self.alg.critic)
+            rank_normalizers.sync_normalizers(self.alg.actor, self.alg.critic)
         self.iteration = 0  # iterations completed
         self.env_steps = 0
         self.wall_s = 0.0
@@ -293,6 +298,8 @@ class TeacherRunner:
             return False
         where = f"resume={self.run_dir}: {path}"
         payload = load_checkpoint(path, "teacher", self.device, source=where)
+        # N ranks: this rank's own levels, clocks and streams (another rank count: refused).
+        payload = rank_payload(payload, where)
         if path.name == "latest.pt":  # a kill may have cut the write of its model_<it>.pt
             ensure_model_file(payload, self.ckpt_dir)
         check_layout(payload["layout"], self.layout, "teacher", path)
@@ -306,9 +313,6 @@ class TeacherRunner:
         # Levels, episode clocks and random streams last: the env's reset here draws from them.
         notes = restore_state(self.env.unwrapped, payload, self.device, self.cfg.seed, where)
         self.clocks_restored = "episode" in payload
-        # N processes: rank r > 0 then takes its own torch stream (rank 0's was just restored).
-        if note := distributed.restore_rank_states(payload):
-            notes.append(note)
         self.env.unwrapped.common_step_counter = payload.get("common_step_counter", 0)
         self.log.resume_from("teacher", self.iteration)
         truncate_rows(self.run_dir / "eval.csv", "teacher", self.iteration)
@@ -375,6 +379,7 @@ class TeacherRunner:
                     self.alg.process_env_step(obs, rewards, dones, extras)
                     # The env auto-resets: a finished episode's distance is its last pre-reset one.
                     stats.step(rewards, dones.bool(), before)
+                rank_normalizers.flush_normalizers()  # N ranks: this iteration's batches, once
                 self.alg.compute_returns(obs)
             self.guard.before()
             losses = distributed.mean_over_ranks(self.alg.update())

@@ -34,6 +34,7 @@ from march.env.env_state import (
     planner_generator,
     restore_env_state,
 )
+from march.learn import distributed
 from march.learn.checkpoint import CheckpointError
 
 if TYPE_CHECKING:
@@ -47,6 +48,7 @@ __all__ = [
     "collect_state",
     "collect_streams",
     "mean_terrain_level",
+    "rank_payload",
     "restore_state",
     "restore_streams",
     "stream_seed",
@@ -229,3 +231,12 @@ def restore_state(
     iteration = int(payload.get("iteration", 0))
     line = restore_streams(streams, device, seed, iteration, where, _generators(env, generators))
     return notes + ([line] if line else [])
+
+
+def rank_payload(payload: dict[str, Any], where: str) -> dict[str, Any]:
+    """The checkpoint as this rank resumes it: its own ``rank_states`` entry (levels, clocks,
+    commands, streams) in place of rank 0's. A checkpoint written by another number of ranks is
+    refused in one line (:func:`march.learn.distributed.world_mismatch`)."""
+    if why := distributed.world_mismatch(payload):
+        raise CheckpointError(f"{where}: {why}")
+    return distributed.own_rank_state(payload)
