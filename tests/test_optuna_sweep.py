@@ -23,7 +23,7 @@ def test_objective_names_the_summary_keys():
 
 @pytest.mark.sim
 def test_optuna_sweep_reads_three_objective_values(tmp_path):
-    pytest.importorskip("hydra_plugins.hydra_optuna_sweeper", reason="pip install -e '.[optuna]'")
+    pytest.importorskip("optuna", minversion="4.0", reason="pip install -e '.[optuna]'")
     sweep, returns = tmp_path / "sweep", tmp_path / "returns.jsonl"
     cmd = [
         sys.executable, "-m", "march.train", "-m", "+sweep=optuna_clf",

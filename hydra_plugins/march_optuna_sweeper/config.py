@@ -1,0 +1,46 @@
+"""The sweeper's options (``hydra.sweeper.*``), registered as ``hydra/sweeper=march_optuna``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+
+
+@dataclass
+class MarchOptunaSweeperConf:
+    _target_: str = "hydra_plugins.march_optuna_sweeper.sweeper.MarchOptunaSweeper"
+    direction: str = "maximize"
+    """maximize or minimize the job's return value (march.train: the final ``objective``)."""
+    study_name: str = "march"
+    storage: str | None = None
+    """Where the study lives. None: the journal file ``<hydra.sweep.dir>/<study_name>.journal``
+    (re-running the same command with the same ``hydra.sweep.dir`` resumes the study); a file
+    path (a journal file); or an Optuna RDB URL (``sqlite:///...``, ``postgresql://...``)."""
+    n_trials: int = 20
+    """The study's total: trials already in the storage count (a finished study runs none)."""
+    n_jobs: int = 1
+    """Trials launched together (one launcher batch: parallel under Slurm)."""
+    max_failures: int = 2
+    """Failed trials (a crash, a non-finite value) the study goes on after; one more stops it."""
+    sampler: Any = field(
+        default_factory=lambda: {"_target_": "optuna.samplers.TPESampler", "seed": 0}
+    )
+    pruner: Any = field(
+        default_factory=lambda: {
+            "_target_": "optuna.pruners.MedianPruner",
+            "n_startup_trials": 2,
+            "n_warmup_steps": 0,
+        }
+    )
+    """Asked at every evaluation row of a trial (march.learn.tuning); null: no pruning."""
+    params: dict[str, str] = field(default_factory=dict)
+    """The search space in Hydra's sweep syntax: ``interval(a, b)`` (float), ``tag(int, interval(a, b))``,
+    ``tag(log, interval(a, b))``, ``range(a, b[, step])``, ``choice(x, y, ...)``;
+    a plain value is fixed for every trial."""
+
+
+ConfigStore.instance().store(
+    group="hydra/sweeper", name="march_optuna", node=MarchOptunaSweeperConf, provider="march"
+)

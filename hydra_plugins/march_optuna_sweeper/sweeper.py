@@ -1,0 +1,273 @@
+"""The study loop: ask Optuna for trials, launch them through Hydra's launcher, tell the results.
+
+Each trial is one Hydra job (the configured launcher: local, submitit local or Slurm) whose job
+number is the trial number (its directory ``<sweep dir>/<number>``). The job learns which trial
+it is from three environment variables set through ``hydra.job.env_set``
+(:mod:`march.learn.tuning` reads them to report its evaluation rows and to prune).
+
+- A job that raises ``optuna.TrialPruned`` is recorded PRUNED; one that fails otherwise, or
+  returns nothing or a non-finite value, FAIL (its error as the user attribute ``error``). The
+  study goes on until more than ``max_failures`` trials failed, then stops with one line.
+- A trial still RUNNING in the storage when a sweep starts was cut short by a killed sweep: it
+  is recorded FAIL with ``interrupted`` set, does not count toward ``n_trials``, and its
+  parameters are asked again.
+- At the end: ``optimization_results.yaml`` (the best trial's number, value, parameters and
+  directory), ``best_config.yaml`` (that run's config) and ``trials.csv`` in the sweep
+  directory, and the trial table printed.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import logging
+import math
+import shutil
+import sys
+from pathlib import Path
+from typing import Any
+
+import optuna
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.core.override_parser.types import ChoiceSweep, IntervalSweep, Override, RangeSweep
+from hydra.core.plugins import Plugins
+from hydra.plugins.sweeper import Sweeper
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+from optuna.distributions import (
+    BaseDistribution,
+    CategoricalDistribution,
+    FloatDistribution,
+    IntDistribution,
+)
+from optuna.trial import TrialState
+
+log = logging.getLogger(__name__)
+
+ENV_TRIAL_ID = "MARCH_OPTUNA_TRIAL_ID"
+ENV_STORAGE = "MARCH_OPTUNA_STORAGE"
+ENV_STUDY = "MARCH_OPTUNA_STUDY"
+FINISHED = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.FAIL)
+
+
+def open_storage(storage: str) -> Any:
+    """An Optuna storage from a journal file path or an RDB URL."""
+    if "://" in storage:
+        return storage
+    from optuna.storages import JournalStorage
+    from optuna.storages.journal import JournalFileBackend
+
+    Path(storage).parent.mkdir(parents=True, exist_ok=True)
+    return JournalStorage(JournalFileBackend(str(storage)))
+
+
+def distribution(override: Override) -> BaseDistribution:
+    """An Optuna distribution from a Hydra sweep override (interval, range, choice; log tag)."""
+    value = override.value()
+    key = override.get_key_element()
+    if isinstance(value, ChoiceSweep):
+        return CategoricalDistribution(list(value.list))
+    if isinstance(value, RangeSweep):
+        start, stop, step = value.start, value.stop, value.step
+        if all(isinstance(v, int) for v in (start, stop, step)):
+            last = start + (stop - 1 - start) // step * step  # range() excludes stop
+            return IntDistribution(int(start), int(last), step=int(step))
+        return FloatDistribution(float(start), float(stop), step=float(step))
+    if isinstance(value, IntervalSweep):
+        log_scale = "log" in value.tags
+        if "int" in value.tags:  # Hydra parses interval bounds as floats
+            return IntDistribution(int(value.start), int(value.end), log=log_scale)
+        return FloatDistribution(float(value.start), float(value.end), log=log_scale)
+    raise ValueError(f"hydra.sweeper.params.{key}: not a sweep the Optuna sweeper can search")
+
+
+def _counted(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
+    return [t for t in study.trials if t.state in FINISHED and not t.user_attrs.get("interrupted")]
+
+
+class MarchOptunaSweeper(Sweeper):
+    def __init__(
+        self,
+        direction: str,
+        study_name: str,
+        storage: str | None,
+        n_trials: int,
+        n_jobs: int,
+        max_failures: int,
+        sampler: Any,
+        pruner: Any,
+        params: dict[str, str] | None,
+    ) -> None:
+        if direction not in ("maximize", "minimize"):
+            raise ValueError(f"hydra.sweeper.direction={direction!r}: maximize or minimize")
+        if n_trials < 1 or n_jobs < 1 or max_failures < 0:
+            raise ValueError("hydra.sweeper: n_trials, n_jobs >= 1 and max_failures >= 0")
+        self.direction, self.study_name, self.storage = direction, study_name, storage
+        self.n_trials, self.n_jobs, self.max_failures = n_trials, n_jobs, max_failures
+        self.sampler_cfg, self.pruner_cfg = sampler, pruner
+        self.params = dict(params or {})
+
+    def setup(self, *, hydra_context: Any, task_function: Any, config: DictConfig) -> None:
+        self.hydra_context, self.config = hydra_context, config
+        self.launcher = Plugins.instance().instantiate_launcher(
+            hydra_context=hydra_context, task_function=task_function, config=config
+        )
+        self.sweep_dir = Path(config.hydra.sweep.dir)
+
+    # -- the search space ---------------------------------------------------------------------
+
+    def _space(self, arguments: list[str]) -> tuple[dict[str, BaseDistribution], list[str]]:
+        parser = OverridesParser.create(config_loader=self.hydra_context.config_loader)
+        items = [f"{k}={v}" for k, v in self.params.items()] + list(arguments)
+        space: dict[str, BaseDistribution] = {}
+        fixed: list[str] = []
+        for override in parser.parse_overrides(items):
+            key = override.get_key_element()
+            if override.is_sweep_override():
+                space[key] = distribution(override)
+            else:
+                fixed.append(f"{key}={override.get_value_element_as_str()}")
+        return space, fixed
+
+    # -- the loop -------------------------------------------------------------------------------
+
+    def storage_location(self) -> str:
+        return self.storage or str(self.sweep_dir / f"{self.study_name}.journal")
+
+    def sweep(self, arguments: list[str]) -> Any:
+        space, fixed = self._space(arguments)
+        self.sweep_dir.mkdir(parents=True, exist_ok=True)
+        OmegaConf.save(self.config, self.sweep_dir / "multirun.yaml")
+        where = self.storage_location()
+        study = optuna.create_study(
+            study_name=self.study_name,
+            storage=open_storage(where),
+            sampler=instantiate(self.sampler_cfg) if self.sampler_cfg else None,
+            pruner=instantiate(self.pruner_cfg) if self.pruner_cfg else optuna.pruners.NopPruner(),
+            direction=self.direction,
+            load_if_exists=True,
+        )
+        self._requeue_interrupted(study)
+        done = len(_counted(study))
+        print(
+            f"[optuna] study {self.study_name!r} in {where}: {done} of {self.n_trials} trials "
+            f"recorded, {max(self.n_trials - done, 0)} to run",
+            flush=True,
+        )
+        while True:
+            counted = _counted(study)
+            failed = sum(t.state == TrialState.FAIL for t in counted)
+            if failed > self.max_failures:
+                self._finish(study)
+                print(
+                    f"error: {failed} trials failed, more than hydra.sweeper.max_failures="
+                    f"{self.max_failures}; the study is kept in {where} (trials.csv names each "
+                    "error): fix the cause and run the same command to go on",
+                    file=sys.stderr,
+                )
+                sys.exit(1)
+            remaining = self.n_trials - len(counted)
+            if remaining <= 0:
+                break
+            trials = [study.ask(space) for _ in range(min(self.n_jobs, remaining))]
+            batch = [self._overrides(t, fixed, where) for t in trials]
+            results = self.launcher.launch(batch, initial_job_idx=trials[0].number)
+            for trial, ret in zip(trials, results, strict=True):
+                self._tell(study, trial, ret)
+        return self._finish(study)
+
+    def _overrides(self, trial: optuna.Trial, fixed: list[str], where: str) -> list[str]:
+        params = [f"{k}={_as_override(v)}" for k, v in trial.params.items()]
+        env = {ENV_TRIAL_ID: trial._trial_id, ENV_STORAGE: where, ENV_STUDY: self.study_name}
+        env_set = [f"+hydra.job.env_set.{k}={_as_override(str(v))}" for k, v in env.items()]
+        return [*fixed, *params, *env_set]
+
+    def _requeue_interrupted(self, study: optuna.Study) -> None:
+        for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
+            study._storage.set_trial_user_attr(t._trial_id, "interrupted", True)
+            study.tell(t.number, state=TrialState.FAIL)
+            study.enqueue_trial(t.params, skip_if_exists=False)
+            print(f"[optuna] trial {t.number} was cut short by a killed sweep: asked again")
+
+    def _tell(self, study: optuna.Study, trial: optuna.Trial, ret: Any) -> None:
+        try:
+            value = ret.return_value  # raises the job's exception
+        except optuna.TrialPruned:
+            study.tell(trial, state=TrialState.PRUNED)
+            print(f"[optuna] trial {trial.number}: pruned at step {trial_last_step(study, trial)}")
+            return
+        except Exception as err:  # noqa: BLE001 - every failure of a trial is recorded
+            text = str(err).strip().splitlines()
+            why = f"{type(err).__name__}: {text[0] if text else ''}"[:300]
+            trial.set_user_attr("error", why)
+            study.tell(trial, state=TrialState.FAIL)
+            print(f"[optuna] trial {trial.number}: failed ({why})", flush=True)
+            return
+        if value is None or not math.isfinite(float(value)):
+            trial.set_user_attr("error", f"non-finite objective {value!r}")
+            study.tell(trial, state=TrialState.FAIL)
+            print(f"[optuna] trial {trial.number}: failed (objective {value!r})", flush=True)
+            return
+        study.tell(trial, float(value))
+        print(f"[optuna] trial {trial.number}: {float(value):.6g}", flush=True)
+
+    # -- the results ----------------------------------------------------------------------------
+
+    def _finish(self, study: optuna.Study) -> dict[str, Any] | None:
+        table = trial_table(study, self.sweep_dir)
+        (self.sweep_dir / "trials.csv").write_text(table)
+        print(f"[optuna] trials of {self.study_name!r}:\n{table}", end="", flush=True)
+        complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+        if not complete:
+            return None
+        best = study.best_trial
+        run = self.sweep_dir / str(best.number)
+        result = {
+            "name": "optuna",
+            "study_name": self.study_name,
+            "storage": self.storage_location(),
+            "direction": self.direction,
+            "best_trial": best.number,
+            "best_value": best.value,
+            "best_params": dict(best.params),
+            "best_dir": str(run),
+            "n_trials": len(_counted(study)),
+        }
+        OmegaConf.save(OmegaConf.create(result), self.sweep_dir / "optimization_results.yaml")
+        if (run / "config.yaml").is_file():
+            shutil.copyfile(run / "config.yaml", self.sweep_dir / "best_config.yaml")
+        print(f"[optuna] best: trial {best.number}, value {best.value:.6g}, {dict(best.params)}")
+        return result
+
+
+def trial_last_step(study: optuna.Study, trial: optuna.Trial) -> int | None:
+    steps = study._storage.get_trial(trial._trial_id).intermediate_values
+    return max(steps) if steps else None
+
+
+def trial_table(study: optuna.Study, sweep_dir: Path) -> str:
+    """Every trial: number, state, value, last reported step, parameters, error, directory."""
+    keys = sorted({k for t in study.trials for k in t.params})
+    out = io.StringIO()
+    w = csv.writer(out, lineterminator="\n")
+    w.writerow(["number", "state", "value", "last_step", *keys, "error", "dir"])
+    for t in study.trials:
+        state = "INTERRUPTED" if t.user_attrs.get("interrupted") else t.state.name
+        step = max(t.intermediate_values) if t.intermediate_values else ""
+        value = "" if t.value is None else f"{t.value:.6g}"
+        params = [t.params.get(k, "") for k in keys]
+        error = t.user_attrs.get("error", "")
+        w.writerow([t.number, state, value, step, *params, error, sweep_dir / str(t.number)])
+    return out.getvalue()
+
+
+def _as_override(value: Any) -> str:
+    """A value as a Hydra override string (strings quoted where the grammar needs it)."""
+    if isinstance(value, str):
+        plain = value.replace("_", "").replace("-", "").replace(".", "").replace("/", "")
+        return value if plain.isalnum() else "'" + value.replace("'", "\\'") + "'"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value)
+    return str(value)
