@@ -1,67 +1,59 @@
-"""The prepared GPU check (issue 11): one command, one folder of JSON and CSV results.
+"""The prepared GPU check (issues 11, 41): one command that reports whatever happens.
 
-    python scripts/gpu_check.py OUT            # on a GPU machine (compute=gpu), ~9 minutes
-    python scripts/gpu_check.py OUT --cpu      # the same phases at tiny sizes on CPU (tests)
+    python scripts/gpu_check.py OUT --warm     # with the last bundle: build and compile (<= 3 min)
+    python scripts/gpu_check.py OUT            # the check (compute=gpu), at most 6.5 minutes
+    python scripts/gpu_check.py OUT --cpu      # every phase at tiny sizes on CPU (tests)
     make gpu-check [OUT=folder] [ARGS=--cpu]
 
-Phases, each a subprocess with its own time limit (a failed or timed-out phase is recorded and
-the check goes on with the phases that do not need its output):
+A device is lent for 15 minutes in all, 10 per command, cold start included; what it returns is
+at most 8 files of ``$OUT``. So the phases run in order of value, each a subprocess with its own
+time limit, each figure is printed to stdout the moment it is measured (``[bench]``,
+``[syncs]``, ``[gpu_check]`` lines), and ``OUT/gpu_check.json`` is rewritten after every phase
+(and at the start, and when the check is stopped by SIGTERM or SIGINT): a check killed at any
+point leaves a summary naming the phases it finished.
 
-1. ``bench``: ``python -m march.bench env`` at ``--bench-envs`` (4096) envs: the march teacher
-   env against bare mjlab rough and flat, both workloads, with the profile -> ``bench_env.json``
-   (at most ``--bench-timeout`` s, 330: the targets of issue 20 come first).
-   The bench rewrites ``bench_env.partial.json`` after each workload (``bench.partial``): a
-   bench stopped by its time limit (warp's and inductor's first compiles are minutes on a cold
-   machine) still reports the workloads it finished (``completed_workloads``).
-2. ``syncs``: ``scripts/sync_check.py`` at 256 envs: a teacher iteration's rollout, a
-   distillation rollout, then the march teacher env and bare mjlab rough stepped alone, under
-   ``torch.cuda.set_sync_debug_mode("warn")``, each sync's source line (and the march line on
-   its stack) -> ``syncs.tsv`` (at most ``--sync-timeout`` s; rewritten after each part).
-   Second, so that the sync list of issue 20 is never starved by the training phases on a
-   cold machine.
-3. ``teacher_clf``, ``teacher_modelfree``: ``march.train stage=teacher`` of each arm, stopped
-   once its training time (the ``wall_s`` of ``metrics.csv``, which leaves out the env build and
-   warp's kernel compilation) passes ``--teacher-seconds``; a checkpoint every iteration, so
-   the last completed one is kept -> ``teacher_<arm>_curve.csv`` (the learning curve: one row
-   per iteration) and ``teacher_<arm>.json`` (iterations, env steps, env steps per second).
-4. ``student``: ``march.train stage=student`` from the clf teacher, ``distill.max_iterations=2``,
-   which ends with the evaluation protocol on ``--eval-rollouts`` rollouts -> ``student_curve.csv``,
-   ``eval.csv``, ``summary.json``.
-5. ``export``: ``python -m march.export`` of that student -> ``student.onnx``, ``export.txt``.
-6. ``bench_eager`` (optional: only with time to spare; skipped or stopped by the deadline, it
-   fails nothing): the bench again with ``compute.compile_math=false`` -> ``bench_env_eager.json``,
-   and ``compile_vs_eager`` in ``gpu_check.json``: march's env steps per second and non-physics
-   time compiled and eager, per workload, i.e. whether the gpu preset's compiled maths wins on
-   this GPU.
+1. ``bench``: ``march.bench env`` at ``--bench-envs`` (4096) envs, random workload, the march
+   teacher env against bare mjlab rough only, with compute ops per step (the CUDA path's kernel
+   launches) and a short profile -> ``bench_env.json`` (the final JSON, or the partial one of a
+   bench its limit stopped).
+2. ``syncs``: ``scripts/sync_check.py --parts=env_march,env_rough`` at 256 envs: syncs per
+   env step of march's env and of bare rough's -> ``syncs.tsv``.
+3. ``teacher_clf``: ``march.train stage=teacher reward=clf`` at ``--train-envs`` (4096),
+   stopped after ``--teacher-iterations`` (5) iterations and that checkpoint ->
+   ``teacher_clf_curve.csv`` and ``s_per_iteration`` (from iteration 2 on) in the summary.
+4. Optional, only with time left (skipped or stopped by the deadline, they fail nothing):
+   ``bench_eager`` (the bench with ``compute.compile_math=false`` -> ``bench_env_eager.json``
+   and ``compile_vs_eager``), ``syncs_runners`` (a teacher iteration's rollout and a
+   distillation rollout -> ``syncs_runners.tsv``), ``student`` (two distillation iterations from
+   the clf teacher and the evaluation protocol -> ``student_curve.csv``, the evaluation in the
+   summary).
 
-At the end ``analysis/bench_figure.py`` draws each bench JSON (``bench_env*.png``: non-physics
-ms per step by category, march against bare rough and flat, the 1.5x line), listed under
-``figures`` in ``gpu_check.json``.
+``--warm`` runs one phase instead, ``warm``: the bench at the check's size with one step per
+env, which builds the envs and fills warp's kernel cache and inductor's on-disk cache (both
+stay on a warm machine between commands), and reports the cold build times (``warm.json``).
 
-The bench phase also counts compute ops per env step on the GPU (``bench.op_steps``) and, with
-the gpu preset's ``compute.compile_math``, records what compiling cost: graphs and seconds per
-compiled function and the recompiles (``compile`` in ``bench_env.json`` and ``gpu_check.json``).
-
-``gpu_check.json`` holds every phase's command, return code, seconds and result files, the
-machine (GPU name, torch/CUDA versions), the date and ``targets``: the step's speed targets as
-the bench judged them and the sync targets (no march line that syncs in more than one env
-step, march's env no more syncs per step than bare rough's), each met, missed or not measured, also printed one
-line each at the end; ``gpu_check.csv`` one row per phase. Exit status 0 only if every phase
-but an optional one the deadline skipped or stopped succeeded (a missed target does not fail
-the check). Dependencies on a machine without a package index:
-``../shared/gpu/README.md`` (source the bundles' ``gpu.sh`` first).
+``OUT`` holds at most :data:`OUT_FILES` (8 files, no folder): run folders, logs and temporary
+files go to ``--work`` (a temporary folder); the last lines of each phase's log are appended to
+``OUT/logs.txt``. ``gpu_check.json``: ``phases_done`` (names, in order), every phase's command,
+return code, seconds and files, the machine, the date, ``results`` and ``targets`` (the step's
+speed targets as the bench judged them, the sync targets; met, missed or not measured). Exit
+status 0 only if every phase but an optional one the deadline skipped or stopped succeeded (a
+missed target does not fail the check). On a machine without a package index source the
+bundles' ``gpu.sh`` first (``../shared/gpu/README.md``; README, "GPU check: the device plan").
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 import datetime as dt
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -69,12 +61,40 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # run as a script: import this checkout's march
 
-from march.bench.targets import STEP_TARGETS, SYNC_TARGETS, verdict_lines  # noqa: E402
+from march.bench.check_results import (  # noqa: E402
+    BENCH_KEYS,  # noqa: F401 - read by the tests through this script
+    bench_results,
+    compile_vs_eager,
+    judged_targets,
+    number,
+    read_rows,
+    seconds_per_iteration,
+    sync_results,
+    write_rows,
+)
+from march.bench.targets import verdict_lines  # noqa: E402
 
+OUT_FILES = (
+    "gpu_check.json",
+    "bench_env.json",
+    "syncs.tsv",
+    "teacher_clf_curve.csv",
+    "logs.txt",
+    "bench_env_eager.json",
+    "syncs_runners.tsv",
+    "student_curve.csv",
+)
+"""Every file the check may write into ``OUT`` (``--warm``: ``warm.json`` for
+``bench_env_eager.json``), at most 8, the device's limit; nothing else goes there."""
+ECHO = ("[bench]", "[syncs]", "[teacher]", "[student]", "[gpu_check]")
+"""A phase's output lines echoed to the check's stdout as they come (its figures)."""
+BENCH = ["bench.workloads=random", "bench.envs=march_teacher,bare_rough"]
 GPU = {
     "compute": ["compute=gpu"],
-    "bench": ["compute.num_envs={bench_envs}", "bench.steps=40"]
-    + ["bench.profile_steps=10", "bench.op_steps=3", "bench.rounds=2"],
+    "bench": ["compute.num_envs={bench_envs}", *BENCH, "bench.steps=30", "bench.warmup=10"]
+    + ["bench.rounds=2", "bench.op_steps=2", "bench.profile_steps=5"],
+    "warm": ["compute.num_envs={bench_envs}", *BENCH, "bench.steps=1", "bench.warmup=1"]
+    + ["bench.rounds=1", "bench.op_steps=0", "bench.profile_steps=0"],
     "syncs": ["compute.num_envs=256", "teacher.num_steps_per_env=8", "distill.num_steps_per_env=8"],
     "teacher": ["compute.num_envs={train_envs}", "compute.eval_num_envs=64"],
     "student": [
@@ -86,8 +106,10 @@ GPU = {
 """Overrides per phase on a GPU (``{...}``: the command-line sizes)."""
 CPU = {
     "compute": ["compute=smoke"],
-    "bench": ["compute.num_envs=2", "bench.steps=1", "bench.warmup=0"]
+    "bench": ["compute.num_envs=2", *BENCH, "bench.steps=1", "bench.warmup=1"]
     + ["bench.profile_steps=1", "bench.op_steps=1", "bench.rounds=1", "bench.threads=1"],
+    "warm": ["compute.num_envs=2", *BENCH, "bench.steps=1", "bench.warmup=0"]
+    + ["bench.profile_steps=0", "bench.op_steps=0", "bench.rounds=1", "bench.threads=1"],
     "syncs": ["compute.num_envs=2", "teacher.num_steps_per_env=2", "distill.num_steps_per_env=2"],
     "teacher": ["compute.num_envs=4", "compute.eval_num_envs=2", "teacher.num_steps_per_env=4"],
     "student": [
@@ -99,36 +121,40 @@ CPU = {
     ],
 }
 """The same phases at tiny sizes on CPU (``--cpu``): proves the script, measures nothing."""
+LIMITS = {"bench": 150.0, "warm": 540.0, "syncs": 80.0, "teacher_clf": 130.0}
+"""Each phase's own time limit on a GPU [s] (``--cpu``: twice as long); an optional phase gets
+what is left before the deadline, at most ``--phase-timeout``."""
+
+
+class Stopped(Exception):
+    """SIGTERM or SIGINT reached the check: the running phase is stopped, the summary written."""
 
 
 def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("out", nargs="?", default=os.environ.get("OUT", "outputs/gpu_check"), type=Path)
     p.add_argument("--cpu", action="store_true", help="tiny sizes on CPU (compute=smoke)")
+    p.add_argument("--warm", action="store_true", help="build and compile only (warm.json)")
+    p.add_argument("--work", type=Path, default=None, help="run folders and logs (a temp folder)")
     p.add_argument("--bench-envs", type=int, default=4096, help="envs of the env benchmark")
-    p.add_argument("--train-envs", type=int, default=4096, help="envs of each teacher run")
-    p.add_argument("--teacher-seconds", type=float, default=45.0, help="training time per arm [s]")
+    p.add_argument("--train-envs", type=int, default=4096, help="envs of the teacher run")
+    p.add_argument("--teacher-iterations", type=int, default=5, help="teacher iterations")
     p.add_argument("--distill-envs", type=int, default=1024, help="envs of the distillation")
     p.add_argument("--eval-rollouts", type=int, default=128, help="rollouts of the evaluation")
-    p.add_argument("--phase-timeout", type=float, default=240.0, help="limit per phase [s]")
+    p.add_argument("--phase-timeout", type=float, default=200.0, help="optional phases' limit [s]")
     p.add_argument(
         "--deadline",
         type=float,
         default=None,
-        help="whole check [s]: later phases get what is left (540 on a GPU, 1800 with --cpu)",
+        help="whole check [s]: 390 on a GPU (the README's device plan), 180 with --warm, 600 "
+        "with --cpu",
     )
     p.add_argument("--skip", nargs="*", default=[], help="phases to leave out")
-    p.add_argument("--sync-timeout", type=float, default=150.0, help="limit of the syncs phase [s]")
-    p.add_argument(
-        "--bench-timeout",
-        type=float,
-        default=330.0,
-        help="limit of the bench phase [s]: on a cold machine it pays warp's and inductor's "
-        "first compiles (~2-3 min + ~1-2 min) before its ~1.5 min of steps",
-    )
     args = p.parse_args(argv)
-    if args.deadline is None:  # tiny CPU sizes prove the script; a loaded CPU builds envs slowly
-        args.deadline = 1800.0 if args.cpu else 540.0
+    if args.deadline is None:
+        args.deadline = 600.0 if args.cpu else 180.0 if args.warm else 390.0
+    if args.teacher_iterations < 2:
+        p.error("--teacher-iterations must be >= 2 (seconds per iteration from iteration 2 on)")
     return args
 
 
@@ -164,34 +190,40 @@ def machine() -> dict[str, Any]:
 
 
 class Phase:
-    """One subprocess phase: command, log, return code, seconds."""
+    """One subprocess phase: command, log (in the work folder), return code, seconds."""
 
-    def __init__(self, name: str, cmd: list[str], out: Path, optional: bool = False) -> None:
-        self.name, self.cmd, self.out = name, cmd, out
+    def __init__(self, name: str, cmd: list[str], work: Path, optional: bool = False) -> None:
+        self.name, self.cmd = name, cmd
         self.optional = optional
         """Run only with time to spare: skipped or stopped by its limit, it fails nothing."""
-        self.log = out / f"{name}.log"
+        self.log = work / f"{name}.log"
         self.rc: int | None = None
         self.seconds = 0.0
         self.note = ""
         self.files: list[str] = []
 
     def run(self, timeout: float, stop_when: Any = None, stdout_file: Path | None = None) -> bool:
+        """Run to the end, to ``timeout`` seconds or until ``stop_when()`` is true (then SIGTERM,
+        as a Slurm preemption: checkpoints are written atomically, so the last one is whole).
+        The output goes to the log; lines starting with one of :data:`ECHO` are also printed
+        as they come. A :class:`Stopped` check stops the phase and passes on."""
         if timeout <= 0:
             self.note = "skipped: no time left before the deadline"
             self.rc = -1
             print(f"[gpu_check] {self.name}: {self.note}", flush=True)
             return False
-        """Run to the end, to ``timeout`` seconds or until ``stop_when()`` is true (then SIGTERM,
-        as a Slurm preemption: checkpoints are written atomically, so the last one is whole)."""
-        print(f"[gpu_check] {self.name}: {' '.join(self.cmd)}", flush=True)
+        print(f"[gpu_check] {self.name} (limit {timeout:.0f} s): {' '.join(self.cmd)}", flush=True)
         t0 = time.time()
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        stopped = ""
         with self.log.open("w") as log:
-            out = stdout_file.open("w") if stdout_file else log
+            out = stdout_file.open("w") if stdout_file else subprocess.PIPE
+            err = subprocess.PIPE if stdout_file else subprocess.STDOUT
+            proc = subprocess.Popen(self.cmd, cwd=ROOT, stdout=out, stderr=err, env=env, text=True)
+            stream = proc.stderr if stdout_file else proc.stdout
+            reader = threading.Thread(target=_tee, args=(stream, log), daemon=True)
+            reader.start()
             try:
-                proc = subprocess.Popen(self.cmd, cwd=ROOT, stdout=out, stderr=log, env=env)
-                stopped = ""
                 while proc.poll() is None:
                     time.sleep(0.5)
                     if time.time() - t0 > timeout:
@@ -199,19 +231,19 @@ class Phase:
                     elif stop_when is not None and stop_when():
                         stopped = "stopped at its budget"
                     if stopped:
-                        proc.terminate()
-                        try:
-                            proc.wait(15)
-                        except subprocess.TimeoutExpired:
-                            proc.kill()
-                            proc.wait()
+                        _stop(proc)
                         break
+            except Stopped:
+                stopped = "stopped: the check was stopped"
+                _stop(proc)
+                raise
             finally:
+                reader.join(5)
                 if stdout_file:
                     out.close()
-        self.seconds = time.time() - t0
-        self.rc = proc.returncode
-        self.note = stopped
+                self.seconds = time.time() - t0
+                self.rc = proc.returncode
+                self.note = stopped
         ok = self.rc == 0 or stopped == "stopped at its budget"
         print(f"[gpu_check] {self.name}: rc={self.rc} {stopped} ({self.seconds:.0f} s)", flush=True)
         return ok
@@ -223,7 +255,6 @@ class Phase:
             "rc": self.rc,
             "seconds": round(self.seconds, 1),
             "note": self.note,
-            "log": self.log.name,
             "files": self.files,
             "optional": self.optional,
         }
@@ -236,363 +267,270 @@ class Phase:
         return not (self.optional and self.note.startswith(("skipped", "timed out")))
 
 
-def read_rows(path: Path, stage: str) -> list[dict[str, str]]:
-    if not path.is_file():
-        return []
-    with path.open() as f:
-        return [r for r in csv.DictReader(f) if r.get("stage") == stage]
+def _tee(stream: Any, log: Any) -> None:
+    for line in stream:
+        log.write(line)
+        log.flush()
+        if line.startswith(ECHO):
+            print(line.rstrip("\n"), flush=True)
 
 
-def write_rows(rows: list[dict[str, str]], path: Path) -> None:
-    if not rows:
+def _stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is not None:
         return
-    keys = list(rows[0])
-    with path.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys, extrasaction="ignore")
-        w.writeheader()
-        w.writerows(rows)
-
-
-def number(text: str | None) -> float | None:
-    """A CSV cell as a float; None for an empty cell (no episode ended yet: NaN in the log)."""
+    proc.terminate()
     try:
-        return float(text) if text not in (None, "") else None
-    except ValueError:
-        return None
-
-
-BENCH_KEYS = (
-    "num_envs",
-    "ratio_march_vs_rough_by_workload",
-    "build_s",
-    "ops_per_step",
-    "ratio_ops_march_vs_rough",
-    "nonphysics_ms_per_step",
-    "ratio_nonphysics_march_vs_rough",
-    "min_ratio_march_vs_rough",
-    "targets",
-    "compile",
-)
-"""What ``gpu_check.json`` keeps of the bench's JSON (and ``steps_per_s`` per workload)."""
-
-
-def bench_results(
-    out: Path, finished: bool, stem: str = "bench_env"
-) -> tuple[dict[str, Any] | None, list[str], str]:
-    """The bench phase's figures for ``gpu_check.json``, its result files and a note. From
-    ``bench_env.json`` when the phase finished; otherwise (failed, or stopped by its time
-    limit) from ``bench_env.partial.json``, which the bench rewrites after each workload, so a
-    first GPU run that runs out of time still reports the workloads it finished."""
-    for name, usable in ((f"{stem}.json", finished), (f"{stem}.partial.json", True)):
-        path = out / name
-        if not usable or not path.is_file():
-            continue
-        try:
-            bench = json.loads(path.read_text())
-            summary = {k: bench.get(k) for k in BENCH_KEYS}
-            summary["steps_per_s"] = {w: v["steps_per_s"] for w, v in bench["workloads"].items()}
-        except (json.JSONDecodeError, KeyError, TypeError, AttributeError) as err:
-            return None, [], f"unreadable {name}: {err}"
-        if name == f"{stem}.json":
-            return summary, [name], ""
-        done = bench.get("completed_workloads", [])
-        summary["completed_workloads"] = done
-        return summary, [name], f"partial results: {', '.join(done) or 'no workload'} finished"
-    return None, [], ""
-
-
-def sync_results(path: Path) -> dict[str, Any]:
-    """What ``gpu_check.json`` keeps of ``syncs.tsv``: syncs recorded, those with march code on
-    the stack, whether CUDA recorded anything, the phases in the file and their env steps; the
-    march source lines that synced in more than one env step of a part (a read once per
-    iteration falls in one step: it is listed in the file, not here); and the syncs per env
-    step of march's env and bare rough's, stepped alone (once both are recorded)."""
-    lines = path.read_text().splitlines()
-    rows = [ln.split("\t") for ln in lines if ln and not ln.startswith(("#", "phase"))]
-    rows = [r for r in rows if len(r) >= 4]
-
-    def header(key: str) -> list[str]:
-        text = next((ln.split(":", 1)[1] for ln in lines if ln.startswith(f"# {key}:")), "")
-        return [p.strip() for p in text.split(",") if p.strip()]
-
-    steps = {k: int(v) for k, _, v in (p.rpartition(" ") for p in header("steps")) if k}
-    in_steps: dict[tuple[str, str], set[str]] = {}
-    for ph, step, src, *_ in rows:
-        if src.startswith("march/") and step != "0":
-            in_steps.setdefault((ph, src), set()).add(step)
-    result: dict[str, Any] = {
-        "recorded": len(rows),
-        "with_march_on_stack": sum(1 for r in rows if r[3] != "-"),
-        "cuda": not (lines and lines[0].startswith("# no CUDA")),
-        "phases": header("recorded"),
-        "steps": steps,
-        "march_lines_per_step": sorted(
-            f"{ph} {src}" for (ph, src), s in in_steps.items() if len(s) > 1
-        ),
-    }
-    if "env_march" in steps and "env_rough" in steps:
-        result["env_syncs_per_step"] = {
-            env: sum(1 for r in rows if r[0] == f"env_{env}") / max(steps[f"env_{env}"], 1)
-            for env in ("march", "rough")
-        }
-    return result
-
-
-def compile_vs_eager(compiled: dict[str, Any], eager: dict[str, Any]) -> dict[str, Any]:
-    """What ``compute.compile_math`` gains on this machine, per workload both benches finished:
-    march's env steps per second and non-physics ms per step, compiled and eager, and their
-    ratios (compiled / eager: above 1 for the speed, below 1 for the time, where it wins)."""
-    both = {"compiled": compiled, "eager": eager}
-
-    def march(key: str, workload: str) -> dict[str, Any]:
-        """March's figure ``key`` of ``workload`` in each bench (None where it lacks it)."""
-        return {
-            k: ((b.get(key) or {}).get(workload) or {}).get("march_teacher")
-            for k, b in both.items()
-        }
-
-    out: dict[str, Any] = {}
-    for w in sorted(set(compiled.get("steps_per_s") or {}) & set(eager.get("steps_per_s") or {})):
-        speed = march("steps_per_s", w)
-        row: dict[str, Any] = {
-            "steps_per_s": speed,
-            "speed_ratio": speed["compiled"] / speed["eager"],
-        }
-        times = march("nonphysics_ms_per_step", w)
-        if all(times.values()):
-            row["nonphysics_ms"] = times
-            row["nonphysics_ratio"] = times["compiled"] / times["eager"]
-        out[w] = row
-    return out
-
-
-def draw_bench_figures(out: Path) -> list[str]:
-    """``analysis/bench_figure.py`` on the benches in ``out`` (where the non-physics time goes,
-    one PNG per bench JSON): the files it wrote. A figure is a reading aid: a failure to draw is
-    printed and fails nothing."""
-    if not any(out.glob("bench_env*.json")):
-        return []
-    cmd = [sys.executable, str(ROOT / "analysis" / "bench_figure.py"), str(out)]
-    try:
-        done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
+        proc.wait(15)
     except subprocess.TimeoutExpired:
-        print("[gpu_check] bench figures: timed out", flush=True)
-        return []
-    for line in (done.stdout + done.stderr).strip().splitlines()[-6:]:
-        print(f"[gpu_check] {line}", flush=True)
-    return sorted(p.name for p in out.glob("bench_env*.png"))
+        proc.kill()
+        proc.wait()
 
 
-def judged_targets(results: dict[str, Any]) -> dict[str, Any]:
-    """The step's speed targets as the bench judged them (each not measured where the bench
-    phase left no figure), and the sync targets, judged only where CUDA recorded the syncs
-    (:mod:`march.bench.targets`): no march source line that syncs in more than one env step of
-    a part (teacher rollout, distillation rollout, march's env), and march's env no more syncs
-    per step than bare rough's."""
-    bench = (results.get("bench") or {}).get("targets") or {}
-    judged = {t.key: bench.get(t.key) or t.judge(None) for t in STEP_TARGETS}
-    syncs = results.get("syncs") or {}
-    lines = syncs.get("march_lines_per_step") if syncs.get("cuda") and syncs.get("phases") else None
-    per_step = syncs.get("env_syncs_per_step") if syncs.get("cuda") else None
-    extra = per_step["march"] - per_step["rough"] if per_step else None
-    lines_target, env_target = SYNC_TARGETS
-    judged[lines_target.key] = lines_target.judge(None if lines is None else len(lines))
-    judged[env_target.key] = env_target.judge(extra)
-    return judged
-
-
-def teacher_budget_reached(run: Path, seconds: float) -> Any:
-    """True once the teacher's training time (``wall_s`` of ``metrics.csv``) passed ``seconds``
-    and the checkpoint of that iteration is on disk (the row is logged before the save)."""
+def teacher_done(run: Path, iterations: int, seen: list[int]) -> Any:
+    """True once ``iterations`` rows are in the teacher's ``metrics.csv`` and that iteration's
+    checkpoint is on disk (the row is logged before the save); prints each new row's figure."""
 
     def reached() -> bool:
         rows = read_rows(run / "metrics.csv", "teacher")
-        if not rows or float(rows[-1]["wall_s"]) < seconds:
+        for r in rows[len(seen) :]:
+            seen.append(int(r["iteration"]))
+            per_it = seconds_per_iteration(rows[: len(seen)])
+            print(
+                f"[gpu_check] teacher_clf iteration {r['iteration']}: wall {float(r['wall_s']):.1f}"
+                f" s, {r['env_steps']} env steps"
+                + ("" if per_it is None else f"; {per_it:.2f} s/iteration from iteration 2"),
+                flush=True,
+            )
+        if len(rows) < iterations:
             return False
         return (run / "teacher" / f"model_{int(rows[-1]['iteration']):06d}.pt").is_file()
 
     return reached
 
 
+class Check:
+    """The check's state: phases run, results, and the summary rewritten after each phase."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        self.args = args
+        self.out: Path = args.out.resolve()
+        self.out.mkdir(parents=True, exist_ok=True)
+        (self.out / "logs.txt").unlink(missing_ok=True)  # this check's logs only
+        work = args.work or Path(tempfile.mkdtemp(prefix="gpu_check_"))
+        self.work = work.resolve()
+        self.work.mkdir(parents=True, exist_ok=True)
+        self.s = sizes(args)
+        self.common = self.s["compute"] + ["logger=csv"]
+        self.phases: list[Phase] = []
+        self.results: dict[str, Any] = {}
+        self.t0 = time.time()
+        self.stopped = ""
+        self.machine = machine()
+
+    def guard(self, name: str, phase: Any) -> Any:
+        """Run ``phase()``; an error of the check itself (not of the phase's subprocess) is
+        recorded on that phase and the check goes on: it always reports."""
+        try:
+            return phase()
+        except Stopped:
+            raise
+        except Exception as err:  # noqa: BLE001 - recorded, then the next phase
+            ph = next((p for p in self.phases if p.name == name), None) or self.add(name, [])
+            ph.rc = ph.rc if ph.rc not in (0, None) else 1
+            ph.note = "; ".join(n for n in (ph.note, f"check error: {err!r}"[:300]) if n)
+            print(f"[gpu_check] {name}: {ph.note}", flush=True)
+            self.write()
+            return None
+
+    def limit(self, name: str) -> float:
+        own = LIMITS.get(name, self.args.phase_timeout) * (2.0 if self.args.cpu else 1.0)
+        return min(own, self.args.deadline - (time.time() - self.t0))
+
+    def add(self, name: str, cmd: list[str], optional: bool = False) -> Phase:
+        ph = Phase(name, cmd, self.work, optional)
+        self.phases.append(ph)
+        return ph
+
+    def finish(self, ph: Phase) -> None:
+        """After a phase: its log's tail into ``logs.txt``, the summary rewritten."""
+        if ph.log.is_file():
+            tail = ph.log.read_text(errors="replace").splitlines()[-60:]
+            with (self.out / "logs.txt").open("a") as f:
+                f.write(f"===== {ph.name}: rc={ph.rc} {ph.note} ({ph.seconds:.0f} s)\n")
+                f.write("\n".join(tail) + "\n")
+        self.write()
+
+    def write(self) -> dict[str, Any]:
+        records = [ph.record() for ph in self.phases]
+        ok = bool(records) and not self.stopped and not any(ph.failed() for ph in self.phases)
+        report = {
+            "ok": ok,
+            "mode": ("cpu" if self.args.cpu else "gpu") + ("-warm" if self.args.warm else ""),
+            "phases_done": [ph.name for ph in self.phases if ph.rc is not None],
+            "stopped": self.stopped,
+            "seconds": round(time.time() - self.t0, 1),
+            "machine": self.machine,
+            "work": str(self.work),
+            "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(self.args).items()},
+            "phases": records,
+            "results": self.results,
+            "targets": judged_targets(self.results),
+        }
+        tmp = self.out / "gpu_check.json.tmp"
+        tmp.write_text(json.dumps(report, indent=2, default=str) + "\n")
+        tmp.replace(self.out / "gpu_check.json")
+        return report
+
+    # ------------------------------------------------------------------------------- phases
+
+    def bench(self, name: str, stem: str, extra: list[str], optional: bool = False) -> None:
+        """A ``march.bench env`` phase: ``OUT/{stem}.json`` (the final JSON, else the partial
+        one) and its figures as ``results[name]``."""
+        py, work = sys.executable, self.work
+        partial = work / f"{stem}.partial.json"
+        partial.unlink(missing_ok=True)
+        sizes_ = self.s["warm" if name == "warm" else "bench"]
+        cmd = [py, "-m", "march.bench", "env", *self.common[:1], *sizes_, *extra]
+        ph = self.add(name, [*cmd, f"bench.partial={partial}"], optional)
+        try:
+            ph.run(self.limit(name), stdout_file=work / f"{stem}.json")
+        finally:
+            summary, files, note = bench_results(work, ph.rc == 0, stem)
+            if files:
+                shutil.copy(work / files[0], self.out / f"{stem}.json")
+                ph.files.append(f"{stem}.json")
+            ph.note = "; ".join(n for n in (ph.note, note) if n)
+            if summary is not None:
+                if name == "warm" and ph.rc == 0:
+                    summary["build_s"] = json.loads((work / f"{stem}.json").read_text())["build_s"]
+                self.results[name] = summary
+            self.finish(ph)
+
+    def syncs(self, name: str, parts: str, optional: bool = False) -> None:
+        tsv = f"{name}.tsv"
+        cmd = [sys.executable, "scripts/sync_check.py", f"--parts={parts}", str(self.out / tsv)]
+        ph = self.add(name, [*cmd, *self.common, *self.s["syncs"]], optional)
+        (self.out / tsv).unlink(missing_ok=True)
+        try:
+            ph.run(self.limit(name))
+        finally:
+            if (self.out / tsv).is_file():  # a stopped run's too: its finished parts are kept
+                ph.files.append(tsv)
+                self.results[name] = sync_results(self.out / tsv)
+                if ph.rc != 0:
+                    recorded = ", ".join(self.results[name]["phases"]) or "nothing"
+                    ph.note = "; ".join(n for n in (ph.note, f"partial: {recorded}") if n)
+            self.finish(ph)
+
+    def teacher(self) -> Path | None:
+        name, run = "teacher_clf", self.work / "runs" / "teacher_clf"
+        shutil.rmtree(run, ignore_errors=True)
+        cmd = [sys.executable, "-m", "march.train", "stage=teacher", "reward=clf", *self.common]
+        cmd += [*self.s["teacher"], "teacher.max_iterations=1000000", "teacher.save_interval=1"]
+        cmd += ["teacher.eval_interval=0", f"hydra.run.dir={run}"]
+        ph = self.add(name, cmd)
+        seen: list[int] = []
+        try:
+            ph.run(self.limit(name), teacher_done(run, self.args.teacher_iterations, seen))
+        finally:
+            rows = read_rows(run / "metrics.csv", "teacher")
+            ckpt = run / "teacher" / "latest.pt"
+            if rows:
+                write_rows(rows, self.out / f"{name}_curve.csv")
+                ph.files.append(f"{name}_curve.csv")
+                last = rows[-1]
+                wall = float(last["wall_s"])
+                self.results[name] = {
+                    "iterations": int(last["iteration"]),
+                    "env_steps": int(last["env_steps"]),
+                    "train_wall_s": wall,
+                    "s_per_iteration": seconds_per_iteration(rows),
+                    "first_iteration_s": float(rows[0]["wall_s"]),
+                    "env_steps_per_s": int(last["env_steps"]) / wall if wall > 0 else None,
+                    "first_mean_reward": number(rows[0].get("mean_reward")),
+                    "last_mean_reward": number(last.get("mean_reward")),
+                }
+            if len(rows) >= 2 and ckpt.is_file():
+                ph.rc = 0 if ph.note == "stopped at its budget" else ph.rc
+            else:
+                ph.note = (ph.note + "; fewer than 2 iterations").strip("; ")
+                ph.rc = ph.rc if ph.rc not in (0, None) else 1
+            self.finish(ph)
+        return ckpt if rows and ckpt.is_file() else None
+
+    def student(self, teacher_ckpt: Path) -> None:
+        run = self.work / "runs" / "student"
+        shutil.rmtree(run, ignore_errors=True)
+        cmd = [sys.executable, "-m", "march.train", "stage=student", f"teacher_ckpt={teacher_ckpt}"]
+        cmd += [*self.common, *self.s["student"], "distill.max_iterations=2"]
+        cmd += ["distill.eval_interval=0", "distill.save_interval=1", f"hydra.run.dir={run}"]
+        ph = self.add("student", cmd, optional=True)
+        try:
+            ph.run(self.limit("student"))
+        finally:
+            rows = read_rows(run / "metrics.csv", "student")
+            if rows:
+                write_rows(rows, self.out / "student_curve.csv")
+                ph.files.append("student_curve.csv")
+            if (run / "summary.json").is_file():
+                self.results["eval"] = json.loads((run / "summary.json").read_text())
+            self.finish(ph)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse(argv)
-    out: Path = args.out.resolve()
-    out.mkdir(parents=True, exist_ok=True)
-    s = sizes(args)
-    py = sys.executable
-    common = s["compute"] + ["logger=csv"]
-    phases: list[Phase] = []
-    results: dict[str, Any] = {}
-    t_start = time.time()
+    check = Check(args)
 
-    def limit(phase_limit: float | None = None) -> float:
-        """This phase's time limit: its own (``--phase-timeout`` unless given), or what is left
-        before the deadline."""
-        own = args.phase_timeout if phase_limit is None else phase_limit
-        return min(own, args.deadline - (time.time() - t_start))
+    def stop(signum: int, _frame: Any) -> None:
+        raise Stopped(signal.Signals(signum).name)
 
-    def bench(name: str, stem: str, extra: list[str], optional: bool = False) -> None:
-        """A ``march.bench env`` phase: ``{stem}.json``, or the finished workloads of its
-        partial file when a limit stopped it, as ``results[name]``."""
-        partial = out / f"{stem}.partial.json"
-        partial.unlink(missing_ok=True)
-        cmd = [py, "-m", "march.bench", "env", *common[:1], *s["bench"], *extra]
-        ph = Phase(name, [*cmd, f"bench.partial={partial}"], out, optional)
-        phases.append(ph)
-        done = ph.run(limit(args.bench_timeout), stdout_file=out / f"{stem}.json")
-        summary, files, note = bench_results(out, done, stem)
-        ph.files += files
-        ph.note = "; ".join(n for n in (ph.note, note) if n)
-        if summary is not None:
-            results[name] = summary
-
-    if "bench" not in args.skip:
-        bench("bench", "bench_env", [])
-
-    if "syncs" not in args.skip:
-        cmd = [py, "scripts/sync_check.py", str(out / "syncs.tsv"), *common, *s["syncs"]]
-        ph = Phase("syncs", cmd, out)
-        phases.append(ph)
-        (out / "syncs.tsv").unlink(missing_ok=True)
-        done = ph.run(limit(args.sync_timeout))
-        if (out / "syncs.tsv").is_file():  # also a stopped run's: the teacher part is kept
-            ph.files.append("syncs.tsv")
-            results["syncs"] = sync_results(out / "syncs.tsv")
-            if not done:
-                recorded = ", ".join(results["syncs"]["phases"]) or "nothing"
-                ph.note = "; ".join(n for n in (ph.note, f"partial: {recorded} recorded") if n)
-
-    teacher_ckpt: dict[str, Path] = {}
-    for arm in ("clf", "modelfree"):
-        name = f"teacher_{arm}"
-        if name in args.skip:
-            continue
-        run = out / "runs" / name
-        shutil.rmtree(run, ignore_errors=True)
-        cmd = [
-            py,
-            "-m",
-            "march.train",
-            "stage=teacher",
-            f"reward={arm}",
-            *common,
-            *s["teacher"],
-            "teacher.max_iterations=1000000",
-            "teacher.save_interval=1",
-            "teacher.eval_interval=0",
-            f"hydra.run.dir={run}",
-        ]
-        ph = Phase(name, cmd, out)
-        phases.append(ph)
-        ph.run(limit(), stop_when=teacher_budget_reached(run, args.teacher_seconds))
-        rows = read_rows(run / "metrics.csv", "teacher")
-        write_rows(rows, out / f"{name}_curve.csv")
-        ckpt = run / "teacher" / "latest.pt"
-        if rows and ckpt.is_file():
-            teacher_ckpt[arm] = ckpt
-            last = rows[-1]
-            wall = float(last["wall_s"])
-            results[name] = {
-                "iterations": int(last["iteration"]),
-                "env_steps": int(last["env_steps"]),
-                "train_wall_s": wall,
-                "env_steps_per_s": int(last["env_steps"]) / wall if wall > 0 else None,
-                "first_mean_reward": number(rows[0].get("mean_reward")),
-                "last_mean_reward": number(last.get("mean_reward")),
-                "checkpoint": str(ckpt.relative_to(out)),
-            }
-            ph.files += [f"{name}_curve.csv"]
-            ph.rc = 0 if ph.note == "stopped at its budget" else ph.rc
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    check.write()  # a summary before the first phase: the check has started
+    skip = set(args.skip)
+    guard = check.guard
+    try:
+        if args.warm:
+            guard("warm", lambda: check.bench("warm", "warm", []))
         else:
-            ph.note = (ph.note + "; no completed iteration").strip("; ")
-            ph.rc = ph.rc if ph.rc not in (0, None) else 1
-
-    student_ckpt: Path | None = None
-    if "student" not in args.skip and "clf" in teacher_ckpt:
-        run = out / "runs" / "student"
-        shutil.rmtree(run, ignore_errors=True)
-        cmd = [
-            py,
-            "-m",
-            "march.train",
-            "stage=student",
-            f"teacher_ckpt={teacher_ckpt['clf']}",
-            *common,
-            *s["student"],
-            "distill.max_iterations=2",
-            "distill.eval_interval=0",
-            "distill.save_interval=1",
-            f"hydra.run.dir={run}",
-        ]
-        ph = Phase("student", cmd, out)
-        phases.append(ph)
-        if ph.run(limit()):
-            write_rows(read_rows(run / "metrics.csv", "student"), out / "student_curve.csv")
-            for name in ("eval.csv", "summary.json"):
-                if (run / name).is_file():
-                    shutil.copy(run / name, out / name)
-            ph.files += [
-                f for f in ("student_curve.csv", "eval.csv", "summary.json") if (out / f).is_file()
-            ]
-            if (run / "summary.json").is_file():
-                results["eval"] = json.loads((run / "summary.json").read_text())
-            if (run / "student" / "latest.pt").is_file():
-                student_ckpt = run / "student" / "latest.pt"
-
-    if "export" not in args.skip and student_ckpt is not None:
-        onnx = out / "student.onnx"
-        cmd = [py, "-m", "march.export", f"student_ckpt={student_ckpt}", f"out={onnx}"]
-        ph = Phase("export", cmd, out)
-        phases.append(ph)
-        if ph.run(limit(), stdout_file=out / "export.txt") and onnx.is_file():
-            ph.files += ["student.onnx", "export.txt"]
-            results["export"] = {"onnx_bytes": onnx.stat().st_size}
-
-    if "bench_eager" not in args.skip:  # last: only with time to spare
-        bench("bench_eager", "bench_env_eager", ["compute.compile_math=false"], optional=True)
-        if "bench" in results and "bench_eager" in results:
-            results["compile_vs_eager"] = compile_vs_eager(results["bench"], results["bench_eager"])
-
-    records = [ph.record() for ph in phases]
-    ok = bool(records) and not any(ph.failed() for ph in phases)
-    figures = draw_bench_figures(out)
-    report = {
-        "ok": ok,
-        "mode": "cpu" if args.cpu else "gpu",
-        "seconds": round(time.time() - t_start, 1),
-        "machine": machine(),
-        "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-        "phases": records,
-        "results": results,
-        "targets": judged_targets(results),
-        "figures": figures,
-    }
-    (out / "gpu_check.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
-    with (out / "gpu_check.csv").open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=["phase", "rc", "seconds", "note", "files", "command"])
-        w.writeheader()
-        for r in records:
-            w.writerow(
-                {
-                    **{k: r[k] for k in ("phase", "rc", "seconds", "note", "command")},
-                    "files": " ".join(r["files"]),
-                }
-            )
+            if "bench" not in skip:
+                guard("bench", lambda: check.bench("bench", "bench_env", []))
+            if "syncs" not in skip:
+                guard("syncs", lambda: check.syncs("syncs", "env_march,env_rough"))
+            ckpt = None if "teacher_clf" in skip else guard("teacher_clf", check.teacher)
+            if "bench_eager" not in skip:  # optional from here: only with time left
+                eager = ["compute.compile_math=false"]
+                guard(
+                    "bench_eager",
+                    lambda: check.bench("bench_eager", "bench_env_eager", eager, True),
+                )
+                if "bench" in check.results and "bench_eager" in check.results:
+                    check.results["compile_vs_eager"] = compile_vs_eager(
+                        check.results["bench"], check.results["bench_eager"]
+                    )
+            if "syncs_runners" not in skip:
+                guard(
+                    "syncs_runners", lambda: check.syncs("syncs_runners", "teacher,distill", True)
+                )
+            if "student" not in skip and ckpt is not None:
+                guard("student", lambda: check.student(ckpt))
+    except Stopped as err:
+        check.stopped = f"stopped by {err}"
+        print(f"[gpu_check] {check.stopped}: writing the summary", flush=True)
+    report = check.write()
     for line in verdict_lines(report["targets"], "[gpu_check]"):
         print(line, flush=True)
-    for w, row in results.get("compile_vs_eager", {}).items():
-        times = row.get("nonphysics_ms")
+    for w, row in check.results.get("compile_vs_eager", {}).items():
         print(
             f"[gpu_check] compile_math, {w}: march {row['steps_per_s']['compiled']:.0f} vs "
-            f"{row['steps_per_s']['eager']:.0f} env steps/s eager (x{row['speed_ratio']:.2f})"
-            + (
-                f", non-physics {times['compiled']:.1f} vs {times['eager']:.1f} ms/step"
-                if times
-                else ""
-            ),
+            f"{row['steps_per_s']['eager']:.0f} env steps/s eager (x{row['speed_ratio']:.2f})",
             flush=True,
         )
-    print(f"[gpu_check] {'ok' if ok else 'FAILED'} in {report['seconds']:.0f} s: {out}", flush=True)
+    extra = sorted(p.name for p in check.out.iterdir() if p.name not in (*OUT_FILES, "warm.json"))
+    if extra:  # never expected: the device returns 8 files at most
+        print(f"[gpu_check] WARNING: unexpected files in {check.out}: {extra}", flush=True)
+    ok = report["ok"]
+    print(f"[gpu_check] {'ok' if ok else 'FAILED'} in {report['seconds']:.0f} s: {check.out}")
     return 0 if ok else 1
 
 

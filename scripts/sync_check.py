@@ -3,13 +3,15 @@ rollout and the bare env steps of march and of mjlab's rough task under
 ``torch.cuda.set_sync_debug_mode("warn")``, every synchronising call's source line written to a
 file (the ``syncs`` phase of ``scripts/gpu_check.py``).
 
-    python scripts/sync_check.py OUT_FILE [overrides ...]     # e.g. compute=gpu compute.num_envs=256
+    python scripts/sync_check.py OUT_FILE [--parts=env_march,env_rough] [overrides ...]
 
-Parts, each recorded as a phase of the file: ``teacher`` (a teacher iteration's rollout and
-bookkeeping, the update left out), ``distill`` (a distillation rollout), then ``env_march``
-and ``env_rough``: ``teacher.num_steps_per_env`` steps of the march teacher env and of bare
-mjlab rough alone (random actions drawn beforehand, under ``inference_mode``), so that the
-file says whether march's step issues more syncs than bare mjlab's.
+Parts, each recorded as a phase of the file, in this order unless ``--parts=a,b`` picks
+others: ``env_march`` and ``env_rough``: ``teacher.num_steps_per_env`` steps of the march
+teacher env and of bare mjlab rough alone (random actions drawn beforehand, under
+``inference_mode``), so that the file says whether march's step issues more syncs than bare
+mjlab's (first: the GPU check's figure); then ``teacher`` (a teacher iteration's rollout and
+bookkeeping, the update left out) and ``distill`` (a distillation rollout). Each part prints
+its count (``[syncs] part: N syncs in S env steps``) the moment it ends.
 
 One line per sync (tab-separated): the phase, the env step of the part it follows (1 from the
 first step's start to the second's, 0 before the first), the innermost frame outside torch
@@ -121,6 +123,25 @@ def _record_env_steps(
     return phase["step"]
 
 
+PARTS = ("env_march", "env_rough", "teacher", "distill")
+"""The parts in the order they run by default: march's env and bare rough's first (the figure
+the GPU check needs most: syncs per step, march vs rough), then the runners' rollouts."""
+
+
+def parse_parts(argv: list[str]) -> tuple[list[str], list[str]]:
+    """``--parts=a,b`` taken off ``argv`` (default :data:`PARTS`): (parts, the rest)."""
+    parts, rest = list(PARTS), []
+    for arg in argv:
+        if arg.startswith("--parts="):
+            parts = [p for p in arg.split("=", 1)[1].split(",") if p]
+            bad = [p for p in parts if p not in PARTS]
+            if bad or not parts:
+                raise SystemExit(f"sync_check: --parts: expected names from {', '.join(PARTS)}")
+        else:
+            rest.append(arg)
+    return parts, rest
+
+
 def main(argv: list[str]) -> int:
     import torch
 
@@ -131,11 +152,14 @@ def main(argv: list[str]) -> int:
     from march.learn.metrics import MetricsLog
     from march.learn.teacher import EpisodeStats, TeacherRunner
 
+    parts, argv = parse_parts(argv)
     out = Path(argv[0])
     cfg = load(["logger=csv", *argv[1:]])
     cuda = cfg.compute.device.startswith("cuda") and torch.cuda.is_available()
     hits: list[tuple[str, ...]] = []
     phase: dict[str, Any] = {"name": "", "step": 0}
+    steps: dict[str, int] = {}
+    shared: dict[str, Any] = {}
 
     def record(message, category, filename, lineno, file=None, line=None):
         text = str(message)
@@ -146,62 +170,87 @@ def main(argv: list[str]) -> int:
         hits.append((phase["name"], step, outside, march, text.splitlines()[0][:120]))
 
     run = Path(tempfile.mkdtemp(prefix="sync_check_"))
-    env = _counting_steps(make_env(cfg, "teacher"), phase)
-    log = MetricsLog(run, cfg.logger, "t")
+
+    def teacher_part() -> int:
+        env = _counting_steps(make_env(cfg, "teacher"), phase)
+        log = MetricsLog(run, cfg.logger, "t")
+        try:
+            teacher = TeacherRunner(env, cfg, run, log)
+            teacher.learn(1)  # warm-up: first-use set-ups, lazy buffers
+            real_update = teacher.alg.update
+
+            def update():  # the update may read values: only the rollout is recorded
+                if cuda:
+                    torch.cuda.set_sync_debug_mode(0)
+                return real_update()
+
+            teacher.alg.update = update
+            phase["name"], phase["step"] = "teacher", 0
+            if cuda:
+                torch.cuda.set_sync_debug_mode("warn")
+            teacher.learn(2)
+            shared["payload"] = teacher.payload()
+        finally:
+            if cuda:
+                torch.cuda.set_sync_debug_mode(0)
+            log.close()
+            env.close()
+        return phase["step"]
+
+    def distill_part() -> int:
+        if "payload" not in shared:  # the teacher part did not run: a fresh teacher's weights
+            env = make_env(cfg, "teacher")
+            log = MetricsLog(run, cfg.logger, "t")
+            try:
+                shared["payload"] = TeacherRunner(env, cfg, run, log).payload()
+            finally:
+                log.close()
+                env.close()
+        env = _counting_steps(make_env(cfg, "student"), phase)
+        log = MetricsLog(run / "s", cfg.logger, "s")
+        try:
+            student = DistillRunner(env, cfg, run / "s", log, shared["payload"], "teacher.pt")
+            stats = EpisodeStats(env.num_envs, cfg.compute.device)
+            student._rollout(stats)  # warm-up
+            phase["name"], phase["step"] = "distill", 0
+            if cuda:
+                torch.cuda.synchronize()
+                torch.cuda.set_sync_debug_mode("warn")
+            student._rollout(stats)
+        finally:
+            if cuda:
+                torch.cuda.set_sync_debug_mode(0)
+            log.close()
+            env.close()
+        return phase["step"]
+
+    n, seed, device = cfg.compute.num_envs, cfg.seed, cfg.compute.device
+    n_steps = cfg.teacher.num_steps_per_env
+    run_part = {
+        "env_march": lambda: _record_env_steps(
+            lambda: make_env(cfg, "teacher"), n_steps, seed, cuda, phase, "env_march"
+        ),
+        "env_rough": lambda: _record_env_steps(
+            lambda: bare_env(ROUGH_TASK, n, seed, device), n_steps, seed, cuda, phase, "env_rough"
+        ),
+        "teacher": teacher_part,
+        "distill": distill_part,
+    }
     old = warnings.showwarning
     warnings.showwarning = record
     warnings.simplefilter("always")
     try:
-        teacher = TeacherRunner(env, cfg, run, log)
-        teacher.learn(1)  # warm-up: first-use set-ups, lazy buffers
-        real_update = teacher.alg.update
-
-        def update():  # the update may read values: only the rollout is recorded
-            if cuda:
-                torch.cuda.set_sync_debug_mode(0)
-            return real_update()
-
-        teacher.alg.update = update
-        phase["name"], phase["step"] = "teacher", 0
-        if cuda:
-            torch.cuda.set_sync_debug_mode("warn")
-        teacher.learn(2)
-        payload = teacher.payload()
-        steps = {"teacher": phase["step"]}
-        _write(out, hits, cuda, steps)  # kept if a time limit stops the later parts
-    finally:
-        if cuda:
-            torch.cuda.set_sync_debug_mode(0)
-        log.close()
-        env.close()
-    env = _counting_steps(make_env(cfg, "student"), phase)
-    log = MetricsLog(run / "s", cfg.logger, "s")
-    try:
-        student = DistillRunner(env, cfg, run / "s", log, payload, "teacher.pt")
-        stats = EpisodeStats(env.num_envs, cfg.compute.device)
-        student._rollout(stats)  # warm-up
-        phase["name"], phase["step"] = "distill", 0
-        if cuda:
-            torch.cuda.synchronize()
-            torch.cuda.set_sync_debug_mode("warn")
-        student._rollout(stats)
-    finally:
-        if cuda:
-            torch.cuda.set_sync_debug_mode(0)
-        log.close()
-        env.close()
-    steps["distill"] = phase["step"]
-    _write(out, hits, cuda, steps)
-    try:
-        n, seed, device = cfg.compute.num_envs, cfg.seed, cfg.compute.device
-        for name, make in (
-            ("env_march", lambda: make_env(cfg, "teacher")),
-            ("env_rough", lambda: bare_env(ROUGH_TASK, n, seed, device)),
-        ):
-            steps[name] = _record_env_steps(
-                make, cfg.teacher.num_steps_per_env, seed, cuda, phase, name
+        for part in parts:
+            steps[part] = run_part[part]()
+            _write(out, hits, cuda, steps)  # kept if a time limit stops the later parts
+            n_part = sum(1 for h in hits if h[0] == part)
+            print(
+                f"[syncs] {part}: {n_part} syncs in {steps[part]} env steps "
+                f"({n_part / max(steps[part], 1):.2f} per step)"
+                + ("" if cuda else ": no CUDA, nothing recorded"),
+                file=sys.stderr,
+                flush=True,
             )
-            _write(out, hits, cuda, steps)
     finally:
         warnings.showwarning = old
     n_march = sum(1 for h in hits if h[3] != "-")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -423,70 +424,133 @@ def test_bench_planner_prints_one_json_object():
     assert 0.0 < result["walk_touchdown_rate_per_env_step"] < 0.1  # steps of 0.45-0.7 s at 50 Hz
 
 
+def _out_files_ok(out: Path) -> list[str]:
+    """The files the device would return from ``out``: at most 8, none in a folder, all named
+    in the check's list."""
+    names = sorted(p.name for p in out.iterdir())
+    assert all((out / n).is_file() for n in names), names
+    assert len(names) <= 8 and set(names) <= set(_gpu_check().OUT_FILES), names
+    return names
+
+
+def _start_check(out: Path, work: Path, *extra: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "scripts/gpu_check.py", str(out), "--cpu", "--work", str(work), *extra],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env={**os.environ, "OUT": ""},
+    )
+
+
+def _summary(out: Path) -> dict:
+    try:
+        return json.loads((out / "gpu_check.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return {}
+
+
+def test_a_gpu_check_stopped_after_its_first_phase_leaves_a_summary_naming_it(tmp_path):
+    """The check writes its summary before the first phase and after each; stopped by SIGTERM
+    during its second phase (a device's time limit), it stops that phase's subprocess, says so
+    and keeps the first phase's figures, printed as they were measured; OUT holds only the
+    check's files."""
+    out, work = tmp_path / "out", tmp_path / "work"
+    proc = _start_check(out, work)
+    try:
+        deadline = time.time() + 900
+        while time.time() < deadline and "bench" not in _summary(out).get("phases_done", []):
+            assert proc.poll() is None, proc.stdout.read()[-3000:]
+            time.sleep(0.5)
+        first = _summary(out)
+        assert first["phases_done"] == ["bench"] and first["mode"] == "cpu"
+        assert first["phases"][0]["rc"] == 0 and first["stopped"] == ""
+        assert first["results"]["bench"]["steps_per_s"]["random"]["march_teacher"] > 0
+        proc.send_signal(signal.SIGTERM)
+        stdout, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 1, stdout[-3000:]
+    report = _summary(out)
+    assert report["stopped"] == "stopped by SIGTERM" and not report["ok"]
+    assert report["phases_done"][0] == "bench"
+    assert report["results"]["bench"] == first["results"]["bench"]
+    # the bench's figures reached stdout as the bench measured them
+    lines = stdout.splitlines()
+    speed = next(i for i, ln in enumerate(lines) if ln.startswith("[bench] random, 1 thread(s): "))
+    ops = next(i for i, ln in enumerate(lines) if ln.startswith("[bench] random compute ops"))
+    done = next(i for i, ln in enumerate(lines) if ln.startswith("[gpu_check] bench: rc=0"))
+    assert speed < ops < done
+    names = _out_files_ok(out)
+    assert {"gpu_check.json", "bench_env.json", "logs.txt"} <= set(names)
+    assert "===== bench: rc=0" in (out / "logs.txt").read_text()
+    # the phase running at the stop is recorded as stopped, its subprocess gone
+    if len(report["phases"]) > 1:
+        assert report["phases"][1]["note"].startswith("stopped")
+
+
 @pytest.mark.slow
 def test_gpu_check_runs_at_tiny_sizes_on_cpu(tmp_path):
-    out = tmp_path / "check"
-    env = {**os.environ, "OUT": ""}
-    res = subprocess.run(
-        [sys.executable, "scripts/gpu_check.py", str(out), "--cpu", "--teacher-seconds", "1"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=3600,
-        env=env,
-    )
-    report = json.loads((out / "gpu_check.json").read_text())
+    """Every phase at tiny sizes, in order of value, in at most 10 minutes on 2 cores, with at
+    most 8 files in OUT."""
+    out, work = tmp_path / "check", tmp_path / "work"
+    t0 = time.time()
+    proc = _start_check(out, work)
+    stdout, _ = proc.communicate(timeout=1800)
+    seconds = time.time() - t0
+    report = _summary(out)
     phases = {p["phase"]: p for p in report["phases"]}
-    assert res.returncode == 0, (res.stdout[-3000:], phases)
+    assert proc.returncode == 0, (stdout[-3000:], phases)
+    assert seconds <= 600, seconds
     assert report["ok"] and report["mode"] == "cpu"
-    assert list(phases) == [
-        "bench",
-        "syncs",  # issue 20's two measurements first
-        "teacher_clf",
-        "teacher_modelfree",
-        "student",
-        "export",
-        "bench_eager",  # optional, last
-    ]
+    assert (
+        list(phases)
+        == report["phases_done"]
+        == [
+            "bench",
+            "syncs",
+            "teacher_clf",
+            "bench_eager",  # optional from here
+            "syncs_runners",
+            "student",
+        ]
+    )
+    assert _out_files_ok(out) == sorted(_gpu_check().OUT_FILES)
     bench = json.loads((out / "bench_env.json").read_text())
-    assert set(report["results"]["compile_vs_eager"]) == {"random", "standing"}
-    assert "compute.compile_math=false" in phases["bench_eager"]["command"]
-    assert report["figures"] == ["bench_env.png", "bench_env_eager.png"]
-    assert set(bench["workloads"]) == {"random", "standing"}
-    assert phases["bench"]["files"] == ["bench_env.json"] and phases["bench"]["note"] == ""
-    assert set(bench["ops_per_step"]) == {"random", "standing"}
+    assert bench["workload_names"] == ["random"]
+    assert bench["env_names"] == ["march_teacher", "bare_rough"]
     assert bench["ops_per_step"]["random"]["march_teacher"] > 0
-    syncs = (out / "syncs.tsv").read_text().splitlines()
-    assert syncs[0].startswith("# no CUDA") and "phase\tstep\tsource\tmarch\tmessage" in syncs
-    assert report["results"]["syncs"] == {
-        "recorded": 0,
-        "with_march_on_stack": 0,
-        "cuda": False,
-        "phases": ["teacher", "distill", "env_march", "env_rough"],
-        "steps": {"teacher": 2, "distill": 2, "env_march": 2, "env_rough": 2},
-        "march_lines_per_step": [],
-        "env_syncs_per_step": {"march": 0.0, "rough": 0.0},
-    }
-    for arm in ("clf", "modelfree"):
-        with (out / f"teacher_{arm}_curve.csv").open() as f:
-            rows = list(csv.DictReader(f))
-        assert len(rows) >= 1 and [int(r["iteration"]) for r in rows] == list(
-            range(1, len(rows) + 1)
-        )
-        assert report["results"][f"teacher_{arm}"]["iterations"] == len(rows)
+    assert set(report["results"]["compile_vs_eager"]) == {"random"}
+    syncs = report["results"]["syncs"]
+    assert syncs["phases"] == ["env_march", "env_rough"] and syncs["cuda"] is False
+    assert syncs["env_syncs_per_step"] == {"march": 0.0, "rough": 0.0}
+    assert report["results"]["syncs_runners"]["phases"] == ["teacher", "distill"]
+    teacher = report["results"]["teacher_clf"]
+    with (out / "teacher_clf_curve.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["iteration"]) for r in rows] == list(range(1, len(rows) + 1))
+    assert teacher["iterations"] == len(rows) >= 5
+    walls = [float(r["wall_s"]) for r in rows]
+    assert teacher["s_per_iteration"] == pytest.approx((walls[-1] - walls[0]) / (len(rows) - 1))
+    assert "teacher_clf iteration 2: " in stdout and "s/iteration from iteration 2" in stdout
     with (out / "student_curve.csv").open() as f:
         assert [int(r["iteration"]) for r in csv.DictReader(f)] == [1, 2]
-    assert (out / "eval.csv").is_file() and (out / "summary.json").is_file()
-    assert (out / "student.onnx").stat().st_size > 10_000
-    with (out / "gpu_check.csv").open() as f:
-        assert [r["phase"] for r in csv.DictReader(f)] == list(phases)
-    assert (
-        report["targets"]["ratio_ops_march_vs_rough"]
-        == bench["targets"]["ratio_ops_march_vs_rough"]
-    )
+    assert "eval" in report["results"]
     for key in ("march_sync_lines_per_step", "env_syncs_per_step_march_minus_rough"):
         assert report["targets"][key]["met"] is None  # no CUDA: not measured
-    assert sum(ln.startswith("[gpu_check] target ") for ln in res.stdout.splitlines()) == 5
+    assert sum(ln.startswith("[gpu_check] target ") for ln in stdout.splitlines()) == 5
+
+
+def test_the_teacher_seconds_per_iteration_start_at_iteration_two():
+    seconds_per_iteration = _gpu_check().seconds_per_iteration
+    rows = [{"iteration": str(i), "wall_s": str(w)} for i, w in [(1, 30.0), (2, 31.5), (3, 33.5)]]
+    assert seconds_per_iteration(rows) == pytest.approx(1.75)  # (33.5 - 30) / 2, not 33.5 / 3
+    assert seconds_per_iteration(rows[:1]) is None
+    resumed = [{"iteration": "7", "wall_s": "10"}, {"iteration": "9", "wall_s": "14"}]
+    assert seconds_per_iteration(resumed) == 2.0
 
 
 def _bench_figure():

@@ -4,6 +4,8 @@
                               [bench.warmup_standing=5]
                               [bench.profile_steps=20] [bench.op_steps=10] [bench.rounds=8]
                               [bench.threads=1,2] [bench.partial=FILE]
+                              [bench.workloads=random,standing]
+                              [bench.envs=march_teacher,bare_rough,bare_flat]
     python -m march.bench planner [compute.num_envs=64] [bench.steps=100]
 
 Both jobs compose the same config as ``march.train`` (Hydra ``key=value`` overrides). The
@@ -12,7 +14,9 @@ before the config is composed: ``bench.steps`` (timed steps per env and workload
 ``bench.warmup_random`` / ``bench.warmup_standing`` (untimed steps after each reset;
 ``bench.warmup`` sets both), ``bench.profile_steps`` (steps of the separate
 instrumented pass, 0 = none) and ``bench.rounds`` (how many interleaved chunks the timed steps are
-split into); ``bench.partial=FILE`` (:data:`PATH_OPTIONS`). Everything mjlab and warp print
+split into); ``bench.partial=FILE`` (:data:`PATH_OPTIONS`); ``bench.workloads`` and
+``bench.envs`` (:data:`NAME_OPTIONS`: which workloads and envs, in that order; the GPU check times
+only march and bare rough on the random workload). Everything mjlab and warp print
 while building and compiling goes to stderr, so stdout is the JSON object alone (``... | jq``
 works).
 
@@ -36,8 +40,8 @@ USAGE = (
     "usage: python -m march.bench env|planner [compute.num_envs=64] [compute.device=...] "
     "[bench.steps=N] [bench.warmup=N] [bench.warmup_random=N] [bench.warmup_standing=N] "
     "[bench.profile_steps=N] [bench.op_steps=N] [bench.rounds=N] [bench.threads=1,2] "
-    "[bench.partial=FILE] "
-    "[key=value ...]"
+    "[bench.partial=FILE] [bench.workloads=random,standing] "
+    "[bench.envs=march_teacher,bare_rough,bare_flat] [key=value ...]"
 )
 JOB_DEFAULTS: dict[str, dict[str, int]] = {
     "env": {
@@ -73,6 +77,26 @@ each workload with what has been measured so far (``partial``, ``completed_workl
 a run stopped by a time limit keeps its finished workloads (the GPU check reads it)."""
 
 
+NAME_OPTIONS = {
+    "workloads": WORKLOADS,
+    "envs": ("march_teacher", "bare_rough", "bare_flat"),
+}
+"""Options that pick names (comma-separated, in the given order, no repeats): the workloads run
+and the envs built; ``march_teacher`` and ``bare_rough`` are always among the envs (every
+headline ratio is march / bare rough)."""
+
+
+def _names(arg: str, key: str, value: str) -> list[str]:
+    names = [v for v in value.split(",") if v]
+    allowed = NAME_OPTIONS[key]
+    bad = [v for v in names if v not in allowed]
+    if not names or bad or len(set(names)) != len(names):
+        fail(f"{arg}: expected distinct names from {', '.join(allowed)}")
+    if key == "envs" and not {"march_teacher", "bare_rough"} <= set(names):
+        fail(f"{arg}: march_teacher and bare_rough are always benched (ratios are march / rough)")
+    return names
+
+
 def pop_bench_options(argv: Sequence[str]) -> tuple[list[str], dict[str, Any]]:
     """Split ``bench.<option>=N`` off the overrides (they are not config keys); returns the
     remaining overrides and the options given (job defaults: :data:`JOB_DEFAULTS`)."""
@@ -88,8 +112,14 @@ def pop_bench_options(argv: Sequence[str]) -> tuple[list[str], dict[str, Any]]:
                 fail(f"{arg}: expected a file path")
             opts[key] = value
             continue
+        if key in NAME_OPTIONS:
+            opts[key] = _names(arg, key, value)
+            continue
         if key not in BENCH_MINIMUM:
-            known = ", ".join([f"bench.{k}=N" for k in BENCH_MINIMUM] + ["bench.partial=FILE"])
+            known = ", ".join(
+                [f"bench.{k}=N" for k in BENCH_MINIMUM]
+                + ["bench.partial=FILE", "bench.workloads=a,b", "bench.envs=a,b"]
+            )
             fail(f"unknown benchmark option {arg!r}; use {known}")
         try:
             ns = [int(v) for v in value.split(",")] if key == "threads" else [int(value)]

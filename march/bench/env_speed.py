@@ -92,8 +92,17 @@ def run_workload(
             "steps_per_s": sps,
             "ms_per_step": {name: 1e3 * elapsed[t][name] / steps for name in envs},
             "ratio_march_vs_rough": sps["march_teacher"] / sps["bare_rough"],
-            "ratio_march_vs_flat": sps["march_teacher"] / sps["bare_flat"],
         }
+        if "bare_flat" in sps:
+            by_threads[str(t)]["ratio_march_vs_flat"] = sps["march_teacher"] / sps["bare_flat"]
+    for t, b in by_threads.items():  # printed the moment it is measured (the GPU check's log)
+        print(
+            f"[bench] {workload}, {t} thread(s): "
+            + ", ".join(f"{n} {v:.1f}" for n, v in b["steps_per_s"].items())
+            + f" env steps/s; march/rough {b['ratio_march_vs_rough']:.2f}",
+            file=sys.stderr,
+            flush=True,
+        )
     first = by_threads[str(threads[0])]
     out: dict[str, Any] = {
         **first,
@@ -167,6 +176,8 @@ def bench_env(cfg: MarchConfig, opts: dict[str, Any]) -> dict[str, Any]:
         "bare_rough": lambda: bare_env(ROUGH_TASK, n, seed, device),
         "bare_flat": lambda: bare_env(FLAT_TASK, n, seed, device),
     }
+    builders = {k: builders[k] for k in opts.get("envs") or ENV_NAMES}
+    workloads = list(opts.get("workloads") or WORKLOADS)
     envs: dict[str, Any] = {}
     build: dict[str, float] = {}
     results: dict[str, Any] = {}
@@ -179,23 +190,16 @@ def bench_env(cfg: MarchConfig, opts: dict[str, Any]) -> dict[str, Any]:
                 t0 = time.perf_counter()
                 envs[name] = make()
                 build[name] = round(time.perf_counter() - t0, 2)
-            for workload in WORKLOADS:
+            for workload in workloads:
                 results[workload] = run_workload(envs, workload, opts, cfg.seed, device)
-                for t, b in results[workload]["by_threads"].items():
-                    print(
-                        f"[bench] {workload}, {t} thread(s): "
-                        + ", ".join(f"{n} {v:.1f}" for n, v in b["steps_per_s"].items())
-                        + f" env steps/s; march/rough {b['ratio_march_vs_rough']:.2f}",
-                        flush=True,
-                    )
                 if opts.get("partial"):
-                    _write_partial(Path(opts["partial"]), cfg, build, results)
+                    _write_partial(Path(opts["partial"]), cfg, build, results, workloads)
     finally:
         for env in envs.values():
             env.close()
         envs.clear()
         free(device)
-    rnd = results["random"]
+    rnd = results[workloads[0]]
     march_profile = rnd.get("profile", {}).get("march_teacher", {})
     compiled = compile_report() if cfg.compute.compile_math else None
     if compiled is not None:
@@ -210,25 +214,28 @@ def bench_env(cfg: MarchConfig, opts: dict[str, Any]) -> dict[str, Any]:
         "device": device,
         "num_envs": cfg.compute.num_envs,
         "steps": opts["steps"],
-        "warmup": {w: opts[f"warmup_{w}"] for w in WORKLOADS},
+        "workload_names": workloads,
+        "env_names": list(builders),
+        "warmup": {w: opts[f"warmup_{w}"] for w in workloads},
         "profile_steps": opts["profile_steps"],
         "rounds": opts["rounds"],
         "torch_threads": _threads(),
-        "threads": [int(t) for t in results["random"]["by_threads"]],
+        "threads": [int(t) for t in rnd["by_threads"]],
         "reward": cfg.reward.name,
         "dr": cfg.dr.name,
-        # The random workload's numbers at the top level (the keys of earlier versions).
+        # The first workload's numbers (random unless bench.workloads says otherwise) at the
+        # top level (the keys of earlier versions; flat's only where it was benched).
         "march_teacher_steps_per_s": rnd["steps_per_s"]["march_teacher"],
         "bare_rough_steps_per_s": rnd["steps_per_s"]["bare_rough"],
-        "bare_flat_steps_per_s": rnd["steps_per_s"]["bare_flat"],
+        "bare_flat_steps_per_s": rnd["steps_per_s"].get("bare_flat"),
         "ratio_march_vs_rough": rnd["ratio_march_vs_rough"],
-        "ratio_march_vs_flat": rnd["ratio_march_vs_flat"],
+        "ratio_march_vs_flat": rnd.get("ratio_march_vs_flat"),
         "ms_per_step": rnd["ms_per_step"],
         "march_teacher_planner_ms_per_step": march_profile.get("planner_ms_per_step"),
         "march_teacher_planner_share": march_profile.get("planner_share"),
         "ratio_march_vs_rough_by_threads": {
-            t: {w: results[w]["by_threads"][t]["ratio_march_vs_rough"] for w in WORKLOADS}
-            for t in results["random"]["by_threads"]
+            t: {w: results[w]["by_threads"][t]["ratio_march_vs_rough"] for w in workloads}
+            for t in rnd["by_threads"]
         },
         **_headline(results),
         "workloads": results,
@@ -278,7 +285,11 @@ def _headline(results: dict[str, Any]) -> dict[str, Any]:
 
 
 def _write_partial(
-    path: Path, cfg: MarchConfig, build: dict[str, float], results: dict[str, Any]
+    path: Path,
+    cfg: MarchConfig,
+    build: dict[str, float],
+    results: dict[str, Any],
+    workloads: list[str],
 ) -> None:
     """``bench.partial``: what the finished workloads measured, under the final JSON's keys
     (atomic, rewritten after each workload), for a run that a time limit may stop."""
@@ -287,7 +298,7 @@ def _write_partial(
 
     write_json_atomic(
         {
-            "partial": len(results) < len(WORKLOADS),
+            "partial": len(results) < len(workloads),
             "completed_workloads": list(results),
             "device": cfg.compute.device,
             "num_envs": cfg.compute.num_envs,
