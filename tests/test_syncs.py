@@ -462,3 +462,65 @@ def test_fault_resets_count_once_and_leave_finite_rows():
             assert torch.allclose(got, want, atol=1e-6)
     finally:
         env.close()
+
+
+# ------------------------------------------------- issue 41: syncs left to mjlab's reset selection
+
+MAX_SYNCS_PER_STEP = 2
+"""What a teacher env step may still sync (issue 41): mjlab's own reset selection
+(``reset_buf.nonzero()`` in ``ManagerBasedRlEnv.step``); every term march chooses is sync-free:
+the twist command (march.env.velocity_command), the push (march.env.push_event), the
+termination counts and curriculum state on reset (march.env.reset_extras)."""
+MJLAB_DR = ("mjlab/envs/mdp/dr/", "mjlab/envs/mdp/events.py")
+"""Where the host-to-device copies of a reset step come from: mjlab's DR and reset event
+functions build their range tensors from Python numbers on every call (not removed yet)."""
+
+
+@pytest.mark.sim
+def test_a_teacher_env_step_syncs_at_most_twice(rough_syncs):
+    """Every call that waits for the device (``.item()``, ``nonzero()``, ``bool()``...) in
+    ``STEPS`` clf teacher env steps with dr=paper (random actions with falls and resets, then
+    zeros), in any file: at most 2 per step, in every step (counted per step, reset steps
+    included), all in mjlab's env step itself; fewer than bare rough's. The host-to-device
+    copies (reset steps only) all come from mjlab's DR / reset event functions."""
+    from march.config.cli import load
+    from march.env.build import make_env
+
+    cfg = load(["compute=smoke", "reward=clf", "dr=paper", "compute.num_envs=8"])
+    env = make_env(cfg, "teacher")
+    per_step: list[list[tuple[str, str, str | None]]] = []
+    real_step = env.step
+
+    def step(action):  # each step's syncs apart
+        n = len(counter.every)
+        out = real_step(action)
+        per_step.append(counter.every[n:])
+        return out
+
+    counter = SyncCounter()
+    gen = torch.Generator().manual_seed(0)
+    shape = (env.num_envs, env.action_manager.total_action_dim)
+    try:
+        env.reset()
+        env.step(torch.zeros(shape))
+        resets = 0
+        with torch.no_grad(), counter:
+            for i in range(STEPS):
+                a = (
+                    2 * torch.rand(shape, generator=gen) - 1
+                    if i < STEPS // 2
+                    else torch.zeros(shape)
+                )
+                _, _, term, trunc, _ = step(a)
+                resets += int((term | trunc).sum())
+    finally:
+        env.close()
+    assert resets > 0 and len(per_step) == STEPS
+    waits = [[h for h in hits if not h[0].startswith("h2d")] for hits in per_step]
+    worst = max(len(w) for w in waits)
+    lines = sorted({(k, w) for hits in waits for k, w, _ in hits})
+    assert worst <= MAX_SYNCS_PER_STEP, (worst, lines)
+    assert all("mjlab/envs/manager_based_rl_env.py:" in w for _, w in lines), lines
+    copies = sorted({w for hits in per_step for k, w, _ in hits if k.startswith("h2d")})
+    assert all(any(m in w for m in MJLAB_DR) for w in copies), copies
+    assert sum(len(w) for w in waits) < rough_syncs

@@ -46,6 +46,7 @@ from march.env.nonfinite import nonfinite_termination
 from march.env.observations import reference_obs, stones_ahead, terrain_height_scan
 from march.env.randomization import T_PUSH, apply_dr
 from march.env.reference_command import ReferenceCommandCfg
+from march.env.reset_extras import keep_termination_counts_on_device
 from march.env.rewards import REFERENCE_COMMAND, needs_reference, reward_terms
 from march.env.stone_terrain import terrain_entity_cfg
 from march.env.terminations import foot_too_low, goal_reached, planner_infeasible
@@ -431,6 +432,7 @@ def make_env(
     t0 = time.time()
     with _output_to(log):
         env = ManagerBasedRlEnv(cfg=env_cfg, device=cfg.compute.device)
+    keep_termination_counts_on_device(env)  # no .item() per term and reset (reset_extras)
     env.march_spec = EnvSpec(  # type: ignore[attr-defined]
         purpose=purpose,
         num_envs=env.num_envs,

@@ -112,7 +112,7 @@ def course_levels(
     env_ids: torch.Tensor,
     promote_fraction: float,
     demote_fraction: float,
-) -> dict[str, torch.Tensor]:
+) -> None:
     """Curriculum term: level up when the episode got ``promote_fraction`` of the way to the goal
     platform, down when it got less than ``demote_fraction`` of it (SPEC: levels move with how
     far along the course the robot got). For flat_first the lowest rows are flat ground, so
@@ -130,5 +130,5 @@ def course_levels(
         move_up = torch.zeros_like(move_up)
         move_down = torch.zeros_like(move_down)
     terrain.update_env_origins(env_ids, move_up, move_down)
-    lv = terrain.terrain_levels.float()
-    return {"mean": lv.mean(), "max": lv.max()}
+    # Nothing to log: mjlab would read each returned tensor with .item() on every reset (a host
+    # sync); the runners log mean_terrain_level themselves (march.env.reset_extras).

@@ -30,8 +30,10 @@ joint damping x U(.75,1.25) :func:`scale_joint_damping`: passive ``dof_damping``
                             G1 MJCF has dof_damping = 0, so kd is the only joint
                             damping there is; scaling 0 alone would do nothing
 joint friction U(0, 0.04)   ``dr.joint_friction`` abs (``dof_frictionloss``) [N m]  reset
-push every 10-15 s          ``push_by_setting_velocity`` x, y +-1 m/s; roll,       interval
-                            pitch, yaw +-0.4 rad/s (added to the root velocity)
+push every 10-15 s          :class:`interval_push` (``push_by_setting_velocity``'s step
+                            push, mjlab's interval timers, without a host sync): x, y
+                            +-1 m/s; roll, pitch, yaw +-0.4 rad/s (added to the root
+                            velocity)
 control delay U(0, 20) ms   :func:`sample_control_delay` sets the per-env lag of   reset
                             mjlab's actuator command delay buffer (physics-step
                             resolution, see ``march.env.dr_terms``)
@@ -58,7 +60,6 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING, Any
 
-from mjlab.envs import mdp as envs_mdp
 from mjlab.envs.mdp import dr as mjdr
 from mjlab.managers.event_manager import EventTermCfg
 from mjlab.managers.scene_entity_config import SceneEntityCfg
@@ -72,6 +73,7 @@ from march.env.dr_terms import (
     scale_joint_damping,
     scale_link_mass,
 )
+from march.env.push_event import interval_push
 
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnvCfg
@@ -105,6 +107,9 @@ T_CAM_FOV = "camera_fov"
 MODE_STARTUP = "startup"
 MODE_RESET = "reset"
 MODE_INTERVAL = "interval"
+MODE_PUSH = "step"
+"""The push's mode: a ``step`` event that keeps its own interval timers (march.env.push_event:
+mjlab's ``interval`` mode selects the due envs with a host sync every step)."""
 """Inertial terms (set_const) at startup, everything else cheap at reset; see module doc."""
 
 
@@ -196,9 +201,9 @@ def paper_dr_events(
                 "ranges": tuple(d.joint_friction),
             },
         ),
-        T_PUSH: EventTermCfg(
-            func=envs_mdp.push_by_setting_velocity,
-            mode=MODE_INTERVAL,
+        T_PUSH: EventTermCfg(  # mjlab's interval push without its per-step sync (push_event)
+            func=interval_push,
+            mode=MODE_PUSH,
             interval_range_s=tuple(d.push_interval_s),
             params={
                 "asset_cfg": SceneEntityCfg(robot),
@@ -389,7 +394,7 @@ def describe_dr(
         (
             PAPER_ROWS[8],
             T_PUSH,
-            MODE_INTERVAL,
+            MODE_PUSH,
             f"every {_u(*d.push_interval_s)} s: x, y {_u(-d.push_lin_vel, d.push_lin_vel)} m/s; "
             f"roll, pitch, yaw {_u(-d.push_ang_vel, d.push_ang_vel)} rad/s",
             "m/s, rad/s",
