@@ -90,14 +90,15 @@ def before_hydra(argv: list[str], multirun: bool, rank0: bool = True) -> list[st
         template = OmegaConf.to_container(template, resolve=False)["dir"]
         check_output_dir(literal_prefix(str(template)), key)
         return argv
-    check_output_dir(literal_prefix(explicit), key)
     run_dir = Path(explicit)
     if multirun or "${" in explicit or not rank0 or not holds_run(run_dir):
+        check_output_dir(literal_prefix(explicit), key)
         return argv
-    # An existing run: checked and locked before Hydra writes its job log there; Hydra's record
-    # of the run's first launch (.hydra/) is left as it was.
-    resumed = _value(args, "resume")
-    claim(run_dir, "resume" if resumed else key)
+    # An existing run: checked and locked before Hydra writes its job log there (the lock first:
+    # a second writer leaves not even a write probe in it); Hydra's record of the run's first
+    # launch (.hydra/) is left as it was.
+    claim(run_dir, "resume" if _value(args, "resume") else key)
+    check_output_dir(run_dir, key)
     if _value(args, "hydra.output_subdir") is None:
         argv = [*argv, "hydra.output_subdir=null"]
     return argv
