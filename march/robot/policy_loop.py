@@ -96,6 +96,7 @@ class Controller:
         self.act_lo, self.act_hi = self._action_range()
         self.machine = SafetyMachine(self.timing)
         self.session = policy_session(self.bundle.onnx_path, 1)
+        self._warm_up()
         c = spec["command"]
         vx = c["lin_vel_x"] if math.isnan(self.command[0]) else self.command[0]
         vy = c["lin_vel_y"] if math.isnan(self.command[1]) else self.command[1]
@@ -106,6 +107,19 @@ class Controller:
         self.depth = spec["depth"]
         self.mode_machine = int(dep["mode_machine"])
         self.mode_pr = int(dep["mode_pr"])
+
+    def _warm_up(self, calls: int = 5) -> None:
+        """onnxruntime's first calls allocate and plan: make them before the clock starts,
+        not in the policy's first deadlines."""
+        lay = self.spec["checkpoint"]["layout"]
+        h, w = lay["image_hw"]
+        feeds = {
+            "proprio_hist": np.zeros((1, lay["history_len"], lay["proprio_dim"]), np.float32),
+            "command": np.zeros((1, 3), np.float32),
+            "depth": np.ones((1, 1, h, w), np.float32),
+        }
+        for _ in range(calls):
+            self.session.run([OUTPUT], feeds)
 
     def _action_range(self) -> tuple[np.ndarray, np.ndarray]:
         rng = self.spec["observation"]["training_range"]
@@ -179,9 +193,8 @@ class Controller:
         prev = self.machine.state
         if x is not None and prev == POLICY:
             flags += [f"dq over the limit at {n}" for n in self._too_fast(x["dq"])]
-        state = self.machine.tick(
-            Tick(now, lowstate_age, missed, tuple(flags), start, stop, variant_ok)
-        )
+        acted = tuple(flags) if self.guard_action == "damp" else ()
+        state = self.machine.tick(Tick(now, lowstate_age, missed, acted, start, stop, variant_ok))
         elapsed = now - (self.machine.since or now)
         action, target = None, None
         if state == POLICY and x is not None:
@@ -196,7 +209,7 @@ class Controller:
             inputs = (self.history.array(), self.cmd.astype(np.float32)[None], image)
             feeds = dict(zip(INPUTS, inputs, strict=True))
             action = self.session.run([OUTPUT], feeds)[0][0].astype(np.float64)
-            flags = [f.line() for f in self.guard.check(p)] + dflags
+            flags += [f.line() for f in self.guard.check(p)] + dflags
             bad = ~np.isfinite(action) | (action < self.act_lo) | (action > self.act_hi)
             if bad.any():
                 flags.append(f"action out of range at {int(np.flatnonzero(bad)[0])}")
@@ -223,7 +236,7 @@ class Controller:
                 state,
                 int(ls.tick) if ls is not None else -1,
                 int(depth[1]),
-                action if state == POLICY else None,
+                action,  # computed this step (sent unless the step damped)
                 self.heading_ref,
                 flags=tuple(flags),
             )
@@ -291,7 +304,7 @@ def run(
     enter = _stdin_lines() if start == "enter" else None
     period = float(ctl.spec["rates"]["control_dt_s"])
     t0 = time.perf_counter()
-    k, missed, policy_t0 = 0, False, None
+    k, missed, policy_t0, shown = 0, False, None, 0
     try:
         while ctl.machine.state != DONE:
             tick_start = t0 + k * period
@@ -311,6 +324,9 @@ def run(
                 policy_t0 = now
             missed = done > tick_start + period  # the command went out after its period
             ctl.log[-1].work_ms, ctl.log[-1].missed = (done - now) * 1e3, missed
+            for t, a, b, why in ctl.machine.transitions[shown:]:  # as they happen
+                print(f"[policy] {t:7.3f} s  {a} -> {b}  ({why})", flush=True)
+            shown = len(ctl.machine.transitions)
             k += 1
             behind = time.perf_counter() - (t0 + k * period)
             if behind > period:  # more than a whole period late: skip to the grid

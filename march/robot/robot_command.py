@@ -126,8 +126,6 @@ def policy(args: dict[str, Any]) -> int:
         args.get("seconds", math.inf),
         args.get("max_seconds", math.inf),
     )
-    for t, a, b, why in ctl.machine.transitions:
-        print(f"[policy] {t:7.3f} s  {a} -> {b}  ({why})", flush=True)
     missed = sum(s.missed for s in log)
     print(f"[policy] {len(log)} steps, {missed} missed deadlines", flush=True)
     if args.get("log"):

@@ -41,7 +41,13 @@ def shadow(bundle: Bundle, course: str, loop: dict[str, Any], states: dict) -> d
     sim = Sim2Sim(bundle, course)
     cell = bundle.cell(course, 0.0, 0)
     ticks = {int(t): i for i, t in enumerate(states["ticks"])}
-    steps = [s for s in loop["steps"] if s["state"] == "policy" and s["action"] is not None]
+    steps = [s for s in loop["steps"] if s["action"] is not None]
+    foreign = [s["lowstate_tick"] for s in steps if s["lowstate_tick"] not in ticks]
+    if foreign:
+        raise UsageError(
+            f"the loop used LowState ticks the simulated robot never published ({foreign[:3]}): "
+            "another robot or simulator publishes on this DDS domain; pick another domain="
+        )
     if steps:
         sim.command_spec = dict(sim.command_spec, heading_target_rad=steps[0]["heading_ref"])
     sim.set_command(*loop["command"][:2])
@@ -128,6 +134,8 @@ def run_selftest(
             timeout=seconds + 120,
         )  # fmt: skip
         wall = time.perf_counter() - t0
+    except subprocess.TimeoutExpired:
+        raise UsageError(f"the robot loop did not finish within {seconds + 120:g} s") from None
     finally:
         sim.send_signal(signal.SIGINT)
         try:

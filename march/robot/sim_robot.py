@@ -12,9 +12,11 @@ dropped and counted (as the robot drops it).
 
 ``lockstep=true`` steps one control period per LowCmd received (no wall clock: the loop's
 command of step k acts on the state it was computed from - zero added latency, for the
-self-test); otherwise it runs in real time with the newest command. ``band=S``: an elastic
-band holds the pelvis at its spawn point for the first S seconds (the robot on its stand, as
-``unitree_mujoco``'s band), then lets go. ``log=<file.npz>``: the state (qpos, qvel) behind
+self-test); otherwise it runs in real time with the newest command. ``band=S``: for the first S
+seconds of simulated time the pelvis is held at its spawn pose (position and orientation, zero
+velocity after every physics step): the robot on a stand, its legs free, the stiff limit of
+``unitree_mujoco``'s elastic band (a spring on the pelvis made the limp robot pitch over, and
+a stiff one at 5 ms steps was unstable); then it lets go. ``log=<file.npz>``: the state (qpos, qvel) behind
 every published tick, written on exit (SIGINT / SIGTERM).
 """
 
@@ -31,10 +33,6 @@ import numpy as np
 from march.robot import dds, hg
 from march.sim2sim.deploy_bundle import Bundle
 from march.sim2sim.runner import Sim2Sim
-
-BAND_STIFFNESS = 2000.0
-"""N/m on the pelvis position (the spring of the band)."""
-BAND_DAMPING = 200.0
 
 
 class SimRobot:
@@ -55,7 +53,8 @@ class SimRobot:
         self.dropped = {"crc": 0, "mode_machine": 0}
         self.commands = 0
         self.band_s = band_s
-        self.anchor = self.data.xpos[self.sim.root_body].copy()
+        r = self.sim.root_q
+        self.anchor = self.data.qpos[r : r + 7].copy()  # the pelvis pose on the stand
         self.limp()
         accel = [i for i in range(m.nsensor) if m.sensor(i).name.endswith("imu_lin_acc")]
         self.accel = int(m.sensor_adr[accel[0]]) if accel else None
@@ -91,13 +90,11 @@ class SimRobot:
 
     def physics_step(self) -> None:
         d = self.data
-        body = self.sim.root_body
-        d.xfrc_applied[body, :] = 0.0
-        if d.time < self.band_s:
-            v = d.cvel[body, 3:]  # linear velocity (MuJoCo's com-based, close enough here)
-            d.xfrc_applied[body, :3] = BAND_STIFFNESS * (self.anchor - d.xpos[body])
-            d.xfrc_applied[body, :3] -= BAND_DAMPING * v
         mujoco.mj_step(self.model, d)
+        if d.time < self.band_s:  # on the stand: the pelvis held where it was spawned
+            r, v = self.sim.root_q, self.sim.root_v
+            d.qpos[r : r + 7] = self.anchor
+            d.qvel[v : v + 6] = 0.0
         self.tick += 1
 
     def lowstate(self) -> hg.LowState_:

@@ -1,0 +1,248 @@
+"""The robot loop end to end: in-process against the MuJoCo robot, then over DDS on loopback.
+
+In-process (no DDS): :class:`Controller` drives :class:`SimRobot` in lockstep through the
+start-up - the commands of every state by hand (zero torque: kp = kd = 0; ramp to the default
+pose, which the robot on its band reaches; hold; the policy's targets; damping kd 8), each at
+its motor slot (``motor_index``; a permuted table moves them), each with a valid CRC that the
+robot checks (a corrupted one is dropped), and a LowState of another hardware variant damps.
+
+Over DDS (two processes, domain 1, ``lo``): ``python -m march.robot selftest`` for a few
+seconds (agreement with in-process sim2sim, exit 0), the same with ``guard=damp`` (the smoke
+student's out-of-range proprioception damps it), a perturbed action caught by the comparison,
+the watchdog (the robot process killed mid-policy) and Ctrl-C (SIGINT to the loop).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+pytestmark = pytest.mark.sim
+FAST = {"zero_torque_s": 0.1, "ramp_s": 0.4, "hold_s": 0.1, "damping_s": 0.2}
+DOMAIN = 20 + os.getpid() % 200
+"""A DDS domain of this test session's own (another session's robots stay on theirs)."""
+
+
+@pytest.fixture(scope="module")
+def loaded(bundle):
+    from march.sim2sim.deploy_bundle import Bundle
+
+    return Bundle.load(bundle)
+
+
+def _drive(b, steps: int, stop_at: float, variant_at: float = np.inf):
+    from march.robot.policy_loop import Controller
+    from march.robot.sim_robot import SimRobot
+    from march.robot.states import Timing
+
+    robot = SimRobot(b, band_s=100.0)
+    ctl = Controller(b, Timing.from_spec(b.spec["deploy"], **FAST), guard_action="report")
+    dt = float(b.spec["rates"]["control_dt_s"])
+    out = []
+    for k in range(steps):
+        ls = robot.lowstate()
+        if k * dt >= variant_at:
+            ls.mode_machine = 4
+        depth = (robot.sim.camera.planar(robot.model, robot.data), robot.tick)
+        cmd = ctl.step(ls, 0.0, depth, k * dt, start=True, stop=k * dt >= stop_at)
+        assert robot.apply(cmd)
+        for _ in range(robot.decimation):
+            robot.physics_step()
+        out.append((ctl.machine.state, cmd, robot.bus.q(robot.data)))
+    return robot, ctl, out
+
+
+def _slots(cmd, field):
+    return np.array([getattr(m, field) for m in cmd.motor_cmd])
+
+
+def test_every_state_commands_what_it_should_at_the_right_slots(loaded):
+    from march.robot import hg
+
+    b = loaded
+    robot, ctl, out = _drive(b, 60, stop_at=0.9)
+    idx = ctl.motor_index
+    default, kp = ctl.default, ctl.kp
+    seen = [s for s, _, _ in out]
+    assert seen[0] == "zero_torque" and "ramp" in seen and "hold" in seen and "policy" in seen
+    assert seen[-1] in ("damping", "done") and "done" in seen
+    for state, cmd, _q in out:
+        assert hg.lowcmd_crc(cmd) == cmd.crc and cmd.mode_machine == 5 and cmd.mode_pr == 0
+        mode = _slots(cmd, "mode")
+        assert (mode[idx] == 1).all() and not mode[29:].any()
+        k, d, target = _slots(cmd, "kp")[idx], _slots(cmd, "kd")[idx], _slots(cmd, "q")[idx]
+        if state == "zero_torque":
+            assert not k.any() and not d.any()
+        elif state == "hold":
+            np.testing.assert_allclose(target, default, atol=1e-6)
+            np.testing.assert_allclose(k, kp, rtol=1e-6)
+        elif state in ("damping", "done"):
+            assert not k.any() and (d == 8.0).all()
+    last_hold = [q for st, _, q in out if st == "hold"][-1]
+    # the ramp brought it there (within the PD's sag under the robot's weight on its feet)
+    assert np.abs(last_hold[idx] - default).max() < 0.2
+    # the ramp: from the pose measured when it began to the default pose, linearly in time
+    k0 = seen.index("ramp")
+    n = seen.count("ramp")
+    first = _slots(out[k0][1], "q")[idx]
+    np.testing.assert_allclose(first, ctl.ramp_from, atol=1e-6)  # elapsed 0 at its first step
+    np.testing.assert_allclose(ctl.ramp_from, out[k0 - 1][2][idx], atol=1e-6)  # measured q
+    for j in range(n):
+        a = min(j * float(b.spec["rates"]["control_dt_s"]) / FAST["ramp_s"], 1.0)
+        want = ctl.ramp_from + a * (default - ctl.ramp_from)
+        np.testing.assert_allclose(_slots(out[k0 + j][1], "q")[idx], want, atol=1e-5)
+    policy = [(c, s) for (st, c, _), s in zip(out, ctl.log, strict=True) if st == "policy"]
+    assert policy
+    for cmd, step in policy:
+        want = ctl.offset + ctl.scale * step.action
+        np.testing.assert_allclose(_slots(cmd, "q")[idx], want, atol=1e-5)  # float32 message
+    bad = copy.deepcopy(out[-1][1])
+    bad.crc ^= 1
+    assert not robot.apply(bad) and robot.dropped["crc"] == 1
+    reasons = [w for _, _, b2, w in ctl.machine.transitions if b2 == "damping"]
+    assert reasons == ["stop requested"]
+
+
+def test_a_permuted_motor_table_moves_the_commands(loaded):
+    from march.robot.policy_loop import Controller
+    from march.robot.states import HOLD, Timing
+    from march.sim2sim.deploy_bundle import Bundle
+
+    spec = copy.deepcopy(loaded.spec)
+    a, b = spec["joints"][3]["motor_index"], spec["joints"][9]["motor_index"]
+    spec["joints"][3]["motor_index"], spec["joints"][9]["motor_index"] = b, a
+    ctl = Controller(Bundle(loaded.onnx_path, spec), Timing.from_spec(spec["deploy"]))
+    from march.robot.states import MotorCommand
+
+    cmd = ctl.lowcmd(MotorCommand(ctl.default, ctl.kp, ctl.kd))
+    assert HOLD and cmd.motor_cmd[b].q == pytest.approx(ctl.default[3], abs=1e-6)
+    assert cmd.motor_cmd[a].q == pytest.approx(ctl.default[9], abs=1e-6)
+
+
+def test_a_lowstate_of_another_variant_damps(loaded):
+    _, ctl, out = _drive(loaded, 40, stop_at=np.inf, variant_at=0.5)
+    reasons = [w for _, _, b, w in ctl.machine.transitions if b == "damping"]
+    assert len(reasons) == 1 and "mode_machine" in reasons[0]
+
+
+# ---------------------------------------------------------------------------------------------
+# Over DDS on loopback.
+
+
+def _robot(*words: str, **kw) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "march.robot", *words],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=240,
+        **kw,
+    )
+
+
+def test_selftest_agrees_with_sim2sim(bundle, tmp_path):
+    res = _robot(
+        "selftest", f"bundle={bundle.parent}", "seconds=2", f"keep={tmp_path}", f"domain={DOMAIN}"
+    )
+    print(res.stdout)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "-> OK" in res.stdout and "missed deadlines:" in res.stdout
+    assert "hold -> policy" in res.stdout and "damping -> done" in res.stdout
+    line = next(ln for ln in res.stdout.splitlines() if ln.startswith("agreement"))
+    assert int(line.split()[1]) >= 90  # ~100 policy steps compared
+    # the comparison itself: one action changed by 1e-4 in the loop's log is a disagreement
+    from march.robot.selftest import report, shadow
+    from march.sim2sim.deploy_bundle import Bundle
+
+    log = json.loads((tmp_path / "loop.json").read_text())
+    states = dict(np.load(tmp_path / "sim.npz"))
+    b = Bundle.load(bundle)
+    honest = shadow(b, "hardware", log, states)
+    assert honest["max_abs_diff"] <= 5e-6
+    k = next(i for i, s in enumerate(log["steps"]) if s["state"] == "policy") + 20
+    log["steps"][k]["action"][7] += 1e-4
+    bad = shadow(b, "hardware", log, states)
+    assert bad["max_abs_diff"] >= 1e-4 - 1e-6
+    assert report(bad, log, "", 1.0, 2.0, 1, "lo") == 1
+
+
+def test_selftest_with_the_guard_on_damps_the_smoke_student(bundle):
+    res = _robot(
+        "selftest", f"bundle={bundle.parent}", "seconds=2", "guard=damp", f"domain={DOMAIN + 1}"
+    )
+    assert "policy -> damping  (guard:" in res.stdout, res.stdout + res.stderr
+    assert res.returncode == 0 and "-> OK" in res.stdout
+
+
+def _start(*words: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "march.robot", *words],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+def _until(proc: subprocess.Popen, text: str, timeout: float = 60.0) -> str:
+    """Lines of ``proc`` up to the one holding ``text`` (the loop prints transitions live)."""
+    seen, end = [], time.monotonic() + timeout
+    while time.monotonic() < end:
+        line = proc.stdout.readline()
+        if not line:
+            break
+        seen.append(line)
+        if text in line:
+            return "".join(seen)
+    raise AssertionError(f"no {text!r} in: {''.join(seen)}")
+
+
+def test_watchdog_and_ctrl_c_over_dds(bundle):
+    fast = [f"{k}={v}" for k, v in FAST.items()]
+    common = [f"bundle={bundle.parent}", f"domain={DOMAIN + 2}", "interface=lo"]
+    procs: list[subprocess.Popen] = []
+
+    def start(*words: str) -> subprocess.Popen:
+        procs.append(_start(*words))
+        return procs[-1]
+
+    try:
+        # the watchdog: the robot dies while the policy runs
+        sim = start("sim", *common, "band=100", "lockstep=true")
+        assert "[sim] publishing" in sim.stdout.readline()
+        loop = start("policy", *common, "start=auto", "guard=report", *fast)
+        head = _until(loop, "hold -> policy")
+        time.sleep(0.3)
+        sim.kill()
+        sim.wait()
+        out, _ = loop.communicate(timeout=60)
+        out = head + out
+        assert loop.returncode == 0, out
+        assert "policy -> damping  (watchdog: LowState stale" in out, out
+        assert "damping -> done" in out
+        # Ctrl-C
+        sim = start("sim", *common, "band=100", "lockstep=true")
+        assert "[sim] publishing" in sim.stdout.readline()
+        loop = start("policy", *common, "start=auto", "guard=report", *fast)
+        head = _until(loop, "hold -> policy")
+        time.sleep(0.3)
+        loop.send_signal(signal.SIGINT)
+        out, _ = loop.communicate(timeout=60)
+        out = head + out
+        assert loop.returncode == 0, out
+        assert "policy -> damping  (stop requested)" in out and "damping -> done" in out, out
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
