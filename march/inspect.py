@@ -3,7 +3,8 @@
 Observation groups and shapes (teacher ``actor``, ``critic``, ``student``, ``depth``), reward terms
 with weights, terminations, events (domain randomization) with their ranges, terrain and camera,
 and the pieces that are still placeholders. How a researcher checks a config before spending GPU
-hours.
+hours. ``python -m march.inspect budget compute=gpu``: what those GPU hours are, per stage and
+sweep (:mod:`march.learn.budget`).
 """
 
 from __future__ import annotations
@@ -178,12 +179,55 @@ def inspect(cfg: MarchConfig) -> dict[str, Any]:
     return report
 
 
+BUDGET_USAGE = (
+    "usage: python -m march.inspect budget [compute=gpu] [budget.bench=BENCH_JSON] "
+    "[budget.check=GPU_CHECK_JSON] [budget.json=true] [key=value ...]"
+)
+
+
+def budget_job(argv: list[str]) -> None:
+    """``budget``: the pipeline's estimated GPU hours (march.learn.budget), a Markdown table
+    (``budget.json=true``: the JSON)."""
+    from pathlib import Path
+
+    from march.config.cli import fail
+    from march.learn.budget import budget, table
+
+    opts = {
+        a.split("=", 1)[0][len("budget.") :]: a.split("=", 1)[1]
+        for a in argv
+        if a.startswith("budget.") and "=" in a
+    }
+    rest = [a for a in argv if not a.startswith("budget.")]
+    bad = set(opts) - {"bench", "check", "json"} or {
+        a for a in argv if a.startswith("budget.") and "=" not in a
+    }
+    if bad:
+        fail(f"unknown budget option(s) {sorted(bad)}. {BUDGET_USAGE}")
+    for key in ("bench", "check"):
+        if key in opts and not Path(opts[key]).is_file():
+            fail(f"budget.{key}={opts[key]}: no such file")
+
+    def job(cfg: MarchConfig) -> None:
+        report = budget(
+            cfg,
+            Path(opts["bench"]) if "bench" in opts else None,
+            Path(opts["check"]) if "check" in opts else None,
+        )
+        print(json.dumps(report, indent=2) if opts.get("json") == "true" else table(report))
+
+    run_tool(job, rest, usage=BUDGET_USAGE)
+
+
 def main() -> None:
     def job(cfg: MarchConfig) -> None:
         report = inspect(cfg)
         print(json.dumps(report, indent=2))
 
-    run_tool(job, usage="usage: python -m march.inspect [key=value ...]")
+    if sys.argv[1:2] == ["budget"]:
+        budget_job(sys.argv[2:])
+        return
+    run_tool(job, usage="usage: python -m march.inspect [key=value ...] | budget [key=value ...]")
 
 
 if __name__ == "__main__":
