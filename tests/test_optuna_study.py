@@ -93,6 +93,7 @@ def test_a_killed_study_resumes_records_failures_prunes_and_reports_the_best(tmp
     assert trials[2].user_attrs["interrupted"] and trials[3].params == trials[2].params
     assert states[4] in ("COMPLETE", "PRUNED") and len(trials) == 5
     assert sorted(trials[3].intermediate_values) == [1]  # stopped at its first evaluation row
+    assert trials[4].intermediate_values and trials[4].params != trials[0].params  # no repeat
     assert json.loads((sweep / "3" / "status.json").read_text())["state"] == "pruned"
     counted = [t for t in trials if not t.user_attrs.get("interrupted")]
     assert len(counted) == 4  # n_trials is the study's total
@@ -116,9 +117,10 @@ def test_a_killed_study_resumes_records_failures_prunes_and_reports_the_best(tmp
 
     app = dashboard.wsgi(open_storage(str(sweep / "clf_weights.journal")))
     got: list[str] = []
-    body = app(
-        {"REQUEST_METHOD": "GET", "PATH_INFO": "/api/studies", "wsgi.input": io.BytesIO()},
-        lambda status, headers: got.append(status),
-    )
+    from wsgiref.util import setup_testing_defaults
+
+    environ = {"REQUEST_METHOD": "GET", "PATH_INFO": "/api/studies"}
+    setup_testing_defaults(environ)
+    body = app(environ, lambda status, headers, exc_info=None: got.append(status))
     studies = json.loads(b"".join(body))["study_summaries"]
     assert got[0].startswith("200") and [s["study_name"] for s in studies] == ["clf_weights"]

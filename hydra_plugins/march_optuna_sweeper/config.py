@@ -11,6 +11,8 @@ from hydra.core.config_store import ConfigStore
 @dataclass
 class MarchOptunaSweeperConf:
     _target_: str = "hydra_plugins.march_optuna_sweeper.sweeper.MarchOptunaSweeper"
+    _recursive_: bool = False
+    """The sweeper builds its sampler and pruner itself (a resumed study reseeds its sampler)."""
     direction: str = "maximize"
     """maximize or minimize the job's return value (march.train: the final ``objective``)."""
     study_name: str = "march"
@@ -24,7 +26,7 @@ class MarchOptunaSweeperConf:
     """Trials launched together (one launcher batch: parallel under Slurm)."""
     max_failures: int = 2
     """Failed trials (a crash, a non-finite value) the study goes on after; one more stops it."""
-    sampler: Any = field(
+    sampler: Any = field(  # a resumed study: seed + the number of trials already recorded
         default_factory=lambda: {"_target_": "optuna.samplers.TPESampler", "seed": 0}
     )
     pruner: Any = field(

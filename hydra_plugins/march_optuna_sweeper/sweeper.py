@@ -139,11 +139,16 @@ class MarchOptunaSweeper(Sweeper):
         self.sweep_dir.mkdir(parents=True, exist_ok=True)
         OmegaConf.save(self.config, self.sweep_dir / "multirun.yaml")
         where = self.storage_location()
+        storage = open_storage(where)
+        names = [s.study_name for s in optuna.get_all_study_summaries(storage)]
+        existing = 0
+        if self.study_name in names:
+            existing = len(optuna.load_study(study_name=self.study_name, storage=storage).trials)
         study = optuna.create_study(
             study_name=self.study_name,
-            storage=open_storage(where),
-            sampler=instantiate(self.sampler_cfg) if self.sampler_cfg else None,
-            pruner=instantiate(self.pruner_cfg) if self.pruner_cfg else optuna.pruners.NopPruner(),
+            storage=storage,
+            sampler=_built(self.sampler_cfg, existing),
+            pruner=_built(self.pruner_cfg) or optuna.pruners.NopPruner(),
             direction=self.direction,
             load_if_exists=True,
         )
@@ -180,7 +185,8 @@ class MarchOptunaSweeper(Sweeper):
         params = [f"{k}={_as_override(v)}" for k, v in trial.params.items()]
         env = {ENV_TRIAL_ID: trial._trial_id, ENV_STORAGE: where, ENV_STUDY: self.study_name}
         env_set = [f"+hydra.job.env_set.{k}={_as_override(str(v))}" for k, v in env.items()]
-        return [*fixed, *params, *env_set]
+        # The trial's directory is its number (the override-named default outgrows a file name).
+        return [*fixed, *params, *env_set, f"hydra.sweep.subdir={trial.number}"]
 
     def _requeue_interrupted(self, study: optuna.Study) -> None:
         for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
@@ -259,6 +265,18 @@ def trial_table(study: optuna.Study, sweep_dir: Path) -> str:
         error = t.user_attrs.get("error", "")
         w.writerow([t.number, state, value, step, *params, error, sweep_dir / str(t.number)])
     return out.getvalue()
+
+
+def _built(spec: Any, existing: int = 0) -> Any:
+    """A sampler or pruner from its config (None stays None). A seeded sampler of a study that
+    already holds ``existing`` trials is seeded ``seed + existing``: restarted with its first
+    seed it would propose the first trials' parameters again."""
+    if not isinstance(spec, (dict, DictConfig)):
+        return spec
+    seed = spec.get("seed")
+    if existing and seed is not None:
+        return instantiate(spec, seed=int(seed) + existing)
+    return instantiate(spec)
 
 
 def _as_override(value: Any) -> str:

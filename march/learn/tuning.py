@@ -29,7 +29,8 @@ def in_trial() -> bool:
 
 def _open() -> Any:
     """This job's ``optuna.Trial`` (opened once)."""
-    if "trial" not in _trial:
+    key = (os.environ[ENV_STORAGE], os.environ[ENV_STUDY], os.environ[ENV_TRIAL_ID])
+    if _trial.get("key") != key:  # a local launcher runs every trial in one process
         import optuna
         from hydra.core.hydra_config import HydraConfig
         from hydra.utils import instantiate
@@ -43,7 +44,7 @@ def _open() -> Any:
             storage=open_storage(os.environ[ENV_STORAGE]),
             pruner=pruner,
         )
-        _trial["trial"] = optuna.trial.Trial(study, int(os.environ[ENV_TRIAL_ID]))
+        _trial.update(key=key, trial=optuna.trial.Trial(study, int(os.environ[ENV_TRIAL_ID])))
     return _trial["trial"]
 
 
