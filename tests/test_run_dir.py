@@ -212,6 +212,31 @@ def test_a_read_only_directory_is_refused(tmp_path):
         ro.chmod(0o755)
 
 
+def test_cli_a_read_only_file_system_gets_one_line(tmp_path):
+    """A real read-only mount (a tmpfs remounted ro; root only, skipped elsewhere): a new run
+    under it and a resume of a run on it each end in one line (before: Hydra's tracebacks)."""
+    mnt = tmp_path / "ro"
+    mnt.mkdir()
+    if (
+        os.geteuid() != 0
+        or subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mnt)], capture_output=True
+        ).returncode
+    ):
+        pytest.skip("mounting a tmpfs needs root")
+    try:
+        run = _saved_run(mnt)
+        subprocess.run(["mount", "-o", "remount,ro", str(mnt)], check=True)
+        _one_line(
+            _train("compute=smoke", f"hydra.run.dir={mnt}/new"),
+            f"cannot create directories in {mnt} (Read-only file system)",
+        )
+        _one_line(_train(f"resume={run}"), "cannot create run.lock (Read-only file system)")
+        assert sorted(p.name for p in run.iterdir()) == ["config.yaml"]
+    finally:
+        subprocess.run(["umount", str(mnt)], check=False)
+
+
 @pytest.mark.parametrize("case", range(20))
 def test_a_key_set_twice_is_found_in_generated_command_lines(case):
     rng = random.Random(case)

@@ -102,7 +102,9 @@ def acquire(run_dir: Path, option: str = "run directory") -> RunLock:
                     "through a link (remove it)"
                 ) from None
             why = os.strerror(err.errno) if err.errno else str(err)
-            raise ConfigError(f"{what}: cannot create {path.name} ({why})") from None
+            raise ConfigError(
+                f"{what}: cannot create {path.name} ({why}); a run directory must be writable"
+            ) from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as err:
