@@ -488,3 +488,81 @@ def test_compiled_reference_agrees_with_eager():
         tau = 1.2 * torch.rand(e, generator=g)  # past the duration too
         for got, want in zip(fn(st, tau).flatten(), reference_at(st, tau).flatten(), strict=True):
             assert torch.allclose(got, want, atol=1e-4, rtol=0.0)
+
+
+def _scan_heights_box_by_box(base, yaw, levels, types, num_cols, table, offsets, max_distance):
+    """The height scan as it was before issue 41: one (E, N) pass per near box."""
+    extent, packed, k_near = table
+    cell = levels.long() * num_cols + types.long()
+    ext = extent.index_select(0, cell)
+    bx = base[:, 0:1]
+    gap = torch.maximum(ext[..., 0] - bx, bx - ext[..., 1])
+    near = gap.topk(k_near, dim=1, largest=False).indices
+    k_all = extent.shape[1]
+    boxes = packed.index_select(0, (cell[:, None] * k_all + near).flatten())
+    boxes = boxes.view(base.shape[0], k_near, 6)
+    c, s = torch.cos(yaw)[:, None], torch.sin(yaw)[:, None]
+    ox, oy = offsets[:, 0], offsets[:, 1]
+    px = base[:, 0:1] + c * ox - s * oy
+    py = base[:, 1:2] + s * ox + c * oy
+    z0 = base[:, 2:3]
+    top = boxes[..., 2].masked_fill((boxes[..., 5] < 0.5) | (boxes[..., 2] > z0), -float("inf"))
+    hit = torch.full_like(px, -float("inf"))
+    for k in range(k_near):
+        b = boxes[:, k]
+        inside = ((px - b[:, 0:1]).abs() <= b[:, 3:4]) & ((py - b[:, 1:2]).abs() <= b[:, 4:5])
+        hit = torch.maximum(hit, torch.where(inside, top[:, k : k + 1], -float("inf")))
+    height = z0 - hit
+    return torch.where(height <= max_distance, height, torch.full_like(height, max_distance))
+
+
+def test_the_one_pass_height_scan_equals_the_box_by_box_scan():
+    """Issue 41: the (E, N, boxes) pass gives the box-by-box loop's heights exactly, over many
+    random courses and pelvis poses (hits, misses, overlapping boxes, padding), with fewer ops."""
+    from march.bench.ops import OpCounter
+    from march.env.observations import scan_heights
+
+    for seed in range(40):
+        g = torch.Generator().manual_seed(100 + seed)
+        args = _scan_args(5 + seed, g)
+        want = _scan_heights_box_by_box(*args)
+        with OpCounter() as ops:
+            got = scan_heights(*args)
+        assert torch.equal(got, want), seed
+        assert (want < 5.0).any()
+    with OpCounter() as old:
+        _scan_heights_box_by_box(*args)
+    assert ops.total < old.total - 10, (ops.total, old.total)
+
+
+def test_the_stacked_euler_pass_equals_one_pass_per_body():
+    """Issue 41: the pelvis's and swing foot's Euler angles and rates computed on the stacked
+    batch equal the two separate calls (to float rounding), over many random states, with
+    fewer ops."""
+    from march.bench.ops import OpCounter
+    from march.env.clf_outputs import euler_rates, euler_zyx, outputs_from_state
+
+    for seed in range(30):
+        g = torch.Generator().manual_seed(500 + seed)
+        args = _outputs_args(3 + seed, g)
+        with OpCounter() as ops:
+            pos, vel = outputs_from_state(*args)
+        _, _, _, quat, ang_vel_b, _, _, _, _ = args
+        pelvis = euler_zyx(quat)
+        assert torch.allclose(pos[:, 3:6], pelvis, atol=1e-6, rtol=0.0), seed
+        assert torch.allclose(vel[:, 3:6], euler_rates(pelvis, ang_vel_b), atol=1e-5, rtol=0.0)
+    # the swing foot's, through the old path: its own quaternion, then the two separate calls
+    from mjlab.utils.lab_api.math import quat_apply_inverse, quat_from_matrix
+
+    _, _, _, _, _, (fpos, lin, ang, mat), stance_is_left, _, _ = args
+    pick = (~stance_is_left)[:, None]
+    swing_quat = quat_from_matrix(torch.where(pick[..., None], mat[:, 0], mat[:, 1]))
+    swing = euler_zyx(swing_quat)
+    omega = quat_apply_inverse(swing_quat, torch.where(pick, ang[:, 0], ang[:, 1]))
+    assert torch.allclose(pos[:, 9:12], swing, atol=1e-6, rtol=0.0)
+    assert torch.allclose(vel[:, 9:12], euler_rates(swing, omega), atol=1e-5, rtol=0.0)
+    with OpCounter() as one_each:
+        euler_rates(euler_zyx(quat), ang_vel_b)
+    with OpCounter() as stacked:
+        euler_rates(euler_zyx(torch.cat([quat, swing_quat])), torch.cat([ang_vel_b, omega]))
+    assert ops.total > 0 and stacked.total <= one_each.total + 2 < 2 * one_each.total - 20

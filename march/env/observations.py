@@ -139,12 +139,13 @@ def scan_heights(
     z0 = base[:, 2:3]
     # A box whose top lies above the pelvis, or padding, is never hit.
     top = boxes[..., 2].masked_fill((boxes[..., 5] < 0.5) | (boxes[..., 2] > z0), -float("inf"))
-    hit = torch.full_like(px, -float("inf"))
-    # One (E, N) pass per box (k_near is small): no (E, N, K) temporaries.
-    for k in range(k_near):
-        b = boxes[:, k]
-        inside = ((px - b[:, 0:1]).abs() <= b[:, 3:4]) & ((py - b[:, 1:2]).abs() <= b[:, 4:5])
-        hit = torch.maximum(hit, torch.where(inside, top[:, k : k + 1], -float("inf")))
+    # One (E, N, k_near) pass over the near boxes (a few ops, not a few per box; k_near is
+    # small, so the temporaries are E x N x k_near): the highest top each scan point is inside.
+    b = boxes.unsqueeze(1)  # (E, 1, k_near, 6)
+    inside = ((px.unsqueeze(-1) - b[..., 0]).abs() <= b[..., 3]) & (
+        (py.unsqueeze(-1) - b[..., 1]).abs() <= b[..., 4]
+    )
+    hit = top.unsqueeze(1).masked_fill(~inside, -float("inf")).amax(dim=-1)
     height = z0 - hit
     return torch.where(height <= max_distance, height, torch.full_like(height, max_distance))
 

@@ -7,7 +7,8 @@ mjlab's ``UniformVelocityCommand`` picks the envs it updates with ``nonzero()`` 
 stream. :class:`SyncFreeVelocityCommand` computes the same command with masked writes:
 
 - the per-step update (heading controller, world-frame rotation, standing envs) writes every
-  env with ``torch.where`` on the same masks: the same numbers as mjlab's, bit for bit;
+  env with ``torch.where`` on the same masks: the same numbers as mjlab's, bit for bit (but
+  see the last paragraph);
 - a reset resamples the given envs (a host-sized id tensor) with the same draws in the same
   order as mjlab's (forward-only envs masked, not selected): the same numbers for the same
   random state;
@@ -19,6 +20,9 @@ stream. :class:`SyncFreeVelocityCommand` computes the same command with masked w
 - episode metrics are returned as 0-d tensors on the device (as march's ``reference`` term's).
 
 ``init_velocity_prob`` > 0 (march sets 0: episodes start standing) keeps mjlab's own reset.
+With a world-frame or standing share of 0 (march's config) the per-step update leaves that
+branch out; mjlab's would still apply it to an env whose uniform draw was exactly 0.0
+(``0.0 <= 0.0``: probability 2^-24 per draw), the one case where the two differ.
 """
 
 from __future__ import annotations
@@ -139,9 +143,10 @@ class SyncFreeVelocityCommand(UniformVelocityCommand):
             w = self.is_world_env
             b[:, 0] = torch.where(w, cos_h * vx_w + sin_h * vy_w, b[:, 0])
             b[:, 1] = torch.where(w, -sin_h * vx_w + cos_h * vy_w, b[:, 1])
-        standing = self.is_standing_env.unsqueeze(-1)
-        b.masked_fill_(standing, 0.0)
-        self.vel_command_w.masked_fill_(standing, 0.0)
+        if self.cfg.rel_standing_envs > 0.0:  # a config constant, as the world share above
+            standing = self.is_standing_env.unsqueeze(-1)
+            b.masked_fill_(standing, 0.0)
+            self.vel_command_w.masked_fill_(standing, 0.0)
 
 
 @dataclass(kw_only=True)
