@@ -388,3 +388,26 @@ def test_command_frame_is_the_body_frame_training_tracks(spec):
     )
     assert d["heading_reference"] == "imu_yaw" and d["measured_latency_ms"] > 0
     assert len(d["joint_vel_limits"]) == 29 and min(d["joint_vel_limits"]) == 20.0
+
+
+@pytest.mark.sim
+def test_delays_measured_is_the_exports_latency_rounded_up(spec):
+    import math
+
+    from march.sim2sim.runner import Delays
+
+    ms = spec["deploy"]["measured_latency_ms"]
+    d = Delays.measured(spec)
+    assert d.control_lag == math.ceil(ms / 5.0 - 1e-9) and d.depth_lag == (0, 0)
+    assert (
+        Delays.measured(
+            {**spec, "deploy": {**spec["deploy"], "measured_latency_ms": 10.0}}
+        ).control_lag
+        == 2
+    )
+    assert (
+        Delays.measured(
+            {**spec, "deploy": {**spec["deploy"], "measured_latency_ms": 10.5}}
+        ).control_lag
+        == 3
+    )

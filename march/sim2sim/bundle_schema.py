@@ -30,9 +30,11 @@ class Opt:
 
 @dataclass(frozen=True)
 class Map:
-    """A dict whose keys are free and whose values are ``kind``."""
+    """A dict whose values are ``kind``; its keys any of ``keys`` (None: any key), none
+    required."""
 
     kind: Any
+    keys: tuple[str, ...] | None = None
 
 
 NUM, INT, STR, BOOL = "num", "int", "str", "bool"
@@ -104,7 +106,8 @@ SCHEMA: dict[str, Any] = {
         "default_joint_pos": [NUM],
         "init_root_pos": [NUM, 3],
         "init_root_quat_wxyz": [NUM, 4],
-        "reset_pose_range": Map(PAIR),
+        # the axes the evaluation's reset draws (a subset of six)
+        "reset_pose_range": Map(PAIR, ("x", "y", "z", "roll", "pitch", "yaw")),
         "foot_sites": [STR],
         "imu_site": STR,
     },
@@ -222,7 +225,7 @@ SCHEMA: dict[str, Any] = {
         "max_foot_drop_m": NUM,
         "meaning": STR,
     },
-    "metrics": Map(STR),
+    "metrics": dict.fromkeys(("distance_m", "success", "abs_torque_nm", "abs_ang_jerk"), STR),
     "onnx": {
         "file": STR,
         "sha256": STR,
@@ -285,6 +288,8 @@ def check(value: Any, kind: Any, where: str) -> None:
         ok = isinstance(value, dict)
         if ok:
             for k, v in value.items():
+                if kind.keys is not None and k not in kind.keys:
+                    raise SchemaError(f"{where}: unknown key {k!r}")
                 check(v, kind.kind, f"{where}.{k}")
     elif isinstance(kind, dict):
         ok = isinstance(value, dict)
@@ -314,5 +319,7 @@ def check_spec(spec: Any) -> None:
     """``spec`` (a parsed deploy.json) against :data:`SCHEMA`; one line at the first fault."""
     check(spec, SCHEMA, "deploy.json")
     cmd = spec["command"]
-    check(cmd.get("heading_control"), BOOL, "deploy.json.command.heading_control")
+    if "heading_control" not in cmd:
+        raise SchemaError("deploy.json.command: missing key 'heading_control'")
+    check(cmd["heading_control"], BOOL, "deploy.json.command.heading_control")
     check(cmd, HEADING if cmd["heading_control"] else FIXED_YAW, "deploy.json.command")
