@@ -14,7 +14,7 @@ else
 CONSTRAINTS :=
 endif
 
-.PHONY: install train smoke test test-all lint figures gpu-check test-slurm kill-trials
+.PHONY: install train smoke test test-all lint figures gpu-check test-slurm kill-trials two-node
 
 # Byte code: pip would compile every module of every wheel, torch's thousands (74 s of the
 # install here; 32 s with --no-compile). Instead Python writes the .pyc of what is imported, on
@@ -67,3 +67,9 @@ test-slurm: $(VENV)/.installed
 # tally; ~3-5 min per trial on 2 CPUs. ARGS="--trials 3 --seed 1" for fewer or other moments.
 kill-trials: $(VENV)/.installed
 	$(PY) scripts/kill_trials.py $(ARGS)
+
+# Two nodes on one machine: two torchrun processes (--nnodes=2 --node_rank=0|1, c10d rendezvous on
+# 127.0.0.1) train one smoke run together; checks one run directory and weights equal on both
+# nodes after every PPO and distillation update (docs/scaling.md). ~1-2 min on 2 CPUs.
+two-node: $(VENV)/.installed
+	$(PY) scripts/two_node.py $(ARGS)

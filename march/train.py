@@ -17,6 +17,7 @@ from them by itself (this is what makes a Slurm requeue continue).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import random
 import socket
@@ -34,6 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 from march.config import ConfigError, MarchConfig, to_march_config
 from march.config.cli import duplicate_overrides, fail, resolve_compute
 from march.config.memory import check_memory
+from march.config.terms import check_terms, import_extra_modules
 from march.learn import distributed, preemption, run_lock, tuning
 from march.learn import run_dir as run_files
 from march.learn.checkpoint import CheckpointError, write_json_atomic, write_text_durably
@@ -76,7 +78,7 @@ def banner(
         lines.insert(
             3,
             f"distributed: {dist.world} ranks ({dist.backend}); compute.num_envs={c.num_envs} "
-            f"per rank, {dist.world * c.num_envs} envs in total; eval rollouts split over the "
+            f"per rank, {dist.world * c.num_envs} envs in total; eval waves split over the "
             f"ranks; rank seeds from seed={cfg.seed}",
         )
     first = {"all": "teacher", "teacher": "teacher", "student": "distillation"}.get(cfg.stage)
@@ -226,7 +228,10 @@ def run_pipeline(
     last_eval: dict[str, dict[str, Any]] = {}
     try:
         # One eval env, built once: the teacher's evaluations during PPO and the student's.
-        eval_env = make_env(cfg, "eval", log=env_log)
+        # ... with the run's seed on every rank (its startup randomisation is part of the
+        # protocol; an evaluation's waves then do not depend on the rank that runs them).
+        eval_cfg = dataclasses.replace(cfg, seed=distributed.agree(cfg.seed))
+        eval_env = make_env(eval_cfg, "eval", log=env_log)
 
         def eval_policy(policy, stage: str, iteration: int, env_steps: int) -> dict[str, Any]:
             row = evaluate(
@@ -344,7 +349,9 @@ def main(dcfg: DictConfig) -> float | None:
     notes: list[str] = []
     try:
         dcfg = resolve_compute(dcfg, overrides)
+        import_extra_modules(dcfg.get("extra_modules") or [])  # plug-ins before the checks
         cfg = to_march_config(dcfg)
+        check_terms(cfg)  # every reward term known, its params valid (one line)
         _check_inputs(cfg)
         if not cfg.resume:  # a resumed run continues with its saved (already applied) config
             cfg, notes = apply_policy_checkpoint(cfg, overrides)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import json
 import os
 import signal
 import socket
@@ -20,8 +21,9 @@ import pytest
 import torch
 import torch.multiprocessing as mp
 
+from march.evaluation.sharding import rank_waves, wave_seed, waves
 from march.learn import distributed
-from march.learn.distributed import Dist, eval_share, rank_seed
+from march.learn.distributed import Dist, rank_seed
 
 ROOT = Path(__file__).resolve().parent.parent
 TORCHRUN = str(Path(sys.executable).with_name("torchrun"))
@@ -47,14 +49,25 @@ def test_rank_seeds_rank0_is_the_run_seed_others_distinct_and_int32():
     assert not drawn & set(range(60))
 
 
-@pytest.mark.parametrize("n,world", [(4, 2), (5, 2), (7, 3), (2048, 8), (1, 2)])
-def test_eval_shares_partition_the_rollout_indices(n, world):
-    idx: list[int] = []
-    for r in range(world):
-        first, count = eval_share(n, Dist(rank=r, world=world))
-        idx += list(range(first, first + count))
-        assert n // world <= count <= -(-n // world)
+@pytest.mark.parametrize(
+    "n,size,world", [(4, 2, 2), (5, 2, 2), (7, 3, 3), (2048, 256, 8), (1, 4, 2), (9, 4, 1)]
+)
+def test_waves_partition_the_rollouts_and_do_not_depend_on_the_ranks(n, size, world):
+    dealt = [w for r in range(world) for w in rank_waves(n, size, Dist(rank=r, world=world))]
+    assert sorted(dealt) == waves(n, size)  # every wave once, whatever the number of ranks
+    idx = [i for _, first, count in sorted(dealt) for i in range(first, first + count)]
     assert idx == list(range(n))  # every rollout once, in the one-process order
+    assert all(0 < count <= size for _, _, count in dealt)
+    counts = [len(rank_waves(n, size, Dist(rank=r, world=world))) for r in range(world)]
+    assert max(counts) - min(counts) <= 1  # the ranks share the waves evenly
+
+
+def test_wave_seeds_wave0_is_the_seed_others_distinct_and_int32():
+    for seed in (0, 1, 7, 2**31 - 1):
+        assert wave_seed(seed, 0) == seed
+    drawn = {wave_seed(s, k) for s in range(40) for k in range(1, 9)}
+    assert len(drawn) == 40 * 8 and all(0 <= x < 2**31 for x in drawn)
+    assert {wave_seed(3, k) for k in range(1, 9)} != {rank_seed(3, r) for r in range(1, 9)}
 
 
 def _state(seed: int) -> dict:
@@ -203,9 +216,19 @@ def _collectives_rank(rank: int, port: int, out: str) -> None:
     done = torch.tensor([True, True]) if rank == 0 else torch.tensor([True, False])
     stats.step(ret, done, torch.tensor([0.5, 1.5]) if rank == 0 else torch.tensor([4.0, 0.0]))
     ep = distributed.pop_episode_stats(stats)
-    first, mine = eval_share(5)
-    per = {"distance_m": torch.arange(first, first + mine, dtype=torch.float32)}
-    gathered = distributed.gather_rollouts(per)
+    # An evaluation of 5 rollouts in waves of 2: each rank runs its waves (rank 0: 0 and 2,
+    # rank 1: 1); every rank gets all rollouts back in order.
+    from march.evaluation.sharding import sharded_rollouts
+
+    ran: list[tuple[int, int, int]] = []
+
+    def wave(env, policy, count, first, seed):
+        ran.append((first, count, seed))
+        return {"distance_m": torch.arange(first, first + count, dtype=torch.float32)}
+
+    env = type("Env", (), {"num_envs": 2, "cfg": type("Cfg", (), {"seed": 9})()})()
+    gathered = sharded_rollouts(env, None, 5, wave)
+    gathered["ran"] = torch.tensor(ran)
     torch.save(
         {
             "norm": {k: v.clone() for k, v in norm.state_dict().items()},
@@ -262,6 +285,8 @@ def test_collectives_on_two_gloo_ranks(tmp_path):
         assert r["ep"]["mean_distance_m"] == pytest.approx(2.0)
         assert r["gathered"]["distance_m"].tolist() == [0.0, 1.0, 2.0, 3.0, 4.0]
         assert r["agree"] == "rank 0" and r["world"] == 2
+    assert r0["gathered"]["ran"].tolist() == [[0, 2, 9], [4, 1, wave_seed(9, 2)]]
+    assert r1["gathered"]["ran"].tolist() == [[2, 2, wave_seed(9, 1)]]
 
 
 # -- the real pipeline under torchrun -----------------------------------------------------------
@@ -546,3 +571,64 @@ def test_a_hung_rank_is_given_up_after_the_timeout_in_one_line(tmp_path):
     assert 2.5 < float(waited) < 15, waited  # compute.dist_timeout_s=3, not gloo's 30 min
     assert line.startswith("rank 0: another rank of this 2-rank run stopped or stopped answering")
     assert "\n" not in line
+
+
+EVAL_ONLY = [
+    "stage=eval", "eval.policy=teacher", "eval.num_rollouts=4", "compute.eval_num_envs=2",
+    "eval.episode_length_s=1.0", "compute.torch_threads=1",
+]  # fmt: skip
+
+
+@pytest.mark.sim
+@pytest.mark.slow
+def test_one_and_two_rank_evaluations_of_a_checkpoint_give_the_same_rows(tmp_path):
+    """Two waves of two rollouts: one process runs both, two ranks one each (gloo); the rows,
+    per rollout and summarised, are the same numbers."""
+    teach = tmp_path / "teacher"
+    args = [*SMALL, "stage=teacher", "teacher.max_iterations=1", "compute.torch_threads=1"]
+    out = subprocess.run(
+        [sys.executable, "-m", "march.train", *args, f"hydra.run.dir={teach}"],
+        cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=900,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    ckpt = f"teacher_ckpt={teach / 'teacher' / 'latest.pt'}"
+    runs, took = {}, {}
+    for n in (1, 2):
+        run = tmp_path / f"eval{n}"
+        cmd = [TORCHRUN, "--standalone", f"--nproc_per_node={n}", "-m", "march.train"]
+        t0 = time.time()
+        out = subprocess.run(
+            [*cmd, *EVAL_ONLY, ckpt, f"hydra.run.dir={run}"],
+            cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=900,
+        )  # fmt: skip
+        took[n] = time.time() - t0
+        assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+        runs[n] = run
+    print(f"evaluation wall time (process start to exit): 1 rank {took[1]:.1f} s, 2 ranks "
+          f"{took[2]:.1f} s")  # fmt: skip
+    one, two = (json.loads((runs[n] / "summary.json").read_text()) for n in (1, 2))
+    assert one.keys() == two.keys() and one["n_rollouts"] == 4
+    for key, v in one.items():
+        assert v == two[key] or (v != v and two[key] != two[key]), key  # NaN == NaN
+    assert _rows(runs[1] / "eval_rollouts.csv") == _rows(runs[2] / "eval_rollouts.csv")
+    assert len({r["distance"] for r in _rows(runs[1] / "eval_rollouts.csv")}) > 1
+
+
+@pytest.mark.sim
+@pytest.mark.slow
+def test_two_nodes_on_one_machine_train_one_run(tmp_path):
+    """``make two-node``: two torchrun launches, --nnodes=2, c10d rendezvous on 127.0.0.1."""
+    out = subprocess.run(
+        [sys.executable, "scripts/two_node.py", "--out", str(tmp_path), "--port", str(_free_port())],
+        cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=1500,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stdout[-4000:] + out.stderr[-2000:]
+    assert "PASSED: two nodes" in out.stdout
+    import re
+
+    for stage in ("teacher", "student"):
+        for k in (1, 2):
+            pattern = (
+                rf"{stage} update {k}: (\d+)/\1 tensors equal on both nodes; rollouts differ: True"
+            )
+            assert re.search(pattern, out.stdout), (stage, k)

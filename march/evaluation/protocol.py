@@ -9,7 +9,8 @@ as in training and the forward command ``eval.command_vx`` along the course.
 
 Sampling: rollout i runs on course cell (level i mod L, column (i // L + i mod L) mod C)
 (:func:`march.env.course.eval_cells`), in waves of ``env.num_envs``; each env contributes the
-first episode of its wave. Every level gets floor(n/L) or ceil(n/L) of the n rollouts, so the plain
+first episode of its wave. Wave k is reseeded at its start from (seed, k)
+(:mod:`march.evaluation.sharding`, which also deals the waves to the ranks of an N-process run). Every level gets floor(n/L) or ceil(n/L) of the n rollouts, so the plain
 mean over rollouts weights the levels (nearly) equally.
 
 Seeding: every evaluation starts from the run's seed (``env.cfg.seed``), whatever ran before
@@ -50,8 +51,8 @@ from march.config import MarchConfig
 from march.env.build import SUCCESS_TERMINATION, reseed_env
 from march.env.course import CourseRuler, assign_eval_cells, eval_cells
 from march.env.depth import camera_paused
+from march.evaluation.sharding import sharded_rollouts
 from march.learn.checkpoint import write_json_atomic
-from march.learn.distributed import eval_share, gather_rollouts
 from march.learn.metrics import (
     EVAL_COLUMNS,
     EVAL_LEVEL_COLUMNS,
@@ -321,16 +322,20 @@ def _eval_rng(env: ManagerBasedRlEnv):
 
 @torch.no_grad()
 def rollout_metrics(
-    env: ManagerBasedRlEnv, policy: Policy, num_rollouts: int, first: int = 0
+    env: ManagerBasedRlEnv,
+    policy: Policy,
+    num_rollouts: int,
+    first: int = 0,
+    seed: int | None = None,
 ) -> dict[str, torch.Tensor]:
     """Per-rollout metrics of ``num_rollouts`` rollouts on the stratified course cells, run in
     waves of ``env.num_envs`` (the last wave keeps its first envs, i.e. the next rollout
     indices). ``first``: the index of the first rollout (a rank's share of a distributed
-    evaluation, march.learn.distributed.eval_share)."""
+    evaluation: one wave of march.evaluation.sharding, seeded ``seed``; default the env's)."""
     ruler = CourseRuler(env)
     collected: dict[str, list[torch.Tensor]] = {}
     total = 0
-    seed = int(env.cfg.seed or 0)
+    seed = int(env.cfg.seed or 0) if seed is None else int(seed)
     with _eval_rng(env):
         reseed_env(env, seed)  # first: its observation pass may draw from torch's generator
         torch.manual_seed(seed)
@@ -359,12 +364,12 @@ def evaluate(
     sees_depth: bool = True,
 ) -> dict[str, Any]:
     """Roll out, append a row to ``eval.csv`` and return the summary row. Over N processes each
-    rank runs its share of the rollouts and every rank gets the summary of all of them.
+    rank runs its waves of the rollouts (march.evaluation.sharding) and every rank gets the
+    summary of all of them.
     ``sees_depth=False`` (a teacher): the env's depth camera is not rendered meanwhile
     (:func:`march.env.depth.camera_paused`; the same numbers, a cheaper step)."""
-    first, mine = eval_share(num_rollouts)
     with nullcontext() if sees_depth else camera_paused(env):
-        per = gather_rollouts(rollout_metrics(env, policy, mine, first))
+        per = sharded_rollouts(env, policy, num_rollouts, rollout_metrics)  # N ranks: waves
     row = {
         "stage": stage,
         "iteration": iteration,

@@ -409,21 +409,3 @@ def own_rank_state(payload: dict[str, Any], d: Dist | None = None) -> dict[str, 
                 out["streams"]["distill"] = mine["generator"]
         return out
     return payload
-
-
-def eval_share(num_rollouts: int, d: Dist | None = None) -> tuple[int, int]:
-    """(first rollout index, count) of this rank's slice of an evaluation's rollouts: rank r runs
-    indices [r n / N, (r + 1) n / N), so the ranks together run the one-process index set."""
-    d = d or _DIST
-    lo = d.rank * num_rollouts // d.world
-    hi = (d.rank + 1) * num_rollouts // d.world
-    return lo, hi - lo
-
-
-def gather_rollouts(per: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """Every rank's per-rollout metrics concatenated in rank order (= rollout index order)."""
-    if not _DIST.active:
-        return per
-    parts = gather_objects({k: v.cpu() for k, v in per.items()})
-    keys = next((list(p) for p in parts if p), [])  # a rank with no share has no keys
-    return {k: torch.cat([p[k] for p in parts if p]) for k in keys}
