@@ -31,6 +31,7 @@ import pandas as pd
 from analysis.arms import Comparisons
 from analysis.groups import GroupKey, primary, series_names
 from analysis.rundirs import Run, eval_rows, stage_rows
+from analysis.stats import bootstrap, rel_of_means
 
 # metric key in eval.csv / summary.json (mean_<key>, se_<key>) -> short name, axis label
 METRICS = {
@@ -464,6 +465,7 @@ def final_table(runs: list[Run], mode: str, notes: list[str], comp: Comparisons)
         key=lambda g: (arm_rank.get(g[0], 999), var_rank.get(g[1], 999), g),
     )
     records = []
+    per_seed: dict[tuple[str, str], dict[str, np.ndarray]] = {}
     for reward, variant in groups:
         members = [r for r in done if (name_of[r.path], r.variant) == (reward, variant)]
         rec = {"reward": reward, "variant": variant, "n_runs": len(members)}
@@ -479,6 +481,8 @@ def final_table(runs: list[Run], mode: str, notes: list[str], comp: Comparisons)
             means = [math.nan if v is None else v for v in means]
             ses = [math.nan if v is None else v for v in ses]
             rec[f"mean_{key}"], rec[f"se_{key}"], _ = combine(means, ses, mode)
+            vals = np.asarray(means, dtype=float)
+            per_seed.setdefault((reward, variant), {})[key] = vals[~np.isnan(vals)]
         records.append(rec)
     table = pd.DataFrame(records)
     if table.empty:
@@ -525,7 +529,18 @@ def final_table(runs: list[Run], mode: str, notes: list[str], comp: Comparisons)
             rel = rel_diff(table.at[i, f"mean_{key}"], table.at[j, f"mean_{key}"])
             if not table.at[i, "compared_to"]:  # the first pair of a group fills the columns
                 table.at[i, f"rel_{key}"] = rel
-            parts.append(f"{short} {format_rel(rel)}")
+            a_vals, b_vals = per_seed[group].get(key), per_seed[ref].get(key)
+            ci = ""
+            big = a_vals is not None and b_vals is not None and min(a_vals.size, b_vals.size) >= 3
+            if big and not math.isnan(rel):
+                _, lo, hi = bootstrap(rel_of_means, a_vals, b_vals)
+                ci = f" [{format_rel(lo)}, {format_rel(hi)}]"
+            parts.append(f"{short} {format_rel(rel)}{ci}")
+        n_a, n_b = int(table.at[i, "n_runs"]), int(table.at[j, "n_runs"])
+        if min(n_a, n_b) < 3:
+            parts.append(f"n={n_a} vs {n_b} seeds: fewer than 3 per arm, no claim")
+        else:
+            parts.append(f"n={n_a} vs {n_b} seeds, 95% bootstrap CI in brackets")
         if table.at[i, "compared_to"]:  # a group compared with several references
             table.at[i, "compared_to"] += "," + "/".join(ref)
             table.at[i, "relative"] += f"; vs {'/'.join(ref)}: " + ", ".join(parts)

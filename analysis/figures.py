@@ -163,9 +163,14 @@ def analyze(
 
     table = final_table(runs, mode, notes, comp)
     pairs = comp.pairs[0] if comp.pairs else ("clf", "modelfree")
+    # Claims read complete runs only (a crashed run's rows stop early); the others are named.
+    partial = [r.label for members in groups.values() for r in members if not r.complete]
+    if partial:
+        notes.append("claims: incomplete runs left out: " + ", ".join(partial))
+    complete = {k: [r for r in v if r.complete] for k, v in groups.items()}
     claim_rows = claims(
         ClaimsInput(
-            groups,
+            {k: v for k, v in complete.items() if v},
             arm=pairs[0],
             reference=pairs[1],
             full=comp.reference_variant,

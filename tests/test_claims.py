@@ -190,3 +190,24 @@ def test_claims_table_on_three_seeds_per_arm(tmp_path, monkeypatch):
     assert row["ci_low"] < -0.12 < row["ci_high"] and row["verdict"] == "inconclusive"
     md = (tmp_path / "o" / "claims.md").read_text()
     assert "\\|joint torque\\|" in md  # pipes escaped: the table keeps its columns
+
+
+def test_final_table_differences_carry_intervals_or_say_no_claim(tmp_path, monkeypatch):
+    """Three seeds per arm: each relative difference in final_metrics carries its bootstrap
+    interval; two seeds per arm: the line says it is no claim."""
+    monkeypatch.setitem(syn.FINAL, ("modelfree", "full", 2), syn.FINAL[("modelfree", "full", 0)])
+    for n_seeds, sweep in ((3, tmp_path / "three"), (2, tmp_path / "two")):
+        for i, (reward, seed) in enumerate(
+            [(r, s) for r in ("clf", "modelfree") for s in range(n_seeds)]
+        ):
+            syn.make_run(sweep / str(i), reward, "full", seed)
+        res = fig.analyze([sweep], tmp_path / f"o{n_seeds}")
+        table = res["final"]
+        text = table.loc[table["reward"] == "clf", "relative"].item()
+        if n_seeds == 3:
+            mf = (9.5 + 10.5 + 9.5) / 3
+            assert f"torque {round((8.8 - mf) / mf * 100):+d}% [" in text
+            assert text.endswith("n=3 vs 3 seeds, 95% bootstrap CI in brackets")
+        else:
+            assert "[" not in text
+            assert text.endswith("n=2 vs 2 seeds: fewer than 3 per arm, no claim")
