@@ -155,7 +155,9 @@ def check_order_and_times(states: list[str], t: np.ndarray, m: SafetyMachine, st
             if next(b for _, a, b, _ in m.transitions if a == state) != DAMPING:
                 assert left[state] - began >= need - 1e-6
     if POLICY in entered:
-        assert entered[POLICY] >= start_at and entered[POLICY] - entered[HOLD] >= TIMING.hold_s - 1e-6
+        assert (
+            entered[POLICY] >= start_at and entered[POLICY] - entered[HOLD] >= TIMING.hold_s - 1e-6
+        )
     if DONE in entered and DAMPING in entered:
         assert entered[DONE] - entered[DAMPING] >= TIMING.damping_s - 1e-6
     after = states[states.index(DAMPING) :] if DAMPING in states else []
