@@ -170,3 +170,14 @@ def test_clf_evaluation_defers_no_replan(tmp_path):
     with (tmp_path / "eval_levels.csv").open() as f:
         levels = list(csv.DictReader(f))
     assert sum(int(r["rollouts"]) for r in levels) == 16
+
+
+@pytest.mark.parametrize("preset", ["gpu", "cpu"])
+def test_teacher_evaluations_resolve_a_factor_of_two(preset):
+    """Sample efficiency reads the teacher evaluations: at least every 2% of the clf budget
+    (25+ points before the clf budget ends), so "half the training" is resolved."""
+    cfg = load([f"compute={preset}"])
+    budget = cfg.teacher.max_iterations
+    assert 0 < cfg.teacher.eval_interval <= 0.02 * budget or budget < 100, (
+        f"{preset}: teacher.eval_interval {cfg.teacher.eval_interval} of {budget} iterations"
+    )
