@@ -316,30 +316,6 @@ def run_pipeline(
         log.close()
 
 
-_HYDRA_JOB_FILES = {"train.log", ".hydra/config.yaml", ".hydra/hydra.yaml", ".hydra/overrides.yaml"}
-"""What Hydra writes into a run directory before march reads the config."""
-
-
-def _drop_refused_run_dir(path: Path) -> None:
-    """A run refused before it started leaves no directory behind. Hydra made the directory,
-    its job log and ``.hydra/`` before march read the config; they are removed only while they
-    are all the directory holds."""
-    try:
-        found = {p.relative_to(path).as_posix(): p for p in path.rglob("*") if p.is_file()}
-    except OSError:
-        return
-    if "train.log" not in found or not set(found) <= _HYDRA_JOB_FILES:
-        return
-    try:  # every rank of a refused torchrun job may be removing the same files
-        for file in found.values():
-            file.unlink(missing_ok=True)
-        for folder in (path / ".hydra", path):
-            if folder.is_dir() and not any(folder.iterdir()):
-                folder.rmdir()
-    except OSError:
-        pass
-
-
 @hydra.main(config_path="../conf", config_name="config", version_base="1.3")
 def main(dcfg: DictConfig) -> float | None:
     hc = HydraConfig.get()
@@ -363,7 +339,7 @@ def main(dcfg: DictConfig) -> float | None:
                     job_dir, "failed", stage=str(dcfg.stage), error=f"{type(err).__name__}: {err}"
                 )
             raise
-        _drop_refused_run_dir(job_dir)
+        run_files.drop_refused(job_dir)
         fail(str(err))
     # N processes (torchrun, srun): join the group; rank 0's run directory is everyone's.
     dist = distributed.init(cfg.compute.device, cfg.compute.dist_timeout_s)
@@ -399,7 +375,7 @@ def main(dcfg: DictConfig) -> float | None:
         run_lock.release_all()  # ours only (a lock another process holds was never ours)
         if hc.mode == RunMode.MULTIRUN:
             raise
-        _drop_refused_run_dir(Path(hc.runtime.output_dir))  # the one Hydra made, not the run's
+        run_files.drop_refused(Path(hc.runtime.output_dir))  # the one Hydra made, not the run's
         fail(str(err))
     distributed.barrier()  # every rank has read config.yaml before rank 0 rewrites it
     if dist.main:

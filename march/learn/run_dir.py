@@ -108,7 +108,8 @@ def check_run_checkpoints(run_dir: Path, cfg: MarchConfig, option: str) -> list[
     """Read the run's newest checkpoints (CPU) and check them like the command line, and that
     they belong to this run (no difference a resume could not make); before any env is built."""
     from march.config.resume import check_checkpoint, config_differences
-    from march.learn.checkpoint import latest_checkpoint, load_checkpoint
+    from march.learn.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint
+    from march.learn.distributed import world_mismatch
 
     notes = []
     for kind in ("teacher", "student"):
@@ -118,6 +119,8 @@ def check_run_checkpoints(run_dir: Path, cfg: MarchConfig, option: str) -> list[
             continue
         label = f"{option}={run_dir}: {path}"
         payload = load_checkpoint(path, kind, "cpu", source=label)
+        if why := world_mismatch(payload):  # resumed on another number of ranks (issue 37)
+            raise CheckpointError(f"{label}: {why}")
         saved = check_checkpoint(payload, kind, label)
         if saved is not None:
             # Rank 0 writes checkpoints with the run's own seed (march.learn.distributed).
@@ -129,3 +132,27 @@ def check_run_checkpoints(run_dir: Path, cfg: MarchConfig, option: str) -> list[
                 )
         notes.append(f"[{kind}] checked {path}: iteration {payload['iteration']}")
     return notes
+
+
+_HYDRA_JOB_FILES = {"train.log", ".hydra/config.yaml", ".hydra/hydra.yaml", ".hydra/overrides.yaml"}
+"""What Hydra writes into a run directory before march reads the config."""
+
+
+def drop_refused(path: Path) -> None:
+    """A run refused before it started leaves no directory behind. Hydra made the directory,
+    its job log and ``.hydra/`` before march read the config; they are removed only while they
+    are all the directory holds."""
+    try:
+        found = {p.relative_to(path).as_posix(): p for p in path.rglob("*") if p.is_file()}
+    except OSError:
+        return
+    if "train.log" not in found or not set(found) <= _HYDRA_JOB_FILES:
+        return
+    try:  # every rank of a refused torchrun job may be removing the same files
+        for file in found.values():
+            file.unlink(missing_ok=True)
+        for folder in (path / ".hydra", path):
+            if folder.is_dir() and not any(folder.iterdir()):
+                folder.rmdir()
+    except OSError:
+        pass
