@@ -35,6 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 from march.config import ConfigError, MarchConfig, to_march_config
 from march.config.cli import duplicate_overrides, fail, resolve_compute
 from march.config.memory import check_memory
+from march.config.terms import check_terms, import_extra_modules
 from march.learn import distributed, preemption, run_lock, tuning
 from march.learn import run_dir as run_files
 from march.learn.checkpoint import CheckpointError, write_json_atomic, write_text_durably
@@ -324,7 +325,9 @@ def main(dcfg: DictConfig) -> float | None:
     notes: list[str] = []
     try:
         dcfg = resolve_compute(dcfg, overrides)
+        import_extra_modules(dcfg.get("extra_modules") or [])  # plug-ins before the checks
         cfg = to_march_config(dcfg)
+        check_terms(cfg)  # every reward term known, its params valid (one line)
         _check_inputs(cfg)
         if not cfg.resume:  # a resumed run continues with its saved (already applied) config
             cfg, notes = apply_policy_checkpoint(cfg, overrides)

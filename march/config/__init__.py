@@ -17,7 +17,7 @@ from march.config.checks import (
     cnn_output_hw,
 )
 from march.config.schema import MarchConfig, to_march_config
-from march.config.simulation import DepthCfg, DrCfg, EnvCfg, RewardCfg
+from march.config.simulation import DepthCfg, DrCfg, EnvCfg, RewardCfg, TerminationCfg
 from march.config.training import LoggerCfg, StudentCfg, TeacherCfg
 
 __all__ = [
@@ -33,6 +33,7 @@ __all__ = [
     "LoggerCfg",
     "MarchConfig",
     "RewardCfg",
+    "TerminationCfg",
     "StudentCfg",
     "TeacherCfg",
     "cnn_output_hw",

@@ -22,6 +22,7 @@ from omegaconf.errors import OmegaConfBaseException
 import march.config  # noqa: F401  (registers the schema)
 from march.config import ConfigError, MarchConfig, to_march_config
 from march.config.registry import CONF_DIR
+from march.config.terms import check_terms, import_extra_modules
 
 
 def cuda_available() -> bool:
@@ -73,7 +74,11 @@ def compose(overrides: Sequence[str] = ()) -> DictConfig:
 
 
 def load(overrides: Sequence[str] = ()) -> MarchConfig:
-    return to_march_config(compose(overrides))
+    """The checked config; ``extra_modules`` are imported first (their student parts and terms
+    register before the config's checks read the registries)."""
+    cfg = compose(overrides)
+    import_extra_modules(OmegaConf.select(cfg, "extra_modules", default=None) or [])
+    return to_march_config(cfg)
 
 
 def fail(message: str, code: int = 2) -> None:
@@ -86,8 +91,11 @@ def run_tool(
     jobs: dict[str, Callable[[MarchConfig], object]] | Callable[[MarchConfig], object],
     argv: Sequence[str] | None = None,
     usage: str = "",
+    check_reward: bool = True,
 ) -> object:
-    """Parse ``[job] key=value ...``, compose the config and run the job with clear errors."""
+    """Parse ``[job] key=value ...``, compose the config and run the job with clear errors.
+    ``check_reward``: check the reward terms too (imports the env's term modules; a job that
+    builds no env may skip it)."""
     args = list(sys.argv[1:] if argv is None else argv)
     if callable(jobs):
         job, fn = None, jobs
@@ -105,6 +113,8 @@ def run_tool(
         fail(twice)
     try:
         cfg = load(args)
+        if check_reward:
+            check_terms(cfg)  # every term known, its params valid: before any env
     except (HydraException, OmegaConfBaseException, ConfigError) as err:
         fail(_one_line(err))
     try:

@@ -34,6 +34,7 @@ from march.config.simulation import (
     DrCfg,
     EnvCfg,
     RewardCfg,
+    TerminationCfg,
 )
 from march.config.training import (
     DistillCfg,
@@ -70,12 +71,17 @@ class MarchConfig:
     """A run directory to continue from its last checkpoints."""
     out: str | None = None
     """A file a tool writes (viz, export, play)."""
+    extra_modules: list[str] = field(default_factory=list)
+    """Python modules (dotted names on ``sys.path``) every entry point imports before it checks
+    the config: where your own reward terms and student parts register
+    (``extra_modules=[my_lab.terms]``; docs/extending.md)."""
     objective: str = "mean_distance_m"
     """The final evaluation's value ``march.train`` returns (what a Hydra sweeper such as
     Optuna optimises): mean_<metric> or se_<metric> of summary.json."""
     compute: ComputeCfg = field(default_factory=ComputeCfg)
     env: EnvCfg = field(default_factory=EnvCfg)
     reward: RewardCfg = field(default_factory=RewardCfg)
+    termination: TerminationCfg = field(default_factory=TerminationCfg)
     curriculum: CurriculumCfg = field(default_factory=CurriculumCfg)
     student: StudentCfg = field(default_factory=StudentCfg)
     teacher: TeacherCfg = field(default_factory=TeacherCfg)
@@ -88,6 +94,11 @@ class MarchConfig:
     figures: FiguresCfg = field(default_factory=FiguresCfg)
 
     def __post_init__(self) -> None:
+        self.termination.adopt(self.reward)  # reward.tilt_limit_deg etc. of older configs
+        for name in self.extra_modules:
+            _need(
+                "", "extra_modules", self.extra_modules, _module_name(name), "dotted module names"
+            )
         if self.stage not in STAGES:
             raise ConfigError(
                 f"stage={self.stage!r} is not valid; choose one of {', '.join(STAGES)}"
@@ -150,6 +161,10 @@ class MarchConfig:
                 f"eval.command_vx={self.eval.command_vx} lies outside the training range "
                 f"env.command_vx=[{lo}, {hi}]: evaluate at a command the policy was trained on"
             )
+
+
+def _module_name(name: object) -> bool:
+    return isinstance(name, str) and all(p.isidentifier() for p in name.split("."))
 
 
 def register_schema() -> None:

@@ -8,6 +8,7 @@ import.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from march.config.checks import (
     COMPUTES,
@@ -26,6 +27,7 @@ from march.config.checks import (
     _one_of,
     _positive,
 )
+from march.config.terms import check_entry
 
 
 @dataclass
@@ -199,9 +201,34 @@ class RewardCfg:
     """The teacher observes the planner's reference even when no term needs it (the planner
     runs for it). A factorial control: modelfree with the clf teacher's reference observation
     (``+sweep=factorial``) separates the CLF reward's effect from the observation's."""
-    terms: dict[str, float] = field(default_factory=dict)
-    """Reward term name -> weight. A penalty term returns a value <= 0 and carries a positive
+    terms: dict[str, Any] = field(default_factory=dict)
+    """Reward term name -> weight, or ``{weight: w, params: {...}}`` (params: keyword arguments
+    of the term's function, checked against its signature; ``python -m march.inspect list``
+    shows each term's parameters). A penalty term returns a value <= 0 and carries a positive
     weight, so every weight here is the sign the term's contribution has (SPEC §2)."""
+    tilt_limit_deg: float | None = None
+    """Moved to ``termination.tilt_limit_deg`` (an old config's value is carried over there)."""
+    min_base_height_m: float | None = None
+    """Moved to ``termination.min_base_height_m``."""
+    max_foot_drop_m: float | None = None
+    """Moved to ``termination.max_foot_drop_m``."""
+
+    def __post_init__(self) -> None:
+        _check_shapes("reward", self)
+        _identifier("reward", "name", self.name)
+        for name, value in self.terms.items():
+            check_entry(name, value)
+
+
+MOVED_TO_TERMINATION = ("tilt_limit_deg", "min_base_height_m", "max_foot_drop_m")
+"""``reward.<key>`` of configs before issue 36, now ``termination.<key>``."""
+
+
+@dataclass
+class TerminationCfg:
+    """When a training or evaluation episode ends in a fall (the same thresholds go into the
+    deployment bundle, ``deploy.json``'s ``fall``)."""
+
     tilt_limit_deg: float = 50.0
     """Terminate when the torso tilts beyond this [deg]."""
     min_base_height_m: float = 0.4
@@ -211,11 +238,28 @@ class RewardCfg:
     stone; stone tops vary by at most terrain.height_hard = 0.10 m)."""
 
     def __post_init__(self) -> None:
-        _check_shapes("reward", self)
-        _identifier("reward", "name", self.name)
-        _interval("reward", "tilt_limit_deg", self.tilt_limit_deg, 0, 180, lo_open=True)
-        _at_least("reward", "min_base_height_m", self.min_base_height_m, 0)
-        _positive("reward", "max_foot_drop_m", self.max_foot_drop_m)
+        _check_shapes("termination", self)
+        _interval("termination", "tilt_limit_deg", self.tilt_limit_deg, 0, 180, lo_open=True)
+        _at_least("termination", "min_base_height_m", self.min_base_height_m, 0)
+        _positive("termination", "max_foot_drop_m", self.max_foot_drop_m)
+
+    def adopt(self, reward: RewardCfg) -> None:
+        """Carry an old config's ``reward.<threshold>`` over (then clear it there); a value set
+        in both places differently is one line saying which to keep."""
+        for key in MOVED_TO_TERMINATION:
+            old = getattr(reward, key)
+            if old is None:
+                continue
+            default = getattr(TerminationCfg, key)
+            new = getattr(self, key)
+            if new != default and new != old:
+                raise ConfigError(
+                    f"reward.{key}={old} and termination.{key}={new}: the threshold moved to "
+                    f"termination.{key}; set it there only"
+                )
+            setattr(self, key, old)
+            setattr(reward, key, None)
+        self.__post_init__()
 
 
 @dataclass

@@ -40,6 +40,7 @@ from mjlab.terrains import TerrainEntityCfg
 from mjlab.utils.noise import UniformNoiseCfg as Unoise
 
 from march.config import MarchConfig
+from march.config.terms import import_extra_modules
 from march.env.course import course_levels
 from march.env.depth import corrupt, depth_camera_cfg, normalize
 from march.env.nonfinite import nonfinite_termination
@@ -219,13 +220,13 @@ def _terminations(cfg: MarchConfig, purpose: str) -> dict[str, TerminationTermCf
         "time_out": TerminationTermCfg(func=envs_mdp.time_out, time_out=True),
         "tilt": TerminationTermCfg(
             func=envs_mdp.bad_orientation,
-            params={"limit_angle": math.radians(cfg.reward.tilt_limit_deg)},
+            params={"limit_angle": math.radians(cfg.termination.tilt_limit_deg)},
         ),
         "pelvis_too_low": TerminationTermCfg(
-            func=pelvis_too_low, params={"min_height": cfg.reward.min_base_height_m}
+            func=pelvis_too_low, params={"min_height": cfg.termination.min_base_height_m}
         ),
         "foot_too_low": TerminationTermCfg(
-            func=foot_too_low, params={"max_drop": cfg.reward.max_foot_drop_m}
+            func=foot_too_low, params={"max_drop": cfg.termination.max_foot_drop_m}
         ),
     }
     if needs_reference(cfg.reward):
@@ -365,6 +366,7 @@ def build_env_cfg(
         )
 
     env_cfg.observations = _observations(cfg, purpose)
+    import_extra_modules(cfg.extra_modules)  # a worker's own plug-ins (the terms they register)
     env_cfg.rewards = reward_terms(cfg.reward)
     env_cfg.terminations = _terminations(cfg, purpose)
     env_cfg.events = _reset_events(base_events)

@@ -1,6 +1,9 @@
 """Reward terms by name: the vocabulary that ``conf/reward/*.yaml`` weights.
 
-Each entry maps a term name to a reward function and its parameters. Sign convention (SPEC §2):
+Every term, march's own and yours, is registered the same way: :func:`reward_term` on the
+function (anywhere in this file or in any module named in ``extra_modules``), with its default
+parameters and what it needs (``needs=("reference",)``; march.config.terms.NEEDS). The registry
+itself is :mod:`march.config.terms` (pure data: the config checks a YAML's params against it). Sign convention (SPEC §2):
 every term here is reward-signed — a penalty returns a value <= 0 — and every weight in the YAML
 is positive. mjlab's own L2/limit costs return a positive magnitude, so they are wrapped by
 :func:`_penalty`. A weight's sign is then never a second place where a penalty hides.
@@ -8,8 +11,9 @@ is positive. mjlab's own L2/limit costs return a positive magnitude, so they are
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import torch
@@ -20,7 +24,8 @@ from mjlab.managers.scene_entity_config import SceneEntityCfg
 from mjlab.tasks.velocity import mdp as vel_mdp
 from mjlab.utils.lab_api.math import quat_apply_inverse
 
-from march.config import ConfigError, RewardCfg
+from march.config import RewardCfg
+from march.config import terms as registry
 from march.env.course import CourseRuler
 from march.env.reference_command import reference_term
 from march.env.step_cache import constant, shared, site_pos, site_state
@@ -31,17 +36,36 @@ FOOT_SITES = ("left_foot", "right_foot")
 REFERENCE_COMMAND = "reference"
 """Name of the ``reference`` command term (march.env.reference_command) the CLF terms read."""
 
-CLF_TERMS = ("clf", "dclf", "holonomic_pos", "holonomic_vel")
-"""Terms that need the planner/reference command term (only reward=clf builds it)."""
+
+def reward_term(
+    name: str | None = None, *, needs: Iterable[str] = (), **params: Any
+) -> Callable[[Callable[..., torch.Tensor]], Callable[..., torch.Tensor]]:
+    """Add a reward term to the vocabulary ``conf/reward/*.yaml`` weights::
+
+        @reward_term("swing_clearance", needs=("reference",), height=0.08)
+        def swing_clearance(env, height: float): ...
+
+    The function takes the env (and ``params`` as keywords: these are the defaults a YAML's
+    ``reward.terms.<name>.params`` overrides) and returns one value per env, reward-signed (a
+    penalty returns <= 0 and gets a positive weight). ``needs``: what the env must build for it
+    (``reference``: the planner and the reference command). A name already taken is an error:
+    a term means one thing in every arm."""
+
+    def register(func: Callable[..., torch.Tensor]) -> Callable[..., torch.Tensor]:
+        registry.register_term(name or func.__name__, func, params, needs)
+        return func
+
+    return register
 
 
 def _penalty(func: Callable[..., torch.Tensor]) -> Callable[..., torch.Tensor]:
     """Turn a mjlab cost (>= 0) into a penalty term (<= 0) so that its weight is positive."""
 
+    @functools.wraps(func)  # the signature (what params the YAML may set) is mjlab's
     def term(env: ManagerBasedRlEnv, **params: Any) -> torch.Tensor:
         return -func(env, **params)
 
-    term.__name__ = f"penalty_{func.__name__}"
+    term.__name__ = term.__qualname__ = f"penalty_{func.__name__}"
     return term
 
 
@@ -58,6 +82,7 @@ def _ids(env: ManagerBasedRlEnv, kind: str, names: tuple[str, ...]) -> torch.Ten
     return constant(env, ("ids", kind, names), make)
 
 
+@reward_term(std=math.sqrt(0.2), body_names=("torso_link",))
 def upright(env: ManagerBasedRlEnv, std: float, body_names: tuple[str, ...]) -> torch.Tensor:
     """mjlab's ``upright`` kernel exp(-|g_xy|^2 / std^2) of the body's projected gravity (flat
     ground: no terrain sensors), with the body index kept on the device."""
@@ -67,6 +92,12 @@ def upright(env: ManagerBasedRlEnv, std: float, body_names: tuple[str, ...]) -> 
     return torch.exp(-gravity[:, :2].square().sum(1) / std**2)
 
 
+@reward_term(
+    sensor_name="feet_ground_contact",
+    command_name="twist",
+    command_threshold=0.05,
+    site_names=FOOT_SITES,
+)
 def foot_slip(
     env: ManagerBasedRlEnv,
     sensor_name: str,
@@ -84,12 +115,14 @@ def foot_slip(
     return -(vel.norm(dim=-1).square() * in_contact).sum(1) * active
 
 
+@reward_term()
 def alive(env: ManagerBasedRlEnv) -> torch.Tensor:
     """1 per control step while the episode runs (one kept tensor: the reward manager only
     reads it)."""
     return constant(env, "ones", lambda: torch.ones(env.num_envs, device=env.device))
 
 
+@reward_term(command_name="twist")
 def forward_progress(env: ManagerBasedRlEnv, command_name: str) -> torch.Tensor:
     """Velocity along the commanded direction, capped at the command (rewards crossing)."""
     robot = env.scene["robot"]
@@ -100,11 +133,13 @@ def forward_progress(env: ManagerBasedRlEnv, command_name: str) -> torch.Tensor:
     return torch.minimum(along, speed)
 
 
+@reward_term("torque")
 def torque_l2(env: ManagerBasedRlEnv) -> torch.Tensor:
     """Sum of squared actuator forces [N^2 m^2] (returned <= 0)."""
     return -env.scene["robot"].data.actuator_force.square().sum(-1)
 
 
+@reward_term(needs=("reference",))
 def clf(env: ManagerBasedRlEnv, command_name: str = REFERENCE_COMMAND) -> torch.Tensor:
     """r_clf = exp(-min(V, Vmax)/Vmax) in [e^-1, 1] (V computed once per step by the command)."""
     term = reference_term(env, command_name)
@@ -112,6 +147,7 @@ def clf(env: ManagerBasedRlEnv, command_name: str = REFERENCE_COMMAND) -> torch.
     return term.clf.clf_reward(v)
 
 
+@reward_term(needs=("reference",))
 def dclf(env: ManagerBasedRlEnv, command_name: str = REFERENCE_COMMAND) -> torch.Tensor:
     """r_dclf = -max((dV/dt + alpha V)/Vdmax, 0) <= 0; 0 where V has no history yet (episode
     start, or the step after a reference switch), so it is reset-safe."""
@@ -136,6 +172,7 @@ def stance_foot(
     return shared(env, ("stance_foot", command_name), make)
 
 
+@reward_term(needs=("reference",))
 def holonomic_pos(
     env: ManagerBasedRlEnv, sigma: float = math.sqrt(0.05), command_name: str = REFERENCE_COMMAND
 ) -> torch.Tensor:
@@ -147,6 +184,7 @@ def holonomic_pos(
     return torch.exp(-d2 / sigma**2)
 
 
+@reward_term(needs=("reference",))
 def holonomic_vel(
     env: ManagerBasedRlEnv, sigma: float = math.sqrt(0.1), command_name: str = REFERENCE_COMMAND
 ) -> torch.Tensor:
@@ -157,6 +195,7 @@ def holonomic_vel(
     return torch.exp(-e2 / sigma**2)
 
 
+@reward_term()
 def feet_edge_distance(
     env: ManagerBasedRlEnv, clearance: float = 0.08, sensor_name: str = "feet_ground_contact"
 ) -> torch.Tensor:
@@ -172,99 +211,37 @@ def feet_edge_distance(
     return -(pen * contact.float()).sum(-1)
 
 
-_REGISTERED: dict[str, tuple[Callable[..., torch.Tensor], dict[str, Any]]] = {}
-"""Terms added with :func:`reward_term` (by a module of yours, or a test)."""
-
-
-def reward_term(
-    name: str | None = None, **params: Any
-) -> Callable[[Callable[..., torch.Tensor]], Callable[..., torch.Tensor]]:
-    """Add a reward term to the vocabulary ``conf/reward/*.yaml`` weights::
-
-        @reward_term("upright_bonus", std=0.2)
-        def upright_bonus(env, std): ...
-
-    The function takes the env (and ``params`` as keywords) and returns one value per env,
-    reward-signed (a penalty returns <= 0 and gets a positive weight). A name already taken,
-    built-in or registered, is an error: a term means one thing in every arm."""
-
-    def register(func: Callable[..., torch.Tensor]) -> Callable[..., torch.Tensor]:
-        key = name or func.__name__
-        if key in _builtin_specs() or (key in _REGISTERED and _REGISTERED[key][0] is not func):
-            raise ConfigError(f"reward term {key!r} exists already; choose another name")
-        _REGISTERED[key] = (func, dict(params))
-        return func
-
-    return register
-
-
-def _term_specs() -> dict[str, tuple[Callable[..., torch.Tensor], dict[str, Any]]]:
-    return {**_builtin_specs(), **_REGISTERED}
-
-
-def _builtin_specs() -> dict[str, tuple[Callable[..., torch.Tensor], dict[str, Any]]]:
-    return {
-        "alive": (alive, {}),
-        "track_linear_velocity": (
-            vel_mdp.track_linear_velocity,
-            {"command_name": "twist", "std": math.sqrt(0.25)},
-        ),
-        "track_angular_velocity": (
-            vel_mdp.track_angular_velocity,
-            {"command_name": "twist", "std": math.sqrt(0.5)},
-        ),
-        "forward_progress": (forward_progress, {"command_name": "twist"}),
-        "upright": (upright, {"std": math.sqrt(0.2), "body_names": ("torso_link",)}),
-        "torque": (torque_l2, {}),
-        "joint_limits": (_penalty(envs_mdp.joint_pos_limits), {}),
-        "action_rate": (_penalty(envs_mdp.action_rate_l2), {}),
-        "foot_slip": (
-            foot_slip,
-            {
-                "sensor_name": "feet_ground_contact",
-                "command_name": "twist",
-                "command_threshold": 0.05,
-                "site_names": FOOT_SITES,
-            },
-        ),
-        "body_ang_vel": (
-            _penalty(vel_mdp.body_angular_velocity_penalty),
-            {"asset_cfg": SceneEntityCfg("robot", body_names=("torso_link",))},
-        ),
-        "clf": (clf, {}),
-        "dclf": (dclf, {}),
-        "holonomic_pos": (holonomic_pos, {}),
-        "holonomic_vel": (holonomic_vel, {}),
-        "feet_edge_distance": (feet_edge_distance, {}),
-    }
+# mjlab's own functions, registered the same way.
+reward_term("track_linear_velocity", command_name="twist", std=math.sqrt(0.25))(
+    vel_mdp.track_linear_velocity
+)
+reward_term("track_angular_velocity", command_name="twist", std=math.sqrt(0.5))(
+    vel_mdp.track_angular_velocity
+)
+reward_term("joint_limits")(_penalty(envs_mdp.joint_pos_limits))
+reward_term("action_rate")(_penalty(envs_mdp.action_rate_l2))
+reward_term("body_ang_vel", asset_cfg=SceneEntityCfg("robot", body_names=("torso_link",)))(
+    _penalty(vel_mdp.body_angular_velocity_penalty)
+)
 
 
 def available_terms() -> list[str]:
-    return sorted(_term_specs())
+    return sorted(registry.TERMS)
 
 
 def needs_reference(reward: RewardCfg) -> bool:
-    """Whether the env needs the ``reference`` command term: reward=clf, any CLF term, or a
-    teacher that observes the reference (``reward.observe_reference``)."""
-    return (
-        reward.name == "clf"
-        or reward.observe_reference
-        or any(t in reward.terms for t in CLF_TERMS)
-    )
+    """Whether the env needs the ``reference`` command term (the planner): a term of the arm
+    declares it needs it, or the teacher observes the reference (``reward.observe_reference``).
+    Derived from the terms, never from ``reward.name`` (a label)."""
+    return "reference" in registry.needs(reward)
 
 
 def reward_terms(reward: RewardCfg) -> dict[str, RewardTermCfg]:
-    """mjlab reward terms for ``reward.terms`` (name -> weight); unknown names are an error."""
-    specs = _term_specs()
-    if not reward.terms:
-        raise ConfigError(f"reward={reward.name} has no terms; add reward.terms in conf/reward/")
-    unknown = sorted(set(reward.terms) - set(specs))
-    if unknown:
-        raise ConfigError(
-            f"reward={reward.name}: unknown reward term(s) {unknown}; known: {', '.join(sorted(specs))}"
-        )
+    """mjlab reward terms for ``reward.terms`` (name -> weight or {weight, params}); an unknown
+    name or a param the function does not take is one line (march.config.terms.check_reward)."""
+    registry.check_reward(reward)
     terms = {}
-    for name, weight in reward.terms.items():
-        func, params = specs[name]
-        terms[name] = RewardTermCfg(func=func, weight=float(weight), params=dict(params))
+    for name, value in reward.terms.items():
+        spec, weight, params = registry.resolve(name, value)
+        terms[name] = RewardTermCfg(func=spec.func, weight=weight, params=params)
     return terms

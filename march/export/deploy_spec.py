@@ -255,9 +255,9 @@ def deployment_spec(
             "from_a_real_camera": REAL_DEPTH_RECIPE,
         },
         "terminations": {
-            "tilt_limit_rad": math.radians(cfg.reward.tilt_limit_deg),
-            "min_base_height_m": float(cfg.reward.min_base_height_m),
-            "max_foot_drop_m": float(cfg.reward.max_foot_drop_m),
+            "tilt_limit_rad": math.radians(cfg.termination.tilt_limit_deg),
+            "min_base_height_m": float(cfg.termination.min_base_height_m),
+            "max_foot_drop_m": float(cfg.termination.max_foot_drop_m),
             "meaning": "fall: acos(-g_b,z) > tilt_limit; root z - origin z < min_base_height; "
             "a foot site below origin z - max_foot_drop",
         },
