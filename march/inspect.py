@@ -31,7 +31,7 @@ def _jsonable(value: Any) -> Any:
     if isinstance(value, (int, str, bool)) or value is None:
         return value
     if callable(value):
-        return getattr(value, "__name__", repr(value))
+        return getattr(value, "__name__", type(value).__name__)  # a class term: its class
     if hasattr(value, "name") and hasattr(value, "body_names"):  # SceneEntityCfg
         parts = {
             k: getattr(value, k)
@@ -81,7 +81,7 @@ def describe_env(env: Any) -> dict[str, Any]:
                 "func": _jsonable(term.func),
                 "params": _jsonable(term.params),
             }
-            if mode == "interval":
+            if term.interval_range_s is not None:  # the push is a step event with its timers
                 entry["interval_range_s"] = _jsonable(term.interval_range_s)
             events.append(entry)
     return {

@@ -46,6 +46,7 @@ BENCH_KEYS = (
     "ops_per_step",
     "ratio_ops_march_vs_rough",
     "nonphysics_ms_per_step",
+    "ratio_ops_march_vs_rough_cuda_path",
     "ratio_nonphysics_march_vs_rough",
     "min_ratio_march_vs_rough",
     "targets",
