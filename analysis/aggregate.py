@@ -31,7 +31,7 @@ import pandas as pd
 from analysis.arms import Comparisons
 from analysis.groups import GroupKey, primary, series_names
 from analysis.rundirs import Run, eval_rows, stage_rows
-from analysis.stats import bootstrap, rel_of_means
+from analysis.stats import fieller_rel
 
 # metric key in eval.csv / summary.json (mean_<key>, se_<key>) -> short name, axis label
 METRICS = {
@@ -533,14 +533,14 @@ def final_table(runs: list[Run], mode: str, notes: list[str], comp: Comparisons)
             ci = ""
             big = a_vals is not None and b_vals is not None and min(a_vals.size, b_vals.size) >= 3
             if big and not math.isnan(rel):
-                _, lo, hi = bootstrap(rel_of_means, a_vals, b_vals)
+                _, lo, hi = fieller_rel(a_vals, b_vals)
                 ci = f" [{format_rel(lo)}, {format_rel(hi)}]"
             parts.append(f"{short} {format_rel(rel)}{ci}")
         n_a, n_b = int(table.at[i, "n_runs"]), int(table.at[j, "n_runs"])
         if min(n_a, n_b) < 3:
             parts.append(f"n={n_a} vs {n_b} seeds: fewer than 3 per arm, no claim")
         else:
-            parts.append(f"n={n_a} vs {n_b} seeds, 95% bootstrap CI in brackets")
+            parts.append(f"n={n_a} vs {n_b} seeds, 95% CI across seeds in brackets")
         if table.at[i, "compared_to"]:  # a group compared with several references
             table.at[i, "compared_to"] += "," + "/".join(ref)
             table.at[i, "relative"] += f"; vs {'/'.join(ref)}: " + ", ".join(parts)

@@ -21,8 +21,11 @@ One row per claim (``claims.csv`` / ``claims.md``; columns :data:`CLAIM_COLUMNS`
   other group of the reference arm (modelfree on stones at the clf budget, with the reference
   observation) in place of the paper's modelfree, so the CLF reward's own effect can be read.
 
-Intervals: percentile bootstrap over seeds (:mod:`analysis.stats`); verdicts by
-:func:`analysis.stats.verdict` (``inconclusive`` with fewer than 3 seeds per arm).
+Intervals (95%, across seeds, :mod:`analysis.stats`): Fieller's interval with Welch's degrees of
+freedom for relative differences of means (per iteration for the "every iteration from 500 on"
+rows), Student's t for paired per-seed differences, the percentile bootstrap over seeds for the
+sample-efficiency ratio; verdicts by :func:`analysis.stats.verdict` (``inconclusive`` with fewer
+than 3 seeds per arm).
 """
 
 from __future__ import annotations
@@ -35,7 +38,14 @@ import pandas as pd
 
 from analysis.groups import GroupKey, primary, series_names
 from analysis.rundirs import Run, stage_rows
-from analysis.stats import MIN_SEEDS, bootstrap, rel_of_means, verdict, worst_rel_over_iterations
+from analysis.stats import (
+    MIN_SEEDS,
+    bootstrap,
+    fieller_rel,
+    mean_interval,
+    verdict,
+    worst_over_iterations,
+)
 
 CLAIM_COLUMNS = ["claim", "paper", "measured", "ci_low", "ci_high", "n_seeds", "scale", "verdict"]
 PAPER_DISTILL_ITERATIONS = 1500
@@ -235,7 +245,7 @@ def _baseline_rows(name: str, a: list[Run], b: list[Run], inp: ClaimsInput) -> l
         mb, _ = _student_matrix(b, f"mean_{column}", start)
         stat = (math.nan, math.nan, math.nan)
         if ma.shape[1] and ma.shape[1] == mb.shape[1]:
-            stat = bootstrap(worst_rel_over_iterations, ma, mb)
+            stat = worst_over_iterations(ma, mb)
         rows.append(
             _row(
                 f"{name}: {label}, worst (a - b) / b from distill it {start} on",
@@ -253,7 +263,7 @@ def _baseline_rows(name: str, a: list[Run], b: list[Run], inp: ClaimsInput) -> l
         per_pair = _paired_cells(a, b, metric)
         stat = (math.nan, math.nan, math.nan)
         if per_pair.size:
-            stat = bootstrap(lambda x, _y: np.nanmean(x, axis=1), per_pair, per_pair[:1])
+            stat = mean_interval(per_pair)
         rows.append(
             _row(
                 f"{name}: {label}, paired cells both arms completed (final evaluation)",
@@ -323,7 +333,7 @@ def _ablation_rows(inp: ClaimsInput, notes: list[str]) -> list[dict]:
         if not v or not f:
             notes.append(f"claims: ablation {kv.variant} (stage {kv.stage}): no {column} rows")
             continue
-        stat = bootstrap(rel_of_means, fv, ff)
+        stat = fieller_rel(fv, ff)
         rows.append(
             _row(
                 f"ablation: {inp.full} ahead of {kv.variant}: reward per step, "
@@ -359,9 +369,11 @@ def claims_markdown(table: pd.DataFrame) -> str:
     lines = [
         "# The paper's claims, measured",
         "",
-        "Each row: the paper's figure, march's value with a 95% percentile-bootstrap interval "
-        "across seeds (seeds resampled per arm, 10,000 resamples), the seeds behind it and the "
-        "scale of the runs. Verdict: `reproduced` when the whole interval satisfies the claim, "
+        "Each row: the paper's figure, march's value with a 95% interval across seeds (relative "
+        "differences of means: Fieller's interval with Welch's degrees of freedom, per iteration "
+        "for the 'from iteration 500 on' rows, combined as [max low, max high]; paired rows: "
+        "Student's t over seed pairs; the sample-efficiency ratio: percentile bootstrap over "
+        "seeds, 10,000 resamples), the seeds behind it and the scale of the runs. Verdict: `reproduced` when the whole interval satisfies the claim, "
         "`not reproduced` when the whole interval violates it, `inconclusive` otherwise or with "
         f"fewer than {MIN_SEEDS} seeds per arm (a smoke-scale run measures plumbing, not the "
         "paper).",

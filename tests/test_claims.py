@@ -23,7 +23,14 @@ from analysis import figures as fig  # noqa: E402
 from analysis.claims import from_iteration, sample_efficiency_stat, steps_to_reach  # noqa: E402
 from analysis.groups import DuplicateRunsError, GroupKey, group_runs, series_names  # noqa: E402
 from analysis.rundirs import Run  # noqa: E402
-from analysis.stats import bootstrap, rel_of_means, verdict, worst_rel_over_iterations  # noqa: E402
+from analysis.stats import (  # noqa: E402
+    bootstrap,
+    fieller_rel,
+    rel_of_means,
+    verdict,
+    worst_over_iterations,
+    worst_rel_over_iterations,
+)
 
 
 @pytest.mark.parametrize(("n", "k"), [(20, 10), (30, 6), (12, 9)])
@@ -207,7 +214,49 @@ def test_final_table_differences_carry_intervals_or_say_no_claim(tmp_path, monke
         if n_seeds == 3:
             mf = (9.5 + 10.5 + 9.5) / 3
             assert f"torque {round((8.8 - mf) / mf * 100):+d}% [" in text
-            assert text.endswith("n=3 vs 3 seeds, 95% bootstrap CI in brackets")
+            assert text.endswith("n=3 vs 3 seeds, 95% CI across seeds in brackets")
         else:
             assert "[" not in text
             assert text.endswith("n=2 vs 2 seeds: fewer than 3 per arm, no claim")
+
+
+def test_fieller_interval_by_hand_with_a_constant_reference():
+    """b constant (no variance): the interval is m_a/m_b - 1 +- t(n_a - 1) s_a / (sqrt(n_a) m_b):
+    a = 8, 9, 10 (mean 9, s = 1), b = 10 -> -0.1 +- 4.3027 x 0.57735 / 10."""
+    point, lo, hi = fieller_rel([8.0, 9.0, 10.0], [10.0, 10.0, 10.0])
+    half = sps.t.ppf(0.975, 2) * (1 / math.sqrt(3)) / 10
+    assert point == pytest.approx(-0.1)
+    assert (lo, hi) == pytest.approx((-0.1 - half, -0.1 + half))
+
+
+@pytest.mark.parametrize("seed", range(25))
+def test_fieller_interval_inverts_the_welch_test(seed):
+    """Generated arms: the interval's ends are exactly the ratios where the Welch statistic
+    |m_a - r m_b| / sqrt(v_a + r^2 v_b) equals its t quantile, and it is below it inside."""
+    rng = np.random.default_rng(seed)
+    n_a, n_b = rng.integers(3, 8, size=2)
+    a = rng.normal(rng.uniform(5, 15), rng.uniform(0.2, 2), n_a)
+    b = rng.normal(rng.uniform(8, 15), rng.uniform(0.2, 2), n_b)
+    point, lo, hi = fieller_rel(a, b)
+    ma, mb = a.mean(), b.mean()
+    va, vb = a.var(ddof=1) / n_a, b.var(ddof=1) / n_b
+    r0 = ma / mb
+    df = (va + r0**2 * vb) ** 2 / (va**2 / (n_a - 1) + (r0**2 * vb) ** 2 / (n_b - 1))
+    t = sps.t.ppf(0.975, df)
+
+    def stat(rel):
+        r = rel + 1.0
+        return abs(ma - r * mb) / math.sqrt(va + r**2 * vb)
+
+    assert lo < point < hi
+    assert stat(lo) == pytest.approx(t, rel=1e-6) and stat(hi) == pytest.approx(t, rel=1e-6)
+    assert stat(point) < t and stat(lo - 0.01) > t and stat(hi + 0.01) > t
+
+
+def test_worst_over_iterations_combines_per_iteration_intervals():
+    a = np.array([[8.0, 9.5], [9.0, 10.0], [10.0, 10.5]])  # means 9, 10
+    b = np.full((3, 2), 10.0)
+    point, lo, hi = worst_over_iterations(a, b)
+    first, second = fieller_rel(a[:, 0], b[:, 0]), fieller_rel(a[:, 1], b[:, 1])
+    assert point == pytest.approx(0.0)  # the second iteration: no reduction at all
+    assert (lo, hi) == pytest.approx((max(first[1], second[1]), max(first[2], second[2])))
