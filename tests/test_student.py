@@ -259,7 +259,7 @@ def test_a_variant_is_its_parts():
     # a new name without parts is refused in one line naming the file to fix
     with pytest.raises(ConfigError, match=r"set student.image .* conf/student/z.yaml"):
         StudentNetCfg(variant="z")
-    with pytest.raises(ConfigError, match="student.fusion='attention' is not valid"):
+    with pytest.raises(ConfigError, match="student.fusion='attention' is not a registered fusion part; choose one of transformer, mlp, gru"):
         StudentNetCfg(variant="full", fusion="attention")
 
 

@@ -7,15 +7,13 @@ import.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 from march.config.checks import (
     ACTIVATIONS,
     BUILTIN_PARTS,
     COURSES,
-    FUSIONS,
-    HEADS,
-    IMAGE_ENCODERS,
     LOGGERS,
     RSL_ACTIVATIONS,
     SEED_MAX,
@@ -30,6 +28,7 @@ from march.config.checks import (
     _one_of,
     _positive,
 )
+from march.config.parts import check_parts, check_value
 
 
 @dataclass
@@ -42,10 +41,15 @@ class StudentCfg:
     image: str = ""
     """Image encoder: cnn, or none (the depth image is not read). Empty: the paper variant's."""
     fusion: str = ""
-    """Fusion of image, history and command: transformer or mlp. Empty: the paper variant's."""
+    """Fusion of image, history and command: transformer, mlp, gru, ... (``python -m
+    march.inspect list``). Empty: the paper variant's."""
     head: str = ""
     """Output: mdn (NLL of teacher samples) or deterministic (Huber against the teacher mean).
     Empty: the paper variant's."""
+    parts: dict[str, Any] = field(default_factory=dict)
+    """Config blocks of parts that have their own (part name -> its keys), e.g.
+    ``parts: {gru: {hidden_size: 128}}`` (march.config.parts; the paper's parts use the
+    ``student.*`` keys below)."""
     label: str = ""
     """How figures and tables name the variant (empty: the name)."""
     color: str = ""
@@ -91,17 +95,16 @@ class StudentCfg:
         _check_shapes("student", self)
         _identifier("student", "variant", self.variant)
         parts = BUILTIN_PARTS.get(self.variant, ("", "", ""))
-        for key, default, valid in zip(
-            ("image", "fusion", "head"), parts, (IMAGE_ENCODERS, FUSIONS, HEADS), strict=True
-        ):
+        for key, default in zip(("image", "fusion", "head"), parts, strict=True):
             if not getattr(self, key):
                 if not default:
                     raise ConfigError(
-                        f"student={self.variant}: set student.{key} ({', '.join(valid)}) in "
-                        f"conf/student/{self.variant}.yaml"
+                        f"student={self.variant}: set student.{key} in "
+                        f"conf/student/{self.variant}.yaml (python -m march.inspect list)"
                     )
                 setattr(self, key, default)
-            _one_of("student", key, getattr(self, key), valid)
+            check_value(key, getattr(self, key))
+        check_parts(self.parts, {"image": self.image, "fusion": self.fusion, "head": self.head})
         _each("student", "cnn_channels", self.cnn_channels, 1, nonempty=True)
         _each("student", "cnn_kernels", self.cnn_kernels, 1)
         _each("student", "cnn_strides", self.cnn_strides, 1)

@@ -29,44 +29,37 @@ nothing reads it: no CNN, no image tokens.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import torch
 import torch.nn.functional as F
 from rsl_rl.modules.normalization import EmpiricalNormalization
 from torch import nn
 
 from march.config import STUDENTS, StudentCfg
+from march.config.parts import PARTS, block, check_value
 from march.policies.mdn import (
-    MDNHead,
     MDNParams,
     mdn_nll,
     mixture_weights,
     mode_weight_entropy,
     top_mode_mean,
 )
+from march.policies.part_builders import activation as _activation  # noqa: F401
+from march.policies.part_builders import mlp as _mlp
 
 VARIANTS: tuple[str, ...] = STUDENTS
-"""The registered student variants (``conf/student/``; march.config.registry)."""
+"""Alias of ``march.config.STUDENTS`` (kept for older imports)."""
 
 
 StudentNetCfg = StudentCfg
-"""The architecture is the ``student`` section of the run config (march.config.StudentCfg)."""
+"""Alias of ``march.config.StudentCfg`` (kept for older imports)."""
 
 
-def _activation(name: str) -> nn.Module:
-    table = {"elu": nn.ELU, "relu": nn.ReLU, "gelu": nn.GELU, "silu": nn.SiLU, "tanh": nn.Tanh}
-    if name not in table:
-        raise ValueError(f"unknown activation {name!r}; choose from {sorted(table)}")
-    return table[name]()
-
-
-def _mlp(in_dim: int, hidden: Sequence[int], activation: str) -> tuple[nn.Sequential, int]:
-    layers: list[nn.Module] = []
-    for h in hidden:
-        layers += [nn.Linear(in_dim, h), _activation(activation)]
-        in_dim = h
-    return nn.Sequential(*layers), in_dim
+def _part(kind: str, name: str) -> object:
+    check_value(kind, name)
+    builder = PARTS[kind][name].builder
+    if builder is None:
+        raise ValueError(f"student.{kind}={name} is registered without a builder")
+    return builder
 
 
 class StudentPolicy(nn.Module):
@@ -98,78 +91,23 @@ class StudentPolicy(nn.Module):
         self.proprio_normalizer = EmpiricalNormalization(proprio_dim, eps=cfg.normalizer_eps)
         self.command_normalizer = EmpiricalNormalization(command_dim, eps=cfg.normalizer_eps)
 
-        if self.image == "cnn":
-            convs: list[nn.Module] = []
-            in_ch = 1
-            for ch, k, s in zip(cfg.cnn_channels, cfg.cnn_kernels, cfg.cnn_strides, strict=True):
-                convs += [
-                    nn.Conv2d(in_ch, ch, k, stride=s, padding=k // 2),
-                    _activation(cfg.activation),
-                ]
-                in_ch = ch
-            self.cnn = nn.Sequential(*convs)
-            with torch.no_grad():
-                fmap = self.cnn(torch.zeros(1, 1, *self.image_hw))
-            self.cnn_out_channels = int(fmap.shape[1])
-            self.fmap_hw = (int(fmap.shape[2]), int(fmap.shape[3]))
-        else:  # image: none
-            self.cnn = None
-            self.cnn_out_channels = 0
-            self.fmap_hw = (0, 0)
+        # Each part from its registry entry (march.policies.part_builders), in this order (the
+        # order the paper variants' parameters were always created in: same seed, same init).
+        self._image = _part("image", self.image)
+        self._fusion = _part("fusion", self.fusion_kind)
+        self._head = _part("head", cfg.head)
+        blocks = {k: block(cfg.parts, k, v) for k, v in self.part_names().items()}
+        self.cnn_out_channels, self.fmap_hw = self._image.build(self, cfg, blocks["image"])
         self.num_image_tokens = self.fmap_hw[0] * self.fmap_hw[1]
-
-        if self.fusion_kind == "mlp":
-            fused_in = (
-                self.cnn_out_channels * self.num_image_tokens
-                + history_len * proprio_dim
-                + command_dim
-            )
-            self.fusion, trunk_dim = _mlp(fused_in, cfg.fusion_mlp, cfg.activation)
-        else:
-            d = cfg.d_model
-            self.image_proj = nn.Linear(self.cnn_out_channels, d) if self.cnn is not None else None
-            self.proprio_proj = nn.Linear(proprio_dim, d)
-            self.command_proj = nn.Linear(command_dim, d)
-            self.cls_token = nn.Parameter(torch.zeros(1, 1, d))
-            # token order: [CLS, command, history_1..history_H, image_1..image_N]
-            self.num_tokens = 2 + history_len + self.num_image_tokens
-            self.pos_embed = nn.Parameter(torch.zeros(1, self.num_tokens, d))
-            nn.init.normal_(self.cls_token, std=0.02)
-            nn.init.normal_(self.pos_embed, std=0.02)
-
-            def make_layer() -> nn.TransformerEncoderLayer:
-                return nn.TransformerEncoderLayer(
-                    d_model=d,
-                    nhead=cfg.n_heads,
-                    dim_feedforward=cfg.dim_feedforward,
-                    dropout=0.0,
-                    activation="gelu",
-                    batch_first=True,
-                    norm_first=True,
-                )
-
-            self.transformer = nn.TransformerEncoder(
-                make_layer(), num_layers=cfg.n_layers, enable_nested_tensor=False
-            )
-            # TransformerEncoder deep-copies one layer, so every layer would start with the same
-            # weights; give each layer its own initialisation instead.
-            self.transformer.layers = nn.ModuleList(make_layer() for _ in range(cfg.n_layers))
-            self.out_norm = nn.LayerNorm(d)
-            trunk_dim = d
-
+        trunk_dim = self._fusion.build(
+            self, cfg, blocks["fusion"], self.cnn_out_channels, self.num_image_tokens
+        )
+        self.is_mdn = bool(self._head.mixture)
         self.head_mlp, head_dim = _mlp(trunk_dim, cfg.head_hidden, cfg.activation)
-        if self.is_mdn:
-            self.mdn = MDNHead(
-                head_dim,
-                num_actions,
-                num_modes=cfg.num_modes,
-                min_std=cfg.min_std,
-                log_std_min=cfg.log_std_min,
-                log_std_max=cfg.log_std_max,
-                init_log_std=cfg.init_log_std,
-            )
-        else:
-            self.action_out = nn.Linear(head_dim, num_actions)
+        self._head.build(self, cfg, blocks["head"], head_dim, num_actions)
+
+    def part_names(self) -> dict[str, str]:
+        return {"image": self.image, "fusion": self.fusion_kind, "head": self.cfg.head}
 
     # ------------------------------------------------------------------ forward
     def _check_inputs(
@@ -193,29 +131,15 @@ class StudentPolicy(nn.Module):
             self._check_inputs(proprio_hist, command, depth)
         p = self.proprio_normalizer(proprio_hist)  # (B, H, P); stats broadcast over H
         c = self.command_normalizer(command)  # (B, C)
-        fmap = self.cnn(depth) if self.cnn is not None else None  # (B, Ch, h, w)
-        if self.fusion_kind == "mlp":
-            parts = [p.flatten(1), c] if fmap is None else [fmap.flatten(1), p.flatten(1), c]
-            z = self.fusion(torch.cat(parts, dim=-1))
-        else:
-            hist = self.proprio_proj(p)  # (B, H, d)
-            cmd = self.command_proj(c).unsqueeze(1)  # (B, 1, d)
-            cls = self.cls_token.expand(hist.shape[0], -1, -1)
-            seq = [cls, cmd, hist]
-            if fmap is not None:
-                seq.append(self.image_proj(fmap.flatten(2).transpose(1, 2)))  # (B, N, d)
-            tokens = torch.cat(seq, dim=1) + self.pos_embed
-            z = self.out_norm(self.transformer(tokens)[:, 0])
+        fmap = self._image.forward(self, depth)  # (B, Ch, h, w) or None
+        z = self._fusion.forward(self, p, c, fmap)
         return self.head_mlp(z)
 
     def forward(
         self, proprio_hist: torch.Tensor, command: torch.Tensor, depth: torch.Tensor
     ) -> MDNParams | torch.Tensor:
         """MDN head: :class:`MDNParams`; deterministic head: (B, A) actions."""
-        z = self.features(proprio_hist, command, depth)
-        if self.is_mdn:
-            return self.mdn(z)
-        return self.action_out(z)
+        return self._head.forward(self, self.features(proprio_hist, command, depth))
 
     def act_inference(
         self, proprio_hist: torch.Tensor, command: torch.Tensor, depth: torch.Tensor
