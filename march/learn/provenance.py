@@ -19,6 +19,7 @@ from dataclasses import asdict, fields, is_dataclass, replace
 from typing import Any
 
 from march.config import ConfigError, MarchConfig
+from march.config.terms import import_extra_modules
 
 # What defines a policy, by the dotted path of its config field. A path naming a section takes
 # every field of that section.
@@ -183,6 +184,8 @@ def apply_checkpoint_config(
             f"{kind}_ckpt={path} carries no saved config, so it cannot say which policy it is; "
             "use a checkpoint written by march.train"
         )
+    # The plug-ins its run named (a student part or term of theirs) are imported first.
+    import_extra_modules(saved.get("extra_modules") or [])
     wanted = policy_fields(kind, distill)
     leaves = [leaf for f in wanted for leaf in _leaves(f, _get(cfg, f))]
     # 1. A conflicting explicit choice is an error, before anything is changed.
