@@ -289,10 +289,13 @@ def test_before_hydra_leaves_a_new_directory_to_hydra_and_locks_an_existing_run(
     argv = ["march.train", f"hydra.run.dir={tmp_path / 'new'}"]
     assert before_hydra(argv, multirun=False) == argv and not (tmp_path / "new").exists()
     run = _saved_run(tmp_path)
-    got = before_hydra(["march.train", f"hydra.run.dir={run}"], multirun=False)
+    got = before_hydra(["march.train", "compute=smoke", f"hydra.run.dir={run}"], multirun=False)
     try:
         assert got[-1] == "hydra.output_subdir=null"
         assert json.loads((run / "run.lock").read_text())["pid"] == os.getpid()
+        # Another config is refused here, before Hydra writes its job log into the run.
+        with pytest.raises(ConfigError, match=r"another config \(seed: 0 -> 5\)"):
+            before_hydra(["m", "compute=smoke", "seed=5", f"hydra.run.dir={run}"], False)
     finally:
         run_lock.release_all()
 

