@@ -387,7 +387,7 @@ def test_two_ranks_run_one_policy_and_rank0_writes(tmp_path):
     }  # fmt: skip
     # Rank 1 printed into its own log file; Hydra's files are rank 0's alone.
     assert [p.name for p in (run / "ranks").iterdir()] == ["rank1.log"]
-    assert "[teacher]" not in (run / "ranks" / "rank1.log").read_text()
+    assert "[teacher] it 2/2" in (run / "ranks" / "rank1.log").read_text()  # its own output
     ckpt = torch.load(run / "teacher" / "latest.pt", weights_only=True)
     assert ckpt["world_size"] == 2 and len(ckpt["rank_rng"]) == 2
     assert not torch.equal(ckpt["rank_rng"][0]["rng"], ckpt["rank_rng"][1]["rng"])
@@ -632,3 +632,20 @@ def test_two_nodes_on_one_machine_train_one_run(tmp_path):
                 rf"{stage} update {k}: (\d+)/\1 tensors equal on both nodes; rollouts differ: True"
             )
             assert re.search(pattern, out.stdout), (stage, k)
+
+
+def test_a_resume_on_another_rank_count_is_refused_before_any_env(tmp_path):
+    from march.config.cli import load
+    from march.learn.checkpoint import CheckpointError
+    from march.learn.run_dir import check_run_checkpoints
+
+    (tmp_path / "teacher").mkdir()
+    payload = {"kind": "teacher", "iteration": 3, "world_size": 2, "rank_states": [{}, {}]}
+    torch.save(payload, tmp_path / "teacher" / "latest.pt")
+    with pytest.raises(CheckpointError) as err:  # this process is a one-process run
+        check_run_checkpoints(tmp_path, load(["compute=smoke"]), "resume")
+    assert str(err.value) == (
+        f"resume={tmp_path}: {tmp_path / 'teacher' / 'latest.pt'}: written by 2 rank(s), this "
+        "run has 1: resume it with 2 process(es) (torchrun --nproc_per_node / Slurm tasks x "
+        "nodes = 2)"
+    )

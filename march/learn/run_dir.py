@@ -140,7 +140,7 @@ def check_run_checkpoints(run_dir: Path, cfg: MarchConfig, option: str) -> list[
             continue
         label = f"{option}={run_dir}: {path}"
         payload = load_checkpoint(path, kind, "cpu", source=label)
-        if why := None:  # resumed on another number of ranks (issue 37)
+        if why := world_mismatch(payload):  # resumed on another number of ranks (issue 37)
             raise CheckpointError(f"{label}: {why}")
         saved = check_checkpoint(payload, kind, label)
         if saved is not None:
