@@ -3,6 +3,12 @@
     python -m march.play student_ckpt=outputs/<run>/student/latest.pt            # rollout.mp4
     python -m march.play teacher_ckpt=outputs/<run>/teacher/latest.pt out=teacher.gif
     python -m march.play student_ckpt=... out=short.mp4 eval.episode_length_s=5 seed=3
+    python -m march.play student_ckpt=... viewer=viser [port=8080] [steps=N]       # browser
+
+``viewer=viser`` serves mjlab's browser viewer (viser) on ``port`` instead of writing a video:
+play / pause / step / reset, march's reward terms in its Rewards tab, and the footstep plan drawn
+(:mod:`march.env.plan_drawing`); it runs until Ctrl-C, or for ``steps`` control steps. The video
+(``viewer=video``, the default) gets the same plan drawing on its frames.
 
 The checkpoint defines the policy: its saved config's reward set, student network and observation
 layout replace the command line's (``march.learn.provenance``); a conflicting explicit choice
@@ -28,12 +34,15 @@ from typing import Any
 
 from march.config import MarchConfig
 from march.config.cli import fail, run_tool
+from march.env.plan_drawing import enable_plan_drawing
 from march.env.rendering import HEIGHT, WIDTH, make_renderer, rendering_error
 
 USAGE = (
     "usage: python -m march.play student_ckpt=<file> | teacher_ckpt=<file> "
-    "[out=rollout.mp4|.gif] [key=value ...]"
+    "[out=rollout.mp4|.gif] [viewer=video|viser] [port=8080] [steps=N] [key=value ...]"
 )
+VIEWERS = ("video", "viser")
+"""``viewer=``: an MP4 / GIF file (``video``) or mjlab's browser viewer (``viser``)."""
 DEFAULT_OUT = "rollout.mp4"
 SUFFIXES = (".mp4", ".gif")
 TARGET_FPS = 25.0
@@ -41,6 +50,33 @@ TARGET_FPS = 25.0
 """Tracking camera on the torso: in front of the robot and to its right, looking back at it."""
 
 Policy = Callable[[dict[str, Any]], Any]
+
+
+@dataclass
+class ViewerArgs:
+    """play's own arguments (not config keys): ``viewer=``, ``port=``, ``steps=``."""
+
+    viewer: str = "video"
+    port: int = 8080
+    steps: int | None = None
+
+
+def viewer_args(args: list[str]) -> tuple[ViewerArgs, list[str]]:
+    """Take ``viewer=``, ``port=`` and ``steps=`` out of ``args``; one line on a bad value."""
+    out, rest = ViewerArgs(), []
+    for arg in args:
+        key, _, value = arg.partition("=")
+        if key == "viewer":
+            if value not in VIEWERS:
+                fail(f"viewer={value}: choose one of {', '.join(VIEWERS)}")
+            out.viewer = value
+        elif key in ("port", "steps"):
+            if not value.isdigit() or not (0 < int(value) < (65536 if key == "port" else 10**9)):
+                fail(f"{arg}: give a positive integer{' below 65536' if key == 'port' else ''}")
+            setattr(out, key, int(value))
+        else:
+            rest.append(arg)
+    return out, rest
 
 
 @dataclass
@@ -94,7 +130,12 @@ def write_video(path: Path, frames: Sequence[Any], fps: float) -> None:
     mediapy.write_video(path, frames, fps=fps, codec=codec)
 
 
-def play(cfg: MarchConfig, env: Any = None, explicit_overrides: Sequence[str] = ()) -> PlayResult:
+def play(
+    cfg: MarchConfig,
+    env: Any = None,
+    explicit_overrides: Sequence[str] = (),
+    view: ViewerArgs | None = None,
+) -> PlayResult | int:
     """Roll the checkpoint out for one episode on the eval env and write the video.
 
     ``env`` (an ``eval``-purpose env) may be passed in to reuse one; otherwise one env is built
@@ -107,8 +148,9 @@ def play(cfg: MarchConfig, env: Any = None, explicit_overrides: Sequence[str] = 
     from march.learn.checkpoint import CheckpointError, load_checkpoint
     from march.learn.provenance import apply_checkpoint_config, policy_changes
 
+    view = view or ViewerArgs()
     kind, path = checkpoint_arg(cfg)
-    out = out_path(cfg)
+    out = out_path(cfg) if view.viewer == "video" else Path(DEFAULT_OUT)
     try:  # a wrong or unreadable file fails here, before the env is built
         payload = load_checkpoint(path, kind, cfg.compute.device)
         policy_cfg = apply_checkpoint_config(cfg, payload, explicit_overrides, path, kind)
@@ -123,7 +165,7 @@ def play(cfg: MarchConfig, env: Any = None, explicit_overrides: Sequence[str] = 
     cfg = policy_cfg
     for change in changes:
         print(f"[checkpoint] {kind}_ckpt={path} defines the policy: {change}", flush=True)
-    why = rendering_error()
+    why = rendering_error() if view.viewer == "video" else None
     if why:
         fail(why)
     from march.env.course import CourseRuler
@@ -142,6 +184,9 @@ def play(cfg: MarchConfig, env: Any = None, explicit_overrides: Sequence[str] = 
             policy = policy_from_checkpoint(env, cfg, kind, payload, path)
         except CheckpointError as err:
             fail(str(err))
+        if view.viewer == "viser":
+            return serve(env, policy, kind, path, view)
+        term = enable_plan_drawing(env)
         renderer = make_renderer(env)
         ruler = CourseRuler(env)
         dt = env.step_dt
@@ -156,7 +201,7 @@ def play(cfg: MarchConfig, env: Any = None, explicit_overrides: Sequence[str] = 
         )
 
         def draw() -> Any:
-            renderer.update(env.sim.data)
+            renderer.update(env.sim.data, debug_vis_callback=term.debug_vis)
             return renderer.render().copy()
 
         frames = [draw()]
@@ -204,14 +249,30 @@ def play(cfg: MarchConfig, env: Any = None, explicit_overrides: Sequence[str] = 
     return result
 
 
+def serve(env: Any, policy: Policy, kind: str, path: str, view: ViewerArgs) -> int:
+    """mjlab's browser viewer on ``env`` and ``policy`` (``viewer=viser``): the control steps run."""
+    from march.env.browser_viewer import open_viewer
+
+    def ready(url: str) -> None:
+        print(
+            f"[play] {kind} {path}: mjlab's viewer at {url} (Rewards tab: march's reward terms; "
+            "the plan is drawn)" + (f"; {view.steps} steps" if view.steps else "; Ctrl-C stops"),
+            flush=True,
+        )
+
+    steps = open_viewer(env, policy, port=view.port, steps=view.steps, on_ready=ready)
+    print(f"[play] viewer closed after {steps} control steps", flush=True)
+    return steps
+
+
 def expected_frames(steps: int, stride: int) -> int:
     """Frames ``play`` writes for an episode of ``steps`` control steps (the reset state is 1)."""
     return 1 + (steps - 1) // stride  # the last step's state belongs to the auto-reset episode
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    args = list(sys.argv[1:] if argv is None else argv)
-    run_tool(lambda cfg: play(cfg, explicit_overrides=args), args, usage=USAGE)
+    view, args = viewer_args(list(sys.argv[1:] if argv is None else argv))
+    run_tool(lambda cfg: play(cfg, explicit_overrides=args, view=view), args, usage=USAGE)
 
 
 if __name__ == "__main__":

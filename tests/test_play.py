@@ -113,3 +113,217 @@ def test_checkpoint_policy_conflict_is_one_line_before_any_env(tmp_path, capsys)
     assert err.startswith(f"error: reward=clf conflicts with student_ckpt={ckpt}")
     assert "reward.name=modelfree" in err
     assert not (tmp_path / "x.env.log").exists()  # no env was built
+
+
+# --------------------------------------------------------------- the plan drawn (issue 40)
+
+
+def test_considered_stones_are_the_m_nearest_each_foothold():
+    """Hand-made stones on a line at x = 0..9; footholds at x = 2.1 and 7.9, m = 2: the two
+    nearest 2.1 are stones 2 (0.1 away) and 3 (0.9; stone 1 is 1.1); nearest 7.9 are 8 (invalid,
+    skipped), 7 (0.9) and 9 (1.1) -> {2, 3, 7, 9}."""
+    from march.env.plan_drawing import considered_stones
+
+    centers = torch.zeros(10, 3)
+    centers[:, 0] = torch.arange(10.0)
+    valid = torch.ones(10, dtype=torch.bool)
+    valid[8] = False
+    feet = torch.tensor([[2.1, 0.0, 0.0], [7.9, 0.0, 0.0]])
+    got = considered_stones(centers, valid, feet, 2)
+    assert torch.nonzero(got)[:, 0].tolist() == [2, 3, 7, 9]
+    assert not considered_stones(centers, torch.zeros(10, dtype=torch.bool), feet, 2).any()
+
+
+class _Recorder:
+    """An mjlab DebugVisualizer that records what is drawn (a real subclass: the same calls a
+    viewer receives), with a label per drawn item."""
+
+    def __init__(self):
+        from mjlab.viewer.debug_visualizer import DebugVisualizer
+
+        class Rec(DebugVisualizer):
+            env_idx, show_all_envs, meansize = 0, False, 0.1
+
+            def __init__(self):
+                self.items = []
+
+            def _add(self, kind, *args, label=None, **kw):
+                self.items.append((kind, args, label))
+
+            def add_arrow(self, *a, **k):
+                self._add("arrow", *a, **k)
+
+            def add_ghost_mesh(self, *a, **k):
+                self._add("ghost", *a, **k)
+
+            def add_frame(self, *a, **k):
+                self._add("frame", *a, **k)
+
+            def add_sphere(self, *a, **k):
+                self._add("sphere", *a, **k)
+
+            def add_cylinder(self, *a, **k):
+                self._add("cylinder", *a, **k)
+
+            def add_ellipsoid(self, *a, **k):
+                self._add("ellipsoid", *a, **k)
+
+            def add_box(self, *a, **k):
+                self._add("box", *a, **k)
+
+            def clear(self):
+                self.items.clear()
+
+        self.vis = Rec()
+
+
+@pytest.mark.sim
+def test_plan_drawn_through_the_debug_visualizer_matches_the_term():
+    """On the real eval env: every planned foothold is drawn where the term planned it,
+    numbered 1..N, alternating feet with step 1 on the swing foot; the swing target post stands
+    on step.target; the considered stones include the stone under each foothold."""
+    import numpy as np
+
+    from march.config.cli import load
+    from march.env.build import make_env
+    from march.env.plan_drawing import FOOT_RADIUS, enable_plan_drawing
+
+    torch.set_num_threads(1)
+    cfg = load(["compute=smoke"])
+    env = make_env(cfg, "eval", num_envs=1)
+    try:
+        env.reset()
+        zero = torch.zeros(1, env.action_manager.total_action_dim)
+        for _ in range(3):
+            env.step(zero)
+        term = enable_plan_drawing(env)
+        rec = _Recorder().vis
+        env.update_visualizers(rec)  # mjlab's path: managers -> command term -> march's drawing
+        video_labels = None
+        if rendering.rendering_error() is None:  # the video's frames: the same drawing
+            renderer = rendering.make_renderer(env)
+            try:
+                renderer.update(env.sim.data)
+                bare = renderer.renderer.scene.ngeom
+                renderer.update(env.sim.data, debug_vis_callback=term.debug_vis)
+                scene = renderer.renderer.scene
+                assert scene.ngeom - bare == len(rec.items)
+                video_labels = [scene.geoms[i].label for i in range(bare, scene.ngeom)]
+            finally:
+                renderer.close()
+        plan = term.plan_footholds[0].numpy()
+        swing_is_left = not bool(term.stance_is_left[0])
+        target = term.step.target[0].numpy()
+        n_stones = int(term.footholds.valid[0].sum())
+    finally:
+        env.close()
+    balls = [(a, lab) for kind, a, lab in rec.items if kind == "sphere" and lab != "CoM reference"]
+    assert len(balls) == plan.shape[0]
+    for j, (args, label) in enumerate(balls):
+        left = (j % 2 == 0) == swing_is_left
+        assert label == f"{j + 1}{'L' if left else 'R'}"
+        assert np.allclose(args[0], plan[j] + np.array([0, 0, FOOT_RADIUS * 0.6]), atol=1e-6)
+    posts = [a for kind, a, _ in rec.items if kind == "cylinder" and a[2] == 0.012]
+    assert len(posts) == 1 and np.allclose(posts[0][0], target, atol=1e-6)
+    boxes = [a for kind, a, _ in rec.items if kind == "box"]
+    assert 0 < len(boxes) <= n_stones
+    for p in plan:  # the stone under each planned foothold is drawn as considered
+        assert any(
+            abs(b[0][0] - p[0]) <= b[1][0] + 1e-4 and abs(b[0][1] - p[1]) <= b[1][1] + 1e-4
+            for b in boxes
+        )
+    assert [lab for kind, _, lab in rec.items if lab == "CoM reference"] == ["CoM reference"]
+    if video_labels is not None:  # the numbers are written on the video's foothold balls
+        assert [x for x in video_labels if x] == [lab for _, lab in balls]
+
+
+def test_viewer_argument_errors_are_one_line(capsys):
+    for args, message in (
+        (["viewer=vr"], "viewer=vr: choose one of video, viser"),
+        (["viewer=viser", "port=0"], "port=0: give a positive integer below 65536"),
+        (["viewer=viser", "steps=x"], "steps=x: give a positive integer"),
+    ):
+        with pytest.raises(SystemExit) as exc:
+            play.main(args)
+        assert exc.value.code == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and message in err and len(err.splitlines()) == 1
+
+
+def _smoke_student(path: Path) -> None:
+    """A freshly initialised smoke-scale student checkpoint (the trained one's layout)."""
+    from march.config.cli import load
+    from march.env.build import make_env
+    from march.learn.distill import build_student, student_layout
+
+    cfg = load(["compute=smoke"])
+    env = make_env(cfg, "eval", num_envs=1)
+    try:
+        obs, _ = env.reset()
+        layout = student_layout(obs, cfg, env.action_manager.total_action_dim)
+        student = build_student(cfg, layout, cfg.compute.device)
+    finally:
+        env.close()
+    torch.save(
+        {
+            "kind": "student",
+            "iteration": 0,
+            "env_steps": 0,
+            "config": asdict(cfg),
+            "layout": layout,
+            "student_state_dict": student.state_dict(),
+        },
+        path,
+    )
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.sim
+@pytest.mark.slow
+def test_viser_viewer_serves_its_page_on_a_smoke_checkpoint(tmp_path):
+    """``python -m march.play ... viewer=viser`` headless: the URL line is printed, the page is
+    served (viser's client), the policy steps, and Ctrl-C stops it cleanly."""
+    import os
+    import signal
+    import time
+    import urllib.request
+
+    torch.set_num_threads(1)
+    ckpt = tmp_path / "student.pt"
+    _smoke_student(ckpt)
+    port = _free_port()
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "march.play", f"student_ckpt={ckpt}", "compute=smoke",
+         "viewer=viser", f"port={port}"],
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+    )  # fmt: skip
+    lines = []
+    try:
+        deadline = time.time() + 600
+        while time.time() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if "mjlab's viewer at http://" in line:
+                break
+        assert any(f"http://localhost:{port}" in x for x in lines), "".join(lines[-20:])
+        page = urllib.request.urlopen(f"http://localhost:{port}/", timeout=30).read().decode()
+        assert "<html" in page.lower() and "<script" in page.lower()
+        time.sleep(3.0)  # let the policy step
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, rest[-2000:]
+    closed = [x for x in rest.splitlines() if x.startswith("[play] viewer closed after")]
+    assert closed and int(closed[0].split()[4]) > 0
