@@ -221,7 +221,7 @@ def test_watchdog_and_ctrl_c_over_dds(bundle):
         # the watchdog: the robot dies while the policy runs
         sim = start("sim", *common, "band=100", "lockstep=true")
         assert "[sim] publishing" in sim.stdout.readline()
-        loop = start("policy", *common, "start=auto", "guard=report", *fast)
+        loop = start("policy", *common, "start=auto", "guard=report", "deadlines=report", *fast)
         head = _until(loop, "hold -> policy")
         time.sleep(0.3)
         sim.kill()
@@ -234,7 +234,7 @@ def test_watchdog_and_ctrl_c_over_dds(bundle):
         # Ctrl-C
         sim = start("sim", *common, "band=100", "lockstep=true")
         assert "[sim] publishing" in sim.stdout.readline()
-        loop = start("policy", *common, "start=auto", "guard=report", *fast)
+        loop = start("policy", *common, "start=auto", "guard=report", "deadlines=report", *fast)
         head = _until(loop, "hold -> policy")
         time.sleep(0.3)
         loop.send_signal(signal.SIGINT)

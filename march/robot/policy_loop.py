@@ -78,6 +78,7 @@ class Controller:
     timing: Timing
     command: tuple[float, float] = (math.nan, math.nan)
     guard_action: str = "damp"  # damp: a guard flag enters damping; report: only recorded
+    deadline_action: str = "damp"  # damp: the deadline budget damps; report: only counted
     log: list[StepLog] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -194,7 +195,8 @@ class Controller:
         if x is not None and prev == POLICY:
             flags += [f"dq over the limit at {n}" for n in self._too_fast(x["dq"])]
         acted = tuple(flags) if self.guard_action == "damp" else ()
-        state = self.machine.tick(Tick(now, lowstate_age, missed, acted, start, stop, variant_ok))
+        late = missed and self.deadline_action == "damp"
+        state = self.machine.tick(Tick(now, lowstate_age, late, acted, start, stop, variant_ok))
         elapsed = now - (self.machine.since or now)
         action, target = None, None
         if state == POLICY and x is not None:

@@ -8,8 +8,9 @@
 file. ``policy``: the robot loop (:mod:`march.robot.policy_loop`); ``start=enter`` waits in hold
 for a line on stdin, ``start=auto`` starts after ``hold_s``; ``seconds``: how long the policy
 runs before damping (default: until Ctrl-C); ``vx`` / ``vy`` the command [m/s, body frame];
-``guard=damp`` (default: a guard flag enters damping) or ``report`` (flags only recorded; sim
-only); ``zero_torque_s`` / ``ramp_s`` / ``hold_s`` / ``damping_s`` override the bundle's
+``guard=damp`` (default: a guard flag enters damping) or ``report`` (flags only recorded; ``lo``
+only); ``deadlines=damp`` (default: the missed-deadline budget damps) or ``report`` (counted
+only; ``lo`` only: the self-test's default, where other processes share the CPU); ``zero_torque_s`` / ``ramp_s`` / ``hold_s`` / ``damping_s`` override the bundle's
 timings; ``log=<file.json>`` writes every step. ``sim``: the MuJoCo robot
 (:mod:`march.robot.sim_robot`). ``selftest``: both on loopback (:mod:`march.robot.selftest`).
 Bad input is one line on stderr and exit status 2, before anything starts.
@@ -38,6 +39,7 @@ KEYS: dict[str, Any] = {
     "seconds": float,
     "start": str,
     "guard": str,
+    "deadlines": str,
     "vx": float,
     "vy": float,
     "course": str,
@@ -52,10 +54,10 @@ KEYS: dict[str, Any] = {
     "max_seconds": float,
 }
 ALLOWED = {
-    "policy": {"bundle", "domain", "interface", "seconds", "start", "guard", "vx", "vy", "log",
+    "policy": {"bundle", "domain", "interface", "seconds", "start", "guard", "deadlines", "vx", "vy", "log",
                "zero_torque_s", "ramp_s", "hold_s", "damping_s", "max_seconds"},
     "sim": {"bundle", "domain", "interface", "seconds", "course", "band", "lockstep", "log"},
-    "selftest": {"bundle", "domain", "interface", "seconds", "guard", "course", "keep"},
+    "selftest": {"bundle", "domain", "interface", "seconds", "guard", "deadlines", "course", "keep"},
 }  # fmt: skip
 
 
@@ -85,6 +87,7 @@ def parse(argv: Sequence[str]) -> tuple[str, dict[str, Any]]:
         "seconds": lambda v: v > 0,
         "start": lambda v: v in ("enter", "auto"),
         "guard": lambda v: v in ("damp", "report"),
+        "deadlines": lambda v: v in ("damp", "report"),
         "lockstep": lambda v: v in ("true", "false"),
         "band": lambda v: 0 <= v < math.inf,
         "course": lambda v: v in ("hardware", "stones"),
@@ -95,8 +98,9 @@ def parse(argv: Sequence[str]) -> tuple[str, dict[str, Any]]:
     for key, ok in checks.items():
         if key in args and not ok(args[key]):
             raise UsageError(f"{key}={args[key]}: not allowed ({USAGE})")
-    if job == "policy" and args.get("guard") == "report" and args.get("interface", "eth0") != "lo":
-        raise UsageError("guard=report only on the loopback interface (a simulated robot)")
+    for key in ("guard", "deadlines"):
+        if job == "policy" and args.get(key) == "report" and args.get("interface", "eth0") != "lo":
+            raise UsageError(f"{key}=report only on the loopback interface (a simulated robot)")
     return job, args
 
 
@@ -115,7 +119,9 @@ def policy(args: dict[str, Any]) -> int:
         check_command(spec, (vx, vy, 0.0))
     except CommandRefused as err:
         raise UsageError(str(err)) from None
-    ctl = Controller(bundle, timing, (vx, vy), args.get("guard", "damp"))
+    ctl = Controller(
+        bundle, timing, (vx, vy), args.get("guard", "damp"), args.get("deadlines", "damp")
+    )
     domain, iface = args.get("domain", 0), args.get("interface", "eth0")
     print(f"[policy] domain {domain}, interface {iface}; zero torque until LowState", flush=True)
     log = run(
@@ -133,6 +139,7 @@ def policy(args: dict[str, Any]) -> int:
             "period_s": float(spec["rates"]["control_dt_s"]),
             "command": [float(vx), float(vy)],
             "guard": ctl.guard_action,
+            "deadlines": ctl.deadline_action,
             "transitions": ctl.machine.transitions,
             "steps": [
                 {
@@ -183,6 +190,7 @@ def selftest(args: dict[str, Any]) -> int:
         args.get("guard", "report"),
         args.get("course", "hardware"),
         args.get("keep", ""),
+        args.get("deadlines", "report"),
     )
 
 
