@@ -265,6 +265,11 @@ def main(argv: list[str] | None = None) -> int:
         help="the reward arm whose students form the ablation (default: the runs' "
         "figures.ablation_teacher, else clf)",
     )
+    ap.add_argument(
+        "--terms",
+        action="store_true",
+        help="per-term training curves of each run instead (analysis/term_curves.py)",
+    )
     args = ap.parse_args(argv)
     for pair in args.compare or []:
         try:
@@ -280,6 +285,12 @@ def main(argv: list[str] | None = None) -> int:
             )
             return 2
     out = args.out if args.out is not None else args.dirs[0] / "figures"
+    if args.terms:  # reward/<term>, termination/<term>, levels, loss/<part> per run
+        from analysis.term_curves import draw
+
+        lines = draw(discover(args.dirs), out, smooth=1)
+        print("\n".join(lines) if lines else "figures.py: no runs found", file=sys.stdout)
+        return 0 if lines else 2
     if not 0.0 < args.threshold_fraction <= 1.0:
         print("figures.py: --threshold-fraction must be in (0, 1]", file=sys.stderr)
         return 2

@@ -50,6 +50,7 @@ from march.env.reference_command import ReferenceCommandCfg
 from march.env.reset_extras import keep_termination_counts_on_device
 from march.env.rewards import REFERENCE_COMMAND, needs_reference, reward_terms
 from march.env.stone_terrain import terrain_entity_cfg
+from march.env.term_meter import attach as attach_term_meter
 from march.env.terminations import foot_too_low, goal_reached, planner_infeasible
 from march.env.velocity_command import sync_free
 
@@ -435,6 +436,8 @@ def make_env(
     with _output_to(log):
         env = ManagerBasedRlEnv(cfg=env_cfg, device=cfg.compute.device)
     keep_termination_counts_on_device(env)  # no .item() per term and reset (reset_extras)
+    if purpose != "eval":  # per-term reward / termination sums on the device (term_meter)
+        attach_term_meter(env)
     env.march_spec = EnvSpec(  # type: ignore[attr-defined]
         purpose=purpose,
         num_envs=env.num_envs,

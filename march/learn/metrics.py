@@ -23,6 +23,7 @@ METRIC_COLUMNS = (
     "mean_episode_length",
     "mean_distance_m",
     "mean_terrain_level",  # mean curriculum level over the training envs after the iteration
+    "terrain_level_std",  # their spread (standard deviation over the envs)
     "value_loss",
     "surrogate_loss",
     "entropy",
@@ -226,6 +227,21 @@ def _fmt(v: Any) -> Any:
     return v
 
 
+PER_TERM_PREFIXES = ("reward/", "termination/", "loss/")
+"""Columns named after the run's own terms, added after ``METRIC_COLUMNS`` as they appear:
+``reward/<term>``, ``termination/<term>`` (march.env.term_meter) and the distillation's
+``loss/<part>``."""
+EXTERNAL_NAMES = {"reward/": "Episode_Reward/", "termination/": "Episode_Termination/"}
+"""How tensorboard and wandb name the per-term scalars (as mjlab and rsl-rl do)."""
+
+
+def _scalar_name(stage: str, key: str) -> str:
+    for prefix, name in EXTERNAL_NAMES.items():
+        if key.startswith(prefix):
+            return name + key[len(prefix) :]
+    return f"{stage}/{key}"
+
+
 class MetricsLog:
     """metrics.csv in the run dir and the selected external logger."""
 
@@ -234,6 +250,7 @@ class MetricsLog:
         self.run_dir = run_dir
         self._writer: Any = None
         self._wandb: Any = None
+        self._columns: tuple[str, ...] | None = None
         if not writes_files():  # N processes: rank 0 alone logs
             return
         if logger.name == "tensorboard":
@@ -251,11 +268,24 @@ class MetricsLog:
     def resume_from(self, stage: str, iteration: int) -> None:
         truncate_rows(self.path, stage, iteration)
 
+    def columns(self, row: dict[str, Any]) -> tuple[str, ...]:
+        """METRIC_COLUMNS, then every per-term column the file or this row has (a student row
+        keeps the teacher's per-term columns: a resumed or appended file loses none)."""
+        if self._columns is None:
+            self._columns = METRIC_COLUMNS
+            if self.path.is_file():
+                with self.path.open(newline="") as f:
+                    header = next(csv.reader(f), None) or []
+                self._columns += tuple(c for c in header if c not in METRIC_COLUMNS)
+        new = [k for k in row if k.startswith(PER_TERM_PREFIXES) and k not in self._columns]
+        self._columns += tuple(new)
+        return self._columns
+
     def log(self, row: dict[str, Any]) -> None:
-        append_row(self.path, METRIC_COLUMNS, row)
+        append_row(self.path, self.columns(row), row)
         step = int(row["env_steps"])
         scalars = {
-            f"{row['stage']}/{k}": float(v)
+            _scalar_name(row["stage"], k): float(v)
             for k, v in row.items()
             if k not in ("stage", "iteration", "env_steps")
             and isinstance(v, (int, float))

@@ -1,0 +1,87 @@
+"""``python analysis/figures.py <runs> --terms``: each run's per-term training curves.
+
+From a run's ``metrics.csv`` (march.env.term_meter, march.learn.metrics): the teacher's
+``reward/<term>`` (each term's mean contribution per env step, weighted as it enters the
+reward), ``termination/<term>`` (the fraction of ended episodes each termination ended), the
+curriculum level (mean +- its spread over the envs) and the distillation's ``loss/<part>``,
+against env steps. One figure per run: ``<out>/terms_<run>.png`` (and ``.pdf``). A run without
+per-term columns (written before they existed) is named, not drawn.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from analysis.rundirs import Run  # noqa: E402
+
+PANELS = (
+    ("teacher", "reward/", "reward per env step (weighted)"),
+    ("teacher", "termination/", "fraction of ended episodes"),
+    ("student", "loss/", "distillation loss parts"),
+)
+
+
+def _smooth(y: pd.Series, window: int) -> pd.Series:
+    return y.rolling(max(1, window), min_periods=1).mean()
+
+
+def term_columns(metrics: pd.DataFrame, prefix: str) -> list[str]:
+    return [c for c in metrics.columns if c.startswith(prefix)]
+
+
+def draw_run(run: Run, out: Path, smooth: int = 1) -> Path | None:
+    """The run's per-term figure, or None when its metrics have no per-term columns."""
+    m = run.metrics
+    if m is None or not any(term_columns(m, p) for _, p, _ in PANELS):
+        return None
+    panels = [(s, p, t) for s, p, t in PANELS if term_columns(m[m["stage"] == s], p)]
+    teacher = m[m["stage"] == "teacher"]
+    levels = "mean_terrain_level" in m and teacher["mean_terrain_level"].notna().any()
+    n = len(panels) + int(bool(levels))
+    fig, axes = plt.subplots(n, 1, figsize=(7.0, 2.6 * n), sharex=False, squeeze=False)
+    for ax, (stage, prefix, title) in zip(axes[:, 0], panels, strict=False):
+        rows = m[m["stage"] == stage]
+        for col in term_columns(rows, prefix):
+            y = pd.to_numeric(rows[col], errors="coerce")
+            if y.notna().any():
+                ax.plot(rows["env_steps"], _smooth(y, smooth), label=col[len(prefix) :])
+        ax.set_title(f"{stage}: {title}", fontsize=9)
+        ax.legend(fontsize=7, ncol=2)
+        ax.grid(alpha=0.3)
+    if levels:
+        ax = axes[-1, 0]
+        mean = pd.to_numeric(teacher["mean_terrain_level"], errors="coerce")
+        ax.plot(teacher["env_steps"], mean, color="k", label="mean")
+        if "terrain_level_std" in teacher:
+            std = pd.to_numeric(teacher["terrain_level_std"], errors="coerce")
+            ax.fill_between(teacher["env_steps"], mean - std, mean + std, alpha=0.3, label="± std")
+        ax.set_title("teacher: curriculum level", fontsize=9)
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+    axes[-1, 0].set_xlabel("env steps")
+    fig.suptitle(f"{run.path.name}: {run.reward} / {run.variant}", fontsize=10)
+    fig.tight_layout()
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / f"terms_{run.path.name}.png"
+    fig.savefig(path, dpi=120)
+    fig.savefig(path.with_suffix(".pdf"))
+    plt.close(fig)
+    return path
+
+
+def draw(runs: list[Run], out: Path, smooth: int = 1) -> list[str]:
+    """One figure per run; the lines to print."""
+    lines = []
+    for run in runs:
+        path = draw_run(run, out, smooth)
+        if path is None:
+            lines.append(f"{run.path}: no per-term columns in metrics.csv (an older run)")
+        else:
+            lines.append(f"wrote {path}")
+    return lines
