@@ -14,12 +14,10 @@ import pytest  # noqa: E402
 from torch import nn  # noqa: E402
 from torch.distributions import Categorical, Independent, MixtureSameFamily, Normal  # noqa: E402
 
-from march.config import ConfigError  # noqa: E402
+from march.config import STUDENTS, ConfigError, StudentCfg  # noqa: E402
 from march.policies import (  # noqa: E402
-    VARIANTS,
     MDNHead,
     MDNParams,
-    StudentNetCfg,
     StudentPolicy,
     mdn_log_prob,
     mdn_nll,
@@ -45,9 +43,9 @@ def registered_parts(variant: str) -> dict[str, str]:
     return {k: data[k] for k in PARTS if k in data}
 
 
-def small_cfg(variant: str, **kw) -> StudentNetCfg:
+def small_cfg(variant: str, **kw) -> StudentCfg:
     kw = {**registered_parts(variant), **kw}
-    return StudentNetCfg(
+    return StudentCfg(
         variant=variant,
         cnn_channels=(4, 8),
         cnn_kernels=(3, 3),
@@ -229,7 +227,7 @@ def test_variant_structure():
         assert pol.mdn.logits.out_features == 2
         assert pol.mdn.means.out_features == pol.mdn.log_std.out_features == 2 * A
     # default-size models are the sizes of the spec
-    big = StudentPolicy(StudentNetCfg(), 93, 5, 3, (24, 32), 29)
+    big = StudentPolicy(StudentCfg(), 93, 5, 3, (24, 32), 29)
     convs = [m for m in big.cnn if isinstance(m, nn.Conv2d)]
     assert [c.out_channels for c in convs] == [24, 32, 48, 64]
     assert [c.kernel_size[0] for c in convs] == [5, 3, 3, 3]
@@ -258,12 +256,15 @@ def test_a_variant_is_its_parts():
     assert mlp.fusion[0].in_features == HIST * P + CMD and not mlp.is_mdn
     # a new name without parts is refused in one line naming the file to fix
     with pytest.raises(ConfigError, match=r"set student.image .* conf/student/z.yaml"):
-        StudentNetCfg(variant="z")
-    with pytest.raises(ConfigError, match="student.fusion='attention' is not a registered fusion part; choose one of transformer, mlp, gru"):
-        StudentNetCfg(variant="full", fusion="attention")
+        StudentCfg(variant="z")
+    with pytest.raises(
+        ConfigError,
+        match="student.fusion='attention' is not a registered fusion part; choose one of transformer, mlp, gru",
+    ):
+        StudentCfg(variant="full", fusion="attention")
 
 
-@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("variant", STUDENTS)
 def test_output_shapes_and_loss(variant):
     pol = small_policy(variant)
     x = inputs(6)
@@ -367,7 +368,7 @@ def test_observation_normalization_in_state_dict_and_updates():
 
 
 # ----------------------------------------------------------------------------- ONNX
-@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("variant", STUDENTS)
 def test_onnx_matches_torch(variant, tmp_path):
     from march.export.onnx_graph import export_student_onnx, read_onnx_metadata
 
@@ -414,7 +415,7 @@ def deep_policy(variant: str, n_layers: int) -> StudentPolicy:
     return StudentPolicy(replace(small_cfg(variant), n_layers=n_layers), P, HIST, CMD, HW, A)
 
 
-@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("variant", STUDENTS)
 @pytest.mark.parametrize("n_layers", [1, 3])
 def test_deploy_graph_is_act_inference(variant, n_layers):
     """The export's fast graph (last layer CLS-only, attention written out) computes the same

@@ -22,12 +22,6 @@ REWARDS = names("reward")
 """The reward arms of ``conf/reward/`` (march.config.registry): tests compose every one."""
 STUDENTS = names("student")
 """The student variants of ``conf/student/``."""
-IMAGE_ENCODERS = ("cnn", "none")
-"""How a student reads the depth image: a CNN, or not at all (proprioception only)."""
-FUSIONS = ("transformer", "mlp")
-"""How a student fuses its inputs: attention over tokens, or an MLP over the concatenation."""
-HEADS = ("mdn", "deterministic")
-"""A student's output: a mixture density network (NLL loss) or one action (Huber loss)."""
 BUILTIN_PARTS = {
     "full": ("cnn", "transformer", "mdn"),
     "no_transformer": ("cnn", "mlp", "mdn"),
@@ -69,7 +63,7 @@ SEED_MAX = 2**31 - 1
 (mjlab's ``seed_rng``) takes an int32 and silently wraps anything larger."""
 
 ACTIVATIONS = ("elu", "relu", "gelu", "silu", "tanh")
-"""Activations of march's own networks (march.policies.student._activation)."""
+"""Activations of march's own networks (march.policies.part_builders.activation)."""
 RSL_ACTIVATIONS = ("elu", "selu", "relu", "crelu", "lrelu", "tanh", "sigmoid", "softplus")
 RSL_ACTIVATIONS += ("gelu", "swish", "mish", "identity")
 """Activations rsl-rl's actor-critic MLP takes (rsl_rl.utils.resolve_nn_activation)."""

@@ -13,13 +13,11 @@ from march.policies.mdn import (
     top_mode_index,
     top_mode_mean,
 )
-from march.policies.student import VARIANTS, StudentNetCfg, StudentPolicy
+from march.policies.student import StudentPolicy
 
 __all__ = [
-    "VARIANTS",
     "MDNHead",
     "MDNParams",
-    "StudentNetCfg",
     "StudentPolicy",
     "mdn_log_prob",
     "mdn_nll",

@@ -11,9 +11,11 @@ Proprioception and command pass through empirical running mean/std normalisers (
 ``EmpiricalNormalization``; buffers live in the state_dict and are baked into the ONNX export).
 One normaliser of size ``proprio_dim`` is shared by all history steps.
 
-Variants (``StudentNetCfg.variant``, one per ``conf/student/<name>.yaml``) are data: each names
-its parts, ``image`` (cnn | none), ``fusion`` (transformer | mlp) and ``head`` (mdn |
-deterministic), and this module builds whatever combination is asked for. The paper's three:
+Variants (``StudentCfg.variant``, one per ``conf/student/<name>.yaml``) are data: each names
+its parts, ``image``, ``fusion`` and ``head``, each value a registered part
+(:mod:`march.config.parts`; builders in :mod:`march.policies.part_builders`; ``python -m
+march.inspect list`` shows them), and this module builds whatever combination is asked for.
+The paper's three:
 
 * ``full``: CNN feature map -> one token per spatial cell (linear to d_model) + one token per
   history step + a command token + a learned CLS token, learned positional embedding over the whole
@@ -34,7 +36,7 @@ import torch.nn.functional as F
 from rsl_rl.modules.normalization import EmpiricalNormalization
 from torch import nn
 
-from march.config import STUDENTS, StudentCfg
+from march.config import StudentCfg
 from march.config.parts import PARTS, block, check_value
 from march.policies.mdn import (
     MDNParams,
@@ -43,15 +45,7 @@ from march.policies.mdn import (
     mode_weight_entropy,
     top_mode_mean,
 )
-from march.policies.part_builders import activation as _activation  # noqa: F401
 from march.policies.part_builders import mlp as _mlp
-
-VARIANTS: tuple[str, ...] = STUDENTS
-"""Alias of ``march.config.STUDENTS`` (kept for older imports)."""
-
-
-StudentNetCfg = StudentCfg
-"""Alias of ``march.config.StudentCfg`` (kept for older imports)."""
 
 
 def _part(kind: str, name: str) -> object:
@@ -67,7 +61,7 @@ class StudentPolicy(nn.Module):
 
     def __init__(
         self,
-        cfg: StudentNetCfg,
+        cfg: StudentCfg,
         proprio_dim: int,
         history_len: int,
         command_dim: int,
