@@ -14,6 +14,7 @@ else
 CONSTRAINTS :=
 endif
 
+.PHONY: docs
 .PHONY: install train smoke test test-all lint figures gpu-check test-slurm kill-trials two-node
 
 # Byte code: pip would compile every module of every wheel, torch's thousands (74 s of the
@@ -26,7 +27,7 @@ export PYTHONPYCACHEPREFIX ?= $(CURDIR)/$(VENV)/pycache
 $(VENV)/.installed: pyproject.toml constraints-cpu.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet --no-compile $(CONSTRAINTS) -e '.[dev,optuna]'
+	$(PY) -m pip install --quiet --no-compile $(CONSTRAINTS) -e '.[dev,optuna,docs]'
 	touch $@
 
 install: $(VENV)/.installed
@@ -43,6 +44,13 @@ XDIST ?= -n auto --dist loadfile
 
 test: $(VENV)/.installed  ## the test suite CI runs (slow extras left out)
 	$(PY) -m pytest -q $(XDIST) $(ARGS)
+
+# The documentation site (docs/, mkdocs.yml; Material theme) into site/: --strict makes a broken
+# link, a missing page or a page left out of the navigation an error. The configuration
+# reference, the tools' arguments and the decision records are generated from the code and
+# docs/decisions.md while it builds (docs/hooks/march_docs.py). ~10-25 s.
+docs: $(VENV)/.installed  ## the documentation site: mkdocs build --strict -> site/
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet
 
 test-all: $(VENV)/.installed  ## including tests marked slow
 	$(PY) -m pytest -q -m "" $(XDIST) $(ARGS)
