@@ -359,7 +359,7 @@ def sample_efficiency(
         row = eff["reward"] == names[ka]
         if eff.loc[row, "compared_to"].iloc[0]:  # several references: one line each
             text = f"{eff.loc[row, 'relative'].iloc[0]}; vs {names[kb]}: {text}"
-            eff.loc[row, "compared_to"] = eff.loc[row, "compared_to"] + f",{names[kb]}"
+            eff.loc[row, "compared_to"] = eff.loc[row, "compared_to"] + f";{names[kb]}"
         else:
             eff.loc[row, "compared_to"] = names[kb]
         eff.loc[row, "relative"] = text
@@ -542,7 +542,7 @@ def final_table(runs: list[Run], mode: str, notes: list[str], comp: Comparisons)
         else:
             parts.append(f"n={n_a} vs {n_b} seeds, 95% CI across seeds in brackets")
         if table.at[i, "compared_to"]:  # a group compared with several references
-            table.at[i, "compared_to"] += "," + "/".join(ref)
+            table.at[i, "compared_to"] += ";" + "/".join(ref)  # group names may hold commas
             table.at[i, "relative"] += f"; vs {'/'.join(ref)}: " + ", ".join(parts)
         else:
             table.at[i, "compared_to"] = "/".join(ref)

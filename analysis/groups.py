@@ -139,7 +139,9 @@ DIFF_FIELDS = (
 
 def series_names(keys: list[GroupKey], by: str) -> dict[GroupKey, str]:
     """A readable, unique name per group among ``keys``: the ``by`` field (``reward`` or
-    ``variant``), then in brackets what differs between groups sharing it."""
+    ``variant``), then in brackets what differs between groups sharing it. By reward, the group
+    that stands for the arm in the paper's comparison (:func:`primary`) keeps the plain name
+    (and the arm's colour); the others, controls, carry the brackets."""
     out: dict[GroupKey, str] = {}
     base = {k: str(getattr(k, by)) for k in keys}
     for name in set(base.values()):
@@ -150,9 +152,10 @@ def series_names(keys: list[GroupKey], by: str) -> dict[GroupKey, str]:
                 continue
             if len({getattr(k, field_name) for k in same}) > 1:
                 parts.append(show)
+        plain = primary(same, name) if by == "reward" and len(same) > 1 else None
         for k in same:
             text = ", ".join(show(k) for show in parts)
-            out[k] = f"{name} [{text}]" if text else name
+            out[k] = f"{name} [{text}]" if text and k != plain else name
     return out
 
 

@@ -8,6 +8,7 @@ silently.
 
 from __future__ import annotations
 
+import textwrap
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -129,7 +130,7 @@ def _note(ax, lines: list[str]) -> None:
         ax.text(
             0.02,
             0.98,
-            "\n".join(lines),
+            "\n".join(textwrap.fill(line, 55) for line in lines),
             transform=ax.transAxes,
             va="top",
             ha="left",
@@ -181,13 +182,15 @@ def plot_eval_figure(
         xs = np.unique(sel["x"].to_numpy(dtype=float))
         step = float(np.min(np.diff(xs))) if xs.size > 1 else 1.0
         drawn = [n for n in names if not sel[sel["series"] == n].empty]
+        empty = [n for n in names if n in curves.series and n not in drawn]
+        if empty:
+            notes.append(
+                f"no mean_{key} for {', '.join(empty)} (no rollout defines it, e.g. none "
+                "succeeded; or an older eval.csv)"
+            )
         for name in names:
             pts = sel[sel["series"] == name]
             if pts.empty:
-                if name in curves.series:
-                    notes.append(
-                        f"{name}: no mean_{key} (no rollout defines it, e.g. none succeeded; or an older eval.csv)"
-                    )
                 continue
             color, label = _style(styles, name)
             # Arms side by side: each series shifted by a fraction of the x spacing.
@@ -247,6 +250,7 @@ def plot_eval_figure(
 
 
 EXTRA_COLORS = ("tab:green", "tab:orange", "tab:purple", "tab:brown", "tab:olive", "tab:cyan")
+_EXTRA_ASSIGNED: dict[str, str] = {}  # series name -> colour, stable across one run's figures
 
 
 def _style(styles: dict[str, Series], name: str) -> tuple[str | None, str]:
@@ -257,9 +261,11 @@ def _style(styles: dict[str, Series], name: str) -> tuple[str | None, str]:
         return info.color, name if info.label == name else f"{info.label} [{name}]"
     base, _, rest = name.partition(" [")
     base_info = styles.get(base)
-    used = {s.color for s in styles.values()}
-    free = [c for c in EXTRA_COLORS if c not in used] or list(EXTRA_COLORS)
-    color = free[sum(map(ord, name)) % len(free)]
+    if name not in _EXTRA_ASSIGNED:  # the next colour no arm and no earlier series has
+        used = {s.color for s in styles.values()} | set(_EXTRA_ASSIGNED.values())
+        free = [c for c in EXTRA_COLORS if c not in used] or list(EXTRA_COLORS)
+        _EXTRA_ASSIGNED[name] = free[0]
+    color = _EXTRA_ASSIGNED[name]
     if base_info is None:
         return color, name
     return color, f"{base_info.label} [{rest}" if rest else base_info.label

@@ -42,12 +42,12 @@ def comparisons(table: pd.DataFrame, comp: Comparisons) -> list[str]:
     for _, row in table[table["compared_to"] != ""].iterrows():
         kind = "baseline" if row["variant"] == comp.reference_variant else "ablation"
         who = row["reward"] if kind == "baseline" else row["variant"]
-        refs = row["compared_to"].split(",")
+        refs = row["compared_to"].split(";")
         texts = row["relative"].split("; vs ")
         for k, (ref, text) in enumerate(zip(refs, texts, strict=False)):
             if k:
                 text = text.split(": ", 1)[-1]
-            name = ref.split("/")[0 if kind == "baseline" else 1]
+            name = ref.rsplit("/", 1)[0 if kind == "baseline" else 1]
             lines.append(f"{kind} {who} vs {name} ({_rule(row, name, comp)}): {text}")
     return lines
 
@@ -155,7 +155,7 @@ def report(res: dict, out: Path) -> str:
                     file=buf,
                 )
             for _, row in base[base["compared_to"] != ""].iterrows():
-                ref = row["compared_to"].split(",")[0].split("/")[0]
+                ref = row["compared_to"].split(";")[0].rsplit("/", 1)[0]
                 print(f"  {row['reward']} vs {ref}: {row['relative']}", file=buf)
         abl = table[table["reward"].str.split(" [", regex=False).str[0] == teacher]
         if (abl["variant"] != full).any():

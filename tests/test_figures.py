@@ -90,7 +90,7 @@ def test_final_table_relative_differences_in_the_papers_convention(tree):
     # with the ablation sweep's clf/full student of a fixed teacher (stage student).
     assert len(table) == 5
     by = {(r.reward, r.variant): r for r in table.itertuples()}
-    clf, mf = by[("clf [stage all]", "full")], by[("modelfree", "full")]
+    clf, mf = by[("clf", "full")], by[("modelfree", "full")]
     assert clf.n_runs == 2 and mf.n_runs == 2
     assert by[("clf [stage student]", "full")].n_runs == 1
     assert (clf.n_rollouts, clf.n_torque, clf.n_jerk) == (2 * 64, 2 * 64, 2 * 63)
@@ -124,17 +124,14 @@ def test_final_table_relative_differences_in_the_papers_convention(tree):
     mf_line = next(ln for ln in md.splitlines() if ln.startswith("| modelfree | full |"))
     assert "| 10 ± 0.5 |" in mf_line
     assert (
-        "- baseline clf [stage all] vs modelfree ((clf [stage all] - modelfree) / modelfree, "
+        "- baseline clf vs modelfree ((clf - modelfree) / modelfree, "
         "student full): distance +25%, success +100%, torque -12%, jerk -39%, return n/a "
         "(different reward sets)" in md
     )
     assert "- ablation no_mdn vs full ((variant - full) / full, clf teacher): distance -25%" in md
     out = tree["stdout"]
-    assert (
-        "clf [stage all] (n=2, it 49): distance 4 m, success 80%, torque 8.8 Nm, jerk 30.5 rad/s^3"
-        in out
-    )
-    assert "  clf [stage all] vs modelfree: distance +25%, success +100%, torque -12%" in out
+    assert "clf (n=2, it 49): distance 4 m, success 80%, torque 8.8 Nm, jerk 30.5 rad/s^3" in out
+    assert "  clf vs modelfree: distance +25%, success +100%, torque -12%" in out
     assert "no_transformer (clf [stage student], n=1): reward/step n/a, distance 3.6 m" in out
 
 
@@ -292,8 +289,8 @@ def test_missing_rows_are_named_never_a_crash(tmp_path):
     assert res["axes_notes"]["ablation"]["reward_per_step"] == [
         "no data: no_transformer (no clf runs)",
         "no data: no_mdn (no clf runs)",
-        "full: no mean_reward_per_step (no rollout defines it, e.g. none succeeded; or an older "
-        "eval.csv)",
+        "no mean_reward_per_step for full (no rollout defines it, e.g. none succeeded; or an "
+        "older eval.csv)",
     ]
     assert res["points"].query("figure == 'ablation' and panel == 'reward_per_step'").empty
     assert not (out / "sample_efficiency.png").exists()
