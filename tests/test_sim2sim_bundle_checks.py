@@ -122,6 +122,9 @@ def test_every_key_is_required(spec, good):
         (("deploy", "watchdog_s"), [0.05]),
         (("checkpoint", "layout", "image_hw"), [24]),
         (("onnx", "file"), "other.onnx"),
+        (("joints", 5, "motor_index"), 0),  # two joints on slot 0
+        (("joints", 5, "motor_index"), 35),  # no such slot
+        (("joints", 5, "name"), "right_knee_joint"),  # not the policy's order
     ],
 )
 def test_a_wrong_type_or_size_is_one_line(spec, good, path, value):

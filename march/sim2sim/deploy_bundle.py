@@ -24,6 +24,7 @@ from typing import Any
 import mujoco
 
 from march.sim2sim.bundle_schema import SchemaError, check_spec
+from march.sim2sim.motors import MotorTableError, motor_table
 
 BUNDLE_FORMAT = 3
 """The ``deploy.json`` layout this loop reads (march.export.deploy_spec.BUNDLE_FORMAT)."""
@@ -94,6 +95,10 @@ def _agree(spec: dict[str, Any]) -> None:
             raise UsageError(f"deploy.json: observation term {t['name']} names not {t['dim']}")
     if obs["history_len"] != lay["history_len"] or obs["history_len"] < 1:
         raise UsageError("deploy.json: observation.history_len is not the layout's")
+    try:
+        motor_table(spec)
+    except MotorTableError as err:
+        raise UsageError(f"deploy.json joints: {err}") from None
     d = spec["depth"]
     if [d["height"], d["width"]] != lay["image_hw"]:
         raise UsageError("deploy.json: depth height / width are not the layout's image_hw")
