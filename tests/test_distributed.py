@@ -389,8 +389,9 @@ def test_two_ranks_run_one_policy_and_rank0_writes(tmp_path):
     assert [p.name for p in (run / "ranks").iterdir()] == ["rank1.log"]
     assert "[teacher] it 2/2" in (run / "ranks" / "rank1.log").read_text()  # its own output
     ckpt = torch.load(run / "teacher" / "latest.pt", weights_only=True)
-    assert ckpt["world_size"] == 2 and len(ckpt["rank_rng"]) == 2
-    assert not torch.equal(ckpt["rank_rng"][0]["rng"], ckpt["rank_rng"][1]["rng"])
+    assert ckpt["world_size"] == 2 and len(ckpt["rank_states"]) == 2
+    r0, r1 = ckpt["rank_states"]
+    assert not torch.equal(r0["rng"], r1["rng"]) and torch.equal(r0["rng"], ckpt["rng"])
     assert "distributed: 2 ranks (gloo); compute.num_envs=4 per rank, 8 envs in total" in out.stdout
     assert out.stdout.count("[teacher] it 1/2") == 1  # rank 1 prints nothing
 
