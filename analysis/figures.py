@@ -64,13 +64,13 @@ import pandas as pd  # noqa: E402
 from analysis.aggregate import (  # noqa: E402
     ablation_data,
     baseline_data,
-    final_table,
     sample_efficiency,
     sample_efficiency_data,
     teacher_training_data,
 )
 from analysis.arms import choose, parse_pair  # noqa: E402
 from analysis.claims import ClaimsInput, claims, claims_markdown  # noqa: E402
+from analysis.final_table import final_table  # noqa: E402
 from analysis.groups import DuplicateRunsError, group_runs  # noqa: E402
 from analysis.plotting import (  # noqa: E402
     ABLATION,
