@@ -210,7 +210,7 @@ def render_markdown(cls: type, conf: Path = CONF) -> str:
         ]
         for d in rows:
             lines.append(
-                f"| `{d.path}` | `{_cell(d.type)}` | `{_cell(d.default)}` | {_cell(d.unit)} "
+                f"| `{d.path}` | {_cell(d.type)} | `{_cell(d.default)}` | {_cell(d.unit)} "
                 f"| {_cell(d.allowed)} | {_cell(d.doc)} |"
             )
         lines.append("")
