@@ -220,7 +220,7 @@ PAPER = [
     ("DR", "Push angular velocity [rad/s]", "U(-0.4, 0.4)", "dr.push_ang_vel"),
     ("DR", "Control delay [ms]", "U(0, 20)", "dr.control_delay_ms"),
     ("DR", "Depth camera translation [m]", "U(-0.025, 0.025) per axis", "dr.camera_pos_m"),
-    ("DR", "Depth camera rotation roll, pitch, yaw [deg]", "+-2.5, +-3.0, +-2.5", "dr.camera_rot_deg"),
+    ("DR", "Depth camera rotation r, p, y [deg]", "+-2.5, +-3.0, +-2.5", "dr.camera_rot_deg"),
     ("DR", "Depth camera FOV [deg]", "U(-2.0, 2.0)", "dr.camera_fov_deg"),
     ("DR", "Pixel dropout", "5%", "depth.dropout"),
     ("DR", "Depth noise sigma", "0.1 x depth", "depth.noise_scale"),
