@@ -29,13 +29,15 @@ from march.env.rewards import reward_term
 
 @reward_term("swing_clearance", height=0.05)
 def swing_clearance(env, height: float) -> torch.Tensor:
-    """min(lowest foot height, height) / height: 1 once a foot clears ``height`` [m]."""
+    """min(swing foot height, height) / height, the swing foot being the higher of the two foot
+    sites (height above the env's origin): 1 once it clears ``height`` [m]."""
     log = os.environ.get("MY_TERMS_LOG")
     if log and not os.path.exists(log):  # the first call says which height it got
         with open(log, "w") as f:
             f.write(repr(height))
-    feet = env.scene["robot"].data.site_pos_w[:, :, 2]
-    z = feet.max(dim=1).values - env.scene.env_origins[:, 2]
+    robot = env.scene["robot"]
+    ids, _ = robot.find_sites(("left_foot", "right_foot"), preserve_order=True)
+    z = robot.data.site_pos_w[:, ids, 2].max(dim=1).values - env.scene.env_origins[:, 2]
     return torch.clamp(z, max=height) / height
 '''
 
