@@ -44,6 +44,7 @@ BAD: dict[str, list[Any]] = {
     "compute.num_envs": [0, -4],
     "compute.eval_num_envs": [0],
     "compute.torch_threads": [-1],
+    "compute.dist_timeout_s": [0, -5.0],
     "env.episode_length_s": [0.0, -1.0, 0.01],  # 0.01 s < one control step (0.02 s)
     "env.sim_dt": [0.0, -0.005],
     "env.decimation": [0],
@@ -183,6 +184,8 @@ BAD: dict[str, list[Any]] = {
 FREE: dict[str, str] = {
     "eval.corruption": "a bool",
     "eval.randomization": "a bool",
+    "eval.pushes": "a bool",
+    "reward.observe_reference": "a bool",
     "compute.compile_math": "a bool",
     "reward.label": "display text for the figures",
     "reward.color": "display only; analysis replaces an invalid or taken colour (noted)",

@@ -48,7 +48,16 @@ from march.world.courses import CourseCfg
 
 OBJECTIVES = tuple(
     f"{p}_{m}"
-    for m in ("distance_m", "success_rate", "abs_torque_nm", "abs_ang_jerk", "reward")
+    for m in (
+        "distance_m",
+        "success_rate",
+        "abs_torque_nm",
+        "abs_ang_jerk",
+        "reward",
+        "reward_per_step",
+        "torque_success",
+        "jerk_success",
+    )
     for p in ("mean", "se")
 )
 """What ``objective`` may name: summary.json's mean_/se_ keys (march.learn.metrics.EVAL_METRICS;
