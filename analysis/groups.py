@@ -3,8 +3,10 @@
 The unit of replication is the seed (a training run). Runs are pooled into one point only when
 everything that defines the experiment is equal: :class:`GroupKey` = (reward arm, whether the
 teacher observes the reference, curriculum, teacher budget in iterations, distillation budget,
-compute preset, student variant, stage). ``stage`` separates students distilled from their own
-teacher (``all``) from students of a fixed teacher checkpoint (the ablation sweep, ``student``).
+compute preset, student variant, stage, the checkpoints a run started from). ``stage`` separates
+students distilled from their own teacher (``all``) from students of a fixed teacher checkpoint
+(the ablation sweep, ``student``); the checkpoints separate ablations of two teachers and
+evaluations of two policies (``teacher_ckpt`` / ``student_ckpt``).
 Two runs with the same key and seed are the same experiment twice (a killed duplicate, a re-run
 in another folder): pooling them would count a seed twice, so :func:`group_runs` refuses them in
 one line naming the runs, or, asked to (``--allow-duplicates``), keeps the newest and says so.
@@ -40,6 +42,7 @@ class GroupKey:
     compute: str
     variant: str
     stage: str
+    checkpoints: str = ""
 
     @classmethod
     def of(cls, run: Run) -> GroupKey:
@@ -52,6 +55,7 @@ class GroupKey:
             compute=run.compute,
             variant=run.variant,
             stage=run.stage,
+            checkpoints=run.checkpoints,
         )
 
     def teacher_part(self) -> GroupKey:
@@ -63,6 +67,7 @@ class GroupKey:
             self.teacher_budget,
             None,
             self.compute,
+            "",
             "",
             "",
         )
@@ -134,6 +139,7 @@ DIFF_FIELDS = (
     ("compute", lambda k: str(k.compute)),
     ("stage", lambda k: f"stage {k.stage}"),
     ("variant", lambda k: str(k.variant)),
+    ("checkpoints", lambda k: "from " + (Path(k.checkpoints).parent.parent.name or "scratch")),
 )
 
 

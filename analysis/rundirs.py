@@ -36,6 +36,7 @@ class Run:
     distill_budget: object = None  # distill.max_iterations
     budget_scale: object = None
     observe_reference: bool = False
+    checkpoints: str = ""  # teacher_ckpt|student_ckpt a stage student / eval run started from
     mtime: float = 0.0  # newest of the run's files: "the newest run" of duplicates
     levels: pd.DataFrame | None = None  # eval_levels.csv
     rollouts: pd.DataFrame | None = None  # eval_rollouts.csv
@@ -194,6 +195,9 @@ def load_run(path: Path) -> Run:
         run.teacher_budget = None
     run.distill_budget = _cfg_get(cfg, "distill.max_iterations")
     run.observe_reference = bool(_cfg_get(cfg, "reward.observe_reference") or False)
+    run.checkpoints = "|".join(
+        str(_cfg_get(cfg, k) or "") for k in ("teacher_ckpt", "student_ckpt")
+    ).strip("|")
     for group in ("reward", "student"):
         run.meta[group] = {k: _cfg_get(cfg, f"{group}.{k}") for k in ("label", "color", "order")}
     figures = _cfg_get(cfg, "figures")

@@ -26,6 +26,9 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))  # this checkout's march, whatever python runs the script
+from march.learn.checkpoint import load_checkpoint  # noqa: E402
+
 TORCHRUN = str(Path(sys.executable).with_name("torchrun"))
 RUN = [
     "compute=smoke", "compute.eval_num_envs=1", "eval.num_rollouts=2",
@@ -53,7 +56,8 @@ def check(run: Path, trace: Path) -> list[str]:
     for stage in ("teacher", "student"):
         k = 1
         while (trace / f"{stage}_{k}_rank0.pt").is_file():
-            r0, r1 = (torch.load(trace / f"{stage}_{k}_rank{r}.pt") for r in (0, 1))
+            # The traces are plain data read like a checkpoint: weights-only, nothing runs.
+            r0, r1 = (load_checkpoint(trace / f"{stage}_{k}_rank{r}.pt", "trace") for r in (0, 1))
             same = [key for key, v in r0["state"].items() if torch.equal(v, r1["state"][key])]
             differ = [key for key, v in r0["state"].items() if key not in same]
             rollouts_differ = all(

@@ -33,7 +33,12 @@ _count = {"teacher": 0, "student": 0}
 
 def _dump(stage: str, state: dict[str, torch.Tensor], rollout: dict[str, torch.Tensor]) -> None:
     _count[stage] += 1
-    payload = {"state": state, "rollout": rollout, "writes_files": distributed.writes_files()}
+    payload = {
+        "kind": "trace",  # read back through march's weights-only load_checkpoint
+        "state": state,
+        "rollout": rollout,
+        "writes_files": distributed.writes_files(),
+    }
     torch.save(payload, OUT / f"{TAG}{stage}_{_count[stage]}_rank{RANK}.pt")
 
 

@@ -124,6 +124,7 @@ CHANGES = {
     "teacher_budget": 4,
     "distill_budget": 10,
     "observe_reference": True,
+    "checkpoints": "runs/a/teacher/latest.pt",
 }
 
 

@@ -120,7 +120,24 @@ def test_figures_from_all_sweeps_name_the_crash(sweeps):
         ],
         timeout=300,
     )
+    # The submitit sweep and the crash sweep's first job evaluate the same student checkpoint
+    # with the same seed: one experiment twice, refused in one line naming both ...
+    assert out.returncode == 2 and "are the same experiment" in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1
+    out = _run(
+        [
+            "analysis/figures.py",
+            str(sweeps["basic"]),
+            str(sweeps["submitit"]),
+            str(sweeps["crash"]),
+            "--out",
+            str(out_dir),
+            "--allow-duplicates",
+        ],
+        timeout=300,
+    )
     assert out.returncode == 0, out.stderr[-3000:]
+    assert "--allow-duplicates: seed 0" in out.stdout  # ... or the newest kept, said so
     for name in ("baseline", "ablation", "teacher_curves"):
         assert (out_dir / f"{name}.png").stat().st_size > 10_000
         assert (out_dir / f"{name}.pdf").is_file()
