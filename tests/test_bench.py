@@ -569,7 +569,7 @@ def _bench_figure():
     return module
 
 
-BENCH_RESULT = ROOT / "docs" / "results" / "bench_env_cpu64_2026-12-03_session4_targets.json"
+BENCH_RESULT = ROOT / "docs" / "results" / "bench_env_cpu64_2026-12-03_speed_targets.json"
 
 
 def test_the_bench_figure_draws_every_non_physics_millisecond_of_a_real_bench(tmp_path):
