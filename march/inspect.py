@@ -219,6 +219,17 @@ def budget_job(argv: list[str]) -> None:
     run_tool(job, rest, usage=BUDGET_USAGE)
 
 
+def list_job(argv: list[str]) -> None:
+    """``python -m march.inspect list``: every term, arm, part, variant and sweep a run can name
+    (march.config.listing), ``extra_modules`` and ``hydra.searchpath`` included."""
+    from march.config.listing import collect, render, searchpath_dirs
+
+    def job(cfg: MarchConfig) -> None:
+        print(render(collect(cfg.extra_modules, searchpath_dirs(argv))))
+
+    run_tool(job, argv, usage="usage: python -m march.inspect list [extra_modules=[...]] [...]")
+
+
 def main() -> None:
     def job(cfg: MarchConfig) -> None:
         report = inspect(cfg)
@@ -227,7 +238,13 @@ def main() -> None:
     if sys.argv[1:2] == ["budget"]:
         budget_job(sys.argv[2:])
         return
-    run_tool(job, usage="usage: python -m march.inspect [key=value ...] | budget [key=value ...]")
+    if sys.argv[1:2] == ["list"]:
+        list_job(sys.argv[2:])
+        return
+    run_tool(
+        job,
+        usage="usage: python -m march.inspect [key=value ...] | budget [key=value ...] | list",
+    )
 
 
 if __name__ == "__main__":

@@ -115,3 +115,11 @@ def test_train_runs_the_plugin_term_with_its_yaml_parameter(lab):
     assert "my_terms" in saved and "swing_clearance" in saved
     metrics = pd.read_csv(run / "metrics.csv")
     assert (metrics["stage"] == "teacher").sum() == 2
+
+
+def test_inspect_list_names_the_plugin_term(lab):
+    res = _run(lab, "march.inspect", "list", "extra_modules=[my_terms]", lab["search"])
+    assert res.returncode == 0, res.stderr[-3000:]
+    line = next(ln for ln in res.stdout.splitlines() if ln.strip().startswith("swing_clearance"))
+    assert "height=0.05" in line and "[my_terms.swing_clearance]" in line
+    assert any(ln.strip().startswith("my_arm") for ln in res.stdout.splitlines())

@@ -21,6 +21,7 @@ from tensordict import TensorDict
 
 from march.config import MarchConfig
 from march.env.course import CourseRuler
+from march.env.term_meter import pop_terms
 from march.learn import distributed, preemption, rank_normalizers
 from march.learn.checkpoint import (
     check_layout,
@@ -327,6 +328,8 @@ class DistillRunner:
                 "wall_s": self.wall_s,
                 **distributed.pop_episode_stats(stats),
                 **distributed.mean_over_ranks({"mean_terrain_level": mean_terrain_level(self.env)}),
+                **distributed.mean_over_ranks(pop_terms(self.env)),  # the teacher's terms
+                **{f"loss/{k}": v for k, v in info.items()},  # nll / huber, mode weights, ...
                 "loss": info.get("loss", float("nan")),
                 "action_error": info.get("action_error", float("nan")),
                 "teacher_reward": float(teacher_reward),

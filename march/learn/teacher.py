@@ -24,6 +24,7 @@ from tensordict import TensorDict
 from march.config import MarchConfig, TeacherCfg
 from march.env.build import rsl_rl_env
 from march.env.course import CourseRuler
+from march.env.term_meter import pop_terms
 from march.learn import distributed, preemption, rank_normalizers
 from march.learn.checkpoint import (
     check_layout,
@@ -397,6 +398,8 @@ class TeacherRunner:
                 **distributed.mean_over_ranks(
                     {"mean_terrain_level": mean_terrain_level(self.env.unwrapped)}
                 ),
+                # reward/<term>, termination/<term>, terrain_level_std: one device read
+                **distributed.mean_over_ranks(pop_terms(self.env)),
                 "value_loss": losses.get("value", losses.get("value_function", float("nan"))),
                 "surrogate_loss": losses.get("surrogate", float("nan")),
                 "entropy": losses.get("entropy", float("nan")),
