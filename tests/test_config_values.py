@@ -185,6 +185,7 @@ FREE: dict[str, str] = {
     "eval.corruption": "a bool",
     "eval.randomization": "a bool",
     "eval.pushes": "a bool",
+    "student.parts": "per-part blocks; each is checked by its part's own config (an unknown part is refused)",
     "reward.observe_reference": "a bool",
     "compute.compile_math": "a bool",
     "reward.label": "display text for the figures",
