@@ -140,6 +140,20 @@ def _note(ax, lines: list[str]) -> None:
         )
 
 
+def _legend_below(fig, legend: dict[str, object]) -> None:
+    """One legend for the figure, below the panels: never over a data point."""
+    if legend:
+        fig.legend(
+            list(legend.values()),
+            list(legend),
+            loc="upper center",
+            bbox_to_anchor=(0.5, 0.0),
+            ncol=min(4, len(legend)),
+            fontsize=8,
+            frameon=False,
+        )
+
+
 def save(fig, out: Path, stem: str, written: list[Path]) -> None:
     for ext in FIG_EXTS:
         p = out / f"{stem}.{ext}"
@@ -235,16 +249,7 @@ def plot_eval_figure(
     )
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    if legend:  # one legend for the figure, below the panels: never over a data point
-        fig.legend(
-            list(legend.values()),
-            list(legend),
-            loc="upper center",
-            bbox_to_anchor=(0.5, 0.0),
-            ncol=min(4, len(legend)),
-            fontsize=8,
-            frameon=False,
-        )
+    _legend_below(fig, legend)
     save(fig, out, spec.stem, written)
     return panel_notes
 
@@ -349,16 +354,7 @@ def plot_teacher_training(
             )
             top.set_xlabel("teacher iteration", fontsize=8)
             top.tick_params(labelsize=7)
-    if legend:
-        fig.legend(
-            list(legend.values()),
-            list(legend),
-            loc="upper center",
-            bbox_to_anchor=(0.5, 0.0),
-            ncol=min(4, len(legend)),
-            fontsize=8,
-            frameon=False,
-        )
+    _legend_below(fig, legend)
     fig.suptitle(
         f"DIAGNOSTIC, not a comparison: teacher TRAINING rollouts (metrics.csv; each arm on its "
         f"own curriculum), moving avg {window}, band = SE across seeds",
