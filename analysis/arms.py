@@ -144,8 +144,8 @@ def series_table(
 
 
 def _arm_reward(arm: str, conf_dir: Path) -> str:
-    """The reward name an ``arm=<arm>`` choice selects (its ``override /reward: X``)."""
-    data = _yaml(conf_dir / "arm" / f"{arm}.yaml")
+    """The reward name an ``+experiment=<arm>`` choice selects (its ``override /reward: X``)."""
+    data = _yaml(conf_dir / "experiment" / f"{arm}.yaml")
     for item in data.get("defaults", []) or []:
         if isinstance(item, dict):
             for key, value in item.items():
@@ -186,7 +186,7 @@ def sweep_requests(dirs: list[Path], conf_dir: Path = CONF_DIR) -> tuple[list[st
                 group = str(key).lstrip("+~")
                 if group == "reward":
                     arms += [_reward_name(v, conf_dir) for v in _split(value)]
-                elif group == "arm":
+                elif group in ("experiment", "arm"):  # arm: the old name, in older sweeps
                     arms += [_arm_reward(v, conf_dir) for v in _split(value)]
                 elif group == "student":
                     variants += _split(value)

@@ -111,8 +111,8 @@ def group_runs(
 
 
 def _arm_defaults(reward: str, conf_dir: Path) -> dict:
-    """conf/arm/<reward>.yaml's curriculum and budget scale (the paper's pairing), if any."""
-    path = conf_dir / "arm" / f"{reward}.yaml"
+    """conf/experiment/<reward>.yaml's curriculum and budget scale (the paper's pairing), if any."""
+    path = conf_dir / "experiment" / f"{reward}.yaml"
     if not path.is_file():
         return {}
     try:
@@ -167,7 +167,7 @@ def series_names(keys: list[GroupKey], by: str) -> dict[GroupKey, str]:
 
 def primary(keys: list[GroupKey], reward: str, conf_dir: Path = CONF_DIR) -> GroupKey | None:
     """The group that stands for ``reward`` in the paper's comparison: the one configured as
-    ``conf/arm/<reward>.yaml`` says (curriculum, budget scale; no extra observation) if exactly
+    ``conf/experiment/<reward>.yaml`` says (curriculum, budget scale; no extra observation) if exactly
     one is, else the only group of that reward, else None (ambiguous: the caller says so)."""
     mine = [k for k in keys if k.reward == reward]
     if len({k.stage for k in mine}) > 1:  # a student of its own teacher over a fixed one's

@@ -69,10 +69,10 @@ def test_auto_keeps_user_overrides():
 
 
 def test_baseline_arm_pins_curriculum_and_budget():
-    cfg = load(["+arm=modelfree", "compute=gpu"])
+    cfg = load(["+experiment=modelfree", "compute=gpu"])
     assert (cfg.reward.name, cfg.curriculum.name) == ("modelfree", "flat_first")
     assert cfg.teacher.iterations == 20000
-    assert load(["+arm=clf", "compute=gpu"]).teacher.iterations == 10000
+    assert load(["+experiment=clf", "compute=gpu"]).teacher.iterations == 10000
 
 
 def test_sweeps_compose():
@@ -80,7 +80,7 @@ def test_sweeps_compose():
     assert load(["+sweep=ablation", "teacher_ckpt=x.pt"]).stage == "student"
     out = _train("+sweep=baseline", "--cfg", "hydra")
     assert out.returncode == 0, out.stderr
-    assert "+arm: clf,modelfree" in out.stdout and "seed: 0,1,2" in out.stdout
+    assert "+experiment: clf,modelfree" in out.stdout and "seed: 0,1,2" in out.stdout
     out = _train("+sweep=ablation", "--cfg", "hydra")
     assert "student: full,no_transformer,no_mdn" in out.stdout
 
@@ -200,7 +200,7 @@ def test_checkpoint_policy_replaces_the_command_line_defaults():
     ("explicit", "named"),
     [
         (["reward=clf"], ("reward=clf", "reward.name=modelfree")),
-        (["+arm=clf"], ("+arm=clf", "reward.name=modelfree")),
+        (["+experiment=clf"], ("+experiment=clf", "reward.name=modelfree")),
         (["student=full"], ("student=full", "student.variant=no_mdn")),
         (["student.variant=full"], ("student.variant=full", "student.variant=no_mdn")),
         (["student.d_model=256", "student.n_heads=8"], ("student.d_model=256", "=64")),

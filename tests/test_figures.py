@@ -419,7 +419,7 @@ def test_compare_flag_is_checked_and_sweep_requests_are_read(tmp_path):
     sweep = tmp_path / "s"
     sweep.mkdir()
     (sweep / "multirun.yaml").write_text(
-        "hydra:\n  sweeper:\n    params:\n      +arm: clf,modelfree\n      student: full,no_cnn\n"
+        "hydra:\n  sweeper:\n    params:\n      +experiment: clf,modelfree\n      student: full,no_cnn\n"
         "  overrides:\n    task: [seed=0]\n"
     )
     got = arms.sweep_requests([sweep])

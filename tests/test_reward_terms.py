@@ -93,7 +93,7 @@ def test_needs_decide_the_planner_not_the_name():
     assert needs_reference(load(["compute=smoke", "reward.name=renamed"]).reward)
     assert not needs_reference(load(["compute=smoke", "reward=modelfree", "reward.name=clf"]).reward)
     # an observation that needs the reference (the factorial control)
-    assert needs_reference(load(["compute=smoke", "+arm=modelfree_ref"]).reward)
+    assert needs_reference(load(["compute=smoke", "+experiment=modelfree_ref"]).reward)
 
 
 def test_termination_thresholds_moved_and_old_keys_still_work():

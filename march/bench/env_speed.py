@@ -192,7 +192,7 @@ def bench_env(cfg: MarchConfig, opts: dict[str, Any]) -> dict[str, Any]:
     import torch
 
     from march.env.build import bare_env, make_env
-    from march.fusion import compile_report
+    from march.compiled_math import compile_report
 
     device = cfg.compute.device
     n, seed = cfg.compute.num_envs, cfg.seed
@@ -325,7 +325,7 @@ def _write_partial(
 ) -> None:
     """``bench.partial``: what the finished workloads measured, under the final JSON's keys
     (atomic, rewritten after each workload), for a run that a time limit may stop."""
-    from march.fusion import compile_report
+    from march.compiled_math import compile_report
     from march.learn.checkpoint import write_json_atomic
 
     write_json_atomic(

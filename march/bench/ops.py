@@ -45,7 +45,7 @@ class OpCounter(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
     def count_fused(self, compiled: Any, args: tuple, kwargs: dict) -> Any:
-        """Run a ``march.fusion.fused`` call outside this mode (under it the call would run
+        """Run a ``march.compiled_math.fused`` call outside this mode (under it the call would run
         eagerly) and count what it launches, read from the profiler: every generated kernel
         (inductor's ``cpp_fused_*`` / ``triton_*``) and every top-level aten op the compiled
         code calls (extern kernels, and any op left outside the graph)."""

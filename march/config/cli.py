@@ -56,7 +56,7 @@ def resolve_compute(cfg: DictConfig, overrides: Sequence[str]) -> DictConfig:
     preset = OmegaConf.load(CONF_DIR / "compute" / f"{chosen}.yaml")
     merged = OmegaConf.merge(cfg, preset)
     parsed = OverridesParser.create().parse_overrides(list(overrides))
-    groups = ("reward", "student", "curriculum", "compute", "logger", "dr", "sweep", "arm")
+    groups = ("reward", "student", "curriculum", "compute", "logger", "dr", "sweep", "experiment")
     for ov in parsed:
         key = ov.key_or_group
         if ov.is_delete() or key.split("/")[0] in groups or key.startswith("hydra"):
@@ -109,7 +109,7 @@ def run_tool(
     bad = [a for a in args if "=" not in a]
     if bad:
         fail(f"expected key=value overrides, got {bad}. {usage}")
-    if twice := duplicate_overrides(args):
+    if twice := duplicate_overrides(args) or renamed_group(args):
         fail(twice)
     try:
         cfg = load(args)
@@ -129,6 +129,26 @@ def run_tool(
         torch.set_num_threads(cfg.compute.torch_threads)
     os.environ.setdefault("WANDB_MODE", "offline")
     return fn(cfg)
+
+
+RENAMED_GROUPS = {"arm": "experiment"}
+"""Config groups that were renamed: old name -> new name (``conf/arm/`` became
+``conf/experiment/``, 2026-12-04: it bundles a comparison arm's reward, curriculum and budget)."""
+
+
+def renamed_group(args: Sequence[str]) -> str | None:
+    """One line when an override chooses a renamed config group (``+arm=clf``), else None."""
+    for arg in args:
+        key = arg.split("=", 1)[0].lstrip("+~")
+        group = key.split("/", 1)[0]
+        if "=" in arg and group in RENAMED_GROUPS:
+            new = RENAMED_GROUPS[group]
+            value = arg.split("=", 1)[1]
+            return (
+                f"{arg}: the config group {group!r} is now {new!r} (conf/{new}/); "
+                f"write +{new}={value}"
+            )
+    return None
 
 
 def duplicate_overrides(args: Sequence[str]) -> str | None:

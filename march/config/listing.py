@@ -1,6 +1,6 @@
 """``python -m march.inspect list``: every option a run can name, read from the registries
 themselves (never a hand-written list): reward terms with their parameters and needs, reward
-arms, arm bundles (``+arm=``), student parts with their blocks, student variants and sweeps.
+reward options, experiments (``+experiment=``: a comparison arm), student parts with their blocks, student variants and sweeps.
 
 ``extra_modules`` and ``hydra.searchpath`` count: a term or part of your module, an arm of your
 config tree, is listed like march's own.
@@ -56,7 +56,7 @@ def collect(extra_modules: Sequence[str] = (), conf_dirs: Sequence[Path] = ()) -
         }
         for name, spec in sorted(term_registry.TERMS.items())
     }
-    arms = {
+    rewards = {
         o.name: {
             "label": o.label,
             "terms": sorted(o.data.get("terms") or {}),
@@ -64,12 +64,12 @@ def collect(extra_modules: Sequence[str] = (), conf_dirs: Sequence[Path] = ()) -
         }
         for o in options("reward", dirs)
     }
-    bundles = {}
+    experiments = {}
     for d in dirs:
-        for path in sorted((d / "arm").glob("*.yaml")):
+        for path in sorted((d / "experiment").glob("*.yaml")):
             data = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
             picks = [x for x in (data.get("defaults") or []) if isinstance(x, dict)]  # type: ignore[union-attr]
-            bundles[path.stem] = {
+            experiments[path.stem] = {
                 "sets": [f"{k.split('/')[-1]}={v}" for p in picks for k, v in p.items()]
             }
     parts = {
@@ -91,8 +91,8 @@ def collect(extra_modules: Sequence[str] = (), conf_dirs: Sequence[Path] = ()) -
     sweeps = sorted(p.stem for p in SWEEPS_DIR.glob("*.yaml"))
     return {
         "terms": terms,
-        "arms": arms,
-        "arm_bundles": bundles,
+        "rewards": rewards,
+        "experiments": experiments,
         "student_parts": parts,
         "student_variants": variants,
         "sweeps": sweeps,
@@ -114,11 +114,11 @@ def render(data: dict[str, Any]) -> str:
         params = ", ".join(f"{k}={v}" for k, v in t["params"].items()) or "-"
         needs = ",".join(t["needs"]) or "-"
         lines.append(f"  {name:24s} params: {params}  needs: {needs}  [{t['from']}]")
-    lines.append("reward arms (reward=<name>):")
-    for name, a in data["arms"].items():
+    lines.append("rewards (reward=<name>):")
+    for name, a in data["rewards"].items():
         lines.append(f"  {name:24s} {a['label']!r}: {', '.join(a['terms'])}")
-    lines.append("arm bundles (+arm=<name>: reward, curriculum and budget together):")
-    for name, b in data["arm_bundles"].items():
+    lines.append("experiments (+experiment=<name>: a comparison arm's reward, curriculum and budget together):")
+    for name, b in data["experiments"].items():
         lines.append(f"  {name:24s} {' '.join(b['sets'])}")
     lines.append("student parts (student.image | student.fusion | student.head):")
     for kind, names in data["student_parts"].items():

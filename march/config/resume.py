@@ -51,7 +51,8 @@ GROUP_FIELDS = {
     "student": ("student.variant",),
     "curriculum": ("curriculum.name",),
     "dr": ("dr.name",),
-    "arm": ("reward.name", "curriculum.name"),
+    "experiment": ("reward.name", "curriculum.name"),
+    "arm": ("reward.name", "curriculum.name"),  # conf/experiment/'s old name, in older runs
 }
 GROWING = ("teacher.max_iterations", "distill.max_iterations")
 """Safe only upwards: a run cannot un-train the iterations its checkpoints hold."""

@@ -49,7 +49,7 @@ class ComputeCfg:
     another one (dead, hung) stops the run with one line instead of holding every device
     (docs/scaling.md)."""
     compile_math: bool = False
-    """``torch.compile`` the pure maths of a step (``march.fusion``): the footstep planner's
+    """``torch.compile`` the pure maths of a step (``march.compiled_math``): the footstep planner's
     search, the step reference, the measured CLF outputs and the height scan. On in the gpu
     preset, where it cuts the teacher step's kernel launches from 1,751 (eager) to 812, against
     bare mjlab rough's 760-795 (64 envs, 2026-12-03); off elsewhere: on CPU it makes the step

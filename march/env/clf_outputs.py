@@ -25,7 +25,7 @@ import torch
 from mjlab.utils.lab_api.math import euler_xyz_from_quat, quat_apply_inverse, quat_from_matrix
 
 from march.env.step_cache import site_state, site_xmat
-from march.fusion import maybe_fused
+from march.compiled_math import maybe_fused
 from march.reference.trajectory import wrap_to_pi
 
 if TYPE_CHECKING:

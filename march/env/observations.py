@@ -14,7 +14,7 @@ from march.env.course import CourseRuler, foothold_table
 from march.env.reference_command import reference_term
 from march.env.step_cache import constant, shared
 from march.env.stone_terrain import max_boxes_in_reach, terrain_boxes
-from march.fusion import maybe_fused
+from march.compiled_math import maybe_fused
 
 NUM_STONES = 5
 """K: stones observed ahead of the robot."""

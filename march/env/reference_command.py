@@ -70,7 +70,7 @@ from march.env.masked_rows import MaskedRows
 from march.env.reference_cfg import ReferenceCommandCfg
 from march.env.replan_queue import ReplanQueue
 from march.env.step_cache import site_pos
-from march.fusion import maybe_fused
+from march.compiled_math import maybe_fused
 from march.reference.planner import Plan, course_frame, plan_footsteps
 from march.reference.trajectory import (
     StepState,

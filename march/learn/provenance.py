@@ -61,7 +61,8 @@ GROUP_CHOICES = {
     "reward": ("reward.name",),
     "student": ("student.variant",),
     "curriculum": ("curriculum.name",),
-    "arm": ("reward.name", "curriculum.name"),
+    "experiment": ("reward.name", "curriculum.name"),
+    "arm": ("reward.name", "curriculum.name"),  # conf/experiment/'s old name, in older runs
 }
 
 
@@ -80,7 +81,7 @@ def policy_fields(kind: str, distill: bool = False) -> tuple[str, ...]:
 def explicit_paths(overrides: Sequence[str]) -> list[tuple[str, str]]:
     """(dotted config path, override as typed) for each value the command line sets explicitly.
 
-    Group choices (``reward=clf``, ``+arm=modelfree``) map to the fields they name; ``hydra.*``,
+    Group choices (``reward=clf``, ``+experiment=modelfree``) map to the fields they name; ``hydra.*``,
     deletions and sweeps are not choices of a value.
     """
     from hydra.core.override_parser.overrides_parser import OverridesParser

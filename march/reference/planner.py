@@ -61,7 +61,7 @@ from dataclasses import dataclass
 
 import torch
 
-from march.fusion import fused
+from march.compiled_math import fused
 from march.reference.search_inputs import pick_table, planner_draws
 from march.reference.step_cost import (
     _EPS,
@@ -277,7 +277,7 @@ def plan_footsteps(
     command: (E, 3) [vx, vy, yaw_rate] in the world frame [m/s, m/s, rad/s] (yaw rate unused
     here); footholds: the envs' stones. Deterministic for a seeded ``generator``.
     ``compiled``: run the search (everything but the random draws) under ``torch.compile``
-    (:func:`march.fusion.fused`): the same plans, fused into a few kernels.
+    (:func:`march.compiled_math.fused`): the same plans, fused into a few kernels.
     """
     cfg = cfg or PlannerCfg()
     m = min(cfg.num_candidate_stones, footholds.center.shape[1])

@@ -2,7 +2,7 @@
 
 Needs the single-node cluster of ``scripts/slurm/start.sh`` (SLURM_CONF set). Through it:
 
-1. a two-run smoke sweep (``+arm=clf,modelfree``) with ``hydra/launcher=march_slurm``, sized for
+1. a two-run smoke sweep (``+experiment=clf,modelfree``) with ``hydra/launcher=march_slurm``, sized for
    a CPU node (no GPU, one CPU per job), every job an array task of one sbatch submission;
 2. job 0 (clf) is requeued with ``scontrol requeue`` once its first teacher checkpoint exists and
    while it is still running: Slurm kills it and starts it again, submitit re-runs the same Hydra
@@ -42,7 +42,7 @@ PY = sys.executable
 # The smoke preset with a few more teacher iterations, so that the requeue lands mid-run (after
 # the first checkpoint, before the end) with room to spare; one torch thread per job.
 SWEEP_ARGS = [
-    "+arm=clf,modelfree",
+    "+experiment=clf,modelfree",
     "seed=0",
     "compute=smoke",
     "compute.torch_threads=1",
@@ -104,7 +104,7 @@ def read_rows(path: Path) -> list[dict[str, str]]:
 
 
 def label(run: Path) -> str:
-    """``0_+arm-clf_compute...`` -> ``run 0 (+arm-clf)``."""
+    """``0_+experiment-clf_compute...`` -> ``run 0 (+experiment-clf)``."""
     num, _, rest = run.name.partition("_")
     return f"run {num} ({rest.split('_')[0]})"
 

@@ -1,4 +1,4 @@
-"""compute.compile_math (march.fusion): compiled maths agrees with the eager path, and the op
+"""compute.compile_math (march.compiled_math): compiled maths agrees with the eager path, and the op
 counter sees a compiled call's kernels instead of losing them.
 
 The agreement tests compile the planner search (~2-4 min on 2 CPU cores), the step reference,
@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from march.bench.ops import OpCounter
-from march.fusion import fused
+from march.compiled_math import fused
 from march.reference.kept import STORE
 
 torch.set_num_threads(1)
@@ -71,9 +71,9 @@ def test_config_floats_are_graph_constants():
 
 
 def test_the_compile_report_times_each_compile_and_counts_recompiles():
-    """march.fusion records the calls that compiled (the bench's ``compile`` figure): one per
+    """march.compiled_math records the calls that compiled (the bench's ``compile`` figure): one per
     graph, none for a cached call, and a recompile (here forced by a new dtype) is counted."""
-    from march.fusion import COMPILES, compile_report
+    from march.compiled_math import COMPILES, compile_report
 
     def _report_probe(x: torch.Tensor) -> torch.Tensor:
         return (x * 3.0).sin().sum(-1)
@@ -337,7 +337,7 @@ def test_grad_modes_and_tensor_kinds_add_no_graphs():
     this test counts 2). Now one graph serves them all, the results are the eager ones, and a
     caller outside inference_mode gets normal tensors it may update in place (dataclass and
     tuple outputs)."""
-    from march.fusion import COMPILES
+    from march.compiled_math import COMPILES
 
     fn = fused(_modes_probe)
     g = torch.Generator().manual_seed(2)
@@ -374,7 +374,7 @@ def test_a_normal_view_is_copied_with_its_strides():
     them, and a contiguous copy of a sliced view (an env's pose buffer ``[:, :3]``) compiled a
     second graph once the rollout passed the inference view (measured in a smoke training run:
     the height scan and the CLF outputs recompiled on ``stride()[0] == size()[1]``)."""
-    from march.fusion import COMPILES, _copy_strided
+    from march.compiled_math import COMPILES, _copy_strided
 
     g = torch.Generator().manual_seed(4)
     buffer, w = torch.rand(8, 7, generator=g), torch.rand(3, generator=g)
@@ -394,13 +394,13 @@ def test_a_normal_view_is_copied_with_its_strides():
 
 
 def test_the_compiled_maths_never_writes_into_its_inputs():
-    """march.fusion copies normal inputs into inference tensors, which is only sound while the
+    """march.compiled_math copies normal inputs into inference tensors, which is only sound while the
     compiled functions read their inputs and never write into them. Checked eagerly on the
     agreement tests' random inputs: every input tensor equal afterwards, its version counter
     unchanged."""
     from march.env.clf_outputs import outputs_from_state
     from march.env.observations import scan_heights
-    from march.fusion import map_tensors
+    from march.compiled_math import map_tensors
     from march.reference.planner import PlannerCfg, plan_footsteps
     from march.reference.trajectory import reference_at
 

@@ -6,7 +6,7 @@ maths, so inductor fuses each into a handful of kernels. :func:`fused` compiles 
 batch size) and keeps the launch count measurable: under an op counter that defines
 ``count_fused`` (``march.bench.ops.OpCounter``), the compiled call is handed to the counter,
 which counts the kernels it launches (a ``TorchDispatchMode`` alone would make it run eagerly).
-Results equal the eager path's within float32 rounding (tests/test_fusion.py).
+Results equal the eager path's within float32 rounding (tests/test_compiled_math.py).
 """
 
 from __future__ import annotations
