@@ -130,6 +130,24 @@ def test_cli_bogus_reward_exits_nonzero_with_options():
     assert "reward/bogus" in text and "clf" in text and "modelfree" in text
 
 
+@pytest.mark.parametrize("arg", ["+arm=clf", "arm=modelfree", "+arm/x=clf"])
+def test_renamed_group_is_refused_in_one_line_naming_the_new_override(arg, tmp_path):
+    """conf/arm/ became conf/experiment/: the old choice says what to write, nothing is run."""
+    out = _train("compute=smoke", arg, f"hydra.run.dir={tmp_path}/r")
+    assert out.returncode == 2
+    (line,) = out.stderr.strip().splitlines()
+    assert "+experiment=" in line and arg in line, line
+    assert not (tmp_path / "r").exists()
+
+
+def test_renamed_group_check_leaves_other_overrides_alone():
+    from march.config.cli import renamed_group
+
+    ok = ["+experiment=clf", "reward=clf", "armature=1", "env.arm=2", "seed=0"]
+    assert renamed_group(ok) is None
+    assert renamed_group([*ok, "+arm=modelfree"]) is not None
+
+
 def test_cli_bad_value_and_missing_checkpoint_are_one_line_errors(tmp_path):
     out = _train("compute=smoke", "compute.num_envs=0", f"hydra.run.dir={tmp_path}/a")
     assert out.returncode == 2
