@@ -23,34 +23,72 @@ from analysis.rundirs import Run  # noqa: E402
 PANELS = (
     ("teacher", "reward/", "reward per env step (weighted)"),
     ("teacher", "termination/", "fraction of ended episodes"),
-    ("student", "loss/", "distillation loss parts"),
+    ("student", "loss/", "distillation objective"),
+    ("student", "loss/", "student diagnostics (action error, mixture weights, spread)"),
 )
+OBJECTIVE_PARTS = ("loss", "nll", "huber")
+"""Distillation loss parts on the objective's scale; the others (action error, mode weights,
+entropy, std) are on a scale of their own, drawn in the next panel so neither flattens the other."""
+MARKERS_UP_TO = 40
+"""Points drawn with markers up to this many per line (a short run's 2-3 iterations, a
+termination seen once, stay visible)."""
 
 
 def _smooth(y: pd.Series, window: int) -> pd.Series:
     return y.rolling(max(1, window), min_periods=1).mean()
 
 
-def term_columns(metrics: pd.DataFrame, prefix: str) -> list[str]:
-    return [c for c in metrics.columns if c.startswith(prefix)]
+def term_columns(metrics: pd.DataFrame, prefix: str, title: str = "") -> list[str]:
+    """The columns of a panel: ``prefix``'s, the loss parts split by :data:`OBJECTIVE_PARTS`."""
+    cols = [c for c in metrics.columns if c.startswith(prefix)]
+    if prefix == "loss/" and title:
+        objective = title == PANELS[2][2]
+        cols = [c for c in cols if (c[len(prefix) :] in OBJECTIVE_PARTS) == objective]
+    return cols
 
 
 def draw_run(run: Run, out: Path, smooth: int = 1) -> Path | None:
-    """The run's per-term figure, or None when its metrics have no per-term columns."""
+    """Write the run's per-term figure (png + pdf); None when its metrics have no per-term
+    columns."""
+    fig = term_figure(run, smooth)
+    if fig is None:
+        return None
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / f"terms_{run.path.name}.png"
+    fig.savefig(path, dpi=120)
+    fig.savefig(path.with_suffix(".pdf"))
+    plt.close(fig)
+    return path
+
+
+def term_figure(run: Run, smooth: int = 1) -> plt.Figure | None:
+    """The run's per-term figure (one panel per :data:`PANELS` entry with data, then the
+    curriculum level), or None when its metrics have no per-term columns."""
     m = run.metrics
     if m is None or not any(term_columns(m, p) for _, p, _ in PANELS):
         return None
-    panels = [(s, p, t) for s, p, t in PANELS if term_columns(m[m["stage"] == s], p)]
+    panels = [(s, p, t) for s, p, t in PANELS if term_columns(m[m["stage"] == s], p, t)]
     teacher = m[m["stage"] == "teacher"]
     levels = "mean_terrain_level" in m and teacher["mean_terrain_level"].notna().any()
     n = len(panels) + int(bool(levels))
     fig, axes = plt.subplots(n, 1, figsize=(7.0, 2.6 * n), sharex=False, squeeze=False)
     for ax, (stage, prefix, title) in zip(axes[:, 0], panels, strict=False):
         rows = m[m["stage"] == stage]
-        for col in term_columns(rows, prefix):
+        for col in term_columns(rows, prefix, title):
             y = pd.to_numeric(rows[col], errors="coerce")
-            if y.notna().any():
-                ax.plot(rows["env_steps"], _smooth(y, smooth), label=col[len(prefix) :])
+            seen = y.notna()
+            if seen.any():  # an iteration where no episode ended has no termination value
+                few = int(seen.sum()) <= MARKERS_UP_TO
+                ax.plot(
+                    rows["env_steps"][seen],
+                    _smooth(y[seen], smooth),
+                    label=col[len(prefix) :],
+                    marker="o" if few else None,
+                    markersize=3,
+                )
+        x = pd.to_numeric(rows["env_steps"], errors="coerce")
+        if x.notna().any() and x.max() > x.min():
+            ax.set_xlim(x.min(), x.max())  # the stage's whole span, also for a sparse column
         ax.set_title(f"{stage}: {title}", fontsize=9)
         ax.legend(fontsize=7, ncol=2)
         ax.grid(alpha=0.3)
@@ -67,12 +105,7 @@ def draw_run(run: Run, out: Path, smooth: int = 1) -> Path | None:
     axes[-1, 0].set_xlabel("env steps")
     fig.suptitle(f"{run.path.name}: {run.reward} / {run.variant}", fontsize=10)
     fig.tight_layout()
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / f"terms_{run.path.name}.png"
-    fig.savefig(path, dpi=120)
-    fig.savefig(path.with_suffix(".pdf"))
-    plt.close(fig)
-    return path
+    return fig
 
 
 def draw(runs: list[Run], out: Path, smooth: int = 1) -> list[str]:
