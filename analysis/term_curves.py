@@ -88,7 +88,8 @@ def term_figure(run: Run, smooth: int = 1) -> plt.Figure | None:
                 )
         x = pd.to_numeric(rows["env_steps"], errors="coerce")
         if x.notna().any() and x.max() > x.min():
-            ax.set_xlim(x.min(), x.max())  # the stage's whole span, also for a sparse column
+            pad = 0.03 * (x.max() - x.min())  # the stage's whole span, also for a sparse
+            ax.set_xlim(x.min() - pad, x.max() + pad)  # column; points at the ends not clipped
         ax.set_title(f"{stage}: {title}", fontsize=9)
         ax.legend(fontsize=7, ncol=2)
         ax.grid(alpha=0.3)
