@@ -25,7 +25,7 @@ LAYERS: dict[str, int] = {
     # the shared error type every layer may raise for bad input
     "errors": 0,
     # torch.compile of pure maths (compute.compile_math): torch only
-    "fusion": 0,
+    "compiled_math": 0,
     # stage 0-2 mathematics: plain numpy / torch
     "world": 1,
     "reference": 2,
@@ -165,7 +165,7 @@ def test_pure_mathematics_imports_no_simulator():
     bad = sorted(m for m in loaded if m.split(".")[0] in (*SIMULATOR, "hydra", "omegaconf"))
     assert bad == []
     outside = sorted(
-        m for m in loaded if m.startswith("march.") and _room(m) not in (*PURE, "errors", "fusion")
+        m for m in loaded if m.startswith("march.") and _room(m) not in (*PURE, "errors", "compiled_math")
     )
     assert outside == []
 

@@ -2,6 +2,9 @@
 
 - ``reference/configuration.md``: every config field (type, default, unit, allowed values, its
   docstring) and every ``conf/`` group option with its YAML (:mod:`march.config.field_docs`);
+- ``reference/options.md``: every option a run can name (reward terms with parameters and needs,
+  rewards, experiments, student parts and variants, sweeps), the output of
+  ``python -m march.inspect list`` (:mod:`march.config.listing`), so no page lists them by hand;
 - ``reference/tools.md``: each ``python -m march.<tool>`` and analysis script, its docstring and
   usage line(s), read from the source (no tool is imported: no simulator starts);
 - ``decisions/``: ``docs/decisions.md`` (the file engineers append to) split into one record per
@@ -258,6 +261,20 @@ def paper_markdown() -> str:
     return "\n".join(lines) + "\n"
 
 
+def options_markdown() -> str:
+    """``python -m march.inspect list``'s text as a page (the registries, read at build time)."""
+    from march.config.listing import collect, render
+
+    return (
+        "# Options: terms, rewards, experiments, student parts, variants, sweeps\n\n"
+        "Every option a run can name, read from the registries and config groups when this site "
+        "was built. `python -m march.inspect list` prints the same, and with "
+        "`extra_modules=[...]` / `hydra.searchpath=[...]` it includes your own terms, parts "
+        "and options ([Extending](../extending.md)).\n\n"
+        f"```text\n{render(collect())}\n```\n"
+    )
+
+
 def generated_pages(docs_dir: Path) -> dict[str, str]:
     from march.config import MarchConfig
     from march.config.field_docs import render_markdown
@@ -265,6 +282,7 @@ def generated_pages(docs_dir: Path) -> dict[str, str]:
     pages = {
         "reference/configuration.md": render_markdown(MarchConfig),
         "reference/tools.md": tools_markdown(),
+        "reference/options.md": options_markdown(),
         "reference/paper-vs-march.md": paper_markdown(),
     }
     pages.update(decision_pages((docs_dir / "decisions.md").read_text()))

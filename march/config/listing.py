@@ -1,5 +1,5 @@
 """``python -m march.inspect list``: every option a run can name, read from the registries
-themselves (never a hand-written list): reward terms with their parameters and needs, reward
+themselves (never a hand-written list): reward terms with their parameters and needs,
 reward options, experiments (``+experiment=``: a comparison arm), student parts with their blocks, student variants and sweeps.
 
 ``extra_modules`` and ``hydra.searchpath`` count: a term or part of your module, an arm of your
