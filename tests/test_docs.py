@@ -85,6 +85,25 @@ def test_tools_page_names_every_tool_and_its_arguments():
     assert "--se-mode" in page  # analysis/figures.py --help
 
 
+def test_options_page_lists_every_option_of_the_config_tree_and_registries():
+    """The page is built from the registries: every conf/ option, sweep, term and part is on it
+    (a new YAML or registered term appears without editing a page)."""
+    from march.config import parts, terms
+
+    page = march_docs.options_markdown()
+    conf = REPO / "conf"
+    for group in ("reward", "experiment", "student"):
+        for yaml in (conf / group).glob("*.yaml"):
+            assert f"\n  {yaml.stem} " in page, (group, yaml.stem)
+    for sweep in (REPO / "sweeps").glob("*.yaml"):
+        assert sweep.stem in page.split("sweeps (-m +sweep=<name>):")[1]
+    for name in terms.TERMS:
+        assert f"\n  {name} " in page
+    for kind in parts.KINDS:
+        for name in parts.PARTS[kind]:
+            assert f"{kind}={name} " in page
+
+
 # ----------------------------------------------------------------- decision records
 
 LOG = """# Decisions
