@@ -7,6 +7,16 @@ batch size) and keeps the launch count measurable: under an op counter that defi
 ``count_fused`` (``march.bench.ops.OpCounter``), the compiled call is handed to the counter,
 which counts the kernels it launches (a ``TorchDispatchMode`` alone would make it run eagerly).
 Results equal the eager path's within float32 rounding (tests/test_compiled_math.py).
+
+``compute.compile_mode`` picks torch.compile's mode for every compiled function of the process
+(:func:`set_compile_mode`, called once by the env bridge, ``march.env.build.make_env``):
+``default``, or ``reduce-overhead``, where inductor also captures each compiled graph in a CUDA
+graph per input shape and replays it with one launch (on a GPU only; on CPU torch skips the
+capture and the code is the default mode's). A CUDA graph writes its outputs into the same
+memory on every replay, so in that mode every output is cloned before it is returned and each
+call starts a new cudagraph step (``torch.compiler.cudagraph_mark_step_begin``): no caller holds
+memory the next replay overwrites. Replays need static shapes: the planner's batch takes a few
+fixed sizes (``march.env.replan_queue``), each captured once.
 """
 
 from __future__ import annotations
@@ -21,7 +31,26 @@ import torch._dynamo.config as dynamo_config
 from torch._dynamo.utils import counters
 from torch.utils._python_dispatch import _get_current_dispatch_mode
 
-_COMPILED: dict[Callable, Callable] = {}
+_COMPILED: dict[tuple[Callable, str], Callable] = {}
+
+COMPILE_MODES = ("default", "reduce-overhead")
+"""torch.compile modes ``compute.compile_mode`` may name."""
+_mode = "default"
+
+
+def set_compile_mode(mode: str) -> None:
+    """The torch.compile mode of the functions :func:`fused` compiles from now on (module
+    docstring); one per process in practice (a function compiled in each mode keeps both)."""
+    global _mode
+    if mode not in COMPILE_MODES:
+        raise ValueError(f"compile mode {mode!r}: choose one of {', '.join(COMPILE_MODES)}")
+    _mode = mode
+
+
+def compile_mode() -> str:
+    """The mode :func:`fused` compiles with now."""
+    return _mode
+
 
 COMPILES: dict[str, list[float]] = {}
 """Wall seconds of every call that compiled a graph, by compiled function name (its first call,
@@ -49,8 +78,13 @@ def fused(fn: Callable) -> Callable:
     (:func:`_inference_tensors`), so the same run compiles 4 graphs. A caller outside inference
     mode gets the outputs cloned into normal tensors (an inference tensor may not be updated in
     place there): one copy per output tensor, on those paths only."""
-    if fn not in _COMPILED:
-        compiled = torch.compile(fn, dynamic=True, options=INDUCTOR_OPTIONS)
+    mode = _mode
+    if (fn, mode) not in _COMPILED:
+        if mode == "default":
+            compiled = torch.compile(fn, dynamic=True, options=INDUCTOR_OPTIONS)
+        else:  # torch.compile takes mode or options, not both; the kernel profile is CPU-only
+            compiled = torch.compile(fn, dynamic=True, mode=mode)
+        graph_outputs = mode == "reduce-overhead"
 
         def run(*args: Any, **kwargs: Any) -> Any:
             count = getattr(_get_current_dispatch_mode(), "count_fused", None)
@@ -66,19 +100,24 @@ def fused(fn: Callable) -> Callable:
 
         def call(*args: Any, **kwargs: Any) -> Any:
             graphs, t0 = counters["stats"]["unique_graphs"], time.perf_counter()
+            if graph_outputs:  # the previous replay's outputs were cloned: nobody holds them
+                torch.compiler.cudagraph_mark_step_begin()
             if torch.is_inference_mode_enabled():  # (entering it again costs host time)
                 out = run(*_inference_tensors(args), **_inference_tensors(kwargs))
+                if graph_outputs:
+                    out = map_tensors(out, torch.clone)
             else:
                 with torch.inference_mode():
                     out = run(*_inference_tensors(args), **_inference_tensors(kwargs))
-                out = _normal_tensors(out)
+                out = _normal_tensors(out)  # a clone of every output: also graph-safe
             if counters["stats"]["unique_graphs"] != graphs:  # this call compiled (host clock)
                 COMPILES.setdefault(fn.__name__, []).append(time.perf_counter() - t0)
             return out
 
         call.__wrapped__ = fn  # type: ignore[attr-defined]
-        _COMPILED[fn] = call
-    return _COMPILED[fn]
+        call.compile_mode = mode  # type: ignore[attr-defined]
+        _COMPILED[fn, mode] = call
+    return _COMPILED[fn, mode]
 
 
 _LEAVES = (bool, int, float, str, type(None), torch.dtype, torch.device)

@@ -26,7 +26,9 @@ point leaves a summary naming the phases it finished.
    and ``compile_vs_eager``), ``syncs_runners`` (a teacher iteration's rollout and a
    distillation rollout -> ``syncs_runners.tsv``), ``student`` (two distillation iterations from
    the clf teacher and the evaluation protocol -> ``student_curve.csv``, the evaluation in the
-   summary).
+   summary), ``bench_graphs`` (the bench with ``compute.compile_mode=reduce-overhead``: the
+   compiled maths replayed as CUDA graphs; its figures and ``graphs_vs_default`` in the summary
+   only, no file of its own).
 
 ``--warm`` runs one phase instead, ``warm``: the bench at the check's size with one step per
 env, which builds the envs and fills warp's kernel cache and inductor's on-disk cache (both
@@ -396,7 +398,7 @@ class Check:
             ph.run(self.limit(name), stdout_file=work / f"{stem}.json")
         finally:
             summary, files, note = bench_results(work, ph.rc == 0, stem)
-            if files:
+            if files and f"{stem}.json" in OUT_FILES:  # else its figures are in the summary
                 shutil.copy(work / files[0], self.out / f"{stem}.json")
                 ph.files.append(f"{stem}.json")
             ph.note = "; ".join(n for n in (ph.note, note) if n)
@@ -514,6 +516,18 @@ def main(argv: list[str] | None = None) -> int:
                 )
             if "student" not in skip and ckpt is not None:
                 guard("student", lambda: check.student(ckpt))
+            if "bench_graphs" not in skip:  # CUDA-graph replays of the compiled maths
+                graphs = ["compute.compile_mode=reduce-overhead"]
+                guard(
+                    "bench_graphs",
+                    lambda: check.bench("bench_graphs", "bench_env_graphs", graphs, True),
+                )
+                if "bench" in check.results and "bench_graphs" in check.results:
+                    check.results["graphs_vs_default"] = compile_vs_eager(
+                        check.results["bench_graphs"],
+                        check.results["bench"],
+                        names=("graphs", "default"),
+                    )
     except Stopped as err:
         check.stopped = f"stopped by {err}"
         print(f"[gpu_check] {check.stopped}: writing the summary", flush=True)
@@ -524,6 +538,13 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"[gpu_check] compile_math, {w}: march {row['steps_per_s']['compiled']:.0f} vs "
             f"{row['steps_per_s']['eager']:.0f} env steps/s eager (x{row['speed_ratio']:.2f})",
+            flush=True,
+        )
+    for w, row in check.results.get("graphs_vs_default", {}).items():
+        print(
+            f"[gpu_check] compile_mode=reduce-overhead, {w}: march "
+            f"{row['steps_per_s']['graphs']:.0f} vs {row['steps_per_s']['default']:.0f} env "
+            f"steps/s in the default mode (x{row['speed_ratio']:.2f})",
             flush=True,
         )
     extra = sorted(p.name for p in check.out.iterdir() if p.name not in (*OUT_FILES, "warm.json"))

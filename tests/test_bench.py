@@ -522,6 +522,7 @@ def test_gpu_check_runs_at_tiny_sizes_on_cpu(tmp_path):
             "bench_eager",  # optional from here
             "syncs_runners",
             "student",
+            "bench_graphs",
         ]
     )
     assert _out_files_ok(out) == sorted(_gpu_check().OUT_FILES)
@@ -530,6 +531,7 @@ def test_gpu_check_runs_at_tiny_sizes_on_cpu(tmp_path):
     assert bench["env_names"] == ["march_teacher", "bare_rough"]
     assert bench["ops_per_step"]["random"]["march_teacher"] > 0
     assert set(report["results"]["compile_vs_eager"]) == {"random"}
+    assert set(report["results"]["graphs_vs_default"]) == {"random"}
     syncs = report["results"]["syncs"]
     assert syncs["phases"] == ["env_march", "env_rough"] and syncs["cuda"] is False
     assert syncs["env_syncs_per_step"] == {"march": 0.0, "rough": 0.0}

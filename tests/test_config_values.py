@@ -41,6 +41,7 @@ BAD: dict[str, list[Any]] = {
     "out": [""],
     "compute.name": ["tpu"],
     "compute.device": ["gpu", "cuda:x", "cuda0"],
+    "compute.compile_mode": ["max-autotune", "reduce_overhead"],
     "compute.num_envs": [0, -4],
     "compute.eval_num_envs": [0],
     "compute.torch_threads": [-1],

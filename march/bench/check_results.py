@@ -117,11 +117,18 @@ def sync_results(path: Path) -> dict[str, Any]:
     return result
 
 
-def compile_vs_eager(compiled: dict[str, Any], eager: dict[str, Any]) -> dict[str, Any]:
+def compile_vs_eager(
+    compiled: dict[str, Any],
+    eager: dict[str, Any],
+    names: tuple[str, str] = ("compiled", "eager"),
+) -> dict[str, Any]:
     """What ``compute.compile_math`` gains on this machine, per workload both benches finished:
     march's env steps per second and non-physics ms per step, compiled and eager, and their
-    ratios (compiled / eager: above 1 for the speed, below 1 for the time, where it wins)."""
-    both = {"compiled": compiled, "eager": eager}
+    ratios (compiled / eager: above 1 for the speed, below 1 for the time, where it wins).
+    ``names``: the two benches' labels (``("graphs", "default")`` for
+    ``compute.compile_mode=reduce-overhead`` against the default mode)."""
+    first, second = names
+    both = {first: compiled, second: eager}
 
     def march(key: str, workload: str) -> dict[str, Any]:
         """March's figure ``key`` of ``workload`` in each bench (None where it lacks it)."""
@@ -135,12 +142,12 @@ def compile_vs_eager(compiled: dict[str, Any], eager: dict[str, Any]) -> dict[st
         speed = march("steps_per_s", w)
         row: dict[str, Any] = {
             "steps_per_s": speed,
-            "speed_ratio": speed["compiled"] / speed["eager"],
+            "speed_ratio": speed[first] / speed[second],
         }
         times = march("nonphysics_ms_per_step", w)
         if all(times.values()):
             row["nonphysics_ms"] = times
-            row["nonphysics_ratio"] = times["compiled"] / times["eager"]
+            row["nonphysics_ratio"] = times[first] / times[second]
         out[w] = row
     return out
 

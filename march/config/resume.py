@@ -37,6 +37,7 @@ RESUME_SAFE = (
     "compute.torch_threads",  # speed only
     "compute.dist_timeout_s",  # how long a rank waits for the others
     "compute.compile_math",  # speed only (agrees with eager within 1e-4)
+    "compute.compile_mode",  # speed only (the same compiled maths, replayed as CUDA graphs)
     "figures",  # what the figures compare: labels only
     "compute.device",  # where it runs: every saved state is carried to the new device
     "logger",  # every logger.* field and the logger=<choice> group

@@ -55,9 +55,16 @@ class ComputeCfg:
     bare mjlab rough's 760-795 (64 envs, 2026-12-03); off elsewhere: on CPU it makes the step
     slower (inductor's CPU kernels for the planner) and compiling takes minutes (README,
     "Speed"; ``python -m march.bench env`` reports the compile time)."""
+    compile_mode: str = "default"
+    """torch.compile's mode for ``compile_math``: ``default``, or ``reduce-overhead`` (each
+    compiled graph also captured in a CUDA graph per input shape and replayed with one launch;
+    GPU only, on CPU it is the default mode; outputs are cloned so no replay overwrites one a
+    caller holds). Unmeasured on a GPU as of 2026-12-04: the GPU check's optional
+    ``bench_graphs`` phase compares it with ``default``."""
 
     def __post_init__(self) -> None:
         _check_shapes("compute", self)
+        _one_of("compute", "compile_mode", self.compile_mode, ("default", "reduce-overhead"))
         _one_of("compute", "name", self.name, COMPUTES)
         dev = self.device
         if not (dev in ("cpu", "cuda") or (dev.startswith("cuda:") and dev[5:].isdigit())):

@@ -39,6 +39,7 @@ from mjlab.tasks.velocity.mdp import UniformVelocityCommandCfg
 from mjlab.terrains import TerrainEntityCfg
 from mjlab.utils.noise import UniformNoiseCfg as Unoise
 
+from march.compiled_math import set_compile_mode
 from march.config import MarchConfig
 from march.config.terms import import_extra_modules
 from march.env.course import course_levels
@@ -432,6 +433,7 @@ def make_env(
     With ``log``, mjlab's build report goes to that file and one summary line is printed.
     """
     env_cfg = build_env_cfg(cfg, purpose, num_envs)
+    set_compile_mode(cfg.compute.compile_mode)  # the env's compiled maths (compute.compile_math)
     t0 = time.time()
     with _output_to(log):
         env = ManagerBasedRlEnv(cfg=env_cfg, device=cfg.compute.device)
