@@ -14,13 +14,6 @@ import yaml
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def test_objective_names_the_summary_keys():
-    from march.config.schema import OBJECTIVES
-    from march.learn.metrics import EVAL_METRICS
-
-    assert set(OBJECTIVES) == {f"{p}_{m}" for m in EVAL_METRICS for p in ("mean", "se")}
-
-
 @pytest.mark.sim
 def test_optuna_sweep_reads_three_objective_values(tmp_path):
     pytest.importorskip("optuna", minversion="4.0", reason="pip install -e '.[optuna]'")

@@ -46,22 +46,21 @@ from march.config.training import (
 )
 from march.world.courses import CourseCfg
 
-OBJECTIVES = tuple(
-    f"{p}_{m}"
-    for m in (
-        "distance_m",
-        "success_rate",
-        "abs_torque_nm",
-        "abs_ang_jerk",
-        "reward",
-        "reward_per_step",
-        "torque_success",
-        "jerk_success",
-    )
-    for p in ("mean", "se")
+EVAL_METRICS = (
+    "distance_m",
+    "success_rate",
+    "abs_torque_nm",
+    "abs_ang_jerk",
+    "reward",
+    "reward_per_step",
+    "torque_success",
+    "jerk_success",
 )
-"""What ``objective`` may name: summary.json's mean_/se_ keys (march.learn.metrics.EVAL_METRICS;
-a test checks the two agree)."""
+"""What an evaluation measures per rollout (march.evaluation.protocol), summarised as
+``mean_<metric>`` and ``se_<metric>`` in eval.csv and summary.json (march.learn.metrics)."""
+
+OBJECTIVES = tuple(f"{p}_{m}" for m in EVAL_METRICS for p in ("mean", "se"))
+"""What ``objective`` may name: summary.json's mean_/se_ keys."""
 
 
 @dataclass

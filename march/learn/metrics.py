@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from march.config import ConfigError, LoggerCfg
+from march.config.schema import EVAL_METRICS
 from march.learn.checkpoint import replace_durably, write_text_durably
 from march.learn.distributed import writes_files
 
@@ -41,16 +42,6 @@ METRIC_COLUMNS = (
     # the planner batch in the iteration (>= the replans deferred; march.env.replan_queue)
 )
 
-EVAL_METRICS = (
-    "distance_m",
-    "success_rate",
-    "abs_torque_nm",
-    "abs_ang_jerk",
-    "reward",
-    "reward_per_step",
-    "torque_success",
-    "jerk_success",
-)
 EVAL_COLUMNS = (
     ("stage", "iteration", "env_steps", "n_rollouts")
     + tuple(f"{p}_{m}" for m in EVAL_METRICS for p in ("mean", "se"))
