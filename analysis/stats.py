@@ -67,17 +67,6 @@ def rel_of_means(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return (ma - mb) / np.abs(mb)
 
 
-def worst_rel_over_iterations(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The largest (least favourable to arm a) relative difference of seed means over the
-    iteration axis (axis 2): "a is at least X% below b at every iteration" <=> this <= -X."""
-    rel = rel_of_means(a, b)
-    if rel.ndim == 1:
-        return rel
-    with warnings.catch_warnings():  # an all-NaN resample is NaN, and dropped
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return np.nanmax(rel, axis=1)
-
-
 def verdict(
     ci_low: float, ci_high: float, claimed: float, direction: str, n_a: int, n_b: int
 ) -> str:

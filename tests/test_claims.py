@@ -29,7 +29,6 @@ from analysis.stats import (  # noqa: E402
     rel_of_means,
     verdict,
     worst_over_iterations,
-    worst_rel_over_iterations,
 )
 
 
@@ -52,13 +51,6 @@ def test_bootstrap_of_a_constant_arm_has_no_width_and_is_seeded():
     rng = np.random.default_rng(3)
     x, y = rng.normal(9, 1, 6), rng.normal(10, 1, 6)
     assert bootstrap(rel_of_means, x, y) == bootstrap(rel_of_means, x, y)  # repeatable
-
-
-def test_worst_relative_difference_over_iterations_by_hand():
-    # seeds x iterations: a's means 8, 9, 7; b's means 10, 10, 10 -> rel -0.2, -0.1, -0.3
-    a = np.array([[7.0, 8.0, 6.0], [9.0, 10.0, 8.0]])
-    b = np.full((2, 3), 10.0)
-    assert worst_rel_over_iterations(a[None], b[None])[0] == pytest.approx(-0.1)
 
 
 @pytest.mark.parametrize(
