@@ -115,6 +115,13 @@ def test_train_runs_the_plugin_term_with_its_yaml_parameter(lab):
     assert "my_terms" in saved and "swing_clearance" in saved
     metrics = pd.read_csv(run / "metrics.csv")
     assert (metrics["stage"] == "teacher").sum() == 2
+    # the plug-in term has its per-term column like march's own, filled every iteration
+    terms = {c for c in metrics.columns if c.startswith("reward/")}
+    assert terms == {
+        f"reward/{t}"
+        for t in ("track_linear_velocity", "alive", "torque", "action_rate", "swing_clearance")
+    }
+    assert metrics.loc[metrics["stage"] == "teacher", "reward/swing_clearance"].notna().all()
 
 
 def test_inspect_list_names_the_plugin_term(lab):
