@@ -434,15 +434,16 @@ def _bezier_of(ctrl: torch.Tensor, s: torch.Tensor):
     return bezier(ctrl, s)
 
 
-def _pick_of(x: torch.Tensor) -> torch.Tensor:
-    from march.reference.search_inputs import pick_table
+def _layout_of(x: torch.Tensor) -> torch.Tensor:
+    from march.reference.planner import PlannerCfg
+    from march.reference.search_inputs import score_layout
 
-    return x + pick_table(7, 8, 4, False, x.device).sum(0)
+    return x + score_layout(PlannerCfg(), 8, x.device, torch.float32).index
 
 
-@pytest.mark.parametrize("case", ["bezier", "pick_table"])
+@pytest.mark.parametrize("case", ["bezier", "score_layout"])
 def test_compiled_maths_does_not_recompile_when_an_eager_call_fills_a_kept_table(case):
-    """The fixed tables (Bezier binomials, the planner's pick table) are kept in one store
+    """The fixed tables (Bezier binomials, the planner's score layout) are kept in one store
     (march.reference.kept) for eager calls. A graph that read the store was guarded on its keys: compiled before the
     first eager call filled it, it compiled again after (a second multi-minute compile on the
     gpu preset, found with TORCH_LOGS=recompiles). Dynamo only (backend eager: seconds)."""
@@ -452,7 +453,7 @@ def test_compiled_maths_does_not_recompile_when_an_eager_call_fills_a_kept_table
     if case == "bezier":
         fn, args = _bezier_of, (torch.randn(9, 5, 2, generator=g), torch.rand(9, generator=g))
     else:
-        fn, args = _pick_of, (torch.zeros(7 * 8 * 6, dtype=torch.long),)
+        fn, args = _layout_of, (torch.zeros(7 * 8 * 6, dtype=torch.long),)
     store = STORE
     saved = dict(store)
     store.clear()  # as in a fresh process: the graph is traced before any eager call

@@ -45,6 +45,18 @@ with temperature ``explore_temperature``), which lets them trade a worse step no
 next stone. The rollout with the lowest noise-free cost wins; a plan is feasible when every step
 met every constraint.
 
+Evaluation (issue 41: ~53 ops per planned step, 284 per call with the draws and tables, was 503 /
+358): one pass per term over both candidate groups. What depends on the landing point only
+(clearance, the constraints, the edge cost, the step in the course frame) is computed once per
+point in the stone layout (M, 2T + K), with the stone's rows broadcast; one gather moves those
+rows into the score layout (T, M, 2 + K) of the noise and the argmin, where the terms that
+depend on the duration are added; the six constraints are rows of one buffer tested against
+their bounds in one comparison, and one gather reads a rollout's choice (duration, cost,
+feasibility, point, its stone's height, its advance). Every float is the one
+:func:`march.reference.step_cost._step_cost` computes (the same ops on the same values; the
+search tests a >= b as -a <= -b and reads -clearance, negations being exact), so the plans are
+the old ones bit for bit (:func:`evaluate_plan` still scores with ``_step_cost``).
+
 Frames: positions and the velocity command are in the world frame. Longitudinal/lateral limits and
 the nominal width use the course frame given by ``Footholds.direction`` (+x for generated courses).
 The yaw-rate command is ignored for foothold placement (the course is straight and the planner
@@ -58,11 +70,13 @@ envs, so a batched plan equals a per-env loop and a seeded ``torch.Generator`` f
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 
 from march.compiled_math import fused
-from march.reference.search_inputs import pick_table, planner_draws
+from march.reference.kept import kept
+from march.reference.search_inputs import planner_draws, score_layout
 from march.reference.step_cost import (
     _EPS,
     XY,
@@ -70,7 +84,6 @@ from march.reference.step_cost import (
     goal_ahead,
     height_ok,
     into,
-    pace_floor,
     pace_terms,
     step_terms,
 )
@@ -119,9 +132,9 @@ class PlannerCfg:
     samples_per_stone: int = 4
     """K: random footholds drawn uniformly on each searched stone (with the hard margin)."""
     fuse_candidates: bool | None = None
-    """Score both candidate groups in one call (fewer, larger ops: kernel launches count on a
-    GPU) or apart (smaller tensors: on CPU they stay under torch's intra-op grain size). The
-    same plans either way; None: fused on CUDA, apart elsewhere."""
+    """No effect since issue 41 (kept so that configs and tools that set it still load): the
+    search scores both candidate groups in one pass per term on every device. It chose between
+    one scoring call (CUDA) and two (CPU); the plans were the same either way."""
     explore_temperature: float = 0.2
     """Softmin temperature of the randomised rollouts [cost units]; 0 makes all rollouts greedy."""
     infeasible_cost: float = 1.0e4
@@ -245,28 +258,112 @@ def evaluate_plan(
     return cost.sum(-1), ok.all(-1)
 
 
-# Rows of :func:`_stone_table` (its first dim), slices where a row pair is read as a (2, ...)
-# x-y stack: the centre x, y and z; the lower and upper clamp bounds, each (2 axes, 2 margins);
-# the half extents over which group (b)'s points spread; the half sizes of the clearance.
+class PlanTables(NamedTuple):
+    """What the search reads of the envs' courses, built once per plan (:func:`plan_tables`) or
+    by the env for all its envs and then indexed (:meth:`index`: two ops instead of one per
+    ``Footholds`` field). Rows first, so that an x-y pair of rows is a (2, ...) stack."""
+
+    stones: torch.Tensor
+    """(17, E, S) per stone: centre x, y (``_CENTER_XY``), z (``_CZ``); the lower (``_LOWER``)
+    and upper (``_UPPER``) bounds of a foothold clamped into the stone, (2 margins, 2 axes)
+    each (hard: with the hard margin, soft: with margin + edge clearance); the half extents with
+    the hard margin (``_SPREAD``), over which group (b)'s points spread; the half sizes the
+    clearance is measured against (``_HALF``): -inf on a padding entry or a stone too small for
+    the hard margin, so that every point on it is off the stones; the half sizes with -inf on a
+    padding entry only (``_HALVES``: the nearest-stone search and the stance foot's stone)."""
+    course: torch.Tensor
+    """(13, E) per env: the course frame as (2 world axes j, 4) rows (``_FRAME``): [lat_j,
+    axis_j, lat_j, axis_j] (axis along the course, lat across it, to the left), so that a world
+    step s maps to s[0] * [0] + s[1] * [1] = (across, along, across, along); the course start
+    xy (``_START``), its direction as given (``_DIR``) and the goal distance (``_GOAL``)."""
+
+    def index(self, env_ids: torch.Tensor) -> PlanTables:
+        """The tables of ``env_ids`` (an index into E)."""
+        return PlanTables(
+            self.stones.index_select(1, env_ids), self.course.index_select(1, env_ids)
+        )
+
+    @property
+    def axis(self) -> torch.Tensor:
+        """(E, 2) unit vector along the course (:func:`course_frame`'s, the same numbers)."""
+        return self.course[1:6:4].T
+
+    @property
+    def lat(self) -> torch.Tensor:
+        """(E, 2) unit vector across the course, to its left."""
+        return self.course[0:5:4].T
+
+
+# Rows of PlanTables.stones (first dim) and .course.
 _CENTER_XY, _CZ = slice(0, 2), 2
 _LOWER, _UPPER = slice(3, 7), slice(7, 11)
-_SPREAD, _HALF = slice(11, 13), slice(13, 15)
+_SPREAD, _HALF, _HALVES = slice(11, 13), slice(13, 15), slice(15, 17)
+_FRAME, _START, _DIR, _GOAL = slice(0, 8), slice(8, 10), slice(10, 12), 12
 
 
-def _clearance(center: XY, half: XY, xy: XY) -> torch.Tensor:
-    """Edge clearance of points ``xy`` on the stones of centres ``center`` and half sizes
-    ``half`` (rows of :func:`_stone_table`, broadcast against the points): negative off the
-    stone, -inf on an unusable one."""
-    off = (xy - center).abs_()
-    inside = into(off, torch.sub, half, off)  # (in place: a fresh temporary of the points' shape)
-    return torch.minimum(inside[0], inside[1])
+def plan_tables(footholds: Footholds, cfg: PlannerCfg) -> PlanTables:
+    """:class:`PlanTables` of ``footholds`` (the same numbers as :func:`course_frame` and the
+    margin arithmetic of the module docstring)."""
+    half = footholds.half_size.movedim(-1, 0)  # (2, E, S)
+    # (2 margins, 2 axes, E, S): hard = half - margin - eps, soft = half - margin - clearance
+    margins = kept(
+        ("margins", _EPS, cfg.edge_clearance, half.device, half.dtype),
+        lambda: torch.stack(
+            [
+                torch.full((), v, device=half.device, dtype=half.dtype)
+                for v in (_EPS, cfg.edge_clearance)
+            ]
+        ).view(2, 1, 1, 1),
+    )
+    extent = (half - cfg.stone_margin) - margins
+    usable = footholds.valid & (extent[0].amin(0) >= 0.0)
+    extent = extent.clamp_(min=0.0)
+    center = footholds.center.movedim(-1, 0)  # (3, E, S)
+    xy = center[:2]
+    stones = torch.cat(
+        [
+            center,
+            (xy - extent).flatten(0, 1),
+            (xy + extent).flatten(0, 1),
+            extent[0],
+            torch.where(usable, half, float("-inf")),
+            torch.where(footholds.valid, half, float("-inf")),
+        ],
+    )
+    d = footholds.direction
+    axis = d / d.norm(dim=-1, keepdim=True).clamp(min=1e-9)
+    signs = kept(
+        ("frame signs", axis.device, axis.dtype),
+        lambda: torch.ones(8, device=axis.device, dtype=axis.dtype).index_fill_(
+            0, torch.arange(0, 3, 2, device=axis.device), -1.0
+        ),
+    )
+    order = kept(  # (axis column of each frame row) = (i % 2) xor (i < 4)
+        ("frame order", axis.device),
+        lambda: (
+            torch.arange(8, device=axis.device).remainder(2)
+            ^ torch.arange(8, device=axis.device).lt(4).long()
+        ),
+    )
+    frame = axis.index_select(1, order) * signs  # (E, 8): [-a1, a0, -a1, a0, a0, a1, a0, a1]
+    course = torch.cat([frame, footholds.start_xy, d, footholds.goal_distance[:, None]], dim=1).T
+    return PlanTables(stones, course)
+
+
+def _stance_z(tables: PlanTables, xy: torch.Tensor) -> torch.Tensor:
+    """(E,) top height of the stone under the points ``xy`` (E, 2): the valid stone with the
+    largest clearance min(half - |xy - c|) (:func:`locate_on_stones`'s choice)."""
+    st = tables.stones
+    inside = st[_HALVES] - (xy.T[:, :, None] - st[_CENTER_XY]).abs_()
+    best = torch.minimum(inside[0], inside[1]).argmax(-1, keepdim=True)
+    return st[_CZ].gather(1, best)[:, 0]
 
 
 def plan_footsteps(
     stance_xy: torch.Tensor,
     stance_is_left: torch.Tensor,
     command: torch.Tensor,
-    footholds: Footholds,
+    footholds: Footholds | PlanTables,
     cfg: PlannerCfg | None = None,
     generator: torch.Generator | None = None,
     compiled: bool = False,
@@ -274,182 +371,208 @@ def plan_footsteps(
     """Plan N footsteps for every env by random shooting with greedy rollouts.
 
     stance_xy: (E, 2) current stance foot [m], world frame; stance_is_left: (E,) bool;
-    command: (E, 3) [vx, vy, yaw_rate] in the world frame [m/s, m/s, rad/s] (yaw rate unused
-    here); footholds: the envs' stones. Deterministic for a seeded ``generator``.
-    ``compiled``: run the search (everything but the random draws) under ``torch.compile``
-    (:func:`march.compiled_math.fused`): the same plans, fused into a few kernels.
+    command: (E, 2 or 3) [vx, vy(, yaw_rate)] in the world frame [m/s, m/s, rad/s] (yaw rate
+    unused here); footholds: the envs' stones, or their :func:`plan_tables`. Deterministic for
+    a seeded ``generator``. ``compiled``: run the search (everything but the random draws)
+    under ``torch.compile`` (:func:`march.compiled_math.fused`): the same plans, fused into a
+    few kernels.
     """
     cfg = cfg or PlannerCfg()
-    m = min(cfg.num_candidate_stones, footholds.center.shape[1])
-    unit, gumbel = planner_draws(cfg, m, generator, stance_xy.device, stance_xy.dtype)
+    tables = footholds if isinstance(footholds, PlanTables) else plan_tables(footholds, cfg)
+    m = min(cfg.num_candidate_stones, tables.stones.shape[2])
+    unit, noise = planner_draws(cfg, m, generator, stance_xy.device, stance_xy.dtype)
     search = fused(_search) if compiled else _search
-    return search(stance_xy, stance_is_left, command, footholds, unit, gumbel, cfg)
+    return search(stance_xy, stance_is_left, command, tables, unit, noise, cfg)
 
 
-def _stone_table(footholds: Footholds, cfg: PlannerCfg) -> torch.Tensor:
-    """(15, E, S) what the search reads of each stone, built once per plan so that a step gathers
-    its M stones' rows in one op; rows (first dim, so that an x-y pair of rows is a (2, ...)
-    stack): centre x, y (``_CENTER_XY``), z (``_CZ``); the lower (``_LOWER``) and upper
-    (``_UPPER``) bounds of a foothold clamped into the stone, (2 axes, 2 margins) each (hard:
-    with the hard margin, soft: with margin + edge clearance); the half extents with the hard
-    margin (``_SPREAD``), over which group (b)'s points spread; the half sizes the clearance is
-    measured against (``_HALF``): -inf on a padding entry or a stone too small for the hard
-    margin, so that every point on it is off the stones."""
-    half = footholds.half_size.movedim(-1, 0)  # (2, E, S)
-    hard = half - cfg.stone_margin - _EPS
-    usable = footholds.valid & (hard >= 0.0).all(0)
-    hard = hard.clamp(min=0.0)
-    soft = (half - cfg.stone_margin - cfg.edge_clearance).clamp(min=0.0)
-    extent = torch.stack([hard, soft], dim=1)  # (2 axes, 2 margins, E, S)
-    center = footholds.center.movedim(-1, 0)  # (3, E, S)
-    xy = center[:2, None]
-    return torch.cat(
-        [
-            center,
-            (xy - extent).flatten(0, 1),
-            (xy + extent).flatten(0, 1),
-            hard,
-            torch.where(usable, half, float("-inf")),
-        ],
-        dim=0,
-    )
+# Rows of the stone-layout buffer G (all moved into the score layout's rows _F_MOVED by one
+# gather; _G_PEN is ok - 1: 0.0 feasible, -1.0 not), of the constraint buffer W (one row per
+# constraint, met where within ScoreLayout.limits) and of the score-layout buffer F (the first
+# _F_PICK rows are what a rollout's choice reads, in one gather).
+_G_PEN, _G_XY, _G_Z, _G_D, _G_EDGE, _G_ROWS = 0, slice(1, 3), 3, slice(4, 7), 7, 8
+_W_NEGCLEAR, _W_SQ, _W_OWN, _W_DZ, _W_ROWS = 0, 1, slice(2, 5), 5, 6
+_F_DT, _F_COST, _F_PEN, _F_XY, _F_Z, _F_ALONG, _F_D, _F_EDGE = (
+    0,
+    1,
+    2,
+    slice(3, 5),
+    5,
+    6,
+    slice(6, 9),
+    9,
+)
+_F_MOVED, _F_PICK, _F_ROWS = slice(2, 10), 7, 10
 
 
 def _search(
     stance_xy: torch.Tensor,
     stance_is_left: torch.Tensor,
     command: torch.Tensor,
-    footholds: Footholds,
+    footholds: Footholds | PlanTables,
     unit: torch.Tensor,
-    gumbel: torch.Tensor,
+    noise: torch.Tensor,
     cfg: PlannerCfg,
 ) -> Plan:
     """The greedy random-shooting search of :func:`plan_footsteps` on given draws (pure).
 
     Everything that does not depend on the rollouts' stance feet (the command and course frame
-    terms, the per-duration costs, the stones' clamp bounds, the scaled noise, the candidate
-    buffers) is computed or allocated once before the step loop; the chosen points are stacked
-    and the stall flags computed after it. Points are (2, ...) x-y stacks (step_cost.XY)."""
+    terms, the stones' clamp bounds, the layout tables, the buffers) is computed or allocated
+    once before the step loop; a step computes each term in one op over both candidate groups
+    (the stone layout for what depends on the point only, then the score layout: module
+    docstring of :mod:`march.reference.search_inputs`); the chosen points, costs and stall
+    flags are read after it. Points are (2, ...) x-y stacks (step_cost.XY).
+
+    The numbers are those of :func:`march.reference.step_cost._step_cost` bit for bit: the
+    same float ops on the same values, where a constraint a >= b is tested as -a > -b
+    (violated) and the edge cost reads -clearance (negations are exact)."""
+    tables = footholds if isinstance(footholds, PlanTables) else plan_tables(footholds, cfg)
     device, dtype = stance_xy.device, stance_xy.dtype
     e, r, n = stance_xy.shape[0], cfg.num_rollouts, cfg.num_steps
-    m = min(cfg.num_candidate_stones, footholds.center.shape[1])
-    k = cfg.samples_per_stone
-    durations = cfg.duration_grid(device, dtype)
-    fuse = cfg.fuse_candidates if cfg.fuse_candidates is not None else device.type == "cuda"
-    nt = durations.numel()
-    axis, lat = course_frame(footholds)
-    not_left = ~stance_is_left
-    lands_left = torch.stack([not_left if i % 2 == 0 else stance_is_left for i in range(n)], 1)
-    # Broadcast shapes: per env (2, E, 1, 1, 1, 1) x-y stacks against (2, E, R, T, M, C)
-    # candidates; the landing side's terms per env and step (2, E, N, 1, 1, 1), read at step i
-    # as (2, E, 1, 1, 1, 1).
-    v_cmd, axis_, lat_ = (a.T.reshape(2, e, 1, 1, 1, 1) for a in (command[:, :2], axis, lat))
-    dur = durations.view(1, 1, nt, 1, 1)
-    terms = step_terms(dur, lands_left.view(e, n, 1, 1, 1), v_cmd, axis_, lat_, cfg)
-    # Nominal foothold offsets from the stance foot, (2, E, N, T, 1, 1): width offset + v_D dt.
-    nom_d = terms.offset * lat_ + v_cmd * dur
-    floor, scale_ahead = pace_floor(terms.cmd[0], cfg)
-    table = _stone_table(footholds, cfg)
-    # The nearest-stone search: padding entries get half sizes of -inf (infinitely far).
-    centers = table[_CENTER_XY, :, None]  # (2, E, 1, S)
-    halves = torch.where(footholds.valid, footholds.half_size.movedim(-1, 0), float("-inf"))
-    halves = halves[:, :, None]
-    noise = cfg.explore_temperature * gumbel
-    picks = pick_table(nt, m, k, fuse, device)
-    # Candidate buffers, rewritten every step (what a step reads of them it gathers first).
-    c = k + 2
-    if fuse:  # one (T, M, C) group
-        cand = torch.empty(2, e, r, nt * m * c, device=device, dtype=dtype)
-        full = cand.view(2, e, r, nt, m, c)
-        pos_a = full[..., :2]
-    else:  # group (a), (T, M, 2), then group (b), (1, M, K): see search_inputs.pick_table
-        split = nt * m * 2
-        cand = torch.empty(2, e, r, split + m * k, device=device, dtype=dtype)
-        ok_buf = torch.empty(e, r, split + m * k, device=device, dtype=torch.bool)
-        pos_a = cand[..., :split].view(2, e, r, nt, m, 2)
-        pos_b = cand[..., split:].view(2, e, r, 1, m, k)
-        ok_a = ok_buf[..., :split].view(e, r, nt, m, 2)
-        ok_b = ok_buf[..., split:].view(e, r, 1, m, k)
+    st = tables.stones
+    m = min(cfg.num_candidate_stones, st.shape[2])
+    k, nt = cfg.samples_per_stone, cfg.num_durations
+    q, f = 2 * nt + k, nt * m * (k + 2)
+    lay = score_layout(cfg, m, device, dtype)
+    frame = tables.course[_FRAME].view(2, 4, e)  # [j]: (lat_j, axis_j, lat_j, axis_j)
+    # Per env and step: nominal offsets (3), constraint signs (3), lands_left (1).
+    sides = torch.where(stance_is_left[None, :, None], lay.sides[1, :, None], lay.sides[0, :, None])
+    lands_left = sides[6] > 0.5  # (E, N)
+    # The command along and across the course and the pace floor: (3, E) = (along, across,
+    # floor), subtracted from the velocity rows (along, across, along) in one op.
+    v_cmd = command[:, :2].T  # (2, E) world
+    # One allocation for every buffer of the search (views below).
+    sizes = (3 * e, _G_ROWS * e * r * m * q, _W_ROWS * e * r * m * q, _F_ROWS * e * r * f)
+    sizes += ((n * _F_PICK + 2) * e * r,)
+    cmd, gbuf, wbuf, fbuf, record = torch.empty(sum(sizes), device=device, dtype=dtype).split(sizes)
+    cmd = cmd.view(3, e)
+    torch.add(v_cmd[0] * frame[0, 1:3], v_cmd[1] * frame[1, 1:3], out=cmd[0:2])
+    torch.mul(cmd[0].clamp(min=0.0), cfg.pace_fraction, out=cmd[2])
+    floor = cmd[2]
+    # -scale of pace_floor (the same product, negated: exact); times the goal test per step.
+    neg_scale = ((-cfg.pace_cost) / floor.clamp(min=1e-6)) * (floor > 1e-6)
+    # Nominal foothold offsets from the stance foot, (2, E, N, T): width offset + v_D dt.
+    lat = tables.course[0:5:4]  # (2, E)
+    nom_d = (
+        sides[1][None, :, :, None] * lat[:, :, None, None] + v_cmd[:, :, None, None] * lay.durations
+    )
+    centers = st[_CENTER_XY, :, None]  # (2, E, 1, S)
+    halves = st[_HALVES, :, None]
+    start = tables.course[_START].view(2, e, 1)
+    direction = tables.course[_DIR].view(2, e, 1)
+    goal = tables.course[_GOAL].view(e, 1)
 
-    _, z0 = locate_on_stones(footholds, stance_xy)
+    gbuf = gbuf.view(_G_ROWS, e, r, m, q)
+    wbuf = wbuf.view(_W_ROWS, e, r, m, q)  # the constraint rows
+    fbuf = fbuf.view(_F_ROWS, e, r, f)
+    fbuf[_F_DT].copy_(lay.duration)
+    # What each step chose, (N, 7, E, R) (the _F_PICK rows), then the summed (cost, violations)
+    # of each rollout (2, E, R): the best rollout's are read in one gather.
+    record = record.view(n * _F_PICK + 2, e, r)
+    chosen_rows, total = record[:-2].view(n, _F_PICK, e, r), record[-2:]
+    pos = gbuf[_G_XY]  # (2, E, R, M, Q)
+    pos_a = pos[..., : 2 * nt].view(2, e, r, m, nt, 2)
+    pos_b = pos[..., 2 * nt :]
+    moved = gbuf.view(_G_ROWS, e, r, m * q)
+
+    z0 = _stance_z(tables, stance_xy)
     p = stance_xy.T[:, :, None].expand(2, e, r)  # the rollouts' stance feet
     pz = z0[:, None].expand(e, r)
-    points, t_picks, aheads = [p[0], p[1], pz], [], []
+    aheads = []
     for i in range(n):
-        step = terms._replace(
-            own_side=terms.own_side[:, :, i : i + 1], nominal=terms.nominal[:, :, i : i + 1]
-        )
-        # Nominal foothold for each duration, (2, E, R, T, 1): stance + width offset + v_D dt.
-        nom = p[:, :, :, None, None] + nom_d[:, :, i : i + 1, :, :, 0]
+        # Nominal foothold for each duration, (2, E, R, T): stance + width offset + v_D dt.
+        nom = p[..., None] + nom_d[:, :, None, i]
         # The M stones whose rectangles are nearest to the middle duration's nominal foothold.
-        d = ((nom[:, :, :, nt // 2, 0, None] - centers).abs() - halves).clamp(min=0.0)
+        d = ((nom[..., nt // 2, None] - centers).abs() - halves).clamp(min=0.0)
         d = d * d  # (2, E, R, S)
         near = (d[0] + d[1]).topk(m, dim=-1, largest=False).indices  # (E, R, M)
-        rows = table.gather(2, near.view(1, e, r * m).expand(table.shape[0], -1, -1))
-        rows = rows.view(-1, e, r, m)
-        center, half = (rows[s].view(2, e, r, 1, m, 1) for s in (_CENTER_XY, _HALF))
-        # Two candidate groups, scored separately because only the first depends on dt:
-        # (a) the nominal foothold clamped into each stone (hard and soft margins), (T, M, 2);
-        # (b) random points on each stone, (1, M, K).
+        rows = st.gather(2, near.view(1, e, r * m).expand(st.shape[0], -1, -1))
+        rows = rows.view(-1, e, r, m, 1)
+        center, half = rows[_CENTER_XY], rows[_HALF]  # (2, E, R, M, 1)
+        # (a) the nominal foothold clamped into each stone (hard and soft margins), (M, T, 2);
+        # (b) random points on each stone, (M, K).
         lower, upper = (
-            rows[s].view(2, 2, e, r, m).permute(0, 2, 3, 4, 1)[:, :, :, None]
+            rows[s].view(2, 2, e, r, m).permute(1, 2, 3, 4, 0)[:, :, :, :, None]
             for s in (_LOWER, _UPPER)
-        )  # (2 axes, E, R, 1, M, 2 margins)
-        into(pos_a, torch.clamp, nom[..., None], lower, upper)
-        spread_b = unit[i][:, None] * rows[_SPREAD].view(2, e, r, m, 1)
-        ahead = goal_ahead(footholds, p)  # (E, R): the progress term applies
-        scale = scale_ahead * ahead.view(e, r, 1, 1, 1)  # (0 where the goal is behind)
-        prev = p.view(2, e, r, 1, 1, 1)
-        height = height_ok(pz.view(e, r, 1, 1, 1), rows[_CZ].view(e, r, 1, m, 1), cfg)
-        pace = (floor, scale)
-        if fuse:
-            full[..., 2:].copy_((center.view(2, e, r, m, 1) + spread_b)[:, :, :, None])
-            cost, ok = _step_cost(
-                prev, full, _clearance(center, half, full), height, step, pace, cfg
-            )
-            flat_ok = ok.expand_as(cost).reshape(e, r, -1)
-        else:
-            into(pos_b.view(2, e, r, m, k), torch.add, center.view(2, e, r, m, 1), spread_b)
-            clear_a, clear_b = (_clearance(center, half, pos) for pos in (pos_a, pos_b))
-            # The costs are joined by cat, not written into a buffer: a where(out=) into the
-            # (T, M, 2 + K) interleaved layout runs 2-4 element inner loops, slower on CPU.
-            cost_a, _ = _step_cost(prev, pos_a, clear_a, height, step, pace, cfg, ok_a)
-            cost_b, _ = _step_cost(prev, pos_b, clear_b, height, step, pace, cfg, ok_b)
-            cost, flat_ok = torch.cat([cost_a, cost_b], dim=-1), ok_buf
-        # (T, M, C) flattened, C = the 2 + K candidates: group (a) first, then group (b)
-        flat_cost = cost.view(e, r, -1)
-        pick = (flat_cost + noise[i]).argmin(-1, keepdim=True)  # (E, R, 1)
-        chosen = flat_cost.gather(-1, pick)[..., 0]
-        slot, t_idx, m_idx = picks[:, pick[..., 0]]  # each (E, R)
-        ok = flat_ok.gather(-1, slot[..., None])[..., 0]
-        p = cand.gather(-1, slot.view(1, e, r, 1).expand(2, e, r, 1))[..., 0]
-        if i == 0:
-            total, feasible = chosen, ok
-        else:
-            total, feasible = total + chosen, feasible & ok
-        pz = rows[_CZ].gather(-1, m_idx[..., None])[..., 0]
-        points += [p[0], p[1], pz]
-        t_picks.append(t_idx)
+        )  # (2 axes, E, R, M, 1, 2 margins)
+        into(pos_a, torch.clamp, nom[:, :, :, None, :, None], lower, upper)
+        into(pos_b, torch.add, center, unit[i][:, None] * rows[_SPREAD])
+        gbuf[_G_Z].copy_(rows[_CZ].expand(e, r, m, q))
+        # What depends on the point only, (E, R, M, Q) per row.
+        off = (pos - center).abs_().sub_(half)  # -(half - |xy - c|): minus the clearance
+        into(wbuf[_W_NEGCLEAR], torch.maximum, off[0], off[1])
+        step = pos - p.view(2, e, r, 1, 1)
+        course = (step[0] * frame[0].view(4, e, 1, 1, 1)).add_(
+            step[1] * frame[1].view(4, e, 1, 1, 1)
+        )
+        into(wbuf[_W_OWN], torch.mul, course[0:3], sides[3:6, :, i].view(3, e, 1, 1, 1))
+        sq = step.mul_(step)
+        into(wbuf[_W_SQ], torch.add, sq[0], sq[1])
+        into(wbuf[_W_DZ], torch.sub, gbuf[_G_Z], pz.view(e, r, 1, 1)).abs_()
+        # Feasible where every row is within its bound: a NaN fails (not x <= b), as in
+        # _step_cost's >= tests. The row holds ok - 1: 0.0 feasible, -1.0 infeasible.
+        ok = (wbuf <= lay.limits).view(torch.uint8).amin(0)
+        into(gbuf[_G_PEN], torch.add, ok, -1.0)
+        edge = wbuf[_W_NEGCLEAR].add(cfg.edge_clearance).div_(cfg.edge_clearance).clamp_(0.0, 1.0)
+        into(gbuf[_G_EDGE], torch.mul, edge.pow_(2), cfg.edge_cost)
+        into(gbuf[_G_D], torch.sub, course[1:4], sides[0:3, :, i].view(3, e, 1, 1, 1))
+        # The score layout (T, M, C): the velocity error, pace and time terms per duration.
+        # (a gather with the index broadcast: index_select on the last dim is ~8x slower on CPU)
+        into(fbuf[_F_MOVED], torch.gather, moved, -1, lay.index.expand(_G_ROWS, e, r, f))
+        err = fbuf[_F_D].div(lay.duration).sub_(cmd.view(3, e, 1, 1))  # v - (cmd, floor)
+        sq_err = err[0:2].pow_(2)
+        c_vel = sq_err[0] + sq_err[1]
+        if cfg.w_velocity != 1.0:  # (the paper's weight 1 is exact without the op)
+            c_vel = c_vel.mul_(cfg.w_velocity)
+        ahead = _ahead(p, start, direction, goal)  # (E, R): the progress term applies
         aheads.append(ahead)
+        c_pace = err[2].clamp_(max=0.0).mul_((neg_scale[:, None] * ahead)[..., None])
+        cost = c_vel.add_(fbuf[_F_EDGE]).add_(lay.c_time).add_(c_pace)
+        # + infeasible_cost where infeasible: cost + (-c) * (ok - 1), exactly cost + 0 or + c
+        into(fbuf[_F_COST], torch.add, cost, fbuf[_F_PEN], alpha=-cfg.infeasible_cost)
+        pick = (fbuf[_F_COST] + noise[i]).argmin(-1, keepdim=True)  # (E, R, 1)
+        into(
+            chosen_rows[i, ..., None],
+            torch.gather,
+            fbuf[:_F_PICK],
+            -1,
+            pick.view(1, e, r, 1).expand(_F_PICK, e, r, 1),
+        )  # (dt, cost, violated, x, y, z, advance) of the chosen candidate
+        if i == 1:
+            into(
+                total,
+                torch.add,
+                chosen_rows[0, _F_COST : _F_PEN + 1],
+                chosen_rows[1, _F_COST : _F_PEN + 1],
+            )
+        elif i > 1:
+            total.add_(chosen_rows[i, _F_COST : _F_PEN + 1])
+        p, pz = chosen_rows[i, _F_XY], chosen_rows[i, _F_Z]
+    if n == 1:
+        total.copy_(chosen_rows[0, _F_COST : _F_PEN + 1])
 
-    path = torch.stack(points, dim=-1).view(e, r, n + 1, 3)  # the stance foot, then the N steps
-    t_idx = torch.stack(t_picks, dim=-1)  # (E, R, N)
     # Stall flag: a chosen step falls short of the pace while the goal lies ahead.
-    step_xy = (path[..., 1:, :2] - path[..., :-1, :2]) * axis[:, None, None]
-    advance = step_xy[..., 0] + step_xy[..., 1]
-    need = (floor.view(e, 1) * durations - _EPS).gather(1, t_idx.flatten(1)).view(e, r, n)
-    stalled = (torch.stack(aheads, dim=-1) & (advance < need)).any(-1)
-
+    need = floor[:, None] * chosen_rows[:, _F_DT] - _EPS
+    stalled = (torch.stack(aheads) & (chosen_rows[:, _F_ALONG] < need)).any(0)
     # Best rollout: feasible ones first, then the lowest noise-free cost.
-    rank = total.masked_fill(~feasible, float("inf"))
-    best = torch.where(feasible.any(-1), rank.argmin(-1), total.argmin(-1))
-    env = torch.arange(e, device=device)
+    feasible = total[1] == 0.0
+    rank = torch.where(feasible, total[0], float("inf"))
+    best = torch.where(feasible.any(-1, keepdim=True), rank, total[0]).argmin(-1, keepdim=True)
+    won = record.gather(-1, best.view(1, e, 1).expand(record.shape[0], e, 1))[..., 0]
+    total = won[-2:]  # (cost, violations) of the best rollout, (2, E)
+    won = won[:-2].view(n, _F_PICK, e)  # its steps
     return Plan(
-        footholds=path[env, best, 1:],
-        durations=durations[t_idx[env, best]],
+        footholds=won[:, _F_XY.start : _F_Z + 1].permute(2, 0, 1),
+        durations=won[:, _F_DT].T,
         lands_left=lands_left,
-        cost=total[env, best],
-        feasible=feasible[env, best],
+        cost=total[0],
+        feasible=total[1] == 0.0,
         start=torch.cat([stance_xy, z0[:, None]], dim=-1),
-        stalled=stalled[env, best],
+        stalled=stalled.gather(-1, best)[:, 0],
     )
+
+
+def _ahead(p: XY, start: torch.Tensor, direction: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+    """(E, R) bool: the points ``p`` (2, E, R) lie before the goal platform along the course
+    (:func:`march.reference.step_cost.goal_ahead`, the same ops on table rows)."""
+    rel = (p - start) * direction
+    return rel[0] + rel[1] < goal

@@ -88,13 +88,16 @@ def height_ok(prev_z: torch.Tensor, z: torch.Tensor, cfg: PlannerCfg) -> torch.T
     return (z - prev_z).abs() <= cfg.max_step_height
 
 
-def into(out: torch.Tensor, op: Callable[..., torch.Tensor], *args: Any) -> torch.Tensor:
-    """``op(*args, out=out)``: eagerly one op and no new tensor; under ``torch.compile``, whose
-    tracer breaks the graph at an ``out=`` into a view (20 breaks per plan: the compiled search
-    fell apart into ~480 ops), the value computed and copied in, which inductor fuses."""
+def into(
+    out: torch.Tensor, op: Callable[..., torch.Tensor], *args: Any, **kwargs: Any
+) -> torch.Tensor:
+    """``op(*args, **kwargs, out=out)``: eagerly one op and no new tensor; under
+    ``torch.compile``, whose tracer breaks the graph at an ``out=`` into a view (20 breaks per
+    plan: the compiled search fell apart into ~480 ops), the value computed and copied in (cast
+    to ``out``'s dtype, as ``out=`` does), which inductor fuses."""
     if torch.compiler.is_compiling():
-        return out.copy_(op(*args))
-    return op(*args, out=out)
+        return out.copy_(op(*args, **kwargs))
+    return op(*args, **kwargs, out=out)
 
 
 def all_of(*masks: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
