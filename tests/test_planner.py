@@ -349,32 +349,131 @@ def test_short_of_pace_steps_as_far_as_it_can_and_flags_a_stall():
     assert not bool(plan.stalled[0])
 
 
-def test_fused_and_split_candidate_scoring_make_the_same_plans():
-    """PlannerCfg.fuse_candidates (one scoring call for both candidate groups, the GPU default)
-    and the split scoring (the CPU default) agree exactly, over random courses and commands."""
-    from dataclasses import replace
+def _plain_search(stance_xy, stance_is_left, command, fh, cfg, generator):
+    """The search of march.reference.planner written the plain way: per step and rollout, the
+    candidates listed in the score order (duration, stone, [hard clamp, soft clamp, K random
+    points]) and scored by step_cost._step_cost against locate-on-the-stone clearances, on the
+    planner's own draws. The planner's fused layouts must give the same floats, bit for bit."""
+    from march.reference.planner import course_frame
+    from march.reference.search_inputs import planner_draws
+    from march.reference.step_cost import _EPS, _step_cost, goal_ahead, pace_terms, step_terms
 
-    from march.world.synthetic import synthetic_courses
+    e, r, n = stance_xy.shape[0], cfg.num_rollouts, cfg.num_steps
+    m = min(cfg.num_candidate_stones, fh.center.shape[1])
+    k, nt = cfg.samples_per_stone, cfg.num_durations
+    unit, noise = planner_draws(cfg, m, generator, stance_xy.device, stance_xy.dtype)
+    dur = cfg.duration_grid()
+    axis, lat = course_frame(fh)
+    _, z0 = locate_on_stones(fh, stance_xy)
+    lands = torch.stack([~stance_is_left if i % 2 == 0 else stance_is_left for i in range(n)], 1)
+    half = fh.half_size.movedim(-1, 0)  # (2, E, S)
+    hard = half - cfg.stone_margin - _EPS
+    usable = fh.valid & (hard >= 0.0).all(0)
+    hard, soft = hard.clamp(min=0.0), (half - cfg.stone_margin - cfg.edge_clearance).clamp(min=0.0)
+    halves = torch.where(fh.valid, half, float("-inf"))
+    clear_half = torch.where(usable, half, float("-inf"))
+    cxy = fh.center[..., :2].movedim(-1, 0)  # (2, E, S)
+    p = stance_xy.T[:, :, None].expand(2, e, r).clone()
+    pz = z0[:, None].expand(e, r).clone()
+    total = torch.zeros(e, r)
+    feasible = torch.ones(e, r, dtype=torch.bool)
+    stalled = torch.zeros(e, r, dtype=torch.bool)
+    path = torch.zeros(e, r, n, 3)
+    t_of = torch.zeros(e, r, n, dtype=torch.long)
+    for i in range(n):
+        # per env and rollout: (2, E, R, T) nominal footholds, the M nearest stones
+        side = lands[:, i].float() * 2.0 - 1.0  # +1 where the left foot lands
+        offset = side * cfg.step_width
+        nom_d = (offset[:, None] * lat.T[:, :, None])[..., None] + command[:, :2].T[
+            ..., None, None
+        ] * dur
+        nom = p[..., None] + nom_d  # (2, E, R, T): stance + (width offset + v_D dt)
+        mid = nom[..., nt // 2]  # (2, E, R)
+        d = ((mid[..., None] - cxy[:, :, None]).abs() - halves[:, :, None]).clamp(min=0.0)
+        near = (d[0] * d[0] + d[1] * d[1]).topk(m, dim=-1, largest=False).indices  # (E, R, M)
 
-    for seed in range(6):
-        g = torch.Generator().manual_seed(seed)
-        fh = synthetic_courses(torch.rand(12, generator=g).tolist(), seed=seed)
-        stance = torch.stack(
-            [3.0 * torch.rand(12, generator=g) - 0.2, 0.3 * (torch.rand(12, generator=g) - 0.5)], -1
-        )
-        left = torch.rand(12, generator=g) > 0.5
-        cmd = torch.zeros(12, 3)
-        cmd[:, 0] = 0.2 + 0.7 * torch.rand(12, generator=g)
-        plans = [
-            plan_footsteps(
-                stance,
-                left,
-                cmd,
-                fh,
-                replace(PlannerCfg(), fuse_candidates=fuse),
-                torch.Generator().manual_seed(seed),
-            )
-            for fuse in (True, False)
+        def pick(t, near=near):  # (2, E, R, M) rows of the nearest stones
+            return t[:, torch.arange(e)[:, None, None], near]
+
+        c, h, ch = pick(cxy), pick(hard), pick(clear_half)
+        s_ = pick(soft)
+        z = fh.center[..., 2][torch.arange(e)[:, None, None], near]  # (E, R, M)
+        # candidates (2, E, R, T, M, C) in the score order
+        nomx = nom[:, :, :, :, None]  # (2, E, R, T, 1)
+        cand_a = [
+            torch.minimum(torch.maximum(nomx, (c - ext)[:, :, :, None]), (c + ext)[:, :, :, None])
+            for ext in (h, s_)
         ]
-        for name in ("footholds", "durations", "cost", "feasible", "stalled"):
-            assert torch.equal(getattr(plans[0], name), getattr(plans[1], name)), name
+        pts = unit[i][:, None] * h[..., None] + c[..., None]  # (2, E, R, M, K)
+        cand_b = pts[:, :, :, None].expand(2, e, r, nt, m, k)
+        cand = torch.cat([cand_a[0][..., None], cand_a[1][..., None], cand_b], dim=-1)
+        off = (cand - c[:, :, :, None, :, None]).abs()
+        inside = ch[:, :, :, None, :, None] - off
+        clearance = torch.minimum(inside[0], inside[1])
+        height = (z[:, :, None, :, None] - pz[:, :, None, None, None]).abs() <= cfg.max_step_height
+        frame = [a.T.reshape(2, e, 1, 1, 1, 1) for a in (axis, lat)]
+        v_cmd = command[:, :2].T.reshape(2, e, 1, 1, 1, 1)
+        terms = step_terms(
+            dur.view(1, 1, nt, 1, 1), lands[:, i].view(e, 1, 1, 1, 1), v_cmd, *frame, cfg
+        )
+        ahead = goal_ahead(fh, p).view(e, r, 1, 1, 1)
+        pace = pace_terms(terms.cmd[0], ahead, cfg)
+        prev = p.view(2, e, r, 1, 1, 1)
+        cost, ok = _step_cost(prev, cand, clearance, height, terms, pace, cfg)
+        flat = cost.reshape(e, r, -1)
+        choice = (flat + noise[i]).argmin(-1)  # (E, R)
+        t_idx = choice // (m * (k + 2))
+        m_idx = (choice // (k + 2)) % m
+        ok = ok.expand_as(cost).reshape(e, r, -1).gather(-1, choice[..., None])[..., 0]
+        new = cand.reshape(2, e, r, -1).gather(-1, choice.expand(2, e, r)[..., None])[..., 0]
+        advance = ((new - p) * axis.T[:, :, None]).unbind(0)
+        need = cfg.pace_fraction * terms.cmd[0].reshape(e, 1).clamp(min=0.0) * dur[t_idx] - _EPS
+        stalled |= goal_ahead(fh, p) & (advance[0] + advance[1] < need)
+        total = (
+            total + flat.gather(-1, choice[..., None])[..., 0]
+            if i
+            else flat.gather(-1, choice[..., None])[..., 0]
+        )
+        feasible &= ok
+        p = new
+        pz = z.gather(-1, m_idx[..., None])[..., 0]
+        path[:, :, i] = torch.stack([p[0], p[1], pz], -1)
+        t_of[:, :, i] = t_idx
+    rank = total.masked_fill(~feasible, float("inf"))
+    best = torch.where(feasible.any(-1), rank.argmin(-1), total.argmin(-1))
+    env = torch.arange(e)
+    return {
+        "footholds": path[env, best],
+        "durations": dur[t_of[env, best]],
+        "cost": total[env, best],
+        "feasible": feasible[env, best],
+        "stalled": stalled[env, best],
+    }
+
+
+def test_the_search_equals_the_plain_search_bit_for_bit():
+    """The planner's fused layouts (issue 41: one pass per term over both candidate groups, the
+    constraints as rows tested at once, one gather per choice) compute every float as the plain
+    per-candidate search does (_plain_search): torch.equal on every plan field over random
+    courses (rotated too), stances, commands, batch sizes and cfg variants."""
+    for seed in range(8):
+        g = torch.Generator().manual_seed(seed)
+        e = (12, 5, 20, 1)[seed % 4]
+        fh = synthetic_courses(torch.rand(e, generator=g).tolist(), seed=seed)
+        if seed % 2:
+            ang = (torch.rand(e, generator=g) - 0.5) * 5.0
+            fh.direction = torch.stack([torch.cos(ang), torch.sin(ang)], -1) * 1.5
+        stance = torch.stack(
+            [3.0 * torch.rand(e, generator=g) - 0.2, 0.3 * (torch.rand(e, generator=g) - 0.5)], -1
+        )
+        left = torch.rand(e, generator=g) > 0.5
+        cmd = torch.zeros(e, 3)
+        cmd[:, 0] = -0.2 + 1.1 * torch.rand(e, generator=g)
+        cmd[:, 1] = 0.2 * (torch.rand(e, generator=g) - 0.5)
+        cfg = PlannerCfg()
+        if seed % 3 == 2:
+            cfg = replace(cfg, w_velocity=1.5, num_rollouts=5, samples_per_stone=3, num_durations=4)
+        got = _plan(fh, stance, left, cmd, seed=seed, cfg=cfg)
+        want = _plain_search(stance, left, cmd, fh, cfg, torch.Generator().manual_seed(seed))
+        for name, value in want.items():
+            assert torch.equal(getattr(got, name), value), (seed, name)
