@@ -219,3 +219,42 @@ def test_structured_config():
     assert len(c.outputs) == 29 and c.outputs[8].q_pos == 3500.0 and c.dclf_clip is None
     cfg = omegaconf.OmegaConf.to_object(c)
     assert ClfModel(cfg).num_outputs == 29
+
+
+def test_value_of_outputs_equals_value_of_the_wrapped_errors():
+    """Issue 41: V from the outputs in one product with P (angles wrapped inside) equals
+    ClfModel.value of tracking_error's eta, over many random outputs with angles far apart."""
+    from march.reference.trajectory import angle_mask, tracking_error
+
+    model = ClfModel(dtype=torch.float64)
+    mask = angle_mask(17)
+    for seed in range(20):
+        g = torch.Generator().manual_seed(seed)
+        y, y_ref, yd, yd_ref = (
+            4 * torch.rand(13, 29, generator=g, dtype=torch.float64) - 2 for _ in range(4)
+        )
+        y[:, mask] *= 4.0  # angle errors beyond pi: the wrap matters
+        want = model.value(tracking_error(y, y_ref, mask), yd - yd_ref)
+        got = model.value_of_outputs(y, yd, y_ref, yd_ref, mask)
+        assert torch.allclose(got, want, rtol=1e-12, atol=0.0), seed
+    m32 = ClfModel()
+    got = m32.value_of_outputs(*(t.float() for t in (y, yd, y_ref, yd_ref)), mask)
+    assert torch.allclose(got.double(), want, rtol=1e-5)
+
+
+def test_history_weights_equal_the_backward_differences():
+    """VHistory.update's one weighted sum gives the three-point difference, the first-order one
+    after one sample and 0 without history (also for an infinite V)."""
+    dt = 0.02
+    h = VHistory(4, dt, dtype=torch.float64)
+    vs = [
+        torch.tensor([1.0, 2.0, 3.0, float("inf")], dtype=torch.float64) * (k + 1) ** 2
+        for k in range(3)
+    ]
+    d0, ok0 = h.update(vs[0])
+    assert torch.equal(d0, torch.zeros(4, dtype=torch.float64)) and not ok0.any()
+    d1, _ = h.update(vs[1])
+    assert torch.allclose(d1[:3], (vs[1] - vs[0])[:3] / dt, rtol=1e-12)
+    d2, ok2 = h.update(vs[2])
+    want = backward_difference(vs[2], vs[1], vs[0], dt)
+    assert torch.allclose(d2[:3], want[:3], rtol=1e-12) and ok2.all()

@@ -405,3 +405,47 @@ def test_control_delay_lags_and_delayed_targets(env):
         env.sim.step()
         env.scene.update(dt=env.physics_dt)
     env.reset()
+
+
+def test_gather_delay_equals_mjlabs_delay_buffer():
+    """Issue 41: march's command delay (one gather per physics step) returns exactly what
+    mjlab's DelayBuffer with per-episode lags (hold_prob 1) returns, step by step, through
+    random appends, partial resets (repeated with the same ids, as a fused group's actuators
+    do), lag changes and backfills; a read is one op and an append one op."""
+    from mjlab.utils.buffers.delay_buffer import DelayBuffer
+
+    from march.bench.ops import OpCounter
+    from march.env.command_delay import GatherDelay
+
+    for seed in range(6):
+        g = torch.Generator().manual_seed(seed)
+        e, max_lag = 7, 1 + seed % 4
+        ref = DelayBuffer(0, max_lag, e, "cpu", hold_prob=1.0, update_period=0)
+        ours = GatherDelay.from_buffer(DelayBuffer(0, max_lag, e, "cpu", hold_prob=1.0))
+        for step in range(60):
+            if step % 7 == 3:
+                ids = torch.randperm(e, generator=g)[: int(torch.randint(1, e, (1,), generator=g))]
+                for buf in (ref, ours):
+                    buf.reset(ids)
+                    buf.reset(ids)
+            if step % 7 == 4 or step == 0:
+                ids = torch.randperm(e, generator=g)[:4]
+                lags = torch.randint(0, max_lag + 2, (4,), generator=g)
+                for buf in (ref, ours):
+                    buf.set_lags(lags, ids)
+            frame = torch.rand(e, 3, 2, generator=g)
+            with OpCounter() as ops:
+                ours.append(frame)
+                got = ours.compute()
+            ref.append(frame)
+            want = ref.compute()
+            assert torch.equal(got, want), (seed, step)
+            assert torch.equal(ours.current_lags, ref.current_lags)
+            if step % 7 not in (3, 4) and step % 11 != 6 and step > 1:
+                assert ops.total == 2, ops.counts  # (after a reset: + a where and a fill)
+            if step % 11 == 5:
+                ids = torch.tensor([1, 4])
+                back = torch.rand(e, 3, 2, generator=g)
+                ref.reset(ids), ours.reset(ids)
+                ref.backfill(back, ids), ours.backfill(back, ids)
+                assert torch.equal(ours.peek(), ref.peek())

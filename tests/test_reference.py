@@ -282,3 +282,86 @@ def test_ramp_is_per_env():
     pos, vel = _com(step, 0.0)
     assert vel[0].abs().max() < 1e-12
     assert float(vel[1, 0]) == pytest.approx(_orbit_x(0.0)[1], abs=1e-12)
+
+
+def _random_step_state(e: int, g: torch.Generator, dtype: torch.dtype) -> StepState:
+    """Random steps: world positions over a few metres, both stance feet, ramps, yaw rates."""
+
+    def r(*shape):
+        return torch.rand(*shape, generator=g, dtype=dtype)
+
+    return StepState(
+        stance_pos=4 * r(e, 3) - 2,
+        stance_is_left=r(e) > 0.5,
+        swing_start=4 * r(e, 3) - 2,
+        target=4 * r(e, 3) - 1.7,
+        next_target=4 * r(e, 3) - 1.4,
+        duration=0.3 + 0.5 * r(e),
+        next_duration=0.3 + 0.5 * r(e),
+        yaw0=8 * r(e) - 4,
+        yaw_rate=r(e) - 0.5,
+        axis=torch.nn.functional.normalize(r(e, 2) - 0.5, dim=-1),
+        ramp=r(e) > 0.6,
+        ramp_from=4 * r(e, 2) - 2,
+    )
+
+
+def test_reference_outputs_equal_reference_at():
+    """Issue 41: the few-op reference (reference_outputs, every instant of (E, K) times in one
+    call) is reference_at flattened: to 1e-9 in float64 over many random steps and times (late
+    touchdowns and ramps included), and in float32 as close to the float64 values as
+    reference_at's own float32 rounding allows."""
+    from march.reference.trajectory import reference_outputs, reference_tables
+
+    worst_new = worst_old = 0.0
+    for seed in range(25):
+        g = torch.Generator().manual_seed(seed)
+        cfg = ReferenceCfg(foot_height_offset=0.01 * (seed % 2), pitch_offset=0.03 * (seed % 3))
+        st = _random_step_state(31, g, F64)
+        tau = st.duration[:, None] * 1.6 * torch.rand(31, 3, generator=g, dtype=F64)
+        pos, vel = reference_outputs(st, tau, cfg, HlipCfg(), 17)
+        one_pos, one_vel = reference_outputs(st, tau[:, 1], cfg, HlipCfg(), 17)
+        assert torch.allclose(one_pos, pos[:, 1], atol=1e-12) and torch.allclose(
+            one_vel, vel[:, 1], atol=1e-12
+        )
+        st32 = StepState(
+            **{
+                f: v.float() if v.is_floating_point() else v
+                for f, v in ((f, getattr(st, f)) for f in st.__dataclass_fields__)
+            }
+        )
+        tables = reference_tables(cfg, 17, torch.float32, "cpu")
+        pos32, vel32 = reference_outputs(st32, tau.float(), cfg, HlipCfg(), 17, tables)
+        for j in range(3):
+            want_pos, want_vel = reference_at(st, tau[:, j], cfg, HlipCfg(), 17).flatten()
+            assert torch.allclose(pos[:, j], want_pos, atol=1e-9, rtol=0.0), seed
+            assert torch.allclose(vel[:, j], want_vel, atol=1e-9, rtol=0.0), seed
+            old_pos, old_vel = reference_at(st32, tau[:, j].float(), cfg, HlipCfg(), 17).flatten()
+            new_err = max(
+                float((pos32[:, j].double() - want_pos).abs().max()),
+                float((vel32[:, j].double() - want_vel).abs().max()),
+            )
+            old_err = max(
+                float((old_pos.double() - want_pos).abs().max()),
+                float((old_vel.double() - want_vel).abs().max()),
+            )
+            worst_new, worst_old = max(worst_new, new_err), max(worst_old, old_err)
+    assert worst_new < 1e-4 and worst_new <= worst_old, (worst_new, worst_old)
+
+
+def test_reference_outputs_take_few_ops():
+    """Both instants of a step (the command term's refresh) in under 90 ops; reference_at on
+    the step state copied twice took ~200 (and the copy ~24 more)."""
+    from march.bench.ops import OpCounter
+    from march.reference.trajectory import reference_outputs, reference_tables
+
+    g = torch.Generator().manual_seed(0)
+    st = _random_step_state(16, g, torch.float32)
+    tables = reference_tables(ReferenceCfg(), 17, torch.float32, "cpu")
+    tau = torch.rand(16, 2, generator=g)
+    with torch.inference_mode(), OpCounter() as ops:
+        reference_outputs(st, tau, ReferenceCfg(), HlipCfg(), 17, tables)
+    both = StepState(**{f: torch.cat([getattr(st, f)] * 2) for f in st.__dataclass_fields__})
+    with torch.inference_mode(), OpCounter() as old:
+        reference_at(both, tau.T.flatten()).flatten()
+    assert ops.total < 90 < 2 * ops.total < old.total, (ops.total, old.total)

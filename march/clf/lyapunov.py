@@ -47,6 +47,7 @@ derivative, no penalty) instead of the ``-alpha V / Vdmax`` that ``Vdot = 0`` wo
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -207,6 +208,7 @@ class ClfModel:
         self.P = torch.as_tensor(self.P_np, dtype=self.dtype, device=device)
         b = torch.as_tensor(self.P_blocks_np, dtype=self.dtype, device=device)
         self._p11, self._p12, self._p22 = b[:, 0, 0], b[:, 0, 1], b[:, 1, 1]
+        self._half_p = torch.as_tensor(0.5 * self.P_np, dtype=self.dtype, device=device)
 
     def to(self, device: torch.device | str) -> ClfModel:
         """Move the tensors to ``device`` (in place); returns self."""
@@ -233,6 +235,24 @@ class ClfModel:
         self._check(eta, etadot)
         q = self._p11 * eta * eta + 2.0 * self._p12 * eta * etadot + self._p22 * etadot * etadot
         return 0.5 * q.sum(-1)
+
+    def value_of_outputs(
+        self,
+        y: torch.Tensor,
+        ydot: torch.Tensor,
+        y_ref: torch.Tensor,
+        ydot_ref: torch.Tensor,
+        angles: torch.Tensor,
+    ) -> torch.Tensor:
+        """V (E,) of the outputs ``y`` and rates ``ydot`` against their references, each
+        (E, n): eta = y - y_ref with the ``angles`` (n,) bool columns wrapped to [-pi, pi)
+        (``march.reference.trajectory.tracking_error``), etadot = ydot - ydot_ref, and
+        V = x^T (P / 2) x on the interleaved state as one product with the block-diagonal P:
+        :meth:`value` in 9 ops instead of ~20 (equal within float32 rounding)."""
+        diff = y - y_ref
+        eta = torch.where(angles, torch.remainder(diff + math.pi, 2.0 * math.pi) - math.pi, diff)
+        x = torch.stack([eta, ydot - ydot_ref], dim=-1).flatten(-2)
+        return ((x @ self._half_p) * x).sum(-1)
 
     def value_rate(
         self, eta: torch.Tensor, etadot: torch.Tensor, etaddot: torch.Tensor
@@ -301,6 +321,14 @@ class VHistory:
         """V two steps ago."""
         self.count = torch.zeros(num_envs, dtype=torch.long, device=device)
         """Number of stored past samples per env, 0..2."""
+        d = self.dt
+        self._weights = torch.tensor(
+            [[0.0, 0.0, 0.0], [1.0 / d, -1.0 / d, 0.0], [1.5 / d, -2.0 / d, 0.5 / d]],
+            dtype=dtype,
+            device=device,
+        )
+        """(count, [V_t, V_t-1, V_t-2]) the backward difference's weights for each history
+        length (0: none, 1: first order, 2: three-point)."""
 
     def reset(self, env_ids: torch.Tensor | Sequence[int] | slice | None = None) -> None:
         """Forget the history of ``env_ids`` (all envs if None)."""
@@ -322,13 +350,13 @@ class VHistory:
         valid is False where no previous sample exists (dV/dt is then 0).
         """
         v = v.detach().to(self.v1.dtype)
-        three = backward_difference(v, self.v1, self.v2, self.dt)
-        two = (v - self.v1) / self.dt
-        vdot = torch.where(
-            self.count >= 2, three, torch.where(self.count == 1, two, torch.zeros_like(v))
-        )
+        # One weighted sum for the three cases (the weights by history length: ~8 ops, not
+        # ~16; equal to backward_difference / the first-order difference within rounding).
+        history = torch.stack([v, self.v1, self.v2], dim=-1)
         valid = self.count >= 1
+        vdot = (history * self._weights[self.count]).sum(-1)
+        vdot = torch.where(valid, vdot, 0.0)  # exactly 0 without history, even for V = inf
         self.v2 = self.v1
         self.v1 = v.clone()
-        self.count = torch.clamp(self.count + 1, max=2)
+        self.count = (self.count + 1).clamp_(max=2)
         return vdot, valid

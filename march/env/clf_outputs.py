@@ -22,10 +22,10 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import torch
-from mjlab.utils.lab_api.math import euler_xyz_from_quat, quat_apply_inverse, quat_from_matrix
+from mjlab.utils.lab_api.math import euler_xyz_from_quat
 
-from march.env.step_cache import site_state, site_xmat
 from march.compiled_math import maybe_fused
+from march.env.step_cache import constant, site_state, site_xmat
 from march.reference.trajectory import wrap_to_pi
 
 if TYPE_CHECKING:
@@ -50,8 +50,39 @@ def euler_rates(euler: torch.Tensor, omega_b: torch.Tensor) -> torch.Tensor:
 
 
 def euler_zyx(quat: torch.Tensor) -> torch.Tensor:
-    """(E, 3) ZYX Euler angles (roll, pitch, yaw) of (E, 4) quaternions."""
+    """(E, 3) ZYX Euler angles (roll, pitch, yaw) of (E, 4) quaternions (mjlab's
+    ``euler_xyz_from_quat``; the step reads them from rotation matrices:
+    :func:`euler_from_matrix`)."""
     return torch.stack(euler_xyz_from_quat(quat), dim=-1)
+
+
+EULER_ENTRIES = (7, 3, 8, 0, 6)
+"""Entries of a row-major 3x3 rotation matrix :func:`euler_from_matrix` reads: R32, R21 (the sines
+of roll and yaw times cos pitch), R33, R11 (their cosines times cos pitch) and R31 (-sin pitch)."""
+
+
+def euler_from_matrix(mat: torch.Tensor) -> torch.Tensor:
+    """(..., 3) ZYX Euler angles (roll, pitch, yaw) of (..., 3, 3) rotation matrices
+    R = Rz(yaw) Ry(pitch) Rx(roll): roll = atan2(R32, R33), pitch = asin(-R31) (clamped to
+    [-1, 1]), yaw = atan2(R21, R11). The same angles as :func:`euler_zyx` of the matrix's
+    quaternion (its atan2 / asin arguments are these entries written in the quaternion), within
+    float32 rounding, without the quaternion."""
+    r = mat.flatten(-2)[..., EULER_ENTRIES]
+    roll_yaw = torch.atan2(r[..., 0:2], r[..., 2:4])
+    pitch = torch.asin((-r[..., 4:5]).clamp(-1.0, 1.0))
+    return torch.cat([roll_yaw[..., 0:1], pitch, roll_yaw[..., 1:2]], dim=-1)
+
+
+def euler_rates_of(euler: torch.Tensor, omega_b: torch.Tensor) -> torch.Tensor:
+    """:func:`euler_rates` for any leading shape (..., 3). cos(pitch) >= 0 for pitch in
+    [-pi/2, pi/2] (asin's range; -4e-8 at pi/2 in float32), so its floor at 0.1 is a clamp."""
+    sines, cosines = torch.sin(euler[..., 0:2]), torch.cos(euler[..., 0:2])
+    sr, sp = sines[..., 0], sines[..., 1]
+    cr = cosines[..., 0]
+    cp = cosines[..., 1].clamp(min=0.1)
+    p, q, r = omega_b.unbind(-1)
+    a = q * sr + r * cr
+    return torch.stack([p + a * (sp / cp), q * cr - r * sr, a / cp], dim=-1)
 
 
 def yaw_rotate(vec: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
@@ -138,17 +169,23 @@ def measured_outputs(
     (``UPPER_BODY_JOINTS`` order), ``masses`` from :func:`body_masses` and ``stance_is_left``
     (E,) the stance mask (the swing foot is the other one); ``compiled``: the maths
     (:func:`outputs_from_state`) under ``torch.compile`` (``compute.compile_math``).
-    """
+
+    Read straight from MuJoCo's arrays: the bodies' ``cvel`` and ``xipos`` (what mjlab's
+    ``body_com_lin_vel_w`` converts), the pelvis's ``xmat`` and world angular velocity (its
+    ``root_link_quat_w`` / ``root_link_ang_vel_b``, without the quaternion), the foot sites'
+    state once per reward compute (:func:`march.env.step_cache.site_state`, shared with the
+    holonomic terms)."""
     data = robot.data
+    sim = data.data
     names = tuple(foot_sites)
+    bodies = body_rows(env, robot)
     pos, lin, ang = site_state(env, names, entity_name)
     outputs = maybe_fused(outputs_from_state, compiled)
     return outputs(
-        env.sim.data.subtree_com[:, root_body],
-        data.body_com_lin_vel_w,
+        sim.subtree_com[:, root_body],
+        (sim.cvel[:, bodies], sim.xipos[:, bodies]),
         masses,
-        data.root_link_quat_w,
-        data.root_link_ang_vel_b,
+        (sim.xmat[:, root_body].reshape(-1, 3, 3), sim.cvel[:, root_body, 0:3]),
         (pos, lin, ang, site_xmat(env, names, entity_name)),
         stance_is_left,
         (data.joint_pos, data.default_joint_pos, data.joint_vel),
@@ -156,42 +193,58 @@ def measured_outputs(
     )
 
 
+def body_rows(env: ManagerBasedRlEnv, robot: Entity) -> slice | torch.Tensor:
+    """The robot's body ids as a slice when they are consecutive (a view, no gather), else
+    as a kept index tensor."""
+
+    def make() -> slice | torch.Tensor:
+        ids = [int(i) for i in torch.as_tensor(robot.indexing.body_ids).tolist()]
+        if ids == list(range(ids[0], ids[0] + len(ids))):
+            return slice(ids[0], ids[0] + len(ids))
+        return torch.tensor(ids, dtype=torch.long, device=env.device)
+
+    return constant(env, ("body_rows", id(robot)), make)
+
+
 def outputs_from_state(
     com: torch.Tensor,
-    body_com_vel: torch.Tensor,
+    bodies: tuple[torch.Tensor, torch.Tensor],
     masses: tuple[torch.Tensor, torch.Tensor],
-    quat: torch.Tensor,
-    ang_vel_b: torch.Tensor,
+    root: tuple[torch.Tensor, torch.Tensor],
     feet: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
     stance_is_left: torch.Tensor,
     joints: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
     upper_ids: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The maths of :func:`measured_outputs` on the state read from the sim (pure torch):
-    ``com`` (E, 3) root subtree CoM, ``body_com_vel`` (E, B, 3), ``masses`` (W|1, B) and their
-    sums, pelvis ``quat`` (E, 4) and body-frame rate (E, 3), ``feet`` = position, linear and
-    angular velocity (E, 2, 3) and rotation matrix (E, 2, 3, 3) of the two foot sites, the stance
-    mask and ``joints`` = joint positions, default positions and velocities (E, J)."""
+    ``com`` (E, 3) root subtree CoM, ``bodies`` = the robot bodies' ``cvel`` (E, B, 6) and CoM
+    positions (E, B, 3), ``masses`` (W|1, B) and their sums, ``root`` = the pelvis's rotation
+    matrix (E, 3, 3) and world angular velocity (E, 3), ``feet`` = position, linear and angular
+    velocity (E, 2, 3) and rotation matrix (E, 2, 3, 3) of the two foot sites, the stance mask
+    and ``joints`` = joint positions, default positions and velocities (E, J).
+
+    The pelvis and the swing foot go through one stacked pass: body-frame rates R^T w and ZYX
+    Euler angles read from the matrices (:func:`euler_from_matrix`), then their Euler rates."""
+    cvel, xipos = bodies
     mass, mass_sum = masses
-    com_vel = (body_com_vel * mass[..., None]).sum(1) / mass_sum
+    # mjlab's body_com_lin_vel_w: cvel's linear part moved from the subtree CoM to each body CoM
+    lin_b = cvel[..., 3:6] - torch.cross(cvel[..., 0:3], com[:, None] - xipos, dim=-1)
+    com_vel = (lin_b * mass[..., None]).sum(1) / mass_sum
     pos, lin, ang, mat = feet
     pick = (~stance_is_left)[:, None]  # the swing foot is the other one
     swing_pos = torch.where(pick, pos[:, 0], pos[:, 1])
     swing_vel = torch.where(pick, lin[:, 0], lin[:, 1])
-    swing_quat = quat_from_matrix(torch.where(pick[..., None], mat[:, 0], mat[:, 1]))
-    swing_omega_b = quat_apply_inverse(swing_quat, torch.where(pick, ang[:, 0], ang[:, 1]))
-    # The pelvis's and the swing foot's Euler angles and rates in one pass over both (stacked:
-    # the same elementwise maths, half the kernel launches).
-    e = quat.shape[0]
-    angles = euler_zyx(torch.cat([quat, swing_quat]))
-    rates = euler_rates(angles, torch.cat([ang_vel_b, swing_omega_b]))
-    pelvis, swing_ori = angles[:e], angles[e:]
-    pelvis_rate, swing_rate = rates[:e], rates[e:]
+    root_mat, root_omega = root
+    mats = torch.stack([root_mat, torch.where(pick[..., None], mat[:, 0], mat[:, 1])], dim=1)
+    omega_w = torch.stack([root_omega, torch.where(pick, ang[:, 0], ang[:, 1])], dim=1)
+    omega_b = (omega_w[..., None, :] @ mats)[..., 0, :]  # R^T w, (E, 2, 3)
+    angles = euler_from_matrix(mats)
+    rates = euler_rates_of(angles, omega_b)
     joint_pos, default_pos, joint_vel = joints
-    upper = joint_pos[:, upper_ids] - default_pos[:, upper_ids]
+    upper = (joint_pos - default_pos)[:, upper_ids]
     upper_vel = joint_vel[:, upper_ids]
-    pos = torch.cat([com, pelvis, swing_pos, swing_ori, upper], dim=-1)
-    vel = torch.cat([com_vel, pelvis_rate, swing_vel, swing_rate, upper_vel], dim=-1)
+    pos = torch.cat([com, angles[:, 0], swing_pos, angles[:, 1], upper], dim=-1)
+    vel = torch.cat([com_vel, rates[:, 0], swing_vel, rates[:, 1], upper_vel], dim=-1)
     return pos, vel
 
 

@@ -95,7 +95,12 @@ def site_pos(env: Any, names: tuple[str, ...], entity: str = "robot") -> Any:
 def site_state(env: Any, names: tuple[str, ...], entity: str = "robot") -> tuple[Any, Any, Any]:
     """World position, linear and angular velocity, each (E, n, 3), of the sites ``names``:
     mjlab's ``site_pos_w`` / ``site_lin_vel_w`` / ``site_ang_vel_w`` (velocity from the body's
-    ``cvel`` about the root subtree CoM) for these sites only."""
+    ``cvel`` about the root subtree CoM) for these sites only. Once per manager compute
+    (:func:`shared`): the measured CLF outputs and the holonomic rewards read the same feet."""
+    return shared(env, ("site_state", names, entity), lambda: _site_state(env, names, entity))
+
+
+def _site_state(env: Any, names: tuple[str, ...], entity: str) -> tuple[Any, Any, Any]:
     import torch
 
     gid, body, root = _site_frames(env, names, entity)
