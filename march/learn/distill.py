@@ -1,7 +1,8 @@
 """Teacher -> student distillation (DAgger): the student acts, the frozen teacher labels.
 
-Our own runner, because rsl-rl 5.4.2's Distillation offers only MSE/Huber and mjlab 1.6.0 ships no
-distillation runner. The loss is the student's own (:meth:`StudentPolicy.distill_loss`): NLL of
+Our own algorithm, because rsl-rl 5.4.2's Distillation offers only MSE/Huber and mjlab 1.6.0
+ships no distillation runner; the loop (resume, checkpoints, evaluation rows, metrics, faults)
+is :class:`march.learn.stage_runner.StageRunner`'s, shared with the teacher. The loss is the student's own (:meth:`StudentPolicy.distill_loss`): NLL of
 ``teacher_samples`` actions drawn from N(teacher mean, (teacher_std_scale * teacher std)^2) for
 the MDN students, Huber against the teacher mean for ``no_mdn``. The losses of every
 ``gradient_length`` consecutive steps of a rollout are summed into one optimiser step (rsl-rl's
@@ -10,9 +11,7 @@ convention, :func:`distill_update`); ``num_learning_epochs`` passes per rollout.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -20,31 +19,19 @@ import torch
 from tensordict import TensorDict
 
 from march.config import MarchConfig
-from march.env.course import CourseRuler
-from march.env.term_meter import pop_terms
-from march.learn import distributed, preemption, rank_normalizers
-from march.learn.checkpoint import (
-    check_layout,
-    ensure_model_file,
-    latest_checkpoint,
-    load_checkpoint,
-    save_checkpoint,
-)
-from march.learn.faults import EnvFaults, UpdateGuard
-from march.learn.metrics import MetricsLog, Progress, truncate_rows
-from march.learn.teacher import EpisodeStats, build_teacher_actor, teacher_obs
-from march.learn.train_state import (
-    collect_state,
-    mean_terrain_level,
-    rank_payload,
-    restore_state,
-)
+from march.learn import distributed, rank_normalizers
+from march.learn.checkpoint import check_layout
+from march.learn.metrics import MetricsLog
+from march.learn.stage_runner import EpisodeStats, StageRunner
+from march.learn.teacher import build_teacher_actor, teacher_obs
 from march.policies.student import StudentPolicy
 
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv
 
 COMMAND = "twist"
+Rollout = tuple[list[tuple[torch.Tensor, ...]], torch.Tensor]
+"""A rollout's steps (student inputs, teacher mean and std) and its mean teacher reward."""
 
 
 def student_inputs(env: ManagerBasedRlEnv, obs: dict[str, Any]) -> tuple[torch.Tensor, ...]:
@@ -136,8 +123,22 @@ def distill_update(
     return {k: v / max(count, 1) for k, v in totals.items()}
 
 
-class DistillRunner:
-    """Distils a frozen teacher into the configured student on the student env."""
+class DistillRunner(StageRunner):
+    """Distils a frozen teacher into the configured student on the student env.
+
+    The loop, resume, checkpoints, rows and faults are :class:`StageRunner`'s; this runner
+    supplies the DAgger rollout (the student acts, the teacher labels), the update
+    (:func:`distill_update`) and what its checkpoint holds.
+    """
+
+    stage = "student"
+    group = "distill"
+    progress_columns = {
+        "loss": "loss",
+        "action_err": "action_error",
+        "teacher_reward": "teacher_reward",
+        "ep_len": "mean_episode_length",
+    }
 
     def __init__(
         self,
@@ -149,11 +150,8 @@ class DistillRunner:
         teacher_path: str,
         evaluate_fn: Callable[[StudentPolicy, int, int], dict[str, Any]] | None = None,
     ) -> None:
-        self.env, self.cfg, self.run_dir, self.log = env, cfg, run_dir, log
-        self.device = cfg.compute.device
-        self.ruler = CourseRuler(env)
-        self.ckpt_dir = run_dir / "student"
-        self.evaluate_fn = evaluate_fn
+        super().__init__(env, cfg, run_dir, log, evaluate_fn)
+        self.env = env
         obs, _ = env.reset()
         self.obs = obs
         num_actions = env.action_manager.total_action_dim
@@ -166,89 +164,47 @@ class DistillRunner:
         # N ranks: rank 0's initial student everywhere, normalisers learning from every rank.
         distributed.broadcast_module(self.student)
         rank_normalizers.sync_normalizers(self.student)
-        self.world = distributed.current().world
-        d = cfg.distill
-        self.optimizer = torch.optim.Adam(self.student.parameters(), lr=d.learning_rate)
+        self.optimizer = torch.optim.Adam(self.student.parameters(), lr=cfg.distill.learning_rate)
         self.generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
-        self.iteration = 0
-        self.env_steps = 0
-        self.wall_s = 0.0
-        self.faults = EnvFaults(env)
-        self.guard = UpdateGuard(
-            "distill",
-            d.max_nonfinite_updates,
-            lambda: {"student": self.student.state_dict(), "opt": self.optimizer.state_dict()},
-            self._restore,
-            self.student.parameters,
-        )
+        self.generators = {"distill": self.generator}  # checkpointed, restored on resume
 
-    def _restore(self, saved: dict[str, Any]) -> None:
+    # ---- the update guard: the student and its optimizer
+
+    def snapshot(self) -> dict[str, Any]:
+        return {"student": self.student.state_dict(), "opt": self.optimizer.state_dict()}
+
+    def restore(self, saved: dict[str, Any]) -> None:
         self.student.load_state_dict(saved["student"])
         self.optimizer.load_state_dict(saved["opt"])
 
-    def _teacher_obs(self, obs: dict[str, Any]) -> TensorDict:
-        return teacher_obs(obs, self.env.num_envs)
+    def parameters(self) -> Any:
+        return self.student.parameters()
 
-    def payload(self) -> dict[str, Any]:
+    # ---- the checkpoint
+
+    def algorithm_state(self) -> dict[str, Any]:
         return {
-            "kind": "student",
-            "iteration": self.iteration,
-            "env_steps": self.env_steps,
-            "wall_s": self.wall_s,
-            "config": asdict(self.cfg),
-            "layout": self.layout,
             "teacher_ckpt": str(self.teacher_path),
             "student_state_dict": self.student.state_dict(),
             "optimizer_state_dict": self.optimizer.state_dict(),
             "generator": self.generator.get_state(),
-            "rng": torch.get_rng_state(),
-            "common_step_counter": self.env.common_step_counter,
-            # curriculum (terrain levels), episode clocks, every random stream
-            **collect_state(self.env, self.device, {"distill": self.generator}),
         }
 
-    def _save(self) -> Path:
-        # Every rank's random states go in (a collective); rank 0 alone writes the files.
-        payload = distributed.with_rank_states(self.payload())
-        return save_checkpoint(payload, self.ckpt_dir, self.iteration)
-
-    def try_resume(self) -> bool:
-        for tmp in self.ckpt_dir.glob(".*.tmp"):  # a write that a kill cut short
-            tmp.unlink(missing_ok=True)
-        path = latest_checkpoint(self.ckpt_dir)
-        if path is None:
-            # Killed before its first checkpoint: the stage starts over, and so do its rows.
-            self.log.resume_from("student", 0)
-            truncate_rows(self.run_dir / "eval.csv", "student", 0)
-            return False
-        where = f"resume={self.run_dir}: {path}"
-        payload = load_checkpoint(path, "student", self.device, source=where)
-        # N ranks: this rank's own levels, clocks and streams (another rank count: refused).
-        payload = rank_payload(payload, where)
-        if path.name == "latest.pt":  # a kill may have cut the write of its model_<it>.pt
-            ensure_model_file(payload, self.ckpt_dir)
-        check_layout(payload["layout"], self.layout, "student", path)
+    def load_algorithm_state(self, payload: dict[str, Any]) -> None:
+        # The generator comes back with the other random streams (restore_state).
         self.student.load_state_dict(payload["student_state_dict"])
         self.optimizer.load_state_dict(payload["optimizer_state_dict"])
-        self.iteration = int(payload["iteration"])
-        self.env_steps = int(payload["env_steps"])
-        self.wall_s = float(payload.get("wall_s", 0.0))
-        # Levels, episode clocks and random streams (the distillation generator's too; across
-        # devices it is reseeded): the env's reset here draws from them, so they come last.
-        notes = restore_state(
-            self.env, payload, self.device, self.cfg.seed, where, {"distill": self.generator}
-        )
-        self.obs = self.env.obs_buf  # the observations of that reset
-        self.env.common_step_counter = payload.get("common_step_counter", 0)
-        self.log.resume_from("student", self.iteration)
-        truncate_rows(self.run_dir / "eval.csv", "student", self.iteration)
-        print(f"[student] resuming from {path} at iteration {self.iteration}")
-        for line in notes:
-            print(f"[student] {line}")
-        return True
+
+    def resumed(self, payload: dict[str, Any]) -> None:
+        self.obs = self.env.obs_buf  # the observations of the resume's reset
+
+    # ---- rollout and update
+
+    def _teacher_obs(self, obs: dict[str, Any]) -> TensorDict:
+        return teacher_obs(obs, self.env.num_envs)
 
     @torch.no_grad()
-    def _rollout(self, stats: EpisodeStats) -> tuple[list[tuple[torch.Tensor, ...]], torch.Tensor]:
+    def _rollout(self, stats: EpisodeStats) -> Rollout:
         """The iteration's steps and the mean teacher reward per step (0-d, on the device: the
         caller reads it once per iteration)."""
         steps = []
@@ -306,67 +262,24 @@ class DistillRunner:
             else None,
         )
 
-    def learn(self, total_iterations: int) -> Path:
-        d = self.cfg.distill
-        stats = EpisodeStats(self.env.num_envs, self.device)
-        progress = Progress("student", self.iteration, total_iterations)
-        for it in range(self.iteration, total_iterations):
-            t0 = time.time()
-            steps, teacher_reward = self._rollout(stats)
-            self.guard.before()
-            info = distributed.mean_over_ranks(self._update(steps))
-            teacher_reward = distributed.mean_over_ranks({"r": teacher_reward})["r"]
-            # A non-finite update is undone; too many in a row stop before this checkpoint.
-            self.guard.after(info, it + 1, latest_checkpoint(self.ckpt_dir))
-            self.iteration = it + 1
-            self.env_steps += d.num_steps_per_env * self.env.num_envs * self.world
-            self.wall_s += time.time() - t0
-            row = {
-                "stage": "student",
-                "iteration": self.iteration,
-                "env_steps": self.env_steps,
-                "wall_s": self.wall_s,
-                **distributed.pop_episode_stats(stats),
-                **distributed.mean_over_ranks({"mean_terrain_level": mean_terrain_level(self.env)}),
-                **distributed.mean_over_ranks(pop_terms(self.env)),  # the teacher's terms
-                **{f"loss/{k}": v for k, v in info.items()},  # nll / huber, mode weights, ...
-                "loss": info.get("loss", float("nan")),
-                "action_error": info.get("action_error", float("nan")),
-                "teacher_reward": float(teacher_reward),
-                "mode_weight_0": info.get("mode_weight_0", float("nan")),
-                "mode_weight_1": info.get("mode_weight_1", float("nan")),
-                "nonfinite_resets": distributed.sum_over_ranks(self.faults.pop()),
-                "nonfinite_updates": self.guard.pop(),
-            }
-            self.log.log(row)
-            print(
-                progress.line(
-                    it,
-                    {
-                        "loss": row["loss"],
-                        "action_err": row["action_error"],
-                        "teacher_reward": float(teacher_reward),
-                        "ep_len": row["mean_episode_length"],
-                    },
-                ),
-                flush=True,
-            )
-            last = self.iteration == total_iterations
-            # Evaluate before the checkpoint, as the teacher does: a run killed in between resumes
-            # from the previous checkpoint (its later eval.csv rows truncated) and redoes both;
-            # the other order lost this evaluation for good. The final iteration's evaluation is
-            # the pipeline's eval stage (summary.json).
-            if (
-                self.evaluate_fn is not None
-                and not last
-                and (d.eval_interval and self.iteration % d.eval_interval == 0)
-            ):
-                self.evaluate_fn(self.student, self.iteration, self.env_steps)
-            saved = self.iteration % d.save_interval == 0 or last
-            if saved:
-                self._save()
-            # SIGTERM / USR2: stop here with this iteration checkpointed (march.learn.preemption).
-            preemption.stop_if_requested("student", self.iteration, None if saved else self._save)
-        if distributed.agree(latest_checkpoint(self.ckpt_dir) is None):  # rank 0 owns the files
-            self._save()
-        return self.ckpt_dir / "latest.pt"
+    def collect(self, stats: EpisodeStats) -> Rollout:
+        return self._rollout(stats)
+
+    def update(self, batch: Rollout) -> dict[str, float]:
+        return distributed.mean_over_ranks(self._update(batch[0]))
+
+    def row_columns(self, batch: Rollout, losses: dict[str, float]) -> dict[str, Any]:
+        teacher_reward = distributed.mean_over_ranks({"r": batch[1]})["r"]
+        return {
+            **{f"loss/{k}": v for k, v in losses.items()},  # nll / huber, mode weights, ...
+            "loss": losses.get("loss", float("nan")),
+            "action_error": losses.get("action_error", float("nan")),
+            "teacher_reward": float(teacher_reward),
+            "mode_weight_0": losses.get("mode_weight_0", float("nan")),
+            "mode_weight_1": losses.get("mode_weight_1", float("nan")),
+        }
+
+    # ---- evaluation: the student as it is (student_policy puts it in eval mode)
+
+    def eval_policy(self) -> StudentPolicy:
+        return self.student

@@ -1,6 +1,6 @@
 """Numerical faults in training: non-finite envs are reset, non-finite updates undone; both counted.
 
-Shared by the teacher (PPO) and distillation runners, which own their loops:
+Built once by the loop both stages share (:class:`march.learn.stage_runner.StageRunner`):
 
 - :class:`EnvFaults`: an env whose physics state (mjlab's ``NanGuard.detect_nans``: qpos, qvel,
   qacc, warm start, sensors) holds a NaN or inf is reset in the same step by the training envs'

@@ -7,10 +7,11 @@ One handler for every runner and launcher:
 
 - :func:`install` (``march.train``) records the signal and returns at once; nothing is cut
   mid-step or mid-write.
-- Each runner calls :func:`stop_if_requested` at the end of every iteration, after that
-  iteration's checkpoint would be written: if a signal came, it writes the checkpoint when
-  the iteration was not a save point and raises :class:`Preempted`. In a run over N ranks the
-  decision is rank 0's (one broadcast per iteration) so that every rank joins the same save.
+- The training loop (:class:`march.learn.stage_runner.StageRunner`, both stages) calls
+  :func:`stop_if_requested` at the end of every iteration, after that iteration's checkpoint
+  would be written: if a signal came, it writes the checkpoint when the iteration was not a
+  save point and raises :class:`Preempted`. In a run over N ranks the decision is rank 0's
+  (one broadcast per iteration) so that every rank joins the same save.
 - :func:`exit_preempted` (``march.train``) writes ``status.json`` = ``preempted`` (stage,
   iteration, checkpoint, signal), prints one line, hands the signal to the handler that was
   there before (submitit's requeue on USR2), then exits with 128 + the signal.

@@ -1,7 +1,8 @@
 """The PPO teacher runner: rsl-rl's PPO (algorithm, models, storage) on the mjlab env.
 
-The runner owns the loop (rollout, logging, checkpoints, resume); rsl-rl's PPO owns the update.
-mjlab's own ``train`` CLI is not used: it assumes a GPU.
+The loop (logging, checkpoints, resume, evaluation rows, faults) is :class:`StageRunner`'s,
+shared with distillation; this runner supplies the PPO rollout and update and what its
+checkpoint holds. mjlab's own ``train`` CLI is not used: it assumes a GPU.
 """
 
 from __future__ import annotations
@@ -9,9 +10,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import os
-import time
-from collections.abc import Callable
-from dataclasses import asdict
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -23,24 +22,10 @@ from tensordict import TensorDict
 
 from march.config import MarchConfig, TeacherCfg
 from march.env.build import rsl_rl_env
-from march.env.course import CourseRuler
-from march.env.term_meter import pop_terms
-from march.learn import distributed, preemption, rank_normalizers
-from march.learn.checkpoint import (
-    check_layout,
-    ensure_model_file,
-    latest_checkpoint,
-    load_checkpoint,
-    save_checkpoint,
-)
-from march.learn.faults import EnvFaults, UpdateGuard
-from march.learn.metrics import MetricsLog, Progress, has_row, truncate_rows
-from march.learn.train_state import (
-    collect_state,
-    mean_terrain_level,
-    rank_payload,
-    restore_state,
-)
+from march.learn import distributed, rank_normalizers
+from march.learn.checkpoint import check_layout
+from march.learn.metrics import MetricsLog
+from march.learn.stage_runner import EpisodeStats, StageRunner
 
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv
@@ -127,47 +112,6 @@ def teacher_policy(env: ManagerBasedRlEnv, actor: MLPModel):
     return act
 
 
-class EpisodeStats:
-    """Return, length [control steps] and course progress of finished episodes.
-
-    Reported as means over the last ``window`` finished episodes (rsl-rl's convention), so an
-    iteration in which no episode ended still has a value once any episode has ended. The
-    per-step bookkeeping never synchronises with the device (no ``nonzero()`` / ``len()`` of
-    data-dependent size): finished episodes go into a ring buffer of ``window`` rows in env order
-    (slot = episodes so far + rank among this step's, mod window); when more than ``window`` end
-    in one step only the last ``window`` are kept, the others are written to a spare row.
-    """
-
-    def __init__(self, num_envs: int, device: str, window: int = 100) -> None:
-        self.ret = torch.zeros(num_envs, device=device)
-        self.len = torch.zeros(num_envs, device=device)
-        self.window = window
-        self.buffer = torch.zeros(window + 1, 3, device=device)  # (return, length, distance)
-        self.total = torch.zeros((), dtype=torch.long, device=device)  # episodes ended so far
-
-    def step(self, reward: torch.Tensor, done: torch.Tensor, progress: torch.Tensor) -> None:
-        self.ret += reward
-        self.len += 1
-        d = done.long()
-        rank = torch.cumsum(d, 0) - d  # order of each finished episode within this step
-        n = d.sum()
-        keep = done & (rank >= n - self.window)
-        slot = torch.where(keep, (self.total + rank) % self.window, self.window)
-        ended = torch.stack([self.ret, self.len, progress.to(self.ret.dtype)], dim=-1)
-        self.buffer.index_copy_(0, slot, ended)
-        self.total += n
-        self.ret.masked_fill_(done, 0.0)
-        self.len.masked_fill_(done, 0.0)
-
-    def pop(self) -> dict[str, float]:
-        count = int(self.total.clamp(max=self.window))  # once per iteration: a sync is fine
-        if count == 0:
-            nan = float("nan")
-            return {"mean_reward": nan, "mean_episode_length": nan, "mean_distance_m": nan}
-        ret, length, dist = self.buffer[:count].mean(0).tolist()
-        return {"mean_reward": ret, "mean_episode_length": length, "mean_distance_m": dist}
-
-
 def stagger_episodes(env: ManagerBasedRlEnv, seed: int, iteration: int) -> torch.Tensor:
     """Start every env at a seeded random episode step in [0, max episode length), as rsl-rl's
     ``init_at_random_ep_len``: time-outs, and with them resets and touchdowns, spread over the
@@ -212,14 +156,25 @@ class ReplanReadout:
         }
 
 
-class TeacherRunner:
+class TeacherRunner(StageRunner):
     """PPO on the teacher env; checkpoints in ``<run>/teacher/``; resumes by itself.
 
-    With ``evaluate_fn`` the current teacher is evaluated every ``teacher.eval_interval``
-    iterations and at the end of the stage (``stage=teacher`` rows of eval.csv); an evaluation
-    runs before that iteration's checkpoint, so a resumed run drops and redoes exactly the rows
-    past its checkpoint.
+    The loop, resume, checkpoints, rows and faults are :class:`StageRunner`'s; rsl-rl's PPO
+    collects (``act`` / ``process_env_step``) and updates. With ``evaluate_fn`` the current
+    teacher is evaluated every ``teacher.eval_interval`` iterations and at the end of the stage
+    (``stage=teacher`` rows of eval.csv); an evaluation runs before that iteration's checkpoint,
+    so a resumed run drops and redoes exactly the rows past its checkpoint.
     """
+
+    stage = "teacher"
+    group = "teacher"
+    evaluates_last = True
+    progress_columns = {
+        "reward": "mean_reward",
+        "ep_len": "mean_episode_length",
+        "dist_m": "mean_distance_m",
+        "value_loss": "value_loss",
+    }
 
     def __init__(
         self,
@@ -229,12 +184,8 @@ class TeacherRunner:
         log: MetricsLog,
         evaluate_fn: TeacherEval | None = None,
     ):
-        self.cfg, self.run_dir, self.log = cfg, run_dir, log
-        self.evaluate_fn = evaluate_fn
-        self.device = cfg.compute.device
+        super().__init__(env, cfg, run_dir, log, evaluate_fn)
         self.env = rsl_rl_env(env)
-        self.ruler = CourseRuler(env)
-        self.ckpt_dir = run_dir / "teacher"
         self.clocks_restored = False  # a resume put the episode clocks back (no re-stagger)
         self.train_cfg = ppo_train_cfg(cfg.teacher, distributed.ppo_multi_gpu())
         obs = self.env.get_observations()
@@ -248,20 +199,14 @@ class TeacherRunner:
         if self.alg.is_multi_gpu:  # N ranks: rank 0's networks everywhere, shared normalisers
             self.alg.broadcast_parameters()
             rank_normalizers.sync_normalizers(self.alg.actor, self.alg.critic)
-        self.iteration = 0  # iterations completed
-        self.env_steps = 0
-        self.wall_s = 0.0
-        self.world = distributed.current().world
-        self.faults = EnvFaults(env)
-        self.guard = UpdateGuard(
-            "teacher",
-            cfg.teacher.max_nonfinite_updates,
-            self.alg.save,
-            self._restore,
-            lambda: [*self.alg.actor.parameters(), *self.alg.critic.parameters()],
-        )
+        self.obs: TensorDict | None = None  # the rollout's current observations
 
-    def _restore(self, saved: dict[str, Any]) -> None:
+    # ---- the update guard: networks and optimizer, as rsl-rl saves them
+
+    def snapshot(self) -> dict[str, Any]:
+        return self.alg.save()
+
+    def restore(self, saved: dict[str, Any]) -> None:
         """Put back the networks and optimizer of :meth:`UpdateGuard.before` (an undone update)."""
         # The normalizers' buffers were last written under inference mode (the rollout), and
         # only there can they be written again; the optimizer state is loaded outside it.
@@ -269,175 +214,90 @@ class TeacherRunner:
             self.alg.load(saved, {"actor": True, "critic": True}, strict=True)
         self.alg.load(saved, {"optimizer": True}, strict=True)
 
-    def payload(self) -> dict[str, Any]:
-        return {
-            "kind": "teacher",
-            "iteration": self.iteration,
-            "env_steps": self.env_steps,
-            "wall_s": self.wall_s,
-            "config": asdict(self.cfg),
-            "layout": self.layout,
-            "ppo": self.train_cfg,
-            **self.alg.save(),
-            "learning_rate": self.alg.learning_rate,
-            "rng": torch.get_rng_state(),
-            "common_step_counter": self.env.unwrapped.common_step_counter,
-            # curriculum (terrain levels), episode clocks, every random stream
-            **collect_state(self.env.unwrapped, self.device),
-        }
+    def parameters(self) -> list[torch.nn.Parameter]:
+        return [*self.alg.actor.parameters(), *self.alg.critic.parameters()]
 
-    def try_resume(self) -> bool:
-        """Continue from ``<run>/teacher/latest.pt`` if it exists (killed run, Slurm requeue)."""
-        for tmp in self.ckpt_dir.glob(".*.tmp"):  # a write that a kill cut short
-            tmp.unlink(missing_ok=True)
-        path = latest_checkpoint(self.ckpt_dir)
-        if path is None:
-            # Killed before its first checkpoint: the stage starts over, so the rows it logged
-            # (metrics.csv, eval.csv) go too, or they would appear twice.
-            self.log.resume_from("teacher", 0)
-            truncate_rows(self.run_dir / "eval.csv", "teacher", 0)
-            return False
-        where = f"resume={self.run_dir}: {path}"
-        payload = load_checkpoint(path, "teacher", self.device, source=where)
-        # N ranks: this rank's own levels, clocks and streams (another rank count: refused).
-        payload = rank_payload(payload, where)
-        if path.name == "latest.pt":  # a kill may have cut the write of its model_<it>.pt
-            ensure_model_file(payload, self.ckpt_dir)
-        check_layout(payload["layout"], self.layout, "teacher", path)
+    # ---- the checkpoint
+
+    def algorithm_state(self) -> dict[str, Any]:
+        return {"ppo": self.train_cfg, **self.alg.save(), "learning_rate": self.alg.learning_rate}
+
+    def load_algorithm_state(self, payload: dict[str, Any]) -> None:
         self.alg.load(payload, None, strict=True)
         self.alg.learning_rate = payload.get("learning_rate", self.alg.learning_rate)
         for group in self.alg.optimizer.param_groups:
             group["lr"] = self.alg.learning_rate
-        self.iteration = int(payload["iteration"])
-        self.env_steps = int(payload["env_steps"])
-        self.wall_s = float(payload.get("wall_s", 0.0))
-        # Levels, episode clocks and random streams last: the env's reset here draws from them.
-        notes = restore_state(self.env.unwrapped, payload, self.device, self.cfg.seed, where)
+
+    def resumed(self, payload: dict[str, Any]) -> None:
         self.clocks_restored = "episode" in payload
-        self.env.unwrapped.common_step_counter = payload.get("common_step_counter", 0)
-        self.log.resume_from("teacher", self.iteration)
-        truncate_rows(self.run_dir / "eval.csv", "teacher", self.iteration)
-        print(f"[teacher] resuming from {path} at iteration {self.iteration}")
-        for line in notes:
-            print(f"[teacher] {line}")
-        return True
 
-    def save(self) -> Path:
-        # Every rank's random states go in (a collective); rank 0 alone writes the files.
-        return save_checkpoint(
-            distributed.with_rank_states(self.payload()), self.ckpt_dir, self.iteration
-        )
+    # ---- rollout and update
 
-    def evaluate(self) -> None:
-        """Evaluate the current deterministic actor (a ``stage=teacher`` row of eval.csv)."""
-        if self.evaluate_fn is None:
-            return
-        self.alg.eval_mode()
-        try:
-            self.evaluate_fn(self.alg.get_policy(), self.iteration, self.env_steps)
-        finally:
-            self.alg.train_mode()
-
-    def learn(self, total_iterations: int) -> Path:
-        t = self.cfg.teacher
+    def start(self) -> None:
         # Episodes start at seeded random steps: at the start, and after a resume from a
         # checkpoint without episode clocks (an older one); clocks a resume restored go on as
         # they were, so a resumed run continues the uninterrupted one's schedule.
         if not self.clocks_restored:
-            stagger_episodes(self.env.unwrapped, self.cfg.seed, self.iteration)
-        obs = self.env.get_observations().to(self.device)
+            stagger_episodes(self.unwrapped, self.cfg.seed, self.iteration)
+        self.obs = self.env.get_observations().to(self.device)
         self.alg.train_mode()
-        stats = EpisodeStats(self.env.num_envs, self.device)
-        replans = ReplanReadout(self.env.unwrapped)
-        progress = Progress("teacher", self.iteration, total_iterations)
-        last = distributed.agree(latest_checkpoint(self.ckpt_dir))  # rank 0 owns the files
-        for it in range(self.iteration, total_iterations):
-            t0 = time.time()
-            with torch.inference_mode():
-                for _ in range(t.num_steps_per_env):
-                    before = self.ruler.progress()
-                    actions = self.alg.act(obs)
-                    bad_actions = self.faults.actions(actions)  # the stored copy too
-                    obs, rewards, dones, extras = self.env.step(actions.to(self.env.device))
-                    bad = self.faults.after_step(obs, rewards, bad_actions)
-                    # A faulty env's episode ends here: no bootstrap from its faulty state, and
-                    # the stored log-probability is that of the action actually taken (the
-                    # same as drawn where the action was finite). No host sync: masks only.
-                    dones = torch.where(bad, torch.ones_like(dones), dones)
-                    if "time_outs" in extras:
-                        extras["time_outs"] = extras["time_outs"] & ~bad
-                    tr = self.alg.transition
-                    tr.actions_log_prob = torch.where(
-                        bad_actions,
-                        self.alg.actor.get_output_log_prob(tr.actions),
-                        tr.actions_log_prob,
-                    )
-                    obs, rewards, dones = (
-                        obs.to(self.device),
-                        rewards.to(self.device),
-                        dones.to(self.device),
-                    )
-                    self.alg.process_env_step(obs, rewards, dones, extras)
-                    # The env auto-resets: a finished episode's distance is its last pre-reset one.
-                    stats.step(rewards, dones.bool(), before)
-                rank_normalizers.flush_normalizers()  # N ranks: this iteration's batches, once
-                self.alg.compute_returns(obs)
-            self.guard.before()
-            losses = distributed.mean_over_ranks(self.alg.update())
-            # A non-finite update is undone; too many in a row stop before this checkpoint.
-            self.guard.after(losses, it + 1, last)
-            self.iteration = it + 1
-            self.env_steps += t.num_steps_per_env * self.env.num_envs * self.world
-            self.wall_s += time.time() - t0
-            row = {
-                "stage": "teacher",
-                "iteration": self.iteration,
-                "env_steps": self.env_steps,
-                "wall_s": self.wall_s,
-                **distributed.pop_episode_stats(stats),
-                **distributed.mean_over_ranks(
-                    {"mean_terrain_level": mean_terrain_level(self.env.unwrapped)}
-                ),
-                # reward/<term>, termination/<term>, terrain_level_std: one device read
-                **distributed.mean_over_ranks(pop_terms(self.env)),
-                "value_loss": losses.get("value", losses.get("value_function", float("nan"))),
-                "surrogate_loss": losses.get("surrogate", float("nan")),
-                "entropy": losses.get("entropy", float("nan")),
-                "learning_rate": self.alg.learning_rate,
-                "action_std": self.alg.get_policy().output_std.mean().item(),
-                "nonfinite_resets": distributed.sum_over_ranks(self.faults.pop()),
-                "nonfinite_updates": self.guard.pop(),
-                **replans.pop(),
-            }
-            self.log.log(row)
-            print(
-                progress.line(
-                    it,
-                    {
-                        "reward": row["mean_reward"],
-                        "ep_len": row["mean_episode_length"],
-                        "dist_m": row["mean_distance_m"],
-                        "value_loss": row["value_loss"],
-                    },
-                ),
-                flush=True,
-            )
-            final = self.iteration == total_iterations
-            if t.eval_interval and self.iteration % t.eval_interval == 0 and not final:
-                self.evaluate()
-            saved = self.iteration % t.save_interval == 0 or final
-            if saved:
-                last = self.save()
-            # SIGTERM / USR2: stop here with this iteration checkpointed (march.learn.preemption).
-            preemption.stop_if_requested(
-                "teacher", self.iteration, None if saved else self.save, last
-            )
-        if last is None:
-            last = self.save()
-        # The stage's last teacher is always evaluated once (also when a finished stage is
-        # resumed, or a run died during this evaluation).
-        if self.evaluate_fn is not None and not distributed.agree(
-            has_row(self.run_dir / "eval.csv", "teacher", self.iteration)
-        ):
-            self.evaluate()
-        return self.ckpt_dir / "latest.pt"
+        self.replans = ReplanReadout(self.unwrapped)
+
+    def collect(self, stats: EpisodeStats) -> None:
+        obs = self.obs
+        with torch.inference_mode():
+            for _ in range(self.cfg.teacher.num_steps_per_env):
+                before = self.ruler.progress()
+                actions = self.alg.act(obs)
+                bad_actions = self.faults.actions(actions)  # the stored copy too
+                obs, rewards, dones, extras = self.env.step(actions.to(self.env.device))
+                bad = self.faults.after_step(obs, rewards, bad_actions)
+                # A faulty env's episode ends here: no bootstrap from its faulty state, and
+                # the stored log-probability is that of the action actually taken (the
+                # same as drawn where the action was finite). No host sync: masks only.
+                dones = torch.where(bad, torch.ones_like(dones), dones)
+                if "time_outs" in extras:
+                    extras["time_outs"] = extras["time_outs"] & ~bad
+                tr = self.alg.transition
+                tr.actions_log_prob = torch.where(
+                    bad_actions,
+                    self.alg.actor.get_output_log_prob(tr.actions),
+                    tr.actions_log_prob,
+                )
+                obs, rewards, dones = (
+                    obs.to(self.device),
+                    rewards.to(self.device),
+                    dones.to(self.device),
+                )
+                self.alg.process_env_step(obs, rewards, dones, extras)
+                # The env auto-resets: a finished episode's distance is its last pre-reset one.
+                stats.step(rewards, dones.bool(), before)
+            rank_normalizers.flush_normalizers()  # N ranks: this iteration's batches, once
+            self.alg.compute_returns(obs)
+        self.obs = obs
+
+    def update(self, batch: None) -> dict[str, float]:
+        return distributed.mean_over_ranks(self.alg.update())
+
+    def row_columns(self, batch: None, losses: dict[str, float]) -> dict[str, Any]:
+        return {
+            "value_loss": losses.get("value", losses.get("value_function", float("nan"))),
+            "surrogate_loss": losses.get("surrogate", float("nan")),
+            "entropy": losses.get("entropy", float("nan")),
+            "learning_rate": self.alg.learning_rate,
+            "action_std": self.alg.get_policy().output_std.mean().item(),
+            **self.replans.pop(),
+        }
+
+    # ---- evaluation: the deterministic actor, networks in eval mode
+
+    def eval_policy(self) -> MLPModel:
+        return self.alg.get_policy()
+
+    @contextlib.contextmanager
+    def evaluating(self) -> Iterator[None]:
+        self.alg.eval_mode()
+        try:
+            yield
+        finally:
+            self.alg.train_mode()
