@@ -39,9 +39,10 @@ Decisions (documented here once; the README repeats them)
 - **CoM and outputs**: the measured outputs y_sim are documented with their code in
   :mod:`march.env.clf_outputs`.
 - **r_dclf clip**: :attr:`march.env.reference_cfg.ReferenceCommandCfg.clf`.
-- **Replanning without host syncs** (issue 11): resets are planned as mjlab's batch of reset
-  envs, touchdowns and timeouts in one fixed-size planner batch per update
-  (:mod:`march.env.replan_queue`).
+- **Replanning without host syncs** (issues 11, 41): one planner batch per update, of a size
+  that depends on the host-known reset count only (``capacity``, or a power of two up to E when
+  more envs reset): mjlab's reset envs first, then the due touchdowns and timeouts, then
+  padding rows that are planned and discarded (:mod:`march.env.replan_queue`).
 - **When V is evaluated.** mjlab computes rewards *before* the command update of a step. V is
   computed once per env step, lazily, by the first CLF reward term that asks
   (:meth:`ReferenceCommand.clf_state`): y_sim of the state the action produced against y_ref at
@@ -71,13 +72,13 @@ from march.env.reference_cfg import ReferenceCommandCfg
 from march.env.replan_queue import ReplanQueue
 from march.env.step_cache import site_pos
 from march.compiled_math import maybe_fused
-from march.reference.planner import Plan, course_frame, plan_footsteps
+from march.reference.planner import Plan, course_frame, plan_footsteps, plan_tables
 from march.reference.trajectory import (
     StepState,
     angle_mask,
-    reference_outputs,
-    reference_tables,
+    reference_at,
     step_state_from_plan,
+    tracking_error,
 )
 from march.world.footholds import Footholds
 
@@ -128,10 +129,7 @@ class ReferenceCommand(CommandTerm):
         """The single CLF model of this env (P from CARE, built once)."""
         self.v_history = VHistory(e, env.step_dt, device=dev)
         self.mask = angle_mask(len(UPPER_BODY_JOINTS), device=dev)
-        self._reference_outputs = maybe_fused(reference_outputs, cfg.compile_math)
-        self._ref_tables = reference_tables(
-            cfg.reference, len(UPPER_BODY_JOINTS), torch.float32, dev
-        )
+        self._reference_at = maybe_fused(reference_at, cfg.compile_math)
         self.generator = torch.Generator(device=dev)
         self.generator.manual_seed(int(cfg.planner_seed if cfg.planner_seed is not None else 0))
 
@@ -246,8 +244,9 @@ class ReferenceCommand(CommandTerm):
 
     def _update_command(self, env_ids: torch.Tensor | None) -> None:
         """Advance tau, start pending episodes, detect touchdowns and timeouts, replan, refresh
-        the outputs: one planner call per update and no host synchronisation (module docstring,
-        "Replanning without host syncs")."""
+        the outputs: one planner call per update, on a batch of one of a few fixed sizes
+        (:meth:`march.env.replan_queue.ReplanQueue.next_batch`), and no host synchronisation
+        (module docstring, "Replanning without host syncs")."""
         e = self.num_envs
         if env_ids is None:
             active = self._all_envs
@@ -265,7 +264,9 @@ class ReferenceCommand(CommandTerm):
         dur = self.step.duration
         touchdown = running & swing_contact & (self.tau >= self.cfg.touchdown_min_fraction * dur)
         timeout = running & (self.tau >= self.cfg.touchdown_timeout_fraction * dur)
-        sel, serve, flip = self.queue.serve(touchdown, timeout, active)
+        # One planner batch of a fixed size: the resets, then due envs, then padding.
+        batch = self.queue.next_batch(touchdown, timeout, active)
+        sel, serve, flip = batch.sel, batch.serve, batch.flip
         forced = serve & ~flip
         self.stance_is_left[sel] = self.stance_is_left[sel] ^ flip
         # sel holds distinct envs: index_add_ is the gather + add + index_put it replaces
@@ -274,13 +275,9 @@ class ReferenceCommand(CommandTerm):
         self.metrics["touchdowns"].index_add_(0, sel, flip.float())
         self.metrics["timeouts"].index_add_(0, sel, forced.float())
 
-        if resets.numel():
+        if batch.num_resets:
             self._start_episode(resets)
-        ids = torch.cat([resets, sel])
-        starts = torch.ones_like(resets, dtype=torch.bool)
-        if ids.numel():
-            apply, ramp = torch.cat([starts, serve]), torch.cat([starts, torch.zeros_like(serve)])
-            self._new_step(ids, apply=apply, ramp=ramp)
+        self._new_step(batch.ids, apply=batch.apply, ramp=batch.ramp)
         self._refresh_outputs()
 
     # ---------------------------------------------------------------- planning
@@ -346,25 +343,29 @@ class ReferenceCommand(CommandTerm):
         left = self.stance_is_left[env_ids]
         stance = torch.where(left[:, None], feet[:, 0], feet[:, 1])
         swing = torch.where(left[:, None], feet[:, 1], feet[:, 0])
-        fh = self.footholds.index(env_ids)
-        cmd = self._world_command(env_ids, fh)
+        # The planner's per-env tables of every env, then the batch's rows (two index ops, not
+        # one per Footholds field); their course frame is course_frame's, bit for bit.
+        tables = plan_tables(self.footholds, self.cfg.planner).index(env_ids)
+        axis, lat = tables.axis, tables.lat
+        # The world-frame command as _world_command makes it (yaw rate: unused by the planner).
+        twist = self._env.command_manager.get_command(self.cfg.velocity_command)[env_ids]
+        cmd = twist[:, 0:1] * axis + twist[:, 1:2] * lat
         plan = plan_footsteps(
-            stance[:, :2].contiguous(),
+            stance[:, :2],
             left,
             cmd,
-            fh,
+            tables,
             self.cfg.planner,
             self.generator,
             compiled=self.cfg.compile_math,
         )
-        axis, _ = course_frame(fh)
         com = self._env.sim.data.subtree_com[env_ids, self._root_body, :2]
         st = step_state_from_plan(
             plan,
             stance_pos=plan.start,
             swing_start=swing,
             yaw0=self.yaw0[env_ids],
-            yaw_rate=torch.zeros_like(cmd[:, 2]),  # the yaw reference holds the course heading
+            yaw_rate=torch.zeros_like(cmd[:, 0]),  # the yaw reference holds the course heading
             axis=axis,
             ramp_from=com,
         )
@@ -391,16 +392,11 @@ class ReferenceCommand(CommandTerm):
     # ---------------------------------------------------------------- outputs and V
 
     def reference(self, tau: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(E, 29) reference positions and velocities at time ``tau`` into the current step
-        (:func:`march.reference.trajectory.reference_outputs`: ``reference_at`` flattened)."""
-        return self._reference_outputs(
-            self.step,
-            tau,
-            self.cfg.reference,
-            self.cfg.hlip,
-            len(UPPER_BODY_JOINTS),
-            self._ref_tables,
+        """(E, 29) reference positions and velocities at time ``tau`` into the current step."""
+        ref = self._reference_at(
+            self.step, tau, self.cfg.reference, self.cfg.hlip, num_upper=len(UPPER_BODY_JOINTS)
         )
+        return ref.flatten()
 
     def _masses(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(W|1, B) robot body masses and their (W|1, 1) sums, kept after the first call: domain
@@ -449,12 +445,22 @@ class ReferenceCommand(CommandTerm):
 
     def _refresh_outputs(self) -> None:
         """y_ref at tau (the observation) and at tau + step_dt (the next step's V) in one
-        reference call over both instants ((E, 2) times, no copy of the step state); y_sim on
-        demand."""
-        tau = torch.stack([self.tau, self.tau + self._env.step_dt], dim=-1)
-        pos, vel = self.reference(tau)
-        self.y_ref_pos, self.y_ref_vel = pos[:, 0], vel[:, 0]
-        self._next_ref = (self._ref_key(), pos[:, 1], vel[:, 1])
+        batched reference call; y_sim on demand."""
+        e = self.num_envs
+        st = self.step
+        both = StepState(
+            **{
+                name: None if getattr(st, name) is None else torch.cat([getattr(st, name)] * 2)
+                for name in STEP_FIELDS
+            }
+        )
+        tau = torch.cat([self.tau, self.tau + self._env.step_dt])
+        ref = self._reference_at(
+            both, tau, self.cfg.reference, self.cfg.hlip, num_upper=len(UPPER_BODY_JOINTS)
+        )
+        pos, vel = ref.flatten()
+        self.y_ref_pos, self.y_ref_vel = pos[:e], vel[:e]
+        self._next_ref = (self._ref_key(), pos[e:], vel[e:])
         self._y_sim = None
 
     def clf_state(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -472,7 +478,8 @@ class ReferenceCommand(CommandTerm):
             else:
                 ref_pos, ref_vel = self.reference(self.tau + self._env.step_dt)
             sim_pos, sim_vel = self.measured()
-            self.v = self.clf.value_of_outputs(sim_pos, sim_vel, ref_pos, ref_vel, self.mask)
+            eta = tracking_error(sim_pos, ref_pos, self.mask)
+            self.v = self.clf.value(eta, sim_vel - ref_vel)
             self.vdot, self.v_valid = self.v_history.update(self.v)
         return self.v, self.vdot, self.v_valid
 
