@@ -76,9 +76,9 @@ from march.reference.planner import Plan, course_frame, plan_footsteps, plan_tab
 from march.reference.trajectory import (
     StepState,
     angle_mask,
-    reference_at,
+    reference_outputs,
+    reference_tables,
     step_state_from_plan,
-    tracking_error,
 )
 from march.world.footholds import Footholds
 
@@ -129,7 +129,10 @@ class ReferenceCommand(CommandTerm):
         """The single CLF model of this env (P from CARE, built once)."""
         self.v_history = VHistory(e, env.step_dt, device=dev)
         self.mask = angle_mask(len(UPPER_BODY_JOINTS), device=dev)
-        self._reference_at = maybe_fused(reference_at, cfg.compile_math)
+        self._reference_outputs = maybe_fused(reference_outputs, cfg.compile_math)
+        self._ref_tables = reference_tables(
+            cfg.reference, len(UPPER_BODY_JOINTS), torch.float32, dev
+        )
         self.generator = torch.Generator(device=dev)
         self.generator.manual_seed(int(cfg.planner_seed if cfg.planner_seed is not None else 0))
 
@@ -392,11 +395,16 @@ class ReferenceCommand(CommandTerm):
     # ---------------------------------------------------------------- outputs and V
 
     def reference(self, tau: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(E, 29) reference positions and velocities at time ``tau`` into the current step."""
-        ref = self._reference_at(
-            self.step, tau, self.cfg.reference, self.cfg.hlip, num_upper=len(UPPER_BODY_JOINTS)
+        """(E, 29) reference positions and velocities at time ``tau`` into the current step
+        (:func:`march.reference.trajectory.reference_outputs`: ``reference_at`` flattened)."""
+        return self._reference_outputs(
+            self.step,
+            tau,
+            self.cfg.reference,
+            self.cfg.hlip,
+            len(UPPER_BODY_JOINTS),
+            self._ref_tables,
         )
-        return ref.flatten()
 
     def _masses(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(W|1, B) robot body masses and their (W|1, 1) sums, kept after the first call: domain
@@ -445,22 +453,12 @@ class ReferenceCommand(CommandTerm):
 
     def _refresh_outputs(self) -> None:
         """y_ref at tau (the observation) and at tau + step_dt (the next step's V) in one
-        batched reference call; y_sim on demand."""
-        e = self.num_envs
-        st = self.step
-        both = StepState(
-            **{
-                name: None if getattr(st, name) is None else torch.cat([getattr(st, name)] * 2)
-                for name in STEP_FIELDS
-            }
-        )
-        tau = torch.cat([self.tau, self.tau + self._env.step_dt])
-        ref = self._reference_at(
-            both, tau, self.cfg.reference, self.cfg.hlip, num_upper=len(UPPER_BODY_JOINTS)
-        )
-        pos, vel = ref.flatten()
-        self.y_ref_pos, self.y_ref_vel = pos[:e], vel[:e]
-        self._next_ref = (self._ref_key(), pos[e:], vel[e:])
+        reference call over both instants ((E, 2) times, no copy of the step state); y_sim on
+        demand."""
+        tau = torch.stack([self.tau, self.tau + self._env.step_dt], dim=-1)
+        pos, vel = self.reference(tau)
+        self.y_ref_pos, self.y_ref_vel = pos[:, 0], vel[:, 0]
+        self._next_ref = (self._ref_key(), pos[:, 1], vel[:, 1])
         self._y_sim = None
 
     def clf_state(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -478,8 +476,7 @@ class ReferenceCommand(CommandTerm):
             else:
                 ref_pos, ref_vel = self.reference(self.tau + self._env.step_dt)
             sim_pos, sim_vel = self.measured()
-            eta = tracking_error(sim_pos, ref_pos, self.mask)
-            self.v = self.clf.value(eta, sim_vel - ref_vel)
+            self.v = self.clf.value_of_outputs(sim_pos, sim_vel, ref_pos, ref_vel, self.mask)
             self.vdot, self.v_valid = self.v_history.update(self.v)
         return self.v, self.vdot, self.v_valid
 
