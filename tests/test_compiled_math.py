@@ -244,7 +244,7 @@ def test_the_other_compiled_maths_traces_into_one_graph(name):
 
     from march.env.clf_outputs import outputs_from_state
     from march.env.observations import scan_heights
-    from march.reference import trajectory
+    from march.reference import fused_reference, trajectory
 
     g = torch.Generator().manual_seed(1)
     if name == "reference_at":
@@ -254,8 +254,8 @@ def test_the_other_compiled_maths_traces_into_one_graph(name):
     elif name == "reference_outputs":  # as the command term calls it: tables passed in
         saved = None
         cfg = trajectory.ReferenceCfg()
-        tables = trajectory.reference_tables(cfg, 17, torch.float32, "cpu")
-        fn = trajectory.reference_outputs
+        tables = fused_reference.reference_tables(cfg, 17, torch.float32, "cpu")
+        fn = fused_reference.reference_outputs
         args = (_random_step(16, g), torch.rand(16, 2, generator=g), cfg, None, 17, tables)
     else:
         saved = None
@@ -631,7 +631,8 @@ def test_outputs_from_matrices_equal_the_quaternion_path():
 def test_compiled_reference_outputs_agree_with_eager():
     """compute.compile_math: torch.compile of reference_outputs (the command term's call, two
     instants per env) equals the eager path within 1e-5 on random steps."""
-    from march.reference.trajectory import ReferenceCfg, reference_outputs, reference_tables
+    from march.reference.fused_reference import reference_outputs, reference_tables
+    from march.reference.trajectory import ReferenceCfg
 
     cfg = ReferenceCfg()
     tables = reference_tables(cfg, 17, torch.float32, "cpu")

@@ -311,7 +311,7 @@ def test_reference_outputs_equal_reference_at():
     call) is reference_at flattened: to 1e-9 in float64 over many random steps and times (late
     touchdowns and ramps included), and in float32 as close to the float64 values as
     reference_at's own float32 rounding allows."""
-    from march.reference.trajectory import reference_outputs, reference_tables
+    from march.reference.fused_reference import reference_outputs, reference_tables
 
     worst_new = worst_old = 0.0
     for seed in range(25):
@@ -353,7 +353,7 @@ def test_reference_outputs_take_few_ops():
     """Both instants of a step (the command term's refresh) in under 90 ops; reference_at on
     the step state copied twice took ~200 (and the copy ~24 more)."""
     from march.bench.ops import OpCounter
-    from march.reference.trajectory import reference_outputs, reference_tables
+    from march.reference.fused_reference import reference_outputs, reference_tables
 
     g = torch.Generator().manual_seed(0)
     st = _random_step_state(16, g, torch.float32)

@@ -73,13 +73,8 @@ from march.env.replan_queue import ReplanQueue
 from march.env.step_cache import site_pos
 from march.compiled_math import maybe_fused
 from march.reference.planner import Plan, course_frame, plan_footsteps, plan_tables
-from march.reference.trajectory import (
-    StepState,
-    angle_mask,
-    reference_outputs,
-    reference_tables,
-    step_state_from_plan,
-)
+from march.reference.fused_reference import reference_outputs, reference_tables
+from march.reference.trajectory import StepState, angle_mask, step_state_from_plan
 from march.world.footholds import Footholds
 
 if TYPE_CHECKING:

@@ -1,0 +1,186 @@
+"""The step reference of :mod:`march.reference.trajectory` in few torch ops (issue 41): what the
+``reference`` command term evaluates every control step, for any number of instants per env.
+
+:func:`reference_outputs` is :func:`march.reference.trajectory.reference_at` flattened
+(``Reference.flatten``), the same maths rearranged; :func:`reference_at` stays the readable
+definition the tests hold it to (within 1e-9 in float64). Plain torch, no simulator import.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from march.reference.hlip import HlipCfg
+from march.reference.kept import kept
+from march.reference.trajectory import ReferenceCfg, StepState, wrap_to_pi
+
+BASIS_COLUMNS = 10
+"""Polynomials of the phase s that :func:`reference_outputs` evaluates in one product: the swing
+foot's xy Bezier weights of p0 and p1, its z Bezier weights of z0, c and z1, the three d/ds
+weights (of p1 - p0, c - z0 and z1 - c), and the ramp's smoothstep and its d/ds."""
+
+
+def reference_tables(
+    cfg: ReferenceCfg, num_upper: int, dtype: torch.dtype, device: torch.device | str
+) -> tuple[torch.Tensor, ...]:
+    """The constant tensors of :func:`reference_outputs`, made once per (cfg, num_upper, dtype,
+    device) and kept (built eagerly: pass them into a compiled call)."""
+    key = (
+        "reference_tables",
+        cfg.swing_height,
+        cfg.foot_height_offset,
+        cfg.roll_amplitude,
+        cfg.pitch_amplitude,
+        cfg.pitch_offset,
+        num_upper,
+        dtype,
+        torch.device(device),
+    )
+    return kept(key, lambda: _make_reference_tables(cfg, num_upper, dtype, device))
+
+
+def _make_reference_tables(
+    cfg: ReferenceCfg, num_upper: int, dtype: torch.dtype, device: torch.device | str
+) -> tuple[torch.Tensor, ...]:
+    # Bernstein polynomials b^n_k = C(n, k) s^k (1 - s)^(n - k) as entries (k, n - k) of the
+    # 7 x 7 products s^i (1 - s)^j, summed into the BASIS_COLUMNS polynomials.
+    bern = torch.zeros(7, 7, BASIS_COLUMNS, dtype=torch.float64)
+
+    def add(col: int, n: int, ks: range, scale: float = 1.0) -> None:
+        for k in ks:
+            bern[k, n - k, col] += scale * math.comb(n, k)
+
+    add(0, 5, range(0, 3))  # xy: weight of p0 (ctrl p0, p0, p0, p1, p1, p1)
+    add(1, 5, range(3, 6))  # xy: weight of p1
+    add(2, 6, range(0, 2))  # z: weight of z0 (ctrl z0, z0, c, c, c, z1, z1)
+    add(3, 6, range(2, 5))  # z: weight of c
+    add(4, 6, range(5, 7))  # z: weight of z1
+    add(5, 4, range(2, 3), 5.0)  # d/ds xy: 5 b^4_2 (p1 - p0)
+    add(6, 5, range(1, 2), 6.0)  # d/ds z: 6 b^5_1 (c - z0)
+    add(7, 5, range(4, 5), 6.0)  #        + 6 b^5_4 (z1 - c)
+    add(8, 3, range(2, 4))  # smoothstep 3 s^2 - 2 s^3
+    add(9, 2, range(1, 2), 3.0)  # its d/ds 6 s (1 - s)
+    # Control matrix (10 basis rows x [pos xyz, d/ds xyz]) from u = [start xyz, target xyz,
+    # apex], with c = (64 apex - 7 (z0 + z1)) / 50 (the z control point of swing_trajectory).
+    ctrl = torch.zeros(7, BASIS_COLUMNS, 6, dtype=torch.float64)
+    c_of = torch.tensor([0, 0, -7 / 50, 0, 0, -7 / 50, 64 / 50], dtype=torch.float64)
+    ctrl[0, 0, 0] = ctrl[1, 0, 1] = 1.0  # p0
+    ctrl[3, 1, 0] = ctrl[4, 1, 1] = 1.0  # p1
+    ctrl[2, 2, 2] = 1.0  # z0
+    ctrl[:, 3, 2] = c_of  # c
+    ctrl[5, 4, 2] = 1.0  # z1
+    ctrl[3, 5, 3] = ctrl[4, 5, 4] = 1.0  # p1 - p0
+    ctrl[0, 5, 3] = ctrl[1, 5, 4] = -1.0
+    ctrl[:, 6, 5] = c_of  # c - z0
+    ctrl[2, 6, 5] -= 1.0
+    ctrl[:, 7, 5] = -c_of  # z1 - c
+    ctrl[5, 7, 5] += 1.0
+    ra, pa = cfg.roll_amplitude, cfg.pitch_amplitude
+    tables = (
+        torch.arange(7, dtype=torch.float64),  # exponents
+        bern.reshape(49, BASIS_COLUMNS),
+        ctrl.reshape(7, BASIS_COLUMNS * 6),
+        torch.tensor([math.pi, 2.0 * math.pi], dtype=torch.float64),  # pelvis phase angles
+        torch.tensor([[ra, pa], [-ra, pa]], dtype=torch.float64),  # [right, left stance]
+        torch.tensor(
+            [[ra * math.pi, 2.0 * pa * math.pi], [-ra * math.pi, 2.0 * pa * math.pi]],
+            dtype=torch.float64,
+        ),
+        torch.tensor([0.0, cfg.pitch_offset], dtype=torch.float64),
+        torch.tensor([0.0, 0.0, cfg.foot_height_offset], dtype=torch.float64),
+        torch.zeros(max(2, num_upper), dtype=torch.float64),
+        torch.tensor([1.0, 1.0, -1.0, 1.0], dtype=torch.float64),  # [axis; lat] from axis
+    )
+    return tuple(t.to(dtype=dtype, device=device) for t in tables)
+
+
+def reference_outputs(
+    step: StepState,
+    tau: torch.Tensor,
+    cfg: ReferenceCfg | None = None,
+    hlip: HlipCfg | None = None,
+    num_upper: int = 17,
+    tables: tuple[torch.Tensor, ...] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`reference_at` flattened (``Reference.flatten``: positions and velocities in
+    ``output_names`` order) in about 80 torch ops for any number of instants: ``tau`` (E,) or
+    (E, K) [s] gives (E, n) or (E, K, n) each. The same maths rearranged (values equal within
+    float32 rounding, tests/test_reference.py):
+
+    - the swing foot's two Bezier curves, their s-derivatives and the ramp's smoothstep are
+      polynomials of one phase s: one product of the powers s^i (1 - s)^j with a constant
+      Bernstein table, then one batched product with each env's control points (a linear map
+      of lift-off, landing and apex);
+    - the HLIP orbits of both planes in one pass, in the closed form of
+      :func:`march.reference.hlip.hlip_orbit_p2` simplified with cosh^2 - sinh^2 = 1
+      (r = l0/2 + (cosh a0 - cosh a1) l1 / (2 (cosh A - 1)),
+      v = lam (sinh A l0 + (sinh a0 + sinh a1) l1) / (2 (cosh A - 1)), a_i = lam T_i,
+      A = a0 + a1; the sagittal plane is the period-1 case l1 = l0, T1 = T0), turned into the
+      world frame once per env and flowed to every instant by one 2x2 product;
+    - the pelvis roll and pitch oscillations as one sin / cos of (pi s, 2 pi s).
+    ``tables``: :func:`reference_tables` (looked up when None; pass them into a compiled call).
+    """
+    cfg = cfg or ReferenceCfg()
+    hlip = hlip or HlipCfg()
+    if tables is None:
+        tables = reference_tables(cfg, num_upper, tau.dtype, tau.device)
+    exps, bern, ctrl_map, pelvis_angles, lean, lean_rate, pitch_off, foot_off, zeros, sign = tables
+    single = tau.dim() == 1
+    t = tau[:, None] if single else tau  # (E, K)
+    e, k = t.shape
+    lam = hlip.lam
+    dur = step.duration[:, None]
+    phase = t / dur
+    s = phase.clamp(0.0, 1.0)
+    # Bernstein basis: every polynomial of s the reference needs, (E, K, 10).
+    powers = torch.stack([s, 1.0 - s], dim=-1)[..., None] ** exps  # (E, K, 2, 7)
+    products = powers[..., 0, :, None] * powers[..., 1, None, :]  # (E, K, 7, 7)
+    basis = products.reshape(e, k, 49) @ bern
+    # Swing foot: positions and d/ds, (E, K, 6).
+    target = step.target if cfg.foot_height_offset == 0.0 else step.target + foot_off
+    apex = torch.maximum(step.swing_start[:, 2], target[:, 2]) + cfg.swing_height
+    u = torch.cat([step.swing_start, target, apex[:, None]], dim=-1)
+    swing = basis @ (u @ ctrl_map).view(e, BASIS_COLUMNS, 6)
+    # HLIP: both planes' orbits (pre-impact), columns [sagittal, lateral].
+    frame = (step.axis[:, [0, 1, 1, 0]] * sign).view(e, 2, 2)  # rows: axis, lat
+    feet = torch.stack([step.stance_pos, step.target, step.next_target], dim=1)[..., :2]
+    steps = (feet[:, 1:] - feet[:, :-1]) @ frame.transpose(1, 2)  # (E, step 0|1, plane)
+    l0, l1 = steps[:, 0], steps.flatten(1)[:, [0, 3]]  # l1: sagittal l0x, lateral l1y
+    durs = torch.stack([step.duration, step.next_duration], dim=-1)
+    args = lam * torch.cat([durs, durs + dur], dim=-1)
+    ch, sh = torch.cosh(args), torch.sinh(args)  # a0, a1 (lateral), A (sagittal, lateral)
+    den = ch[:, 2:] - 1.0
+    r = (l0 + (ch[:, 0:1] - ch[:, 0:2]) * l1 / den) * 0.5
+    v = (sh[:, 2:] * l0 + (sh[:, 0:1] + sh[:, 0:2]) * l1) * (0.5 * lam) / den
+    orbit = torch.stack([r, v], dim=1) @ frame  # (E, [r, v], xy), world frame
+    back = lam * (t.clamp(min=0.0) - dur)  # flow from the pre-impact state to t
+    cb, sb = torch.cosh(back), torch.sinh(back)
+    flow = torch.stack([cb, sb / lam, lam * sb, cb], dim=-1).view(e, 2 * k, 2)
+    com = (flow @ orbit).view(e, k, 2, 2)
+    com_pos = com[..., 0, :] + step.stance_pos[:, None, :2]
+    com_vel = com[..., 1, :]
+    if step.ramp is not None and step.ramp_from is not None:
+        gap = com_pos - step.ramp_from[:, None]
+        smooth, dsmooth = basis[..., 8:9], basis[..., 9:10] / dur[..., None]
+        on = step.ramp[:, None, None]
+        com_vel = torch.where(on, smooth * com_vel + dsmooth * gap, com_vel)
+        com_pos = torch.where(on, step.ramp_from[:, None] + smooth * gap, com_pos)
+    # Pelvis roll / pitch (lean toward the stance foot) and yaw.
+    angles = s[..., None] * pelvis_angles
+    left = step.stance_is_left.long()
+    roll_pitch = torch.sin(angles) * lean[left][:, None] + pitch_off
+    rate_scale = (t < dur) / dur
+    roll_pitch_rate = torch.cos(angles) * lean_rate[left][:, None] * rate_scale[..., None]
+    yaw = wrap_to_pi(step.yaw0[:, None] + step.yaw_rate[:, None] * t)[..., None]
+    yaw_rate = step.yaw_rate[:, None, None].expand(e, k, 1)
+    swing_vel = swing[..., 3:] * ((phase < 1.0) / dur)[..., None]
+    com_z = (step.stance_pos[:, 2:3] + hlip.z0)[:, None].expand(e, k, 1)
+    z2, zu = zeros[:2].expand(e, k, 2), zeros[:num_upper].expand(e, k, num_upper)
+    z1 = zeros[:1].expand(e, k, 1)
+    pos = torch.cat([com_pos, com_z, roll_pitch, yaw, swing[..., :3], z2, yaw, zu], dim=-1)
+    vel = torch.cat([com_vel, z1, roll_pitch_rate, yaw_rate, swing_vel, z2, yaw_rate, zu], -1)
+    if single:
+        return pos[:, 0], vel[:, 0]
+    return pos, vel
