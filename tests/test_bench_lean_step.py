@@ -10,6 +10,8 @@ computed before.
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -126,3 +128,26 @@ def test_site_state_equals_mjlabs_site_properties(scan_env):
             quat = quat_from_matrix(site_xmat(env, names))
             assert torch.allclose(quat, d.site_quat_w[:, local], atol=1e-6)
             assert float(lin.abs().max()) > 0.0  # the robot moves: a real comparison
+
+
+@pytest.mark.sim
+def test_root_frame_equals_mjlabs_root_position_and_heading(scan_env):
+    """Issue 41: the root position and heading the observation terms share (read from xpos and
+    the root's rotation matrix) equal mjlab's root_link_pos_w and heading_w (through the
+    quaternion) within float32 rounding, over random-action steps of robots that turn and fall."""
+    from march.env.step_cache import root_frame
+
+    env = scan_env
+    gen = torch.Generator().manual_seed(3)
+    shape = (env.num_envs, env.action_manager.total_action_dim)
+    data = env.scene["robot"].data
+    spread = 0.0
+    with torch.no_grad():
+        for _ in range(20):
+            env.step(2 * torch.rand(shape, generator=gen) - 1)
+            pos, heading = root_frame(env)
+            assert torch.equal(pos, data.root_link_pos_w)
+            diff = torch.remainder(heading - data.heading_w + math.pi, 2 * math.pi) - math.pi
+            assert float(diff.abs().max()) < 1e-5
+            spread = max(spread, float(heading.max() - heading.min()))
+    assert spread > 0.1  # headings differ: a real comparison

@@ -10,11 +10,11 @@ from __future__ import annotations
 import torch
 from mjlab.envs import ManagerBasedRlEnv
 
+from march.compiled_math import maybe_fused
 from march.env.course import CourseRuler, foothold_table
 from march.env.reference_command import reference_term
-from march.env.step_cache import constant, shared
+from march.env.step_cache import constant, root_frame, shared
 from march.env.stone_terrain import max_boxes_in_reach, terrain_boxes
-from march.compiled_math import maybe_fused
 
 NUM_STONES = 5
 """K: stones observed ahead of the robot."""
@@ -94,11 +94,9 @@ def _terrain_height_scan(
         lambda: _scan_table(env, float(offsets.norm(dim=-1).max()) + 1e-3),
     )
     terrain = env.scene.terrain
-    data = env.scene["robot"].data
     heights = maybe_fused(scan_heights, compiled)
     return heights(
-        data.root_link_pos_w,
-        data.heading_w,
+        *root_frame(env),
         terrain.terrain_levels,
         terrain.terrain_types,
         terrain.terrain_origins.shape[1],
@@ -165,8 +163,7 @@ def stones_ahead(env: ManagerBasedRlEnv, num_stones: int = NUM_STONES) -> torch.
 
 def _stones_ahead(env: ManagerBasedRlEnv, num_stones: int) -> torch.Tensor:
     fh = CourseRuler(env).footholds()
-    robot = env.scene["robot"]
-    base = robot.data.root_link_pos_w
+    base, heading = root_frame(env)
     axis = fh.direction
     rel = fh.center[..., :2] - base[:, None, :2]  # (E, S, 2)
     along = (rel * axis[:, None]).sum(-1)
@@ -182,7 +179,7 @@ def _stones_ahead(env: ManagerBasedRlEnv, num_stones: int) -> torch.Tensor:
     center = torch.gather(fh.center, 1, idx[..., None].expand(-1, -1, 3))
     half = torch.gather(fh.half_size, 1, idx[..., None].expand(-1, -1, 2))
     d = center - base[:, None]
-    yaw = robot.data.heading_w[:, None]
+    yaw = heading[:, None]
     c, s = torch.cos(yaw), torch.sin(yaw)
     dx = c * d[..., 0] + s * d[..., 1]
     dy = -s * d[..., 0] + c * d[..., 1]

@@ -70,7 +70,7 @@ from march.env.course import foothold_table
 from march.env.masked_rows import MaskedRows
 from march.env.reference_cfg import ReferenceCommandCfg
 from march.env.replan_queue import ReplanQueue
-from march.env.step_cache import site_pos
+from march.env.step_cache import root_frame, site_pos
 from march.compiled_math import maybe_fused
 from march.reference.planner import Plan, course_frame, plan_footsteps, plan_tables
 from march.reference.fused_reference import reference_outputs, reference_tables
@@ -479,13 +479,13 @@ class ReferenceCommand(CommandTerm):
 
     def observation(self) -> torch.Tensor:
         """Privileged reference observation (E, 2*29 + 3N + 2), relative to the base (layout:
-        :func:`march.env.clf_outputs.reference_in_base_frame`)."""
-        data = self.robot.data
+        :func:`march.env.clf_outputs.reference_in_base_frame`; the base's position and heading
+        shared with the other observation terms: :func:`march.env.step_cache.root_frame`)."""
         return reference_in_base_frame(
             (self.y_ref_pos, self.y_ref_vel),
             self.plan_footholds,
             (self.tau, self.step.duration),
-            (data.root_link_pos_w, data.heading_w),
+            root_frame(self._env, self.cfg.entity_name),
         )
 
 

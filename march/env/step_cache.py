@@ -118,3 +118,21 @@ def site_xmat(env: Any, names: tuple[str, ...], entity: str = "robot") -> Any:
     gid, _, _ = _site_frames(env, names, entity)
     xmat = env.scene[entity].data.data.site_xmat[:, gid]
     return xmat.reshape(xmat.shape[0], gid.shape[0], 3, 3)
+
+
+def root_frame(env: Any, entity: str = "robot") -> tuple[Any, Any]:
+    """The root link's world position (E, 3) and heading (E,) [rad], once per manager compute:
+    mjlab's ``root_link_pos_w`` (a view of MuJoCo's ``xpos``, not the pose ``cat`` it slices)
+    and ``heading_w`` read from the root's rotation matrix, atan2(R10, R00) (the world x-y
+    direction of the body's x axis, which mjlab rotates out of the quaternion: ~7 ops a call)."""
+
+    def make() -> tuple[Any, Any]:
+        import torch
+
+        ent = env.scene[entity]
+        root = int(ent.indexing.root_body_id)
+        data = ent.data.data
+        mat = data.xmat[:, root].reshape(-1, 3, 3)
+        return data.xpos[:, root], torch.atan2(mat[:, 1, 0], mat[:, 0, 0])
+
+    return shared(env, ("root_frame", entity), make)
