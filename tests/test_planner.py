@@ -477,3 +477,30 @@ def test_the_search_equals_the_plain_search_bit_for_bit():
         want = _plain_search(stance, left, cmd, fh, cfg, torch.Generator().manual_seed(seed))
         for name, value in want.items():
             assert torch.equal(getattr(got, name), value), (seed, name)
+
+
+def test_the_cpu_planner_runs_on_one_thread_and_restores_the_count(courses, monkeypatch):
+    """On CPU plan_footsteps runs the draws and the search on one thread (its ops pass torch's
+    intra-op grain size; OpenMP regions stall on a busy machine) and gives the thread count
+    back; the plans are those of a one-thread process."""
+    from march.reference import planner
+
+    fh, stance, left = courses
+    seen = []
+    search = planner._search
+
+    def recording(*args):
+        seen.append(torch.get_num_threads())
+        return search(*args)
+
+    one = _plan(fh, stance, left, _forward(fh.num_envs))
+    monkeypatch.setattr(planner, "_search", recording)
+    torch.set_num_threads(2)
+    try:
+        two = _plan(fh, stance, left, _forward(fh.num_envs))
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(1)
+    assert seen == [1]
+    for name in ("footholds", "durations", "cost", "feasible", "stalled"):
+        assert torch.equal(getattr(one, name), getattr(two, name)), name
