@@ -180,3 +180,45 @@ class _LateResets(ReplanQueue):
 def test_a_planted_fault_fails_the_check(fault):
     with pytest.raises(AssertionError):
         run_queue(fault(16, 8, "cpu"), steps=300, seed=16, flush=16)
+
+
+@pytest.mark.sim
+def test_the_teacher_env_plans_only_the_allowed_batch_sizes(monkeypatch):
+    """In a clf teacher env under random actions (falls reset envs, steps touch down), every
+    planner call of the reference command has one of the allowed sizes (the first update after
+    the construction-time plan may hold each env twice: it is reset by both)."""
+    from march.config.cli import load
+    from march.env import reference_command
+    from march.env.build import make_env
+
+    sizes: list[int] = []
+    plan = reference_command.plan_footsteps
+
+    def recording(stance_xy, *args, **kwargs):
+        sizes.append(stance_xy.shape[0])
+        return plan(stance_xy, *args, **kwargs)
+
+    monkeypatch.setattr(reference_command, "plan_footsteps", recording)
+    # 16 envs, capacity 8 (smoke's 4 envs would make the capacity every env: one size anyway;
+    # measured here: 31 resets, 43 replans of running envs, every call 8 rows, and with the
+    # old rule, p resets + 8, sizes 8-11)
+    env = make_env(load(["compute=smoke", "reward=clf", "compute.num_envs=16"]), "teacher")
+    try:
+        term = env.command_manager.get_term("reference")
+        e, cap = env.num_envs, term.queue.capacity
+        n_act = env.action_manager.total_action_dim
+        g = torch.Generator().manual_seed(0)
+        env.reset()
+        first = len(sizes)
+        resets = 0
+        for _ in range(80):
+            _, _, terminated, truncated, _ = env.step(2.0 * torch.randn(e, n_act, generator=g))
+            resets += int((terminated | truncated).sum())
+        touchdowns = int((term.touchdown_count + term.forced_count).sum())
+    finally:
+        env.close()
+    assert cap < e, "a batch of every env would prove nothing"
+    assert resets > 0 and touchdowns > 0, "the run must reset envs and replan running ones"
+    allowed = allowed_sizes(e, cap)
+    assert set(sizes[first:]) <= allowed, (sorted(set(sizes[first:])), allowed)
+    assert all(s in allowed or e < s <= 2 * e for s in sizes[:first])
