@@ -15,15 +15,16 @@ step defeats CUDA graphs and ``torch.compile(mode="reduce-overhead")``, which re
 - **The batch size B** (:meth:`ReplanQueue.batch_size`) depends on the host-known p only:
   ``capacity`` (``ReferenceCommandCfg.capacity``: 1/8 of the envs, at least 8) while the resets
   fit in it, else the next power of two >= p, capped at E (E itself when p > E, which only
-  repeated resets of one env can cause). The planner therefore sees one of about log2(E / capacity)
+  repeated resets of one env can cause). The planner therefore sees one of at most log2(E / capacity)
   + 2 shapes, and almost always ``capacity`` (at 4096 envs: 512, 1024, 2048, 4096).
 - **Touchdowns and timeouts** are masks. They fill the B - p rows after the resets, the due envs
   first in env order (a stable sort of the mask), then idle envs, which are planned and
   discarded (``apply`` False), as are due envs beyond the batch: they wait for the next update
   (20 ms), still flagged, and every waiting update is counted in ``deferred_count``. The planner
-  costs 4.7 ms for 1 env and 23 ms for 64 on 2 CPU threads, so planning every env on every step
-  would add ~7% to a 64-env CPU step; the fixed batch adds ~2 ms. The planner is called on every
-  update (also when no env is due), so its random stream advances once per update.
+  costs ~4 ms for an 8-env batch and ~30 ms for 64 envs on one CPU thread (loaded 2-core
+  machine, issue 41), so a batch of every env on every step would cost a 64-env CPU step ~7x
+  more planner time than the fixed batch. The planner is called on every update (also when no
+  env is due), so its random stream advances once per update.
 
 Plain torch on the env's device; the command term owns the walking state and the planner call.
 """
