@@ -14,9 +14,10 @@ step defeats CUDA graphs and ``torch.compile(mode="reduce-overhead")``, which re
   them. Resets never wait.
 - **The batch size B** (:meth:`ReplanQueue.batch_size`) depends on the host-known p only:
   ``capacity`` (``ReferenceCommandCfg.capacity``: 1/8 of the envs, at least 8) while the resets
-  fit in it, else the next power of two >= p, capped at E (E itself when p > E, which only
-  repeated resets of one env can cause). The planner therefore sees one of at most log2(E / capacity)
-  + 2 shapes, and almost always ``capacity`` (at 4096 envs: 512, 1024, 2048, 4096).
+  fit in it, else the next power of two >= p, capped at E (p itself when p > E, which only
+  repeated resets of one env cause: construction and the first reset both reset every env). The
+  planner therefore sees one of at most log2(E / capacity) + 2 shapes after its first update,
+  and almost always ``capacity`` (at 4096 envs: 512, 1024, 2048, 4096).
 - **Touchdowns and timeouts** are masks. They fill the B - p rows after the resets, the due envs
   first in env order (a stable sort of the mask), then idle envs, which are planned and
   discarded (``apply`` False), as are due envs beyond the batch: they wait for the next update
