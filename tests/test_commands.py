@@ -130,3 +130,30 @@ def test_masked_rows_write_equals_a_masked_update_over_random_batches():
             for k in want:
                 got = getattr(state, k)
                 assert got.shape == want[k].shape and torch.equal(got, want[k]), (trial, k)
+
+
+def test_masked_rows_write_is_one_index_put_per_dtype():
+    """Issue 41: the tensors of one dtype share one buffer (the owners' attributes are views of
+    it), so a write of the reference term's 19 tensors is a where, one cat and one index_put
+    per dtype (float, bool): 5 ops, not 20."""
+    from types import SimpleNamespace
+
+    from march.bench.ops import OpCounter
+    from march.env.masked_rows import MaskedRows
+
+    e, n = 8, 3
+    floats = {f"f{i}": torch.randn(e, *(() if i % 2 else (4, 3))) for i in range(14)}
+    bools = {f"b{i}": torch.rand(e) > 0.5 for i in range(5)}
+    state = SimpleNamespace(**floats, **bools)
+    rows = MaskedRows(e, {k: (state, k) for k in vars(state)})
+    assert state.f0.shape == (e, 4, 3) and state.b0.dtype == torch.bool
+    values = {k: torch.zeros(n, *v.shape[1:], dtype=v.dtype) for k, v in vars(state).items()}
+    ids, apply = torch.tensor([1, 4, 6]), torch.tensor([True, False, True])
+    with torch.inference_mode():  # as in the teacher's rollouts (plus one detach_ per buffer
+        rows.write(ids, apply, values)  # on its first write there, which this one makes)
+        with OpCounter() as ops:
+            rows.write(ids, apply, values)
+    assert ops.total == 5, ops.counts
+    assert float(state.f0[1].abs().sum()) == 0.0 and float(state.f0[4].abs().sum()) > 0.0
+    state.f1 += 1.0  # an in-place update through the owner's view lands in the buffer
+    assert torch.equal(rows.storage["f1"][:e], state.f1)
