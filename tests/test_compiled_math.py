@@ -193,7 +193,8 @@ def _scan_args(e: int, g: torch.Generator) -> tuple:
     lo = (center[..., 0] - half[..., 0]).masked_fill(~valid, float("inf"))
     hi = (center[..., 0] + half[..., 0]).masked_fill(~valid, -float("inf"))
     extent = torch.stack([lo, hi], -1)
-    packed = torch.cat([center, half, valid[..., None].float()], -1).reshape(-1, 6)
+    top = center[..., 2:3].masked_fill(~valid[..., None], -float("inf"))  # padding: never hit
+    packed = torch.cat([center[..., :2], top, half, valid[..., None].float()], -1).reshape(-1, 6)
     base = torch.cat([4.0 * r(e, 2), 0.5 + 0.5 * r(e, 1)], -1)
     yaw = 6.28 * r(e)
     offsets = torch.stack(

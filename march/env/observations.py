@@ -66,12 +66,15 @@ def terrain_height_scan(
 
 def _scan_table(env: ManagerBasedRlEnv, reach: float) -> tuple[torch.Tensor, torch.Tensor, int]:
     """Per cell (flattened row-major), kept on the env: the boxes' x-extents (R*C, K, 2) (lo, hi;
-    padding +inf, -inf), the boxes packed (R*C*K, 6) as (x, y, top, half x, half y, valid) and
-    the most boxes any scan can reach (:func:`march.env.stone_terrain.max_boxes_in_reach`)."""
+    padding +inf, -inf), the boxes packed (R*C*K, 6) as (x, y, top, half x, half y, valid)
+    (padding's top -inf: never hit) and the most boxes any scan can reach
+    (:func:`march.env.stone_terrain.max_boxes_in_reach`)."""
     top_center, half, valid = terrain_boxes(foothold_table(env))
     r, c, k = valid.shape
     lo = (top_center[..., 0] - half[..., 0]).masked_fill(~valid, float("inf"))
     hi = (top_center[..., 0] + half[..., 0]).masked_fill(~valid, -float("inf"))
+    top_center = top_center.clone()
+    top_center[..., 2] = top_center[..., 2].masked_fill(~valid, -float("inf"))
     extent = torch.stack([lo, hi], dim=-1).reshape(r * c, k, 2)
     packed = torch.cat([top_center, half, valid[..., None].float()], dim=-1).reshape(r * c * k, 6)
     return extent, packed, min(k, max_boxes_in_reach(top_center, half, valid, reach))
@@ -118,7 +121,8 @@ def scan_heights(
 ) -> torch.Tensor:
     """The maths of :func:`terrain_height_scan` (pure torch): pelvis position ``base`` (E, 3) and
     heading ``yaw`` (E,), each env's terrain cell (level, type; ``num_cols`` types), the cells'
-    boxes (``_scan_table``) and the scan grid ``offsets`` (N, 2) -> (E, N) heights [m]."""
+    boxes (``_scan_table``: padding's top is -inf) and the scan grid ``offsets`` (N, 2) ->
+    (E, N) heights [m]."""
     extent, packed, k_near = table
     cell = levels.long() * num_cols + types.long()  # (E,)
     # Only boxes whose x-extent comes within reach of the pelvis can be hit, and no scan reaches
@@ -130,19 +134,17 @@ def scan_heights(
     k_all = extent.shape[1]
     boxes = packed.index_select(0, (cell[:, None] * k_all + near).flatten())
     boxes = boxes.view(base.shape[0], k_near, 6)
-    c, s = torch.cos(yaw)[:, None], torch.sin(yaw)[:, None]
-    ox, oy = offsets[:, 0], offsets[:, 1]
-    px = base[:, 0:1] + c * ox - s * oy  # (E, N) scan points, world
-    py = base[:, 1:2] + s * ox + c * oy
+    c, s = torch.cos(yaw)[:, None, None], torch.sin(yaw)[:, None, None]
+    ox, oy = offsets[:, 0:1], offsets[:, 1:2]
+    # (E, N, 2) scan points, world: (bx + c ox) - s oy, (by + s ox) + c oy, x and y at once
+    points = (base[:, None, :2] + torch.cat([c, s], -1) * ox) + torch.cat([-s, c], -1) * oy
     z0 = base[:, 2:3]
-    # A box whose top lies above the pelvis, or padding, is never hit.
-    top = boxes[..., 2].masked_fill((boxes[..., 5] < 0.5) | (boxes[..., 2] > z0), -float("inf"))
+    # A box whose top lies above the pelvis is never hit (nor padding: its top is -inf).
+    top = boxes[..., 2].masked_fill(boxes[..., 2] > z0, -float("inf"))
     # One (E, N, k_near) pass over the near boxes (a few ops, not a few per box; k_near is
-    # small, so the temporaries are E x N x k_near): the highest top each scan point is inside.
+    # small, so the temporaries are E x N x k_near x 2): the highest top each point is inside.
     b = boxes.unsqueeze(1)  # (E, 1, k_near, 6)
-    inside = ((px.unsqueeze(-1) - b[..., 0]).abs() <= b[..., 3]) & (
-        (py.unsqueeze(-1) - b[..., 1]).abs() <= b[..., 4]
-    )
+    inside = ((points.unsqueeze(2) - b[..., 0:2]).abs() <= b[..., 3:5]).all(-1)
     hit = top.unsqueeze(1).masked_fill(~inside, -float("inf")).amax(dim=-1)
     height = z0 - hit
     return torch.where(height <= max_distance, height, torch.full_like(height, max_distance))
