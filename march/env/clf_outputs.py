@@ -56,21 +56,17 @@ def euler_zyx(quat: torch.Tensor) -> torch.Tensor:
     return torch.stack(euler_xyz_from_quat(quat), dim=-1)
 
 
-EULER_ENTRIES = (7, 3, 8, 0, 6)
-"""Entries of a row-major 3x3 rotation matrix :func:`euler_from_matrix` reads: R32, R21 (the sines
-of roll and yaw times cos pitch), R33, R11 (their cosines times cos pitch) and R31 (-sin pitch)."""
-
-
 def euler_from_matrix(mat: torch.Tensor) -> torch.Tensor:
     """(..., 3) ZYX Euler angles (roll, pitch, yaw) of (..., 3, 3) rotation matrices
     R = Rz(yaw) Ry(pitch) Rx(roll): roll = atan2(R32, R33), pitch = asin(-R31) (clamped to
     [-1, 1]), yaw = atan2(R21, R11). The same angles as :func:`euler_zyx` of the matrix's
     quaternion (its atan2 / asin arguments are these entries written in the quaternion), within
     float32 rounding, without the quaternion."""
-    r = mat.flatten(-2)[..., EULER_ENTRIES]
-    roll_yaw = torch.atan2(r[..., 0:2], r[..., 2:4])
-    pitch = torch.asin((-r[..., 4:5]).clamp(-1.0, 1.0))
-    return torch.cat([roll_yaw[..., 0:1], pitch, roll_yaw[..., 1:2]], dim=-1)
+    r = mat.flatten(-2)  # row-major: R32 = r[7], R33 = r[8], R21 = r[3], R11 = r[0], R31 = r[6]
+    roll = torch.atan2(r[..., 7:8], r[..., 8:9])
+    yaw = torch.atan2(r[..., 3:4], r[..., 0:1])
+    pitch = torch.asin((-r[..., 6:7]).clamp(-1.0, 1.0))
+    return torch.cat([roll, pitch, yaw], dim=-1)
 
 
 def euler_rates_of(euler: torch.Tensor, omega_b: torch.Tensor) -> torch.Tensor:

@@ -62,6 +62,7 @@ from mjlab.managers.command_manager import CommandTerm
 from march.clf.lyapunov import CLF_OUTPUT_NAMES, UPPER_BODY_JOINTS, ClfModel, VHistory
 from march.env.clf_outputs import (
     body_masses,
+    body_rows,
     measured_outputs,
     reference_in_base_frame,
     stance_foot_state,
@@ -114,6 +115,7 @@ class ReferenceCommand(CommandTerm):
         joint_ids, _ = self.robot.find_joints(UPPER_BODY_JOINTS, preserve_order=True)
         self._upper_ids = torch.tensor(joint_ids, device=dev, dtype=torch.long)
         self._body_ids = torch.as_tensor(self.robot.indexing.body_ids, device=dev).long()
+        body_rows(env, self.robot)  # found here, once (a host read), not in the first step
         self._root_body = int(self.robot.indexing.root_body_id)
 
         self.table = foothold_table(env)

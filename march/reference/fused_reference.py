@@ -93,7 +93,13 @@ def _make_reference_tables(
         torch.zeros(max(2, num_upper), dtype=torch.float64),
         torch.tensor([1.0, 1.0, -1.0, 1.0], dtype=torch.float64),  # [axis; lat] from axis
     )
-    return tuple(t.to(dtype=dtype, device=device) for t in tables)
+    index = (
+        torch.tensor([0, 1, 1, 0]),  # the frame's entries from axis: [ax, ay, ay, ax] * sign
+        torch.tensor([0, 3]),  # l1 per plane from the projected steps: [l0 sagittal, l1 lateral]
+    )
+    return tuple(t.to(dtype=dtype, device=device) for t in tables) + tuple(
+        i.to(device=device) for i in index
+    )
 
 
 def reference_outputs(
@@ -126,7 +132,10 @@ def reference_outputs(
     hlip = hlip or HlipCfg()
     if tables is None:
         tables = reference_tables(cfg, num_upper, tau.dtype, tau.device)
-    exps, bern, ctrl_map, pelvis_angles, lean, lean_rate, pitch_off, foot_off, zeros, sign = tables
+    exps, bern, ctrl_map, pelvis_angles, lean, lean_rate, pitch_off, foot_off, zeros, sign = tables[
+        :10
+    ]
+    frame_idx, l1_idx = tables[10:]
     single = tau.dim() == 1
     t = tau[:, None] if single else tau  # (E, K)
     e, k = t.shape
@@ -144,10 +153,10 @@ def reference_outputs(
     u = torch.cat([step.swing_start, target, apex[:, None]], dim=-1)
     swing = basis @ (u @ ctrl_map).view(e, BASIS_COLUMNS, 6)
     # HLIP: both planes' orbits (pre-impact), columns [sagittal, lateral].
-    frame = (step.axis[:, [0, 1, 1, 0]] * sign).view(e, 2, 2)  # rows: axis, lat
+    frame = (step.axis.index_select(1, frame_idx) * sign).view(e, 2, 2)  # rows: axis, lat
     feet = torch.stack([step.stance_pos, step.target, step.next_target], dim=1)[..., :2]
     steps = (feet[:, 1:] - feet[:, :-1]) @ frame.transpose(1, 2)  # (E, step 0|1, plane)
-    l0, l1 = steps[:, 0], steps.flatten(1)[:, [0, 3]]  # l1: sagittal l0x, lateral l1y
+    l0, l1 = steps[:, 0], steps.flatten(1).index_select(1, l1_idx)  # l1: l0x (sag.), l1y (lat.)
     durs = torch.stack([step.duration, step.next_duration], dim=-1)
     args = lam * torch.cat([durs, durs + dur], dim=-1)
     ch, sh = torch.cosh(args), torch.sinh(args)  # a0, a1 (lateral), A (sagittal, lateral)
