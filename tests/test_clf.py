@@ -258,3 +258,22 @@ def test_history_weights_equal_the_backward_differences():
     d2, ok2 = h.update(vs[2])
     want = backward_difference(vs[2], vs[1], vs[0], dt)
     assert torch.allclose(d2[:3], want[:3], rtol=1e-12) and ok2.all()
+
+
+def test_folded_reward_formulas_equal_the_papers():
+    """r_clf and r_dclf with the sign and the normaliser folded into one product (issue 41)
+    equal exp(-min(V, Vmax)/Vmax) and -max((Vdot + alpha V)/Vdmax, 0) (clipped, masked) within
+    float32 rounding over random V and dV/dt of both signs."""
+    g = torch.Generator().manual_seed(3)
+    for clip in (None, 1.0):
+        model = ClfModel(ClfCfg(dclf_clip=clip))
+        v = model.v_max * 3 * torch.rand(500, generator=g)
+        vdot = model.vdot_max * 4 * (torch.rand(500, generator=g) - 0.5)
+        valid = torch.rand(500, generator=g) > 0.2
+        want = -torch.clamp((vdot + model.alpha * v) / model.vdot_max, min=0.0)
+        if clip is not None:
+            want = want.clamp(min=-clip)
+        want = torch.where(valid, want, torch.zeros_like(want))
+        assert torch.allclose(model.dclf_reward(v, vdot, valid), want, atol=1e-6, rtol=1e-6)
+        clf = torch.exp(-torch.clamp(v, max=model.v_max) / model.v_max)
+        assert torch.allclose(model.clf_reward(v), clf, atol=1e-7, rtol=1e-6)

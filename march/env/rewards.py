@@ -181,7 +181,7 @@ def holonomic_pos(
     term = reference_term(env, command_name)
     pos, _, _ = stance_foot(env, command_name)
     d2 = (pos - term.stance_anchor).square().sum(-1)
-    return torch.exp(-d2 / sigma**2)
+    return torch.exp(d2 * (-1.0 / sigma**2))
 
 
 @reward_term(needs=("reference",))
@@ -191,8 +191,8 @@ def holonomic_vel(
     """exp(-(||v||^2 + w_z^2) / sigma^2) in (0, 1]: stance foot site linear velocity and yaw
     rate should be zero (author's sigma^2 = 0.1)."""
     _, vel, omega = stance_foot(env, command_name)
-    e2 = vel.square().sum(-1) + omega[:, 2].square()
-    return torch.exp(-e2 / sigma**2)
+    e2 = torch.cat([vel, omega[:, 2:3]], dim=-1).square().sum(-1)
+    return torch.exp(e2 * (-1.0 / sigma**2))
 
 
 @reward_term()
