@@ -645,3 +645,43 @@ def test_compiled_reference_outputs_agree_with_eager():
         want = reference_outputs(st, tau, cfg, None, 17, tables)
         for a, b in zip(got, want, strict=True):
             assert torch.allclose(a, b, atol=1e-5, rtol=0.0)
+
+
+def _reference_in_base_frame_before_issue_41(reference, footholds, phase, base):
+    from march.env.clf_outputs import yaw_rotate
+    from march.reference.trajectory import wrap_to_pi
+
+    (pos, vel), (tau, duration), (base, yaw) = reference, phase, base
+    n = footholds.shape[1]
+    points = torch.cat([pos[:, None, 0:3], pos[:, None, 6:9], footholds], 1)
+    rates = torch.stack([vel[:, 0:3], vel[:, 6:9]], dim=1)
+    turned = yaw_rotate(torch.cat([points - base[:, None], rates], dim=1), yaw)
+    yaws = wrap_to_pi(torch.stack([pos[:, 5], pos[:, 11]], dim=-1) - yaw[:, None])
+    parts = [turned[:, 0], pos[:, 3:5], yaws[:, 0:1], turned[:, 1], pos[:, 9:11], yaws[:, 1:2]]
+    parts += [pos[:, 12:], turned[:, n + 2], vel[:, 3:6], turned[:, n + 3], vel[:, 9:]]
+    parts += [turned[:, 2 : n + 2].flatten(1), (tau / duration).clamp(max=2.0)[:, None]]
+    return torch.cat(parts + [duration[:, None]], dim=-1)
+
+
+def test_the_reference_observation_equals_its_form_before_issue_41():
+    """reference_in_base_frame with the com / swing rows read as views and one subtraction in
+    place gives the same observation bit for bit, for the (E, 2, 29) instants the command term
+    slices (non-contiguous rows), in fewer ops."""
+    from march.env.clf_outputs import reference_in_base_frame
+
+    for seed in range(10):
+        g = torch.Generator().manual_seed(seed)
+        e = 3 + seed
+        pos, vel = (10 * torch.rand(e, 2, 29, generator=g) - 5 for _ in range(2))
+        args = (
+            (pos[:, 0], vel[:, 0]),
+            10 * torch.rand(e, 4, 3, generator=g),
+            (torch.rand(e, generator=g), 0.3 + torch.rand(e, generator=g)),
+            (10 * torch.rand(e, 3, generator=g), 8 * torch.rand(e, generator=g) - 4),
+        )
+        with OpCounter() as ops:
+            got = reference_in_base_frame(*args)
+        with OpCounter() as old:
+            want = _reference_in_base_frame_before_issue_41(*args)
+        assert torch.equal(got, want), seed
+        assert ops.total < old.total, (ops.total, old.total)

@@ -111,11 +111,15 @@ def reference_in_base_frame(
     and the N footholds relative to the base, then the CoM and swing-foot velocities (five
     rotations and their copies before: ~75 more ops a step)."""
     (pos, vel), (tau, duration), (base, yaw) = reference, phase, base
-    n = footholds.shape[1]
-    points = torch.cat([pos[:, None, 0:3], pos[:, None, 6:9], footholds], 1)
-    rates = torch.stack([vel[:, 0:3], vel[:, 6:9]], dim=1)
-    turned = yaw_rotate(torch.cat([points - base[:, None], rates], dim=1), yaw)
-    yaws = wrap_to_pi(torch.stack([pos[:, 5], pos[:, 11]], dim=-1) - yaw[:, None])
+    e, n = footholds.shape[:2]
+
+    def com_and_swing(y: torch.Tensor) -> torch.Tensor:  # (E, 2, 3): columns 0:3 and 6:9 (a view)
+        return y[:, 0:9].reshape(e, 3, 3)[:, 0::2]
+
+    vectors = torch.cat([com_and_swing(pos), footholds, com_and_swing(vel)], dim=1)
+    vectors[:, : n + 2] -= base[:, None]  # the points relative to the base, not the rates
+    turned = yaw_rotate(vectors, yaw)
+    yaws = wrap_to_pi(pos[:, 5:12:6] - yaw[:, None])  # pelvis and swing-foot yaw (a view)
     return torch.cat(
         [
             turned[:, 0],  # com_xyz
