@@ -465,13 +465,19 @@ def _search(
     # The command along and across the course and the pace floor: (3, E) = (along, across,
     # floor), subtracted from the velocity rows (along, across, along) in one op.
     v_cmd = command[:, :2].T  # (2, E) world
-    # One allocation for every buffer of the search (views below).
+    # One allocation for every buffer of the search (views below); apart under torch.compile,
+    # whose functionalisation of writes into views of one shared base made the compile of the
+    # search run for tens of minutes.
     sizes = (3 * e, _G_ROWS * e * r * m * q, _W_ROWS * e * r * m * q, _F_ROWS * e * r * f)
     sizes += ((n * _F_PICK + 2) * e * r,)
-    cmd, gbuf, wbuf, fbuf, record = torch.empty(sum(sizes), device=device, dtype=dtype).split(sizes)
+    if torch.compiler.is_compiling():
+        bufs = [torch.empty(size, device=device, dtype=dtype) for size in sizes]
+    else:
+        bufs = torch.empty(sum(sizes), device=device, dtype=dtype).split(sizes)
+    cmd, gbuf, wbuf, fbuf, record = bufs
     cmd = cmd.view(3, e)
-    torch.add(v_cmd[0] * frame[0, 1:3], v_cmd[1] * frame[1, 1:3], out=cmd[0:2])
-    torch.mul(cmd[0].clamp(min=0.0), cfg.pace_fraction, out=cmd[2])
+    into(cmd[0:2], torch.add, v_cmd[0] * frame[0, 1:3], v_cmd[1] * frame[1, 1:3])
+    into(cmd[2], torch.mul, cmd[0].clamp(min=0.0), cfg.pace_fraction)
     floor = cmd[2]
     # -scale of pace_floor (the same product, negated: exact); times the goal test per step.
     neg_scale = ((-cfg.pace_cost) / floor.clamp(min=1e-6)) * (floor > 1e-6)
