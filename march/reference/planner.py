@@ -69,6 +69,7 @@ envs, so a batched plan equals a per-env loop and a seeded ``torch.Generator`` f
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -465,17 +466,18 @@ def _search(
     # The command along and across the course and the pace floor: (3, E) = (along, across,
     # floor), subtracted from the velocity rows (along, across, along) in one op.
     v_cmd = command[:, :2].T  # (2, E) world
-    # One allocation for every buffer of the search (views below); apart under torch.compile,
-    # whose functionalisation of writes into views of one shared base made the compile of the
-    # search run for tens of minutes.
-    sizes = (3 * e, _G_ROWS * e * r * m * q, _W_ROWS * e * r * m * q, _F_ROWS * e * r * f)
-    sizes += ((n * _F_PICK + 2) * e * r,)
+    # One allocation for every buffer of the search (views below); under torch.compile each in
+    # its own shape (views of one shared flat base, with symbolic sizes, made the compile run
+    # for tens of minutes).
+    shapes = [(3, e), (_G_ROWS, e, r, m, q), (_W_ROWS, e, r, m, q), (_F_ROWS, e, r, f)]
+    shapes.append((n * _F_PICK + 2, e, r))
     if torch.compiler.is_compiling():
-        bufs = [torch.empty(size, device=device, dtype=dtype) for size in sizes]
+        bufs = [torch.empty(shape, device=device, dtype=dtype) for shape in shapes]
     else:
-        bufs = torch.empty(sum(sizes), device=device, dtype=dtype).split(sizes)
+        sizes = [math.prod(shape) for shape in shapes]
+        flat = torch.empty(sum(sizes), device=device, dtype=dtype).split(sizes)
+        bufs = [b.view(shape) for b, shape in zip(flat, shapes, strict=True)]
     cmd, gbuf, wbuf, fbuf, record = bufs
-    cmd = cmd.view(3, e)
     into(cmd[0:2], torch.add, v_cmd[0] * frame[0, 1:3], v_cmd[1] * frame[1, 1:3])
     into(cmd[2], torch.mul, cmd[0].clamp(min=0.0), cfg.pace_fraction)
     floor = cmd[2]
@@ -492,13 +494,9 @@ def _search(
     direction = tables.course[_DIR].view(2, e, 1)
     goal = tables.course[_GOAL].view(e, 1)
 
-    gbuf = gbuf.view(_G_ROWS, e, r, m, q)
-    wbuf = wbuf.view(_W_ROWS, e, r, m, q)  # the constraint rows
-    fbuf = fbuf.view(_F_ROWS, e, r, f)
     fbuf[_F_DT].copy_(lay.duration)
     # What each step chose, (N, 7, E, R) (the _F_PICK rows), then the summed (cost, violations)
     # of each rollout (2, E, R): the best rollout's are read in one gather.
-    record = record.view(n * _F_PICK + 2, e, r)
     chosen_rows, total = record[:-2].view(n, _F_PICK, e, r), record[-2:]
     pos = gbuf[_G_XY]  # (2, E, R, M, Q)
     pos_a = pos[..., : 2 * nt].view(2, e, r, m, nt, 2)
