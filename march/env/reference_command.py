@@ -60,6 +60,7 @@ import torch
 from mjlab.managers.command_manager import CommandTerm
 
 from march.clf.lyapunov import CLF_OUTPUT_NAMES, UPPER_BODY_JOINTS, ClfModel, VHistory
+from march.compiled_math import maybe_fused
 from march.env.clf_outputs import (
     body_masses,
     body_rows,
@@ -72,9 +73,8 @@ from march.env.masked_rows import MaskedRows
 from march.env.reference_cfg import ReferenceCommandCfg
 from march.env.replan_queue import ReplanQueue
 from march.env.step_cache import root_frame, site_pos
-from march.compiled_math import maybe_fused
-from march.reference.planner import Plan, course_frame, plan_footsteps, plan_tables
 from march.reference.fused_reference import reference_outputs, reference_tables
+from march.reference.planner import Plan, course_frame, plan_footsteps, plan_tables
 from march.reference.trajectory import StepState, angle_mask, step_state_from_plan
 from march.world.footholds import Footholds
 
