@@ -165,7 +165,9 @@ def test_pure_mathematics_imports_no_simulator():
     bad = sorted(m for m in loaded if m.split(".")[0] in (*SIMULATOR, "hydra", "omegaconf"))
     assert bad == []
     outside = sorted(
-        m for m in loaded if m.startswith("march.") and _room(m) not in (*PURE, "errors", "compiled_math")
+        m
+        for m in loaded
+        if m.startswith("march.") and _room(m) not in (*PURE, "errors", "compiled_math")
     )
     assert outside == []
 

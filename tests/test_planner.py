@@ -9,7 +9,8 @@ import torch
 from synthetic import grid_course, make_footholds, straight_course
 
 from march.config import EnvCfg
-from march.reference.planner import PlannerCfg, evaluate_plan, locate_on_stones, plan_footsteps
+from march.reference.plan_tables import locate_on_stones
+from march.reference.planner import PlannerCfg, evaluate_plan, plan_footsteps
 from march.world.courses import CourseCfg, generate_course, hardware_course
 from march.world.footholds import Footholds, footholds_from_layouts
 from march.world.synthetic import synthetic_courses
@@ -354,7 +355,7 @@ def _plain_search(stance_xy, stance_is_left, command, fh, cfg, generator):
     candidates listed in the score order (duration, stone, [hard clamp, soft clamp, K random
     points]) and scored by step_cost._step_cost against locate-on-the-stone clearances, on the
     planner's own draws. The planner's fused layouts must give the same floats, bit for bit."""
-    from march.reference.planner import course_frame
+    from march.reference.plan_tables import course_frame
     from march.reference.search_inputs import planner_draws
     from march.reference.step_cost import _EPS, _step_cost, goal_ahead, pace_terms, step_terms
 

@@ -91,7 +91,9 @@ def test_needs_decide_the_planner_not_the_name():
     # the name is a label: clf's terms under another name still need the planner, and
     # reward.name=clf with model-free terms does not
     assert needs_reference(load(["compute=smoke", "reward.name=renamed"]).reward)
-    assert not needs_reference(load(["compute=smoke", "reward=modelfree", "reward.name=clf"]).reward)
+    assert not needs_reference(
+        load(["compute=smoke", "reward=modelfree", "reward.name=clf"]).reward
+    )
     # an observation that needs the reference (the factorial control)
     assert needs_reference(load(["compute=smoke", "+experiment=modelfree_ref"]).reward)
 

@@ -123,22 +123,18 @@ def run_workload(
         out["ratio_ops_march_vs_rough"] = (
             out["ops_per_step"]["march_teacher"] / out["ops_per_step"]["bare_rough"]
         )
-        cuda_path = _cuda_path_ops(envs["march_teacher"], workload, opts, warmup, seed, device)
-        if cuda_path is not None:  # the CUDA code path's count, measured here on the CPU
-            out["ops_per_step_cuda_path"] = {**out["ops_per_step"], "march_teacher": cuda_path}
-            out["ratio_ops_march_vs_rough_cuda_path"] = (
-                cuda_path / out["ops_per_step"]["bare_rough"]
-            )
+        # The CUDA code path's count: on a GPU the count above is that path's. On a CPU it is
+        # the same number, because march's step has one code path on both devices since issue
+        # 41 (the planner's fused scoring was the only device-dependent branch; decisions.md
+        # "One planner path"), so it is not counted twice.
+        cuda_path = out["ops_per_step"]["march_teacher"]
+        out["ops_per_step_cuda_path"] = dict(out["ops_per_step"])
+        out["ratio_ops_march_vs_rough_cuda_path"] = out["ratio_ops_march_vs_rough"]
         print(
             f"[bench] {workload} compute ops per step: "
             + ", ".join(f"{n} {v:.0f}" for n, v in out["ops_per_step"].items())
             + f"; march/rough {out['ratio_ops_march_vs_rough']:.2f}"
-            + (
-                f" (CUDA code path: march {cuda_path:.0f}, "
-                f"{out['ratio_ops_march_vs_rough_cuda_path']:.2f})"
-                if cuda_path is not None
-                else ""
-            ),
+            + f" (CUDA code path: the same code, march {cuda_path:.0f})",
             flush=True,
         )
     if opts["profile_steps"] > 0:
@@ -171,28 +167,11 @@ def run_workload(
     return out
 
 
-def _cuda_path_ops(
-    env: Any, workload: str, opts: dict[str, Any], warmup: int, seed: int, device: str
-) -> float | None:
-    """On a CPU, march's ops per step on the code path a GPU takes (the planner scores both
-    candidate groups in one call there: ``PlannerCfg.fuse_candidates``); None on CUDA (the
-    count is already that path's) or without the planner."""
-    if device.startswith("cuda") or "reference" not in env.command_manager.active_terms:
-        return None
-    planner = env.command_manager.get_term("reference").cfg.planner
-    saved = planner.fuse_candidates
-    planner.fuse_candidates = True
-    try:
-        return count_ops(env, workload, opts["op_steps"], warmup, seed)["ops_per_step"]
-    finally:
-        planner.fuse_candidates = saved
-
-
 def bench_env(cfg: MarchConfig, opts: dict[str, Any]) -> dict[str, Any]:
     import torch
 
-    from march.env.build import bare_env, make_env
     from march.compiled_math import compile_report
+    from march.env.build import bare_env, make_env
 
     device = cfg.compute.device
     n, seed = cfg.compute.num_envs, cfg.seed

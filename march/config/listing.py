@@ -117,7 +117,9 @@ def render(data: dict[str, Any]) -> str:
     lines.append("rewards (reward=<name>):")
     for name, a in data["rewards"].items():
         lines.append(f"  {name:24s} {a['label']!r}: {', '.join(a['terms'])}")
-    lines.append("experiments (+experiment=<name>: a comparison arm's reward, curriculum and budget together):")
+    lines.append(
+        "experiments (+experiment=<name>: a comparison arm's reward, curriculum and budget together):"
+    )
     for name, b in data["experiments"].items():
         lines.append(f"  {name:24s} {' '.join(b['sets'])}")
     lines.append("student parts (student.image | student.fusion | student.head):")

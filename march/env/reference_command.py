@@ -74,7 +74,8 @@ from march.env.reference_cfg import ReferenceCommandCfg
 from march.env.replan_queue import ReplanQueue
 from march.env.step_cache import root_frame, site_pos
 from march.reference.fused_reference import reference_outputs, reference_tables
-from march.reference.planner import Plan, course_frame, plan_footsteps, plan_tables
+from march.reference.plan_tables import course_frame, plan_tables
+from march.reference.planner import Plan, plan_footsteps
 from march.reference.trajectory import StepState, angle_mask, step_state_from_plan
 from march.world.footholds import Footholds
 
@@ -300,14 +301,6 @@ class ReferenceCommand(CommandTerm):
         found = self.sensor.data.found
         return found[:, self._contact_idx] > 0
 
-    def _world_command(self, env_ids: torch.Tensor, footholds: Footholds) -> torch.Tensor:
-        """(n, 3) planner command [vx, vy, yaw_rate], world frame: the twist command's forward
-        speed along the course direction and its lateral speed across it (module docstring)."""
-        cmd = self._env.command_manager.get_command(self.cfg.velocity_command)[env_ids]
-        axis, lat = course_frame(footholds)
-        vxy = cmd[:, 0:1] * axis + cmd[:, 1:2] * lat
-        return torch.cat([vxy, cmd[:, 2:3]], dim=-1)
-
     def _start_episode(self, env_ids: torch.Tensor) -> None:
         """Initial stance foot and course heading of the envs starting an episode (their first
         plan is made in the same update's planner call)."""
@@ -347,7 +340,8 @@ class ReferenceCommand(CommandTerm):
         # one per Footholds field); their course frame is course_frame's, bit for bit.
         tables = plan_tables(self.footholds, self.cfg.planner).index(env_ids)
         axis, lat = tables.axis, tables.lat
-        # The world-frame command as _world_command makes it (yaw rate: unused by the planner).
+        # The planner's world-frame command: the twist's forward speed along the course and its
+        # lateral speed across it (module docstring; the yaw rate is unused by the planner).
         twist = self._env.command_manager.get_command(self.cfg.velocity_command)[env_ids]
         cmd = twist[:, 0:1] * axis + twist[:, 1:2] * lat
         plan = plan_footsteps(

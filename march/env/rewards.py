@@ -29,7 +29,7 @@ from march.config import terms as registry
 from march.env.course import CourseRuler
 from march.env.reference_command import reference_term
 from march.env.step_cache import constant, shared, site_pos, site_state
-from march.reference.planner import locate_on_stones
+from march.reference.plan_tables import locate_on_stones
 
 FOOT_SITES = ("left_foot", "right_foot")
 
