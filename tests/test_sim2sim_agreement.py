@@ -11,7 +11,8 @@ The runner then shadows that trajectory: at every step it takes the env's physic
 (qpos, qvel: the state, not the observation) and builds its own observation as on the robot - its
 own history, previous action (from its own **ONNX** call), command from the heading, depth by ray
 casting, ``start()`` where the env reset. Each term (every history slot) is compared with the
-env's in raw units, and the ONNX action with the torch action. The tolerances below are a few
+env's in raw units, and the ONNX action with the torch action (the ONNX fed the env's depth image,
+so that a ray grazing a stone edge, compared in the depth term, does not move the actions). The tolerances below are a few
 times the largest honest error measured on the smoke student (float32 warp vs float64 MuJoCo);
 the planted faults show that a frame, sign, scale, order or one-step delay error in any single
 term breaks the agreement.
@@ -41,13 +42,21 @@ TOLERANCE = {
     "action_out": 5e-6,
 }
 """Max |runner - env| per term in raw units over every step and history slot (rad/s, 1, rad,
-rad/s, 1, m/s | rad/s; depth: the largest pixel difference in normalised units; ``action_out``:
-the ONNX action against the torch action). Largest honest error measured on the smoke student
+rad/s, 1, m/s | rad/s; depth: the largest pixel difference in normalised units, ``EDGE_PIXELS``
+per image excused; ``action_out``: the ONNX action, fed the runner's proprioception and the env's
+depth image, against the torch action). Largest honest error measured on the smoke student
 (2026-12-01, 8 streams of 70 steps): base_ang_vel 1.7e-6, projected_gravity 1.2e-7, joint_pos
 6.0e-8 (float32 rounding of qpos), joint_vel 0 (the state is copied), actions 6.6e-7 (the
 runner's previous action is its own ONNX output), command 8.9e-8, depth 2.3e-4 (one pixel at a
 stone edge), action_out 6.6e-7. Each tolerance is 6-11x that (joint_vel: float32 rounding of
 the largest velocities)."""
+EDGE_PIXELS = 2
+"""Pixels per image excused from the depth tolerance: a ray that grazes a stone's edge can hit
+its top in float32 (warp) and miss it in float64 (MuJoCo), a difference of the whole drop
+behind the edge (measured 2026-12-04: one pixel of 768, 0.158, on one step of 840; every other
+pixel within 2.3e-4). Every planted depth fault moves far more than two pixels of an image."""
+EDGE_PIXELS_SEEN = [0]
+"""The most pixels of one image beyond the depth tolerance in the honest replay (printed)."""
 MEASURED = {}
 """Filled by the test run and printed (pytest -s) for the record."""
 
@@ -290,15 +299,20 @@ def shadow(
                     sim.last_action = action
                     sim.observe()
                 feeds = sim.inputs()
-                action, _ = sim.act(feeds)
+                depth_err = np.abs(feeds["depth"][0] - s.depth[k])
+                # The policy's action from the runner's own proprioception and the env's depth
+                # image: the ONNX-vs-torch comparison, and the previous-action term after it, are
+                # then not moved by a grazing ray (the depth is compared on its own, below).
+                action, _ = sim.act({**feeds, "depth": s.depth[k][None].astype(np.float32)})
                 got = feeds["proprio_hist"][0].astype(np.float64)
                 start = 0
                 for name, dim in sim.terms:
                     d = np.abs(got[:, start : start + dim] - s.student[k][:, start : start + dim])
                     err[name] = max(err[name], float(d.max()))
                     start += dim
-                err["depth"] = max(
-                    err["depth"], float(np.abs(feeds["depth"][0] - s.depth[k]).max())
+                err["depth"] = max(err["depth"], depth_beyond_edges(depth_err))
+                EDGE_PIXELS_SEEN[0] = max(
+                    EDGE_PIXELS_SEEN[0], int((depth_err > TOLERANCE["depth"]).sum())
                 )
                 err["action_out"] = max(
                     err["action_out"], float(np.abs(action - s.action[k]).max())
@@ -308,6 +322,11 @@ def shadow(
         finally:
             _remove(sim)
     return err
+
+
+def depth_beyond_edges(diff: np.ndarray) -> float:
+    """The image's pixel difference with its ``EDGE_PIXELS`` largest left out (grazing rays)."""
+    return float(np.sort(diff.ravel())[-(EDGE_PIXELS + 1)])
 
 
 def violations(err: dict[str, float]) -> list[str]:
@@ -329,8 +348,10 @@ def test_runner_sees_what_the_env_sees(recording, sims):
     print(
         "\nmeasured max |runner - env| per term: "
         + ", ".join(f"{k} {v:.2e}" for k, v in err.items())
+        + f"; most depth pixels beyond tolerance in one image: {EDGE_PIXELS_SEEN[0]}"
     )
     assert violations(err) == [], err
+    assert EDGE_PIXELS_SEEN[0] <= EDGE_PIXELS
 
 
 @pytest.mark.parametrize("fault", FAULTS, ids=[f"{t}-{k}" for t, k in FAULTS])
