@@ -52,6 +52,16 @@ terms:
   swing_clearance: {weight: 0.5, params: {height: 0.123}}
 """
 
+SWEEP = """\
+figures:
+  compare: ["my_arm:modelfree"]
+extra_modules: [my_terms]
+hydra:
+  sweeper:
+    params:
+      reward: modelfree,my_arm
+"""
+
 QUICK = [
     "stage=teacher",
     "teacher.max_iterations=2",
@@ -67,6 +77,8 @@ def lab(tmp_path_factory):
     (root / "my_terms.py").write_text(MODULE)
     (root / "my_conf" / "reward").mkdir(parents=True)
     (root / "my_conf" / "reward" / "my_arm.yaml").write_text(ARM)
+    (root / "my_conf" / "sweep").mkdir()
+    (root / "my_conf" / "sweep" / "my_sweep.yaml").write_text(SWEEP)
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     env |= {"PYTHONPATH": str(root), "MY_TERMS_LOG": str(root / "height.txt")}
     env.setdefault("WANDB_MODE", "offline")
@@ -130,3 +142,6 @@ def test_inspect_list_names_the_plugin_term(lab):
     line = next(ln for ln in res.stdout.splitlines() if ln.strip().startswith("swing_clearance"))
     assert "height=0.05" in line and "[my_terms.swing_clearance]" in line
     assert any(ln.strip().startswith("my_arm") for ln in res.stdout.splitlines())
+    sweeps = next(ln for ln in res.stdout.splitlines() if ln.startswith("sweeps "))
+    assert "my_sweep" in sweeps.split(": ")[1].split(", ")  # the tree's sweep/ group too
+    assert "baseline" in sweeps

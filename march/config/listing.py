@@ -88,7 +88,11 @@ def collect(extra_modules: Sequence[str] = (), conf_dirs: Sequence[Path] = ()) -
         o.name: {k: o.data.get(k, "") for k in ("image", "fusion", "head")} | {"label": o.label}
         for o in options("student", dirs)
     }
-    sweeps = sorted(p.stem for p in SWEEPS_DIR.glob("*.yaml"))
+    # the repository's sweeps/ and a searchpath tree's sweep/ group (Hydra finds both as +sweep=)
+    sweeps = sorted(
+        {p.stem for p in SWEEPS_DIR.glob("*.yaml")}
+        | {p.stem for d in conf_dirs for p in (Path(d) / "sweep").glob("*.yaml")}
+    )
     return {
         "terms": terms,
         "rewards": rewards,
