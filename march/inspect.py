@@ -222,7 +222,8 @@ def budget_job(argv: list[str]) -> None:
 def list_job(argv: list[str]) -> None:
     """``python -m march.inspect list``: every term, arm, part, variant and sweep a run can name
     (march.config.listing), ``extra_modules`` and ``hydra.searchpath`` included."""
-    from march.config.listing import collect, render, searchpath_dirs
+    from march.config.listing import collect, render
+    from march.config.registry import searchpath_dirs
 
     def job(cfg: MarchConfig) -> None:
         print(render(collect(cfg.extra_modules, searchpath_dirs(argv))))

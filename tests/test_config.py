@@ -336,3 +336,11 @@ def test_compute_is_never_a_sweep_parameter(tmp_path):
     assert sweep_problem(["compute=cpu,smoke"], tmp_path) is None  # not a multirun
     for real in sorted((ROOT / "sweeps").glob("*.yaml")):
         assert sweep_problem(["-m", f"+sweep={real.stem}"]) is None, real.name
+    # a sweep in a user's config tree (hydra.searchpath, its sweep/ group) is checked the same way
+    tree = tmp_path / "my_conf"
+    (tree / "sweep").mkdir(parents=True)
+    (tree / "sweep" / "mine.yaml").write_text((tmp_path / "scaled.yaml").read_text())
+    search = f"hydra.searchpath=[file://{tree}]"
+    msg = sweep_problem(["-m", "+sweep=mine", search], tmp_path / "empty")
+    assert "mine.yaml: hydra.sweeper.params.compute" in msg and "\n" not in msg
+    assert sweep_problem(["-m", "+sweep=mine"], tmp_path / "empty") is None  # not on the path

@@ -23,16 +23,6 @@ from march.config import terms as term_registry
 from march.config.registry import CONF_DIR, SWEEPS_DIR, options
 
 
-def searchpath_dirs(argv: Sequence[str]) -> list[Path]:
-    """The ``file://`` directories of a ``hydra.searchpath=[...]`` override, in order."""
-    out: list[Path] = []
-    for arg in argv:
-        if arg.lstrip("+").startswith("hydra.searchpath="):
-            items = arg.split("=", 1)[1].strip("[]")
-            out += [Path(i.strip()[len("file://") :]) for i in items.split(",") if "file://" in i]
-    return out
-
-
 def _value(v: Any) -> str:
     if v is inspect.Parameter.empty:
         return "(required)"

@@ -17,7 +17,7 @@ Pure data: no simulator import.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -84,3 +84,13 @@ def options(group: str, conf_dirs: Iterable[Path] = (CONF_DIR,)) -> tuple[Option
 def names(group: str, conf_dirs: Iterable[Path] = (CONF_DIR,)) -> tuple[str, ...]:
     """The option names of ``group`` in display order."""
     return tuple(o.name for o in options(group, conf_dirs))
+
+
+def searchpath_dirs(argv: Sequence[str]) -> list[Path]:
+    """The ``file://`` directories of a ``hydra.searchpath=[...]`` override, in order."""
+    out: list[Path] = []
+    for arg in argv:
+        if arg.lstrip("+").startswith("hydra.searchpath="):
+            items = arg.split("=", 1)[1].strip("[]")
+            out += [Path(i.strip()[len("file://") :]) for i in items.split(",") if "file://" in i]
+    return out

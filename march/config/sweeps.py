@@ -16,7 +16,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from march.config.registry import SWEEPS_DIR
+from march.config.registry import SWEEPS_DIR, searchpath_dirs
 
 MULTIRUN_FLAGS = ("-m", "--multirun")
 PINNED_GROUPS = ("compute",)
@@ -47,14 +47,18 @@ def sweep_problem(argv: Sequence[str], sweeps_dir: Path = SWEEPS_DIR) -> str | N
                 f"scale); run one sweep per {group} preset, e.g. {group}={value.split(',')[0]}"
             )
         if group == "sweep":
-            path = sweeps_dir / f"{value}.yaml"
-            if not path.is_file():
+            # the repository's sweeps/, or a searchpath tree's sweep/ group (the first found)
+            found = [sweeps_dir / f"{value}.yaml"] + [
+                d / "sweep" / f"{value}.yaml" for d in searchpath_dirs(args)
+            ]
+            path = next((f for f in found if f.is_file()), None)
+            if path is None:
                 continue  # Hydra names the missing option itself
             params = OmegaConf.select(OmegaConf.load(path), "hydra.sweeper.params") or {}
             for pkey in params:
                 if _group(str(pkey)) in PINNED_GROUPS:
                     return (
-                        f"sweeps/{path.name}: hydra.sweeper.params.{pkey} sweeps the "
+                        f"{path}: hydra.sweeper.params.{pkey} sweeps the "
                         f"{_group(str(pkey))} preset, which splits the sweep's output "
                         "directories; pin it in the sweep file's defaults: (- override "
                         "/compute: <preset>) or on the command line (compute=<preset>)"
