@@ -344,3 +344,11 @@ def test_compute_is_never_a_sweep_parameter(tmp_path):
     msg = sweep_problem(["-m", "+sweep=mine", search], tmp_path / "empty")
     assert "mine.yaml: hydra.sweeper.params.compute" in msg and "\n" not in msg
     assert sweep_problem(["-m", "+sweep=mine"], tmp_path / "empty") is None  # not on the path
+    # a tree's sweep named like one of the repository's is the one Hydra runs, so it is checked
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    (repo / "mine.yaml").write_text((tmp_path / "pinned.yaml").read_text())
+    assert "mine.yaml: hydra.sweeper.params.compute" in sweep_problem(
+        ["-m", "+sweep=mine", search], repo
+    )
+    assert sweep_problem(["-m", "+sweep=mine"], repo) is None

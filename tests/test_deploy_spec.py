@@ -362,12 +362,10 @@ def test_delays_match_the_mjlab_env_with_the_same_delays(bundle, smoke_run, monk
             loop_ctrl.append(d.ctrl[sim.act_ids].copy())
             stepper(m, d)
 
-        monkeypatch.setattr(mujoco, "mj_step", recorded)
-        try:
+        with monkeypatch.context() as patch:
+            patch.setattr(mujoco, "mj_step", recorded)
             for action in env_act:
                 sim.step(action)
-        finally:
-            monkeypatch.setattr(mujoco, "mj_step", stepper)
         return float(np.abs(np.array(loop_ctrl) - np.array(env_ctrl)[:, cols]).max())
 
     def depth_mad(depth_lag: int) -> float:

@@ -11,9 +11,9 @@ The runner then shadows that trajectory: at every step it takes the env's physic
 (qpos, qvel: the state, not the observation) and builds its own observation as on the robot - its
 own history, previous action (from its own **ONNX** call), command from the heading, depth by ray
 casting, ``start()`` where the env reset. Each term (every history slot) is compared with the
-env's in raw units, and the ONNX action with the torch action (the ONNX fed the env's depth image,
-so that a ray grazing a stone edge, compared in the depth term, does not move the actions). The tolerances below are a few
-times the largest honest error measured on the smoke student (float32 warp vs float64 MuJoCo);
+env's in raw units, and the ONNX action with the torch action (the ONNX fed the env's depth
+image, so that a ray grazing a stone edge, compared in the depth term, does not move the
+actions). The tolerances below are a few times the largest honest error measured on the smoke student (float32 warp vs float64 MuJoCo);
 the planted faults show that a frame, sign, scale, order or one-step delay error in any single
 term breaks the agreement.
 """
@@ -55,8 +55,6 @@ EDGE_PIXELS = 2
 its top in float32 (warp) and miss it in float64 (MuJoCo), a difference of the whole drop
 behind the edge (measured 2026-12-04: one pixel of 768, 0.158, on one step of 840; every other
 pixel within 2.3e-4). Every planted depth fault moves far more than two pixels of an image."""
-EDGE_PIXELS_SEEN = [0]
-"""The most pixels of one image beyond the depth tolerance in the honest replay (printed)."""
 MEASURED = {}
 """Filled by the test run and printed (pytest -s) for the record."""
 
@@ -311,9 +309,6 @@ def shadow(
                     err[name] = max(err[name], float(d.max()))
                     start += dim
                 err["depth"] = max(err["depth"], depth_beyond_edges(depth_err))
-                EDGE_PIXELS_SEEN[0] = max(
-                    EDGE_PIXELS_SEEN[0], int((depth_err > TOLERANCE["depth"]).sum())
-                )
                 err["action_out"] = max(
                     err["action_out"], float(np.abs(action - s.action[k]).max())
                 )
@@ -325,7 +320,8 @@ def shadow(
 
 
 def depth_beyond_edges(diff: np.ndarray) -> float:
-    """The image's pixel difference with its ``EDGE_PIXELS`` largest left out (grazing rays)."""
+    """The image's pixel difference with its ``EDGE_PIXELS`` largest left out (grazing rays):
+    more than ``EDGE_PIXELS`` pixels beyond the depth tolerance make this value exceed it."""
     return float(np.sort(diff.ravel())[-(EDGE_PIXELS + 1)])
 
 
@@ -348,10 +344,8 @@ def test_runner_sees_what_the_env_sees(recording, sims):
     print(
         "\nmeasured max |runner - env| per term: "
         + ", ".join(f"{k} {v:.2e}" for k, v in err.items())
-        + f"; most depth pixels beyond tolerance in one image: {EDGE_PIXELS_SEEN[0]}"
     )
     assert violations(err) == [], err
-    assert EDGE_PIXELS_SEEN[0] <= EDGE_PIXELS
 
 
 @pytest.mark.parametrize("fault", FAULTS, ids=[f"{t}-{k}" for t, k in FAULTS])

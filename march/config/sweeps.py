@@ -47,10 +47,10 @@ def sweep_problem(argv: Sequence[str], sweeps_dir: Path = SWEEPS_DIR) -> str | N
                 f"scale); run one sweep per {group} preset, e.g. {group}={value.split(',')[0]}"
             )
         if group == "sweep":
-            # the repository's sweeps/, or a searchpath tree's sweep/ group (the first found)
-            found = [sweeps_dir / f"{value}.yaml"] + [
-                d / "sweep" / f"{value}.yaml" for d in searchpath_dirs(args)
-            ]
+            # Hydra's order: a searchpath tree's sweep/ group before the repository's sweeps/
+            # (registered in the ConfigStore, searched last); the first found is the one run
+            found = [d / "sweep" / f"{value}.yaml" for d in searchpath_dirs(args)]
+            found.append(sweeps_dir / f"{value}.yaml")
             path = next((f for f in found if f.is_file()), None)
             if path is None:
                 continue  # Hydra names the missing option itself
