@@ -535,16 +535,104 @@ def test_a_dead_rank_stops_the_other_and_each_rank_resumes_its_own_state(tmp_pat
     assert ckpt["world_size"] == 2 and len(ckpt["rank_states"]) == 2
 
 
-def test_the_slurm_ddp_launcher_kills_the_step_when_one_task_fails():
+def _sbatch_script(launcher: str, *overrides: str) -> str:
+    """The sbatch file Hydra's submitit launcher submits for ``hydra/launcher=<launcher>``: the
+    composed launcher config turned into submitit's parameters as the launcher turns them
+    (``hydra_submitit_launcher.submitit_launcher.BaseSubmititLauncher.launch``)."""
+    from hydra import compose, initialize_config_dir
+    from hydra_plugins.hydra_submitit_launcher.config import BaseQueueConf
     from omegaconf import OmegaConf
-    from submitit.slurm.slurm import _make_sbatch_string
+    from submitit import AutoExecutor
 
-    launcher = OmegaConf.load(ROOT / "conf" / "hydra" / "launcher" / "march_slurm_ddp.yaml")
-    params = OmegaConf.to_container(launcher.additional_parameters)
-    script = _make_sbatch_string(
-        command="python -m march.train", folder="/tmp/x", additional_parameters=params
+    import march.config  # noqa: F401 - registers the schema conf/config.yaml extends
+
+    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose(
+            "config",
+            overrides=[f"hydra/launcher={launcher}", "hydra.sweep.dir=/tmp/s", *overrides],
+            return_hydra_config=True,
+        )
+    cfg.hydra.job.name = "train"
+    params = OmegaConf.to_container(cfg.hydra.launcher, resolve=True)
+    del params["_target_"]
+    executor = AutoExecutor(
+        folder=params.pop("submitit_folder"),
+        cluster="slurm",
+        slurm_max_num_timeout=params.pop("max_num_timeout"),
     )
-    assert "#SBATCH --kill-on-bad-exit=1" in script.splitlines()
+    base = set(OmegaConf.structured(BaseQueueConf).keys())
+    executor.update_parameters(**{k if k in base else f"slurm_{k}": v for k, v in params.items()})
+    return executor._executor._make_submission_file_text("python -m march.train", "uid")
+
+
+# srun's options that sbatch does not know (Slurm's src/common/slurm_opt.c: srun-only entries).
+SRUN_ONLY = ("kill-on-bad-exit", "label", "unbuffered", "multi-prog", "task-prolog", "epilog")
+
+
+@pytest.mark.parametrize("launcher", ["march_slurm_ddp", "march_slurm"])
+def test_the_slurm_launchers_put_srun_options_on_the_srun_line(launcher):
+    """sbatch refuses a job whose header holds an srun-only option; the DDP launcher's
+    kill-on-bad-exit (one task that exits non-zero ends the step) is on the srun line."""
+    script = _sbatch_script(launcher)
+    header = [ln for ln in script.splitlines() if ln.startswith("#SBATCH")]
+    bad = [ln for ln in header if ln.split("=")[0].removeprefix("#SBATCH --") in SRUN_ONLY]
+    assert bad == [], bad
+    assert "#SBATCH --ntasks-per-node=" + ("2" if launcher.endswith("ddp") else "1") in header
+    srun = next(ln for ln in script.splitlines() if ln.startswith("srun "))
+    assert ("--kill-on-bad-exit=1" in srun.split()) == launcher.endswith("ddp"), srun
+
+
+def _preempted_rank(rank: int, port: int, out: str) -> None:
+    """Rank ``rank`` of a 2-task Slurm job under submitit's own signal handler; USR2 reaches both
+    ranks; rank 0's requeue (``scontrol requeue``, here a 1.5 s stand-in) is timed."""
+    import signal as sig
+
+    from submitit.core.job_environment import SignalHandler
+    from submitit.core.utils import DelayedSubmission, JobPaths
+    from submitit.slurm.slurm import SlurmJobEnvironment
+
+    from march.learn import preemption
+
+    os.environ.update(
+        {"MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port), "RANK": str(rank)}
+        | {"WORLD_SIZE": "2", "LOCAL_RANK": str(rank), "SLURM_PROCID": str(rank)}
+        | {"SLURM_JOB_ID": "77", "SLURM_NTASKS": "2", "SLURM_JOB_NODELIST": "vm"}
+    )
+    distributed.init("cpu", timeout_s=30)
+    env = SlurmJobEnvironment()
+
+    def requeue(countdown: int) -> None:  # scontrol requeue, which takes a moment
+        time.sleep(1.5)
+        Path(out, "requeued").write_text(f"{time.time()}")
+
+    env._requeue = requeue
+    delayed = DelayedSubmission(print)
+    delayed.set_timeout(60, 3)
+    handler = SignalHandler(env, JobPaths(out, job_id="77", task_id=rank), delayed)
+    sig.signal(sig.SIGUSR2, handler.checkpoint_and_try_requeue)  # what submitit installs
+    assert preemption.install()
+    os.kill(os.getpid(), sig.SIGUSR2)
+    time.sleep(0.2)
+    try:
+        preemption.stop_if_requested("teacher", 1, lambda: Path(out, "model_000001.pt"))
+    except preemption.Preempted as stop:
+        try:
+            preemption.exit_preempted(stop, lambda state, **kw: None)
+        except SystemExit as done:
+            Path(out, f"rank{rank}").write_text(f"{time.time()} {done.code}")
+    distributed.shutdown()
+
+
+def test_ranks_above_0_exit_on_preemption_only_after_rank0_asked_for_the_requeue(tmp_path):
+    """With --kill-on-bad-exit, a rank > 0 exiting 140 ends the step at once: before rank 0's
+    submitit handler has requeued the job, the job would not come back."""
+    mp.spawn(_preempted_rank, args=(_free_port(), str(tmp_path)), nprocs=2, join=True)
+    requeued = float((tmp_path / "requeued").read_text())
+    ranks = [(tmp_path / f"rank{r}").read_text().split() for r in (0, 1)]
+    assert [int(code) for _, code in ranks] == [140, 140]  # 128 + SIGUSR2 on both
+    exited = [float(t) for t, _ in ranks]
+    print(f"requeue asked at {requeued:.2f}; rank 1 exited {exited[1] - requeued:+.2f} s after")
+    assert exited[1] >= requeued and exited[0] >= requeued
 
 
 def _hung_rank(rank: int, port: int, out: str) -> None:

@@ -124,7 +124,15 @@ def stop_if_requested(
 
 def exit_preempted(stop: Preempted, write_status: Callable[..., None]) -> None:
     """Status ``preempted``, one line, the previous handler (submitit requeues on USR2), then
-    ``SystemExit(128 + signal)``."""
+    ``SystemExit(128 + signal)``.
+
+    In a run over N ranks rank 0 is the job's master: submitit's handler requeues the job there
+    and does nothing on the other ranks ("do not sys.exit, because it might kill the master
+    task"). With ``--kill-on-bad-exit`` a rank > 0 that exits non-zero ends the whole step, so
+    ranks > 0 wait (:func:`_after_master`) until rank 0's handler has returned or raised, i.e.
+    until the requeue has been asked for, before they exit."""
+    from march.learn import distributed
+
     write_status(
         "preempted",
         stage=stop.stage,
@@ -135,6 +143,26 @@ def exit_preempted(stop: Preempted, write_status: Callable[..., None]) -> None:
     print(stop.line(), flush=True)
     previous = _state["previous"].get(stop.signum)
     uninstall()
-    if callable(previous):
-        previous(stop.signum, None)
+    raised: BaseException | None = None
+    try:
+        if callable(previous):
+            previous(stop.signum, None)
+    except BaseException as err:  # submitit's requeue ends in sys.exit(-1)
+        raised = err
+    _after_master(distributed.current())
+    if raised is not None and not isinstance(raised, SystemExit):
+        raise raised  # submitit's "not requeued" error: it records the job as over
     raise SystemExit(stop.exit_code)
+
+
+def _after_master(dist: Any) -> None:
+    """Every rank of a run over N processes meets here once rank 0's previous handler is done (a
+    barrier). A rank already gone (the scheduler's kill) leaves nothing to wait for."""
+    if not dist.active:
+        return
+    from march.learn import distributed
+
+    try:
+        distributed.barrier()
+    except Exception as err:  # noqa: BLE001 - a peer already gone: nothing left to protect
+        print(f"[preempted] rank {dist.rank}: not waiting for rank 0 ({err})", flush=True)
