@@ -250,8 +250,11 @@ def run_pipeline(
                 flush=True,
             )
             # An Optuna trial (hydra/sweeper=march_optuna): report, maybe stop here (pruned).
+            # The run's last evaluation is the trial's value, never the pruner's to cut.
             step = iteration + (cfg.teacher.max_iterations if stage == "student" else 0)
-            tuning.report(float(row[cfg.objective]), step)
+            last = cfg.distill.max_iterations if stage == "student" else cfg.teacher.iterations
+            final = iteration >= last and (stage == "student" or cfg.stage == "teacher")
+            tuning.report(float(row[cfg.objective]), step, final=final)
             return row
 
         def eval_teacher(actor, iteration: int, env_steps: int) -> dict[str, Any]:
@@ -387,15 +390,19 @@ def main(dcfg: DictConfig) -> float | None:
     _write_status(run_dir, "running", stage=cfg.stage, pid=os.getpid(), host=socket.gethostname())
     preemption.install(immediate=cfg.stage == "eval")
     try:
+        tuning.begin()  # an Optuna trial: alive from now on; one the study gave up is not run
         summary = run_pipeline(distributed.rank_config(cfg), run_dir, auto=auto, notes=notes)
         if dist.main:
             _write_status(run_dir, "done", stage=cfg.stage)
+        tuning.finish(None if summary is None else float(summary[cfg.objective]))
     except preemption.Preempted as stop:
         preemption.exit_preempted(stop, lambda state, **kw: _write_status(run_dir, state, **kw))
     except BaseException as err:
-        if tuning.is_pruned(err):  # an Optuna trial stopped by the study's pruner
+        if tuning.is_pruned(err):  # an Optuna trial stopped by the study's pruner: recorded
             _write_status(run_dir, "pruned", stage=cfg.stage, error=str(err))
-            raise
+            tuning.pruned()  # PRUNED in the study; an outcome, not the job's error
+            return None
+        tuning.failed(err)  # an Optuna trial: FAIL with this error (rank 0, before any abort)
         if lost := distributed.lost_rank(err):  # a dead or hung rank: stop now, in one line
             _write_status(run_dir, "failed", stage=cfg.stage, error=lost)
             distributed.abort()  # no teardown collective: the others may be gone
@@ -409,6 +416,7 @@ def main(dcfg: DictConfig) -> float | None:
             fail(str(err))
         raise
     finally:
+        tuning.end()
         preemption.uninstall()
         distributed.shutdown()  # after this every process reads as rank 0: decide before
         run_lock.release_all()  # the run's last write is done (a sweep's next job may start)

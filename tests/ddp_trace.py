@@ -9,6 +9,10 @@ each teacher checkpoint and after a teacher resume, the rank's own state (levels
 commands, streams: ``teacher_save_<it>_rank<r>.pt``, ``teacher_restored_<it>_rank<r>.pt``).
 ``MARCH_TRACE_TAG`` prefixes every file name (a resumed launch's files apart).
 Nothing else changes: the real entry point, envs, runners and files.
+
+Imported as a plug-in (``extra_modules=[tests.ddp_trace]``, with the repository on PYTHONPATH)
+it traces the same way inside a job that a launcher starts (``make test-slurm``'s Slurm jobs):
+the rank is the process group's, read when a file is written.
 """
 
 from __future__ import annotations
@@ -26,9 +30,13 @@ from march.learn.teacher import TeacherRunner
 from march.learn.train_state import collect_state
 
 OUT = Path(os.environ["MARCH_TRACE_DIR"])
-RANK = int(os.environ.get("RANK", "0"))
 TAG = os.environ.get("MARCH_TRACE_TAG", "")  # a prefix: a resumed launch's files apart
 _count = {"teacher": 0, "student": 0}
+
+
+def _rank() -> int:
+    """This process's rank (known once the process group is up, whoever launched it)."""
+    return distributed.current().rank
 
 
 def _dump(stage: str, state: dict[str, torch.Tensor], rollout: dict[str, torch.Tensor]) -> None:
@@ -39,7 +47,7 @@ def _dump(stage: str, state: dict[str, torch.Tensor], rollout: dict[str, torch.T
         "rollout": rollout,
         "writes_files": distributed.writes_files(),
     }
-    torch.save(payload, OUT / f"{TAG}{stage}_{_count[stage]}_rank{RANK}.pt")
+    torch.save(payload, OUT / f"{TAG}{stage}_{_count[stage]}_rank{_rank()}.pt")
 
 
 _ppo_update = PPO.update
@@ -75,24 +83,24 @@ def _rank_state(self: TeacherRunner) -> dict:
 
 
 def _traced_save(self: TeacherRunner):
-    torch.save(_rank_state(self), OUT / f"{TAG}teacher_save_{self.iteration}_rank{RANK}.pt")
+    torch.save(_rank_state(self), OUT / f"{TAG}teacher_save_{self.iteration}_rank{_rank()}.pt")
     return _teacher_save(self)
 
 
 def _traced_resume(self: TeacherRunner) -> bool:
     resumed = _teacher_resume(self)
     if resumed:
-        name = f"{TAG}teacher_restored_{self.iteration}_rank{RANK}.pt"
+        name = f"{TAG}teacher_restored_{self.iteration}_rank{_rank()}.pt"
         torch.save(_rank_state(self), OUT / name)
     return resumed
 
 
+OUT.mkdir(parents=True, exist_ok=True)
 TeacherRunner.save = _traced_save  # type: ignore[method-assign]
 TeacherRunner.try_resume = _traced_resume  # type: ignore[method-assign]
 PPO.update = _traced_ppo_update  # type: ignore[method-assign]
 DistillRunner._update = _traced_distill_update  # type: ignore[method-assign]
 
 if __name__ == "__main__":
-    OUT.mkdir(parents=True, exist_ok=True)
     # As `python -m march.train` (Hydra finds conf/ from the module run as __main__).
     runpy.run_module("march.train", run_name="__main__", alter_sys=True)

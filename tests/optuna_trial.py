@@ -2,7 +2,7 @@
 
     MARCH_CRASH_TRIAL=1 MARCH_BAD_TRIAL=3 python tests/optuna_trial.py -m +sweep=optuna_clf ...
 
-The trial whose Optuna trial id (``MARCH_OPTUNA_TRIAL_ID``, set by the sweeper in the job's
+The trial whose Optuna trial number (``MARCH_OPTUNA_TRIAL``, set by the sweeper in the job's
 environment) equals ``MARCH_CRASH_TRIAL`` raises in its teacher stage (a crashed run); the one
 equal to ``MARCH_BAD_TRIAL`` has every evaluation's distance lowered by 100 m (a policy that walks
 backwards: its intermediate rows fall below every other trial's, so the median pruner stops it).
@@ -19,7 +19,7 @@ from march.learn.teacher import TeacherRunner
 
 
 def _trial_is(var: str) -> bool:
-    return os.environ.get("MARCH_OPTUNA_TRIAL_ID") == os.environ.get(var, "none")
+    return os.environ.get("MARCH_OPTUNA_TRIAL") == os.environ.get(var, "none")
 
 
 _learn = TeacherRunner.learn

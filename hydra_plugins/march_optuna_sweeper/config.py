@@ -25,7 +25,12 @@ class MarchOptunaSweeperConf:
     n_jobs: int = 1
     """Trials launched together (one launcher batch: parallel under Slurm)."""
     max_failures: int = 2
-    """Failed trials (a crash, a non-finite value) the study goes on after; one more stops it."""
+    """Failed trials (a crash, a non-finite value) of this sweep it goes on after; one more stops
+    it. Failures of earlier sweeps of the study stay recorded and do not count again."""
+    heartbeat_s: float = 30.0
+    """How often [s] a trial's job marks itself alive (``<sweep dir>/<trial>/.optuna_heartbeat``).
+    A sweep that finds a RUNNING trial waits for it while its job is alive, and gives it up once
+    the job's process is gone (same host) or its mark is 4 intervals old."""
     sampler: Any = field(  # a resumed study: seed + the number of trials already recorded
         default_factory=lambda: {"_target_": "optuna.samplers.TPESampler", "seed": 0}
     )

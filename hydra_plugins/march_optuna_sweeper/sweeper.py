@@ -1,16 +1,21 @@
-"""The study loop: ask Optuna for trials, launch them through Hydra's launcher, tell the results.
+"""The study loop: ask Optuna for trials, launch them through Hydra's launcher, record the results.
 
 Each trial is one Hydra job (the configured launcher: local, submitit local or Slurm) whose job
 number is the trial number (its directory ``<sweep dir>/<number>``). The job learns which trial
-it is from three environment variables set through ``hydra.job.env_set``
-(:mod:`march.learn.tuning` reads them to report its evaluation rows and to prune).
+it is from environment variables set through ``hydra.job.env_set`` (:mod:`march.learn.tuning`
+reads them to report its evaluation rows, to prune, to mark itself alive and to record how it
+ended).
 
-- A job that raises ``optuna.TrialPruned`` is recorded PRUNED; one that fails otherwise, or
-  returns nothing or a non-finite value, FAIL (its error as the user attribute ``error``). The
-  study goes on until more than ``max_failures`` trials failed, then stops with one line.
-- A trial still RUNNING in the storage when a sweep starts was cut short by a killed sweep: it
-  is recorded FAIL with ``interrupted`` set, does not count toward ``n_trials``, and its
-  parameters are asked again.
+- A trial's job records its own outcome: its final objective as the trial's value (COMPLETE),
+  PRUNED when the study's pruner stopped it, FAIL with its error. A job that could not (killed,
+  or failed before the run began) is recorded here from what the launcher returned.
+- Failures: the sweep stops with one line once more than ``max_failures`` trials failed **in
+  this sweep**; running the same command again goes on (earlier failures stay recorded and do
+  not count again), ``hydra.sweeper.max_failures`` raises the budget.
+- One driver per study: the sweep holds the study's driver lock (:mod:`.storage`); a second
+  sweep on the same study refuses in one line. A RUNNING trial found at start-up is decided by
+  evidence, its job's heartbeat: alive -> waited for (its job records its outcome); gone ->
+  recorded FAIL with ``interrupted`` set, not counted, its parameters asked again.
 - At the end: ``optimization_results.yaml`` (the best trial's number, value, parameters and
   directory), ``best_config.yaml`` (that run's config) and ``trials.csv`` in the sweep
   directory, and the trial table printed.
@@ -24,6 +29,7 @@ import logging
 import math
 import shutil
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -42,23 +48,27 @@ from optuna.distributions import (
 )
 from optuna.trial import TrialState
 
+from hydra_plugins.march_optuna_sweeper.storage import (
+    StudyDriven,
+    frozen_by_number,
+    heartbeat_path,
+    job_alive,
+    lock_path,
+    open_storage,
+    take_driver_lock,
+    trial_by_number,
+)
+
 log = logging.getLogger(__name__)
 
-ENV_TRIAL_ID = "MARCH_OPTUNA_TRIAL_ID"
+ENV_TRIAL = "MARCH_OPTUNA_TRIAL"
 ENV_STORAGE = "MARCH_OPTUNA_STORAGE"
 ENV_STUDY = "MARCH_OPTUNA_STUDY"
+ENV_HEARTBEAT = "MARCH_OPTUNA_HEARTBEAT"
+ENV_HEARTBEAT_S = "MARCH_OPTUNA_HEARTBEAT_S"
 FINISHED = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.FAIL)
-
-
-def open_storage(storage: str) -> Any:
-    """An Optuna storage from a journal file path or an RDB URL."""
-    if "://" in storage:
-        return storage
-    from optuna.storages import JournalStorage
-    from optuna.storages.journal import JournalFileBackend
-
-    Path(storage).parent.mkdir(parents=True, exist_ok=True)
-    return JournalStorage(JournalFileBackend(str(storage)))
+STALE_BEATS = 4
+"""A trial's job that has not renewed its heartbeat for this many intervals is gone."""
 
 
 def distribution(override: Override) -> BaseDistribution:
@@ -68,11 +78,14 @@ def distribution(override: Override) -> BaseDistribution:
     if isinstance(value, ChoiceSweep):
         return CategoricalDistribution(list(value.list))
     if isinstance(value, RangeSweep):
-        start, stop, step = value.start, value.stop, value.step
-        if all(isinstance(v, int) for v in (start, stop, step)):
-            last = start + (stop - 1 - start) // step * step  # range() excludes stop
-            return IntDistribution(int(start), int(last), step=int(step))
-        return FloatDistribution(float(start), float(stop), step=float(step))
+        # Hydra's own values (its range, like Python's, excludes stop; floats counted exactly).
+        values = list(value.range())
+        if not values:
+            raise ValueError(f"hydra.sweeper.params.{key}: {override.input_line} is empty")
+        low, high, step = min(values), max(values), abs(value.step)
+        if isinstance(value.range(), range):
+            return IntDistribution(int(low), int(high), step=int(step))
+        return FloatDistribution(float(low), float(high), step=float(step))
     if isinstance(value, IntervalSweep):
         log_scale = "log" in value.tags
         if "int" in value.tags:  # Hydra parses interval bounds as floats
@@ -97,15 +110,20 @@ class MarchOptunaSweeper(Sweeper):
         sampler: Any,
         pruner: Any,
         params: dict[str, str] | None,
+        heartbeat_s: float = 30.0,
     ) -> None:
         if direction not in ("maximize", "minimize"):
             raise ValueError(f"hydra.sweeper.direction={direction!r}: maximize or minimize")
-        if n_trials < 1 or n_jobs < 1 or max_failures < 0:
-            raise ValueError("hydra.sweeper: n_trials, n_jobs >= 1 and max_failures >= 0")
+        if n_trials < 1 or n_jobs < 1 or max_failures < 0 or heartbeat_s <= 0:
+            raise ValueError(
+                "hydra.sweeper: n_trials, n_jobs >= 1, max_failures >= 0 and heartbeat_s > 0"
+            )
         self.direction, self.study_name, self.storage = direction, study_name, storage
         self.n_trials, self.n_jobs, self.max_failures = n_trials, n_jobs, max_failures
         self.sampler_cfg, self.pruner_cfg = sampler, pruner
         self.params = dict(params or {})
+        self.heartbeat_s = float(heartbeat_s)
+        self.failed = 0  # trials that failed in this sweep (the budget's count)
 
     def setup(self, *, hydra_context: Any, task_function: Any, config: DictConfig) -> None:
         self.hydra_context, self.config = hydra_context, config
@@ -137,22 +155,35 @@ class MarchOptunaSweeper(Sweeper):
     def sweep(self, arguments: list[str]) -> Any:
         space, fixed = self._space(arguments)
         self.sweep_dir.mkdir(parents=True, exist_ok=True)
-        OmegaConf.save(self.config, self.sweep_dir / "multirun.yaml")
         where = self.storage_location()
-        storage = open_storage(where)
-        names = [s.study_name for s in optuna.get_all_study_summaries(storage)]
+        lock = lock_path(where, self.sweep_dir, self.study_name)
+        try:  # held until this process ends (self._lock stays open)
+            self._lock = take_driver_lock(lock)
+        except StudyDriven as holder:
+            print(
+                f"error: study {self.study_name!r} in {where} is being driven by another sweep "
+                f"({holder}; lock {lock}): its trials are left running; run this command again "
+                "once that sweep has ended",
+                file=sys.stderr,
+            )
+            sys.exit(1)
+        OmegaConf.save(self.config, self.sweep_dir / "multirun.yaml")
+        self._storage = open_storage(where)
+        names = [s.study_name for s in optuna.get_all_study_summaries(self._storage)]
         existing = 0
         if self.study_name in names:
-            existing = len(optuna.load_study(study_name=self.study_name, storage=storage).trials)
+            existing = len(
+                optuna.load_study(study_name=self.study_name, storage=self._storage).trials
+            )
         study = optuna.create_study(
             study_name=self.study_name,
-            storage=storage,
+            storage=self._storage,
             sampler=_built(self.sampler_cfg, existing),
             pruner=_built(self.pruner_cfg) or optuna.pruners.NopPruner(),
             direction=self.direction,
             load_if_exists=True,
         )
-        self._requeue_interrupted(study)
+        self._settle_running(study)
         done = len(_counted(study))
         print(
             f"[optuna] study {self.study_name!r} in {where}: {done} of {self.n_trials} trials "
@@ -160,17 +191,18 @@ class MarchOptunaSweeper(Sweeper):
             flush=True,
         )
         while True:
-            counted = _counted(study)
-            failed = sum(t.state == TrialState.FAIL for t in counted)
-            if failed > self.max_failures:
+            if self.failed > self.max_failures:
                 self._finish(study)
                 print(
-                    f"error: {failed} trials failed, more than hydra.sweeper.max_failures="
-                    f"{self.max_failures}; the study is kept in {where} (trials.csv names each "
-                    "error): fix the cause and run the same command to go on",
+                    f"error: {self.failed} trials of this sweep failed, more than "
+                    f"hydra.sweeper.max_failures={self.max_failures}; the study is kept in "
+                    f"{where} (trials.csv names each error): fix the cause and run the same "
+                    "command to go on (a new sweep counts only its own failures), or allow "
+                    "more with hydra.sweeper.max_failures=<n>",
                     file=sys.stderr,
                 )
                 sys.exit(1)
+            counted = _counted(study)
             remaining = self.n_trials - len(counted)
             if remaining <= 0:
                 break
@@ -183,39 +215,71 @@ class MarchOptunaSweeper(Sweeper):
 
     def _overrides(self, trial: optuna.Trial, fixed: list[str], where: str) -> list[str]:
         params = [f"{k}={_as_override(v)}" for k, v in trial.params.items()]
-        env = {ENV_TRIAL_ID: trial._trial_id, ENV_STORAGE: where, ENV_STUDY: self.study_name}
+        env = {
+            ENV_TRIAL: trial.number,
+            ENV_STORAGE: where,
+            ENV_STUDY: self.study_name,
+            ENV_HEARTBEAT: heartbeat_path(self.sweep_dir, trial.number),
+            ENV_HEARTBEAT_S: self.heartbeat_s,
+        }
         env_set = [f"+hydra.job.env_set.{k}={_as_override(str(v))}" for k, v in env.items()]
         # The trial's directory is its number (the override-named default outgrows a file name).
         return [*fixed, *params, *env_set, f"hydra.sweep.subdir={trial.number}"]
 
-    def _requeue_interrupted(self, study: optuna.Study) -> None:
-        for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
-            study._storage.set_trial_user_attr(t._trial_id, "interrupted", True)
-            study.tell(t.number, state=TrialState.FAIL)
-            study.enqueue_trial(t.params, skip_if_exists=False)
-            print(f"[optuna] trial {t.number} was cut short by a killed sweep: asked again")
+    def _settle_running(self, study: optuna.Study) -> None:
+        """RUNNING trials left by an earlier sweep (this one holds the driver lock: no live
+        sweep launched them now). A trial whose job is alive (heartbeat) is waited for: the job
+        records its outcome. One whose job is gone is recorded FAIL (``interrupted``: not
+        counted) and its parameters are asked again."""
+        stale_s = STALE_BEATS * self.heartbeat_s
+        said: set[int] = set()
+        while running := study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
+            waiting = []
+            for t in running:
+                alive, why = job_alive(heartbeat_path(self.sweep_dir, t.number), stale_s)
+                if alive:
+                    waiting.append(t.number)
+                    if t.number not in said:
+                        print(f"[optuna] trial {t.number} is still running ({why}): waiting")
+                        said.add(t.number)
+                    continue
+                trial = trial_by_number(study, self._storage, t.number)
+                trial.set_user_attr("interrupted", True)
+                trial.set_user_attr("error", f"interrupted: {why}")
+                study.tell(t.number, state=TrialState.FAIL)
+                study.enqueue_trial(t.params, skip_if_exists=False)
+                print(f"[optuna] trial {t.number} was cut short ({why}): asked again", flush=True)
+            if not waiting:
+                break
+            time.sleep(min(self.heartbeat_s, 5.0))
+        for number in sorted(said):
+            t = frozen_by_number(study, number)
+            if t.state != TrialState.RUNNING and not t.user_attrs.get("interrupted"):
+                print(f"[optuna] trial {number} ended while waited for: {_outcome(t)}")
 
     def _tell(self, study: optuna.Study, trial: optuna.Trial, ret: Any) -> None:
-        try:
-            value = ret.return_value  # raises the job's exception
-        except optuna.TrialPruned:
-            study.tell(trial, state=TrialState.PRUNED)
-            print(f"[optuna] trial {trial.number}: pruned at step {trial_last_step(study, trial)}")
-            return
-        except Exception as err:  # noqa: BLE001 - every failure of a trial is recorded
-            text = str(err).strip().splitlines()
-            why = f"{type(err).__name__}: {text[0] if text else ''}"[:300]
-            trial.set_user_attr("error", why)
-            study.tell(trial, state=TrialState.FAIL)
-            print(f"[optuna] trial {trial.number}: failed ({why})", flush=True)
-            return
-        if value is None or not math.isfinite(float(value)):
-            trial.set_user_attr("error", f"non-finite objective {value!r}")
-            study.tell(trial, state=TrialState.FAIL)
-            print(f"[optuna] trial {trial.number}: failed (objective {value!r})", flush=True)
-            return
-        study.tell(trial, float(value))
-        print(f"[optuna] trial {trial.number}: {float(value):.6g}", flush=True)
+        """Record what the trial's job did not record itself (it was killed, or failed before its
+        run began), from what the launcher returned; print the trial's outcome."""
+        if frozen_by_number(study, trial.number).state == TrialState.RUNNING:
+            try:
+                value = ret.return_value  # raises the job's exception
+            except optuna.TrialPruned:
+                study.tell(trial, state=TrialState.PRUNED)
+            except Exception as err:  # noqa: BLE001 - every failure of a trial is recorded
+                text = str(err).strip().splitlines()
+                trial.set_user_attr(
+                    "error", f"{type(err).__name__}: {text[0] if text else ''}"[:300]
+                )
+                study.tell(trial, state=TrialState.FAIL)
+            else:
+                if value is None or not math.isfinite(float(value)):
+                    trial.set_user_attr("error", f"non-finite objective {value!r}")
+                    study.tell(trial, state=TrialState.FAIL)
+                else:
+                    study.tell(trial, float(value))
+        frozen = frozen_by_number(study, trial.number)
+        self.failed += frozen.state == TrialState.FAIL
+        print(f"[optuna] trial {trial.number}: {_outcome(frozen)}", flush=True)
 
     # -- the results ----------------------------------------------------------------------------
 
@@ -246,9 +310,16 @@ class MarchOptunaSweeper(Sweeper):
         return result
 
 
-def trial_last_step(study: optuna.Study, trial: optuna.Trial) -> int | None:
-    steps = study._storage.get_trial(trial._trial_id).intermediate_values
-    return max(steps) if steps else None
+def _outcome(t: optuna.trial.FrozenTrial) -> str:
+    """How a finished trial ended, in words."""
+    if t.state == TrialState.COMPLETE:
+        return f"{t.value:.6g}"
+    if t.state == TrialState.PRUNED:
+        step = max(t.intermediate_values) if t.intermediate_values else None
+        return f"pruned at step {step}"
+    if t.state == TrialState.FAIL:
+        return f"failed ({t.user_attrs.get('error', 'no error recorded')})"
+    return t.state.name
 
 
 def trial_table(study: optuna.Study, sweep_dir: Path) -> str:
