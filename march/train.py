@@ -352,7 +352,6 @@ def main(dcfg: DictConfig) -> float | None:
     run_dir = Path(cfg.resume) if cfg.resume else Path(hc.runtime.output_dir)
     run_dir = Path(distributed.agree(str(run_dir)))
     run_dir.mkdir(parents=True, exist_ok=True)
-    distributed.rank_log(run_dir)  # ranks > 0 print into <run>/ranks/rank<r>.log
     option = "resume" if cfg.resume else "hydra.run.dir"
     try:
         if dist.main:  # one writer per run directory, for the whole run; no link written through
@@ -383,6 +382,10 @@ def main(dcfg: DictConfig) -> float | None:
             raise
         run_files.drop_refused(Path(hc.runtime.output_dir))  # the one Hydra made, not the run's
         fail(str(err))
+    # Ranks > 0 print into <run>/ranks/rank<r>.log, once the run is accepted: a refused one
+    # (another rank count, a conflicting override) has said so on each rank's own stderr and
+    # written nothing into the run directory.
+    distributed.rank_log(run_dir)
     distributed.barrier()  # every rank has read config.yaml before rank 0 rewrites it
     if dist.main:
         write_text_durably(run_dir / "config.yaml", OmegaConf.to_yaml(OmegaConf.structured(cfg)))

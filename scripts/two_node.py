@@ -1,7 +1,13 @@
 """Two nodes on one machine: two ``torchrun`` processes, one per "node", meet by c10d rendezvous on
 127.0.0.1 and train one smoke run together (teacher PPO then distillation, gloo on CPU).
 
-    python scripts/two_node.py [--out outputs/two_node] [--port 29517]     (make two-node)
+    python scripts/two_node.py [--out outputs/two_node] [--port 29517] [--order both]  (make two-node)
+
+Which node holds global rank 0 is the rendezvous's choice, not ``--node_rank``'s: c10d ignores it
+and ranks the nodes by their agents' (host, pid) (torch warns). ``--order swapped`` starts the
+``--node_rank=1`` launch first, so that it becomes rank 0; the run directory, its logs and
+checkpoints must follow global rank 0 wherever it is. ``--order both`` (the default) runs the
+usual order, then the swapped one.
 
 Each launch is what a real node runs (``torchrun --nnodes=2 --node_rank=<0|1>
 --nproc_per_node=1 --rdzv_backend=c10d --rdzv_endpoint=<host>:<port>``); here both endpoints are
@@ -51,6 +57,13 @@ def launch(node: int, port: int, run: Path, trace: Path) -> subprocess.Popen:
     )
 
 
+def rank0_launch(outputs: dict[int, str]) -> int | None:
+    """The ``--node_rank`` of the launch whose worker is global rank 0 (it alone prints the
+    banner; a rank > 0 prints into ``ranks/rank<r>.log``)."""
+    found = [node for node, out in outputs.items() if "march.train  stage=" in out]
+    return found[0] if len(found) == 1 else None
+
+
 def check(run: Path, trace: Path) -> list[str]:
     problems: list[str] = []
     for stage in ("teacher", "student"):
@@ -84,6 +97,54 @@ def check(run: Path, trace: Path) -> list[str]:
     print(f"run directory {run}: {sorted(p.name for p in run.iterdir())}; ranks/: {ranks}")
     if ranks != ["rank1.log"]:
         problems.append(f"ranks/ holds {ranks}, not rank1.log")
+    elif "[teacher] it " not in (run / "ranks" / "rank1.log").read_text(errors="replace"):
+        problems.append("ranks/rank1.log holds no training lines of rank 1")
+    for name in (".hydra", "config.yaml", "teacher/latest.pt", "student/latest.pt"):
+        if not (run / name).exists():
+            problems.append(f"the run directory has no {name} (rank 0's)")
+    flags = [
+        load_checkpoint(trace / f"teacher_1_rank{r}.pt", "trace")["writes_files"] for r in (0, 1)
+    ]
+    if flags != [True, False]:
+        problems.append(f"writes run files on ranks 0, 1: {flags} (rank 0 alone must)")
+    return problems
+
+
+def run_once(out: Path, port: int, timeout: float, swapped: bool) -> list[str]:
+    """One two-node run; the problems found (empty: passed)."""
+    run, trace = out / "run", out / "trace"
+    shutil.rmtree(out, ignore_errors=True)
+    trace.mkdir(parents=True)
+    t0 = time.time()
+    order = (1, 0) if swapped else (0, 1)
+    procs: dict[int, subprocess.Popen] = {}
+    for n in order:
+        procs[n] = launch(n, port, run, trace)
+        time.sleep(0.5)  # the first launch's agent has the lower pid: c10d makes it rank 0
+    outputs: dict[int, str] = {}
+    for n in order:
+        try:
+            outputs[n], _ = procs[n].communicate(timeout=max(timeout - (time.time() - t0), 1))
+        except subprocess.TimeoutExpired:
+            for p in procs.values():
+                p.kill()
+            return [f"node {n} still running after {timeout:.0f} s"]
+    for n in (0, 1):
+        proc, text = procs[n], outputs[n]
+        shown = [ln for ln in text.splitlines() if ln.startswith(("[", "distributed", "march"))]
+        print(f"--- --node_rank={n} (exit {proc.returncode}), {len(text.splitlines())} lines; "
+              "march's:")  # fmt: skip
+        print("\n".join(shown[-25:]))
+        if proc.returncode != 0:
+            print(text[-3000:])
+            return [f"--node_rank={n} exited {proc.returncode}"]
+    problems = []
+    holder = rank0_launch(outputs)
+    print(f"global rank 0 ran in the launch with --node_rank={holder}")
+    if holder != order[0]:
+        problems.append(f"global rank 0 is on --node_rank={holder}, expected {order[0]}")
+    problems += check(run, trace)
+    print(f"wall time {time.time() - t0:.0f} s")
     return problems
 
 
@@ -92,38 +153,23 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=ROOT / "outputs" / "two_node")
     ap.add_argument("--port", type=int, default=29517)
     ap.add_argument("--timeout", type=float, default=1200.0)
+    ap.add_argument("--order", choices=("usual", "swapped", "both"), default="both")
     args = ap.parse_args()
-    run, trace = args.out / "run", args.out / "trace"
-    shutil.rmtree(args.out, ignore_errors=True)
-    trace.mkdir(parents=True)
-    t0 = time.time()
-    nodes = [launch(n, args.port, run, trace) for n in (0, 1)]
-    outputs = []
-    for n, proc in enumerate(nodes):
-        try:
-            out, _ = proc.communicate(timeout=max(args.timeout - (time.time() - t0), 1))
-        except subprocess.TimeoutExpired:
-            for p in nodes:
-                p.kill()
-            print(f"FAILED: node {n} still running after {args.timeout:.0f} s")
-            return 1
-        outputs.append(out)
-    for n, (proc, out) in enumerate(zip(nodes, outputs, strict=True)):
-        shown = [ln for ln in out.splitlines() if ln.startswith(("[", "distributed", "march"))]
-        print(f"--- node {n} (exit {proc.returncode}), {len(out.splitlines())} lines; march's:")
-        print("\n".join(shown[-25:]))
-        if proc.returncode != 0:
-            print(out[-3000:])
-            print(f"FAILED: node {n} exited {proc.returncode}")
-            return 1
-    problems = check(run, trace)
-    print(f"wall time {time.time() - t0:.0f} s")
-    if problems:
-        print("FAILED: " + "; ".join(problems))
-        return 1
-    print("PASSED: two nodes (c10d rendezvous on 127.0.0.1), one run directory, weights equal "
-          "on both nodes after every update")  # fmt: skip
-    return 0
+    orders = {"usual": [False], "swapped": [True], "both": [False, True]}[args.order]
+    failed = False
+    for swapped in orders:
+        what = "node ranks swapped (--node_rank=1 is rank 0)" if swapped else "usual order"
+        print(f"=== two nodes, {what}", flush=True)
+        out = args.out / ("swapped" if swapped else "usual")
+        problems = run_once(out, args.port + swapped, args.timeout, swapped)
+        if problems:
+            print(f"FAILED ({what}): " + "; ".join(problems))
+            failed = True
+        else:
+            print(f"PASSED ({what}): two nodes (c10d rendezvous on 127.0.0.1), one run "
+                  "directory that follows global rank 0, weights equal on both nodes after every "
+                  "update")  # fmt: skip
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

@@ -706,21 +706,29 @@ def test_one_and_two_rank_evaluations_of_a_checkpoint_give_the_same_rows(tmp_pat
 @pytest.mark.sim
 @pytest.mark.slow
 def test_two_nodes_on_one_machine_train_one_run(tmp_path):
-    """``make two-node``: two torchrun launches, --nnodes=2, c10d rendezvous on 127.0.0.1."""
+    """``make two-node``: two torchrun launches, --nnodes=2, c10d rendezvous on 127.0.0.1, in the
+    usual order and with the node ranks swapped (the --node_rank=1 launch holds global rank 0):
+    the run directory, its logs and checkpoints follow global rank 0."""
     out = subprocess.run(
         [sys.executable, "scripts/two_node.py", "--out", str(tmp_path), "--port", str(_free_port())],
-        cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=1500,
+        cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=2400,
     )  # fmt: skip
     assert out.returncode == 0, out.stdout[-4000:] + out.stderr[-2000:]
-    assert "PASSED: two nodes" in out.stdout
+    assert "PASSED (usual order)" in out.stdout
+    assert "PASSED (node ranks swapped (--node_rank=1 is rank 0))" in out.stdout
+    usual, swapped = out.stdout.split("=== two nodes, node ranks swapped")
+    assert "global rank 0 ran in the launch with --node_rank=0" in usual
+    assert "global rank 0 ran in the launch with --node_rank=1" in swapped
     import re
 
-    for stage in ("teacher", "student"):
-        for k in (1, 2):
-            pattern = (
-                rf"{stage} update {k}: (\d+)/\1 tensors equal on both nodes; rollouts differ: True"
-            )
-            assert re.search(pattern, out.stdout), (stage, k)
+    for part in (usual, swapped):
+        for stage in ("teacher", "student"):
+            for k in (1, 2):
+                pattern = (
+                    rf"{stage} update {k}: (\d+)/\1 tensors equal on both nodes; rollouts differ: "
+                    "True"
+                )
+                assert re.search(pattern, part), (stage, k)
 
 
 def test_a_resume_on_another_rank_count_is_refused_before_any_env(tmp_path):
@@ -738,3 +746,36 @@ def test_a_resume_on_another_rank_count_is_refused_before_any_env(tmp_path):
         "run has 1: resume it with 2 process(es) (torchrun --nproc_per_node / Slurm tasks x "
         "nodes = 2)"
     )
+
+
+def _snapshot(run: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(run)): p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.slow
+def test_a_refused_resume_on_three_ranks_writes_nothing_into_the_run(tmp_path):
+    """A 2-rank run resumed on 3 ranks: each rank refuses in one line before any env, and the
+    run directory holds the files it held, unchanged (no ranks/rank<r>.log, no lock left)."""
+    from omegaconf import OmegaConf
+
+    from march.config.cli import load
+
+    run = tmp_path / "run"
+    (run / "teacher").mkdir(parents=True)
+    (run / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.structured(load(SMALL))))
+    (run / "train.log").write_text("the first launch's log\n")
+    payload = {"kind": "teacher", "iteration": 3, "world_size": 2, "rank_states": [{}, {}]}
+    torch.save(payload, run / "teacher" / "latest.pt")
+    before = _snapshot(run)
+    cmd = [TORCHRUN, "--standalone", "--nproc_per_node=3", "-m", "march.train", f"resume={run}"]
+    out = subprocess.run(cmd, cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=600)
+    assert out.returncode != 0
+    refusals = [ln for ln in out.stderr.splitlines() if ln.startswith("error: resume=")]
+    assert len(refusals) == 3, out.stderr[-3000:]  # each rank, on its own stderr
+    assert all("written by 2 rank(s), this run has 3" in ln for ln in refusals)
+    after = _snapshot(run)
+    assert sorted(after) == sorted(before), sorted(set(after) - set(before))
+    # Hydra's job log of rank 0 is the run's train.log (appended to, as every launch does:
+    # a library's import-time INFO line may land there); everything else is untouched.
+    assert after.pop("train.log").startswith(before.pop("train.log"))
+    assert after == before

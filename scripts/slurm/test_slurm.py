@@ -11,10 +11,20 @@ Needs the single-node cluster of ``scripts/slurm/start.sh`` (SLURM_CONF set). Th
    "resuming from" line in its log; no (stage, iteration) row of metrics.csv or eval.csv may be
    duplicated or missing, and every stage's final checkpoint must load;
 4. ``analysis/figures.py`` reads the sweep directory and lists both runs as done;
-5. one data-parallel run as one job of 2 tasks (``hydra/launcher=march_slurm_ddp``, gloo on the
-   node's 2 CPUs), requeued the same way once its first teacher checkpoint exists: it must end
-   ``done`` with every row once, its env steps summed over both ranks, a checkpoint holding both
-   ranks' random states and a "resuming from" line after the requeue (``--no-ddp`` skips it).
+5. three data-parallel runs, each one job of 2 tasks (``hydra/launcher=march_slurm_ddp``, gloo,
+   one CPU per task), traced per rank (``extra_modules=[tests.ddp_trace]``): Slurm accepts the
+   job (its srun line carries ``--kill-on-bad-exit=1``) and it trains;
+
+   - **requeue**: ``scontrol requeue`` once its first teacher checkpoint exists;
+   - **usr2**: ``scancel --signal=USR2`` (what ``--signal=USR2@<s>`` sends before a time limit):
+     both ranks checkpoint, rank 0's submitit handler requeues the job, ranks > 0 wait for it;
+
+   both must end ``done`` with every row once, env steps summed over both ranks, ``Restarts=1``,
+   a "resuming from" line, and each rank's restored state (levels, clocks, commands, every
+   random stream) equal to what that rank saved before the requeue, the two ranks' different;
+   - **kill**: rank 1's process SIGKILLed after the first checkpoint: the step ends (srun's
+     kill-on-bad-exit) well within ``compute.dist_timeout_s``, the job FAILED, rank 0's log and
+     ``status.json`` end with the one lost-rank line (``--no-ddp`` skips all three).
 
 Prints one PASS/FAIL line per check and exits 0 only when all pass.
 
@@ -28,12 +38,15 @@ import csv
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
 from collections import Counter
 from pathlib import Path
+from typing import Any
 
+import torch
 from omegaconf import OmegaConf
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -138,11 +151,15 @@ def check_checkpoints(checks: Checks, run: Path) -> None:
     )
 
 
-# One run over 2 Slurm tasks (2 ranks, gloo, one CPU each) with the DDP launcher.
+# One run over 2 Slurm tasks (2 ranks, gloo, one CPU each) with the DDP launcher; enough teacher
+# iterations (~1.5 s each) that a requeue or a kill lands mid-run; every rank traced.
+DDP_TIMEOUT_S = 60
 DDP_ARGS = [
     "compute=smoke",
     "compute.torch_threads=1",
-    "teacher.max_iterations=4",
+    "teacher.max_iterations=16",
+    f"compute.dist_timeout_s={DDP_TIMEOUT_S}",
+    "extra_modules=[tests.ddp_trace]",
     "hydra/launcher=march_slurm_ddp",
     "hydra.launcher.tasks_per_node=2",
     "hydra.launcher.gpus_per_node=null",
@@ -196,26 +213,107 @@ def wait_for(launcher: subprocess.Popen, deadline: float, timeout_min: float) ->
         launcher.wait(30)
 
 
-def check_ddp(checks: Checks, sweep: Path, deadline: float, timeout_min: float) -> None:
-    """One run as one 2-task job (2 ranks), requeued mid-run: all ranks resume."""
-    cmd = [PY, "-m", "march.train", "-m", *DDP_ARGS, f"hydra.sweep.dir={sweep}"]
-    say("ddp run: " + " ".join(cmd[1:]))
+def _same(a: Any, b: Any, where: str = "state") -> list[str]:
+    """Where two nested per-rank states differ (tensors compared exactly)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        if a.keys() != b.keys():
+            return [f"{where}: keys {sorted(a)} vs {sorted(b)}"]
+        return [d for k in a for d in _same(a[k], b[k], f"{where}.{k}")]
+    if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
+        ok = a.shape == b.shape and a.dtype == b.dtype and torch.equal(a, b)
+        return [] if ok else [where]
+    return [] if a == b else [where]
+
+
+def check_own_states(checks: Checks, name: str, trace: Path, text: str) -> None:
+    """After the requeue each rank restored exactly what it saved at that iteration, and the two
+    ranks' states differ (tests/ddp_trace.py wrote both)."""
+    found = re.findall(r"\[teacher\] resuming from .* at iteration (\d+)", text)
+    if not checks.check(bool(found), f"{name}: the teacher resumed {found}"):
+        return
+    at = int(found[-1])
+    try:
+        saved = [torch.load(trace / f"teacher_save_{at}_rank{r}.pt") for r in (0, 1)]
+        restored = [torch.load(trace / f"teacher_restored_{at}_rank{r}.pt") for r in (0, 1)]
+    except FileNotFoundError as err:
+        checks.check(False, f"{name}: rank traces of iteration {at} ({err})")
+        return
+    for r in (0, 1):
+        diff = _same(saved[r], restored[r])
+        checks.check(
+            not diff, f"{name}: rank {r} restored its own state of iteration {at} {diff or ''}"
+        )
+    differ = _same(saved[0], saved[1])
+    checks.check(
+        "state.streams.torch" in differ and "state.episode.episode_length_buf" in differ,
+        f"{name}: the two ranks' states differ ({len(differ)} entries, e.g. {differ[:2]})",
+    )
+
+
+def start_ddp(sweep: Path, *extra: str) -> subprocess.Popen:
+    cmd = [PY, "-m", "march.train", "-m", *DDP_ARGS, *extra, f"hydra.sweep.dir={sweep}"]
+    say(f"ddp {sweep.name}: " + " ".join(cmd[1:]))
+    (sweep / "trace").mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "MARCH_TRACE_DIR": str(sweep / "trace")}
     launcher_log = sweep.parent / f"{sweep.name}.launcher.log"
     with launcher_log.open("w") as log:
-        launcher = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
-    requeued, state = requeue_when_checkpointed(sweep, launcher, deadline, single=True)
-    checks.check(requeued is not None, f"ddp: job requeued mid-run (run state {state or 'none'})")
-    wait_for(launcher, deadline, timeout_min)
-    checks.check(launcher.returncode == 0, f"ddp: launcher exit code {launcher.returncode}")
-    runs = sorted(p for p in sweep.iterdir() if p.is_dir() and re.match(r"\d+_", p.name))
-    if not checks.check(len(runs) == 1, f"ddp: one run directory {[r.name for r in runs]}"):
+        return subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
+
+
+def ddp_job_when_checkpointed(
+    sweep: Path, launcher: subprocess.Popen, deadline: float
+) -> tuple[str | None, Path | None]:
+    """(job id, run directory) of the sweep's one 2-task job once its first teacher checkpoint
+    exists while it runs (None, None if it never gets there)."""
+    while time.time() < deadline and launcher.poll() is None:
+        time.sleep(1)
+        runs = sorted(p for p in sweep.glob("0_*") if p.is_dir())
+        if not runs or not (runs[0] / "teacher" / "model_000001.pt").is_file():
+            continue
+        jobs = [j for j, s in squeue_jobs().items() if s == "RUNNING"]
+        if len(jobs) == 1:
+            return jobs[0], runs[0]
+    return None, None
+
+
+def submission(sweep: Path, job: str) -> str:
+    path = sweep / ".submitit" / job / f"{job}_submission.sh"
+    return path.read_text() if path.is_file() else ""
+
+
+def check_ddp(
+    checks: Checks, sweep: Path, deadline: float, timeout_min: float, how: str = "requeue"
+) -> None:
+    """One run as one 2-task job (2 ranks), requeued mid-run (``scontrol requeue``, or USR2 as
+    before a time limit): it ends done and every rank resumed its own state."""
+    name = f"ddp-{how}"
+    launcher = start_ddp(sweep)
+    job, run = ddp_job_when_checkpointed(sweep, launcher, deadline)
+    if not checks.check(job is not None, f"{name}: Slurm accepted the 2-task job and it trains"):
+        wait_for(launcher, deadline, timeout_min)
         return
-    run = runs[0]
+    srun = [ln for ln in submission(sweep, job).splitlines() if ln.startswith("srun ")]
+    header = [ln for ln in submission(sweep, job).splitlines() if "kill-on-bad-exit" in ln]
+    checks.check(
+        bool(srun) and "--kill-on-bad-exit=1" in srun[0].split() and header == srun,
+        f"{name}: kill-on-bad-exit on the srun line only ({header})",
+    )
+    ckpts = sorted(p.name for p in (run / "teacher").glob("model_*.pt"))
+    if how == "usr2":
+        say(f"{name}: scancel --signal=USR2 {job} (checkpoints {ckpts})")
+        sh("scancel", "--signal=USR2", job)
+    else:
+        say(f"{name}: scontrol requeue {job} (checkpoints {ckpts})")
+        sh("scontrol", "requeue", job)
+    wait_for(launcher, deadline, timeout_min)
+    checks.check(launcher.returncode == 0, f"{name}: launcher exit code {launcher.returncode}")
     status = (
         json.loads((run / "status.json").read_text()) if (run / "status.json").is_file() else {}
     )
-    checks.check(status.get("state") == "done", f"ddp {label(run)}: status {status.get('state')}")
-    checks.check((run / "summary.json").is_file(), f"ddp {label(run)}: summary.json written")
+    checks.check(
+        status.get("state") == "done", f"{name} {label(run)}: status {status.get('state')}"
+    )
+    checks.check((run / "summary.json").is_file(), f"{name} {label(run)}: summary.json written")
     cfg = OmegaConf.load(run / "config.yaml")
     its = {"teacher": int(cfg.teacher.max_iterations), "student": int(cfg.distill.max_iterations)}
     check_rows(checks, run, "metrics.csv", its)
@@ -225,29 +323,81 @@ def check_ddp(checks: Checks, sweep: Path, deadline: float, timeout_min: float) 
     steps = [int(r["env_steps"]) for r in rows]
     checks.check(
         steps == [per_it * (i + 1) for i in range(len(steps))],
-        f"ddp: teacher env steps {steps} = 2 ranks x {cfg.compute.num_envs} envs x "
-        f"{cfg.teacher.num_steps_per_env} steps per iteration",
+        f"{name}: teacher env steps {steps[:3]}...{steps[-1:]} = 2 ranks x "
+        f"{cfg.compute.num_envs} envs x {cfg.teacher.num_steps_per_env} steps per iteration",
     )
     check_checkpoints(checks, run)
     code = (
         "import sys, torch; p = torch.load(sys.argv[1], weights_only=True); "
-        "print(p['world_size'], len(p['rank_rng']))"
+        "print(p['world_size'], len(p['rank_states']))"
     )
     res = subprocess.run(
         [PY, "-c", code, str(run / "teacher" / "latest.pt")], capture_output=True, text=True
     )
     checks.check(
         res.stdout.split() == ["2", "2"],
-        f"ddp: the teacher checkpoint holds both ranks' random states ({res.stdout.strip()})",
+        f"{name}: the teacher checkpoint holds both ranks' states ({res.stdout.strip()})",
     )
     logs = sorted((sweep / ".submitit").glob("*/*_0_log.out"))
     text = "".join(p.read_text(errors="replace") for p in logs)
-    checks.check("distributed: 2 ranks (gloo)" in text, "ddp: rank 0's log says 2 ranks (gloo)")
-    if requeued is not None:
-        restarts = job_field(requeued, "Restarts")
-        checks.check(restarts == "1", f"ddp: Slurm reports job {requeued} Restarts={restarts}")
-        resumed = re.findall(r"\[(teacher|student)\] resuming from .* at iteration (\d+)", text)
-        checks.check(bool(resumed), f"ddp: resumed from its checkpoint {resumed or ''}")
+    checks.check("distributed: 2 ranks (gloo)" in text, f"{name}: rank 0's log says 2 ranks")
+    restarts = job_field(job, "Restarts")
+    checks.check(restarts == "1", f"{name}: Slurm reports job {job} Restarts={restarts}")
+    if how == "usr2":
+        preempted = re.findall(r"\[preempted\] SIGUSR2: teacher iteration (\d+) checkpointed", text)
+        requeued = re.findall(r"Requeued job \d+", text)
+        checks.check(
+            bool(preempted) and bool(requeued),
+            f"{name}: teacher iteration {preempted[:1]} checkpointed on USR2 and rank 0's submitit "
+            f"handler requeued the job ({requeued[:1]})",
+        )
+    check_own_states(checks, name, sweep / "trace", text)
+
+
+def check_ddp_kill(checks: Checks, sweep: Path, deadline: float) -> None:
+    """Rank 1 of a 2-task job SIGKILLed mid-run: the step ends at once (srun's kill-on-bad-exit),
+    well within the process group's timeout, and rank 0 says so in one line."""
+    name = "ddp-kill"
+    launcher = start_ddp(sweep)
+    try:
+        job, run = ddp_job_when_checkpointed(sweep, launcher, deadline)
+        if not checks.check(job is not None, f"{name}: the 2-task job trains"):
+            return
+        pids = [ln.split() for ln in sh("scontrol", "listpids", job).splitlines()[1:]]
+        rank1 = [int(p[0]) for p in pids if len(p) == 5 and p[2] == "0" and p[4] == "1"]
+        if not checks.check(len(rank1) == 1, f"{name}: rank 1's process of job {job} {rank1}"):
+            return
+        say(f"{name}: SIGKILL rank 1 (pid {rank1[0]}) of job {job}")
+        os.kill(rank1[0], signal.SIGKILL)
+        killed = time.time()
+        while time.time() < killed + 3 * DDP_TIMEOUT_S:
+            state = job_field(job, "JobState")
+            if state not in ("RUNNING", "COMPLETING"):
+                break
+            time.sleep(0.2)
+        took = time.time() - killed
+        checks.check(
+            state == "FAILED" and took < DDP_TIMEOUT_S,
+            f"{name}: the job ended {state} {took:.1f} s after the kill (process group timeout "
+            f"{DDP_TIMEOUT_S} s)",
+        )
+        err = sweep / ".submitit" / job / f"{job}_0_log.err"
+        lines = [ln for ln in err.read_text(errors="replace").splitlines() if "rank 0:" in ln]
+        checks.check(
+            len(lines) == 1
+            and lines[0].startswith("error: rank 0: another rank of this 2-rank run stopped")
+            and lines[0].endswith(f"resume={run}"),
+            f"{name}: rank 0 said it in one line: {lines[-1][:150] if lines else None}...",
+        )
+        status = json.loads((run / "status.json").read_text())
+        checks.check(
+            status.get("state") == "failed" and status.get("error", "") in lines[0],
+            f"{name}: status.json {status.get('state')} with the same line",
+        )
+    finally:  # without Slurm accounting submitit cannot tell that a failed job ended
+        if launcher.poll() is None:
+            launcher.terminate()
+            launcher.wait(30)
 
 
 def main() -> int:
@@ -267,7 +417,7 @@ def main() -> int:
     deadline = time.time() + 60 * args.timeout_min
 
     if args.only_ddp:
-        check_ddp(checks, sweep.with_name(sweep.name + "_ddp"), deadline, args.timeout_min)
+        ddp_checks(checks, sweep, deadline, args.timeout_min)
         return checks.summary()
     cmd = [PY, "-m", "march.train", "-m", *SWEEP_ARGS, f"hydra.sweep.dir={sweep}"]
     say("sweep: " + " ".join(cmd[1:]))
@@ -338,8 +488,14 @@ def main() -> int:
     checks.check(len(figs) == 2, f"analysis/figures.py drew {figs} from the sweep")
     say(f"sweep directory: {sweep}")
     if not args.no_ddp:
-        check_ddp(checks, sweep.with_name(sweep.name + "_ddp"), deadline, args.timeout_min)
+        ddp_checks(checks, sweep, deadline, args.timeout_min)
     return checks.summary()
+
+
+def ddp_checks(checks: Checks, sweep: Path, deadline: float, timeout_min: float) -> None:
+    check_ddp(checks, sweep.with_name(sweep.name + "_ddp"), deadline, timeout_min)
+    check_ddp(checks, sweep.with_name(sweep.name + "_ddp_usr2"), deadline, timeout_min, "usr2")
+    check_ddp_kill(checks, sweep.with_name(sweep.name + "_ddp_kill"), deadline)
 
 
 if __name__ == "__main__":
