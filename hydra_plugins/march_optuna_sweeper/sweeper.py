@@ -30,6 +30,7 @@ import math
 import shutil
 import sys
 import time
+from decimal import Decimal
 from pathlib import Path
 from typing import Any
 
@@ -82,9 +83,13 @@ def distribution(override: Override) -> BaseDistribution:
         values = list(value.range())
         if not values:
             raise ValueError(f"hydra.sweeper.params.{key}: {override.input_line} is empty")
-        low, high, step = min(values), max(values), abs(value.step)
+        step = abs(value.step)
         if isinstance(value.range(), range):
-            return IntDistribution(int(low), int(high), step=int(step))
+            return IntDistribution(min(values), max(values), step=int(step))
+        # The grid from the numbers as written (Hydra's Decimal(0.3) x 3 is 0.8999999999999999,
+        # which Optuna would cut to 0.6: not a multiple of the step).
+        low = Decimal(repr(min(values)))
+        high = low + (len(values) - 1) * Decimal(repr(float(step)))
         return FloatDistribution(float(low), float(high), step=float(step))
     if isinstance(value, IntervalSweep):
         log_scale = "log" in value.tags
