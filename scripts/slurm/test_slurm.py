@@ -122,18 +122,25 @@ def label(run: Path) -> str:
     return f"run {num} ({rest.split('_')[0]})"
 
 
-def check_rows(checks: Checks, run: Path, name: str, expected: dict[str, int]) -> None:
-    """Each stage's rows in ``name`` are exactly iterations 1..n: none lost, none duplicated."""
+def check_rows(checks: Checks, run: Path, name: str, expected: dict[str, int | list[int]]) -> None:
+    """Each stage's rows in ``name`` are exactly iterations 1..n (or the listed iterations):
+    none lost, none duplicated."""
     rows = read_rows(run / name)
     keys = [(r["stage"], int(r["iteration"])) for r in rows]
     dup = sorted(k for k, n in Counter(keys).items() if n > 1)
     checks.check(not dup, f"{label(run)} {name}: no (stage, iteration) row twice {dup or ''}")
     for stage, n in expected.items():
+        want = list(range(1, n + 1)) if isinstance(n, int) else n
         its = sorted(i for s, i in keys if s == stage)
+        shown = f"1..{n}" if isinstance(n, int) else str(want)
         checks.check(
-            its == list(range(1, n + 1)),
-            f"{label(run)} {name}: {stage} iterations {its} = 1..{n} (none lost)",
+            its == want, f"{label(run)} {name}: {stage} iterations {its} = {shown} (none lost)"
         )
+
+
+def evaluated(n: int, interval: int) -> list[int]:
+    """The iterations a stage of n iterations evaluates: every ``interval``-th and its last."""
+    return sorted({i for i in range(1, n + 1) if interval and i % interval == 0} | {n})
 
 
 def check_checkpoints(checks: Checks, run: Path) -> None:
@@ -317,7 +324,11 @@ def check_ddp(
     cfg = OmegaConf.load(run / "config.yaml")
     its = {"teacher": int(cfg.teacher.max_iterations), "student": int(cfg.distill.max_iterations)}
     check_rows(checks, run, "metrics.csv", its)
-    check_rows(checks, run, "eval.csv", its)
+    evals = {
+        "teacher": evaluated(its["teacher"], int(cfg.teacher.eval_interval)),
+        "student": evaluated(its["student"], int(cfg.distill.eval_interval)),
+    }
+    check_rows(checks, run, "eval.csv", evals)
     rows = [r for r in read_rows(run / "metrics.csv") if r["stage"] == "teacher"]
     per_it = 2 * int(cfg.compute.num_envs) * int(cfg.teacher.num_steps_per_env)
     steps = [int(r["env_steps"]) for r in rows]
