@@ -77,7 +77,9 @@ kill-trials: $(VENV)/.installed
 	$(PY) scripts/kill_trials.py $(ARGS)
 
 # Two nodes on one machine: two torchrun processes (--nnodes=2 --node_rank=0|1, c10d rendezvous on
-# 127.0.0.1) train one smoke run together; checks one run directory and weights equal on both
-# nodes after every PPO and distillation update (docs/scaling.md). ~1-2 min on 2 CPUs.
+# 127.0.0.1) train one smoke run together, in the usual order and with the node ranks swapped
+# (global rank 0 on --node_rank=1); checks one run directory that follows global rank 0 and
+# weights equal on both nodes after every PPO and distillation update (docs/scaling.md).
+# ~2-4 min on 2 CPUs; ARGS="--order swapped" for one order.
 two-node: $(VENV)/.installed
 	$(PY) scripts/two_node.py $(ARGS)
