@@ -14,7 +14,8 @@ One handler for every runner and launcher:
   (one broadcast per iteration) so that every rank joins the same save.
 - :func:`exit_preempted` (``march.train``) writes ``status.json`` = ``preempted`` (stage,
   iteration, checkpoint, signal), prints one line, hands the signal to the handler that was
-  there before (submitit's requeue on USR2), then exits with 128 + the signal.
+  there before (submitit's requeue on USR2), then exits with 128 + the signal; in a run over N
+  ranks, ranks > 0 exit only once rank 0's handler has asked for the requeue.
 
 A second signal stops at once (:class:`Preempted` raised from the handler): the run directory
 keeps its last complete checkpoint (checkpoints are written atomically), and the status still
