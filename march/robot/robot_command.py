@@ -11,7 +11,10 @@ runs before damping (default: until Ctrl-C); ``vx`` / ``vy`` the command [m/s, b
 ``guard=damp`` (default: a guard flag enters damping) or ``report`` (flags only recorded; ``lo``
 only); ``deadlines=damp`` (default: the missed-deadline budget damps) or ``report`` (counted
 only; ``lo`` only: the self-test's default, where other processes share the CPU); ``zero_torque_s`` / ``ramp_s`` / ``hold_s`` / ``damping_s`` override the bundle's
-timings; ``log=<file.json>`` writes every step. ``sim``: the MuJoCo robot
+timings; ``log=<file.json>`` writes every step; ``lockstep=true`` (``lo`` only: the
+self-test) waits for the lockstep robot's answer before each step. A fault (any exception, a
+malformed message, a bad CRC, an impossible reading, a stale LowState, the deadline budget, a
+guard flag) damps for ``damping_s`` and exits 1 with one line naming it. ``sim``: the MuJoCo robot
 (:mod:`march.robot.sim_robot`). ``selftest``: both on loopback (:mod:`march.robot.selftest`).
 Bad input is one line on stderr and exit status 2, before anything starts.
 """
@@ -26,6 +29,10 @@ from pathlib import Path
 from typing import Any
 
 from march.sim2sim.deploy_bundle import UsageError
+
+LOCKSTEP_WAIT_S = 2.0
+"""``lockstep=true`` (loopback only): how long a step waits for the lockstep robot's answer
+to the previous command before the watchdog judges the LowState's age."""
 
 JOBS = ("policy", "sim", "selftest")
 USAGE = (
@@ -52,11 +59,13 @@ KEYS: dict[str, Any] = {
     "hold_s": float,
     "damping_s": float,
     "max_seconds": float,
+    "cmd_timeout": float,
 }
 ALLOWED = {
     "policy": {"bundle", "domain", "interface", "seconds", "start", "guard", "deadlines", "vx", "vy", "log",
-               "zero_torque_s", "ramp_s", "hold_s", "damping_s", "max_seconds"},
-    "sim": {"bundle", "domain", "interface", "seconds", "course", "band", "lockstep", "log"},
+               "zero_torque_s", "ramp_s", "hold_s", "damping_s", "max_seconds", "lockstep"},
+    "sim": {"bundle", "domain", "interface", "seconds", "course", "band", "lockstep", "log",
+            "cmd_timeout"},
     "selftest": {"bundle", "domain", "interface", "seconds", "guard", "deadlines", "course", "keep"},
 }  # fmt: skip
 
@@ -90,6 +99,7 @@ def parse(argv: Sequence[str]) -> tuple[str, dict[str, Any]]:
         "deadlines": lambda v: v in ("damp", "report"),
         "lockstep": lambda v: v in ("true", "false"),
         "band": lambda v: 0 <= v < math.inf,
+        "cmd_timeout": lambda v: 0 <= v < 600,
         "course": lambda v: v in ("hardware", "stones"),
         "vx": math.isfinite,
         "vy": math.isfinite,
@@ -98,13 +108,14 @@ def parse(argv: Sequence[str]) -> tuple[str, dict[str, Any]]:
     for key, ok in checks.items():
         if key in args and not ok(args[key]):
             raise UsageError(f"{key}={args[key]}: not allowed ({USAGE})")
-    for key in ("guard", "deadlines"):
-        if job == "policy" and args.get(key) == "report" and args.get("interface", "eth0") != "lo":
-            raise UsageError(f"{key}=report only on the loopback interface (a simulated robot)")
+    for key, loose in (("guard", "report"), ("deadlines", "report"), ("lockstep", "true")):
+        if job == "policy" and args.get(key) == loose and args.get("interface", "eth0") != "lo":
+            raise UsageError(f"{key}={loose} only on the loopback interface (a simulated robot)")
     return job, args
 
 
 def policy(args: dict[str, Any]) -> int:
+    from march.robot.checks import BundleRefused
     from march.robot.policy_loop import Controller, load_bundle, run
     from march.robot.states import Timing
     from march.sim2sim.guard import CommandRefused, check_command
@@ -119,9 +130,12 @@ def policy(args: dict[str, Any]) -> int:
         check_command(spec, (vx, vy, 0.0))
     except CommandRefused as err:
         raise UsageError(str(err)) from None
-    ctl = Controller(
-        bundle, timing, (vx, vy), args.get("guard", "damp"), args.get("deadlines", "damp")
-    )
+    try:
+        ctl = Controller(
+            bundle, timing, (vx, vy), args.get("guard", "damp"), args.get("deadlines", "damp")
+        )
+    except BundleRefused as err:
+        raise UsageError(str(err)) from None
     domain, iface = args.get("domain", 0), args.get("interface", "eth0")
     print(f"[policy] domain {domain}, interface {iface}; zero torque until LowState", flush=True)
     log = run(
@@ -131,9 +145,14 @@ def policy(args: dict[str, Any]) -> int:
         args.get("start", "enter"),
         args.get("seconds", math.inf),
         args.get("max_seconds", math.inf),
+        lockstep_s=LOCKSTEP_WAIT_S if args.get("lockstep") == "true" else 0.0,
     )
-    missed = sum(s.missed for s in log)
-    print(f"[policy] {len(log)} steps, {missed} missed deadlines", flush=True)
+    missed = sum(s.missed for s in log) + ctl.skipped_total
+    print(
+        f"[policy] {len(log)} steps, {missed} missed deadlines "
+        f"({ctl.skipped_total} periods skipped)",
+        flush=True,
+    )
     if args.get("log"):
         out = {
             "period_s": float(spec["rates"]["control_dt_s"]),
@@ -158,6 +177,10 @@ def policy(args: dict[str, Any]) -> int:
         tmp = Path(args["log"]).with_suffix(".tmp")
         tmp.write_text(json.dumps(out))
         tmp.replace(args["log"])
+    why = ctl.machine.fault_reason
+    if why is not None:
+        print(f"error: the robot loop damped on a fault: {why}", file=sys.stderr, flush=True)
+        return 1
     return 0
 
 
@@ -174,6 +197,7 @@ def sim(args: dict[str, Any]) -> int:
         args.get("lockstep", "false") == "true",
         args.get("seconds", math.inf),
         args.get("log", ""),
+        args.get("cmd_timeout", 0.0),
     )
     print("[sim] done: " + ", ".join(f"{k} {v}" for k, v in stats.items()), flush=True)
     return 0
