@@ -175,6 +175,34 @@ def test_selftest_agrees_with_sim2sim(bundle, tmp_path):
     bad = shadow(b, "hardware", log, states)
     assert bad["max_abs_diff"] >= 1e-4 - 1e-6
     assert report(bad, log, "", 1.0, 2.0, 1, "lo") == 1
+    # what reached the motors: the honest run's targets and gains agree with sim2sim's ...
+    assert honest["commands_compared"] >= 10
+    assert honest["target_diff"] <= 2e-5 and honest["gain_diff"] <= 1e-6
+    # ... and a loop that logs its action but sends it clipped fails. This student's actions
+    # stay inside +-0.46, where a +-1 clip changes nothing (no comparison can see it), so the
+    # clip is at half the largest |action| it produced
+    from march.robot.selftest import motor_commands
+    from march.sim2sim.motors import motor_table
+
+    acts = np.array([s["action"] for s in log["steps"] if s["action"] is not None])
+    limit = 0.5 * np.abs(acts).max()
+    spec, slots = b.spec, motor_table(b.spec)
+    off, sc = np.asarray(spec["action"]["offset"]), np.asarray(spec["action"]["scale"])
+    at = {int(t): i for i, t in enumerate(states["cmd_ticks"])}
+    clipped = dict(states, cmds=states["cmds"].copy())
+    for s in log["steps"]:
+        if s["action"] is not None and s["state"] == "policy" and s["lowstate_tick"] in at:
+            a = np.clip(np.asarray(s["action"]), -limit, limit)
+            clipped["cmds"][at[s["lowstate_tick"]]][0][slots] = off + sc * a
+    actions = [np.asarray(s["action"]) for s in log["steps"] if s["action"] is not None]
+    seen = motor_commands(b, log, clipped, actions)
+    assert seen["target_diff"] > 1e-3, seen
+    assert report({**honest, **seen}, log, "", 1.0, 2.0, 1, "lo") == 1
+    # and kp sent twice the table's at one joint of one policy step
+    raised = dict(states, cmds=states["cmds"].copy())
+    k = at[next(s["lowstate_tick"] for s in log["steps"] if s["state"] == "policy")]
+    raised["cmds"][k][1][slots[0]] *= 2.0
+    assert motor_commands(b, log, raised, actions)["gain_diff"] > 0.3
 
 
 def test_selftest_with_the_guard_on_damps_the_smoke_student(bundle):
@@ -185,12 +213,12 @@ def test_selftest_with_the_guard_on_damps_the_smoke_student(bundle):
     assert res.returncode == 0 and "-> OK" in res.stdout
 
 
-def _start(*words: str) -> subprocess.Popen:
+def _start(*words: str, stderr=subprocess.STDOUT) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "march.robot", *words],
         cwd=ROOT,
         stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
+        stderr=stderr,
         text=True,
     )
 
@@ -221,15 +249,18 @@ def test_watchdog_and_ctrl_c_over_dds(bundle):
         # the watchdog: the robot dies while the policy runs
         sim = start("sim", *common, "band=100", "lockstep=true")
         assert "[sim] publishing" in sim.stdout.readline()
-        loop = start("policy", *common, "start=auto", "guard=report", "deadlines=report", *fast)
+        loop = _start("policy", *common, "start=auto", "guard=report", "deadlines=report", *fast,
+                      stderr=subprocess.PIPE)  # fmt: skip
+        procs.append(loop)
         head = _until(loop, "hold -> policy")
         time.sleep(0.3)
         sim.kill()
         sim.wait()
-        out, _ = loop.communicate(timeout=60)
+        out, err = loop.communicate(timeout=60)
         out = head + out
-        assert loop.returncode == 0, out
+        assert loop.returncode == 1, out  # a fault: damping, then exit 1 naming it
         assert "policy -> damping  (watchdog: LowState stale" in out, out
+        assert "error: the robot loop damped on a fault: watchdog" in err
         assert "damping -> done" in out
         # Ctrl-C
         sim = start("sim", *common, "band=100", "lockstep=true")
