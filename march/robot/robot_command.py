@@ -15,7 +15,12 @@ timings; ``log=<file.json>`` writes every step; ``lockstep=true`` (``lo`` only: 
 self-test) waits for the lockstep robot's answer before each step. A fault (any exception, a
 malformed message, a bad CRC, an impossible reading, a stale LowState, the deadline budget, a
 guard flag) damps for ``damping_s`` and exits 1 with one line naming it. ``sim``: the MuJoCo robot
-(:mod:`march.robot.sim_robot`). ``selftest``: both on loopback (:mod:`march.robot.selftest`).
+(:mod:`march.robot.sim_robot`). ``selftest``: both on loopback (:mod:`march.robot.selftest`). ``supervisor``
+(:mod:`march.robot.supervisor`): damps when the policy's LowCmds stop (``timeout_s``) or go
+invalid (``policy_pid=``: kill that process first). ``camera`` (:mod:`march.robot.camera`):
+publishes the depth topic from a RealSense (``source=realsense``) or a recording
+(``source=file file=<.bag or .npz>``), preprocessed as in training. ``sim cmd_timeout=S``: the
+simulated motors damp after S s without a valid LowCmd.
 Bad input is one line on stderr and exit status 2, before anything starts.
 """
 
@@ -34,9 +39,9 @@ LOCKSTEP_WAIT_S = 2.0
 """``lockstep=true`` (loopback only): how long a step waits for the lockstep robot's answer
 to the previous command before the watchdog judges the LowState's age."""
 
-JOBS = ("policy", "sim", "selftest")
+JOBS = ("policy", "sim", "selftest", "supervisor", "camera")
 USAGE = (
-    "usage: python -m march.robot policy|sim|selftest bundle=<dir> [domain=N] [interface=lo] "
+    "usage: python -m march.robot policy|sim|selftest|supervisor|camera bundle=<dir> [domain=N] [interface=lo] "
     "[seconds=S] [start=enter|auto] [guard=damp|report] [band=S] [lockstep=true] [log=<file>]"
 )
 KEYS: dict[str, Any] = {
@@ -60,6 +65,11 @@ KEYS: dict[str, Any] = {
     "damping_s": float,
     "max_seconds": float,
     "cmd_timeout": float,
+    "timeout_s": float,
+    "policy_pid": int,
+    "source": str,
+    "file": str,
+    "fps": float,
 }
 ALLOWED = {
     "policy": {"bundle", "domain", "interface", "seconds", "start", "guard", "deadlines", "vx", "vy", "log",
@@ -67,6 +77,8 @@ ALLOWED = {
     "sim": {"bundle", "domain", "interface", "seconds", "course", "band", "lockstep", "log",
             "cmd_timeout"},
     "selftest": {"bundle", "domain", "interface", "seconds", "guard", "deadlines", "course", "keep"},
+    "supervisor": {"bundle", "domain", "interface", "seconds", "timeout_s", "policy_pid"},
+    "camera": {"bundle", "domain", "interface", "seconds", "source", "file", "fps"},
 }  # fmt: skip
 
 
@@ -100,6 +112,10 @@ def parse(argv: Sequence[str]) -> tuple[str, dict[str, Any]]:
         "lockstep": lambda v: v in ("true", "false"),
         "band": lambda v: 0 <= v < math.inf,
         "cmd_timeout": lambda v: 0 <= v < 600,
+        "timeout_s": lambda v: 0.005 <= v <= 10,
+        "policy_pid": lambda v: v > 0,
+        "source": lambda v: v in ("realsense", "file"),
+        "fps": lambda v: 1 <= v <= 90,
         "course": lambda v: v in ("hardware", "stones"),
         "vx": math.isfinite,
         "vy": math.isfinite,
@@ -218,11 +234,29 @@ def selftest(args: dict[str, Any]) -> int:
     )
 
 
+def supervisor(args: dict[str, Any]) -> int:
+    from march.robot.supervisor import main as run_supervisor
+
+    return run_supervisor(args)
+
+
+def camera(args: dict[str, Any]) -> int:
+    from march.robot.camera import main as run_camera
+
+    return run_camera(args)
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     words = list(sys.argv[1:] if argv is None else argv)
     try:
         job, args = parse(words)
-        rc = {"policy": policy, "sim": sim, "selftest": selftest}[job](args)
+        rc = {
+            "policy": policy,
+            "sim": sim,
+            "selftest": selftest,
+            "supervisor": supervisor,
+            "camera": camera,
+        }[job](args)
     except UsageError as err:
         print(f"error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
