@@ -278,3 +278,59 @@ def test_watchdog_and_ctrl_c_over_dds(bundle):
             if p.poll() is None:
                 p.kill()
                 p.wait()
+
+
+def test_torque_limits_saturate_where_deploy_json_says(loaded):
+    """Every motor driven 10 rad past its target with the joints' kp saturates at exactly
+    deploy.json's torque_limit (the scene's force range); a bundle whose torque limits say
+    otherwise (x2, as slipped through the sim-to-sim tests) is refused in one line."""
+    from march.robot import hg
+    from march.robot.sim_robot import SimRobot
+    from march.sim2sim.deploy_bundle import Bundle, UsageError
+    from march.sim2sim.motors import motor_table
+
+    spec = loaded.spec
+    slots = motor_table(spec)
+    limit = np.array([j["torque_limit"] for j in spec["joints"]])
+    for sign in (1.0, -1.0):
+        robot = SimRobot(loaded, band_s=100.0)
+        q = robot.bus.q(robot.data)
+        cmd = hg.LowCmd_(mode_machine=robot.mode_machine)
+        for i, s in enumerate(slots):
+            m = cmd.motor_cmd[int(s)]
+            m.mode, m.kp, m.kd = 1, spec["joints"][i]["kp"], 0.0
+            m.q = float(q[int(s)] + sign * 10.0)
+        cmd.crc = hg.lowcmd_crc(cmd)
+        assert robot.apply(cmd)
+        robot.physics_step()
+        ls = robot.lowstate()
+        tau = np.array([ls.motor_state[int(s)].tau_est for s in slots])
+        np.testing.assert_allclose(tau, sign * limit, rtol=1e-6)  # saturated, each its own
+    for scale in (2.0, 0.5):
+        bad = copy.deepcopy(spec)
+        bad["joints"][7]["torque_limit"] *= scale
+        with pytest.raises(UsageError, match=r"joints\[7\]\.torque_limit"):
+            SimRobot(Bundle(loaded.onnx_path, bad), band_s=100.0)
+
+
+def test_deploy_json_wire_fields_are_read_and_held(loaded):
+    from march.robot.policy_loop import check_deploy_fields
+    from march.sim2sim.deploy_bundle import UsageError
+
+    check_deploy_fields(loaded.spec)
+    cases = {
+        ("msg_type",): ("go", "msg_type"),
+        ("heading_reference",): ("world", "heading_reference"),
+        ("num_motor_slots",): (29, "num_motor_slots"),
+        ("deadline", "period_s"): (0.01, "period_s"),
+        ("watchdog_s",): (0.003, "watchdog_s"),
+        ("lowstate_hz",): (30.0, "lowstate_hz"),
+    }
+    for path, (value, word) in cases.items():
+        bad = copy.deepcopy(loaded.spec)
+        node = bad["deploy"]
+        for p in path[:-1]:
+            node = node[p]
+        node[path[-1]] = value
+        with pytest.raises(UsageError, match=word):
+            check_deploy_fields(bad)

@@ -51,6 +51,7 @@ class SimRobot:
         self.sim.reset(bundle.cell(course, 0.0, 0), seed=-1)  # the start point, standing
         m = self.model
         self.limit = m.actuator_forcerange[self.bus.act, 1].copy()
+        self.check_torque_limits()
         self.mode_machine, self.mode_pr = int(dep["mode_machine"]), int(dep["mode_pr"])
         self.decimation = self.sim.decimation
         self.tick = 0
@@ -66,6 +67,22 @@ class SimRobot:
         self.applied: dict[int, np.ndarray] = {}  # tick -> (3, slots): q, kp, kd as applied
         self.damping_kd = float(dep["shutdown"]["damping_kd"])
         self.timeouts = 0
+
+    def check_torque_limits(self) -> None:
+        """deploy.json's torque limits are the scene's force ranges (the motors the robot has):
+        a bundle that says otherwise is refused, not simulated with the scene's."""
+        from march.sim2sim.deploy_bundle import UsageError
+        from march.sim2sim.motors import motor_table
+
+        slots = motor_table(self.spec)
+        for i, j in enumerate(self.spec["joints"]):
+            scene = float(self.limit[int(slots[i])])
+            lo, hi = self.model.actuator_forcerange[self.bus.act[int(slots[i])]]
+            if abs(j["torque_limit"] - scene) > 1e-6 * scene or abs(lo + hi) > 1e-6 * scene:
+                raise UsageError(
+                    f"deploy.json joints[{i}].torque_limit = {j['torque_limit']:g} ({j['name']}): "
+                    f"the scene's motor saturates at +-{scene:g} N m"
+                )
 
     def limp(self) -> None:
         """Every motor off (kp = kd = 0) until a LowCmd says otherwise."""
