@@ -52,6 +52,14 @@ test: $(VENV)/.installed  ## the test suite CI runs (slow extras left out)
 docs: $(VENV)/.installed  ## the documentation site: mkdocs build --strict -> site/
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet
 
+# The robot loop on loopback DDS: the fault matrix (8 faults x 4 states, each in its own
+# processes), the supervisor taking over from a killed policy, the camera through librealsense,
+# the self-test; one process at a time (the matrix measures latencies). ~8 min on 2 cores.
+robot-check: $(VENV)/.installed  ## the robot loop's fault matrix, supervisor, camera, self-test
+	$(PY) -m pytest -q -p no:xdist -s tests/test_robot_faults.py tests/test_robot_supervisor.py \
+		tests/test_robot_camera.py tests/test_robot_checks.py tests/test_robot_loop.py \
+		tests/test_robot_states.py tests/test_robot_hg.py $(ARGS)
+
 test-all: $(VENV)/.installed  ## including tests marked slow
 	$(PY) -m pytest -q -m "" $(XDIST) $(ARGS)
 
