@@ -23,7 +23,9 @@ damping_kd: damping) and, 0.3 s into the state under test, plants one fault:
 Each cell asserts: damping (kp 0, kd damping_kd on every joint) within ``LATENCY_S`` of the fault
 (of SIGCONT for ``sigstop``; of the watchdog for ``stale``), no command with a non-finite value
 and none with kp > 0 after the first damping one, damping held for ``damping_s``, exit status 1
-and the cause named on stderr's last line. The printed matrix is in docs/deploying.md.
+and the cause named on stderr's last line. A cell whose loop damped on the watchdog or the
+deadline budget before the plant (this machine's load; a real damping, but not the cell's test)
+runs again, twice at most, and says so. The printed matrix is in docs/deploying.md.
 """
 
 from __future__ import annotations
@@ -264,6 +266,11 @@ def judge(robot: FakeRobot, fault, state, rc, err, resumed) -> dict:
     return res
 
 
+def _damped_early(row: dict) -> bool:
+    early = any("never reached" in p or "before the fault" in p for p in row["problems"])
+    return early and ("watchdog" in row["line"] or "deadline" in row["line"])
+
+
 def test_fault_matrix_over_dds(bundle):
     from march.sim2sim.deploy_bundle import Bundle
 
@@ -275,14 +282,13 @@ def test_fault_matrix_over_dds(bundle):
     with tempfile.TemporaryDirectory() as tmp:
         for fault in faults:
             for state in states:
-                row = run_cell(robot, bundle, fault, state, Path(tmp))
-                early = any(
-                    "never reached" in p or "before the fault" in p for p in row["problems"]
-                )
-                if fault == "sigstop" and early and "deadline" in row["line"]:
-                    # deadlines=damp on a shared, loaded machine: the budget can go before the
-                    # plant (a real damping, not this cell's); one more try
+                row, retries = run_cell(robot, bundle, fault, state, Path(tmp)), []
+                while _damped_early(row) and len(retries) < 2:
+                    # a shared, loaded machine: the watchdog (50 ms) or the deadline budget can
+                    # go before the plant - a real damping, but not this cell's test; again
+                    retries.append(row["line"].split("fault: ")[-1][:50])
                     row = run_cell(robot, bundle, fault, state, Path(tmp))
+                row["retries"] = retries
                 rows.append(row)
     print(f"\n{'fault':<11}{'state':<13}{'latency':>9}  {'kp>0 after':>10}  rc  outcome")
     for r in rows:
@@ -294,5 +300,8 @@ def test_fault_matrix_over_dds(bundle):
         )
         print(f"{r['fault']:<11}{r['state']:<13}{lat:>9}  {r.get('kp_after_fault', '-'):>10}"
               f"  {r['rc']:>2}  {verdict}")  # fmt: skip
+    for r in rows:
+        if r["retries"]:
+            print(f"{r['fault']} / {r['state']}: retried after an earlier damping: {r['retries']}")
     failed = [(r["fault"], r["state"], r["problems"]) for r in rows if r["problems"]]
     assert not failed, f"{len(failed)} of {len(rows)} cells failed: {failed}"
