@@ -87,10 +87,8 @@ def _frames(n, w, h, seed=0):
 def test_through_librealsense_live_and_recorded_onto_the_depth_topic(bundle, tmp_path):
     from march.robot import dds
     from march.robot.camera import Preprocess, SensorFrames, realsense
-    from march.robot.checks import depth_invalid_flag
-    from march.sim2sim.deploy_bundle import Bundle
-
-    from march.sim2sim.deploy_bundle import UsageError
+    from march.robot.wire_checks import depth_invalid_flag
+    from march.sim2sim.deploy_bundle import Bundle, UsageError
 
     try:
         rs = realsense()

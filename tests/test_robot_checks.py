@@ -1,4 +1,4 @@
-"""What the robot loop reads and sends, checked (march.robot.checks), and the G1's physical
+"""What the robot loop reads and sends, checked (march.robot.wire_checks), and the G1's physical
 ranges on everything that reaches a motor (march.sim2sim.bundle_schema.check_motor_ranges),
 refused by the schema and again by the loop - by hand and over many generated cases."""
 
@@ -76,7 +76,7 @@ def _mutations(spec, rng):
 
 
 def test_motor_ranges_refused_by_the_schema_and_again_by_the_loop(spec):
-    from march.robot.checks import BundleRefused, Limits
+    from march.robot.wire_checks import BundleRefused, Limits
     from march.sim2sim.motors import motor_table
 
     check_spec(spec)  # the smoke bundle is inside every range
@@ -117,7 +117,7 @@ def _lowstate(spec, q=None):
 
 def test_lowstate_faults_by_hand(spec):
     from march.robot import hg
-    from march.robot.checks import Limits, lowstate_fault
+    from march.robot.wire_checks import Limits, lowstate_fault
 
     ls, slots = _lowstate(spec)
     lim = Limits.from_spec(spec, slots)
@@ -152,7 +152,7 @@ def test_lowstate_faults_by_hand(spec):
 
 def test_the_last_check_before_publish(spec):
     from march.robot import hg
-    from march.robot.checks import Limits, command_fault, damping_lowcmd
+    from march.robot.wire_checks import Limits, command_fault, damping_lowcmd
     from march.sim2sim.motors import motor_table
 
     slots = motor_table(spec)
@@ -194,8 +194,8 @@ def test_the_last_check_before_publish(spec):
 
 
 def test_malformed_and_mostly_invalid_depth():
-    from march.robot.checks import depth_image, depth_invalid_flag
     from march.robot.dds import DepthImage_
+    from march.robot.wire_checks import depth_image, depth_invalid_flag
 
     img, why = depth_image(DepthImage_(1, 24, 32, [1.0] * 10), 24, 32)
     assert img is None and "24x32 with 10 values" in why

@@ -8,7 +8,7 @@ intrinsics (pinhole, the same optical axis: the student's field of view must lie
 camera's), each student pixel the mean of the valid camera pixels under it (valid: finite and
 > 0); fewer than half valid -> 0 (invalid: the loop maps it to ``max_range_m``, as training
 maps a missed ray); valid values clipped to [``min_range_m``, ``max_range_m``]. The robot loop
-normalises and flags an image that is mostly invalid (:func:`march.robot.checks.depth_invalid_flag`).
+normalises and flags an image that is mostly invalid (:func:`march.robot.wire_checks.depth_invalid_flag`).
 
 Sources (:class:`SensorFrames`, the same code for both): ``source=realsense`` (the first
 RealSense found, its depth sensor's Z16 stream of ``width`` x ``height`` at ``fps``), or
@@ -212,7 +212,7 @@ def serve(
     """Publish every frame until ``seconds`` pass, SIGINT / SIGTERM, or ``idle_s`` without one
     (a recording's end, an unplugged camera)."""
     from march.robot import dds
-    from march.robot.checks import depth_invalid_flag
+    from march.robot.wire_checks import depth_invalid_flag
 
     dp = dds.participant(domain, interface)
     out = dds.writer(dp, dds.DEPTH_TOPIC, dds.DepthImage_)

@@ -25,14 +25,6 @@ from typing import Any, Protocol
 import numpy as np
 
 from march.robot import hg
-from march.robot.checks import (
-    Limits,
-    command_fault,
-    damping_lowcmd,
-    depth_image,
-    depth_invalid_flag,
-    lowstate_fault,
-)
 from march.robot.states import (
     DAMPING,
     DONE,
@@ -44,6 +36,14 @@ from march.robot.states import (
     Timing,
 )
 from march.robot.states import command_for as state_command
+from march.robot.wire_checks import (
+    Limits,
+    command_fault,
+    damping_lowcmd,
+    depth_image,
+    depth_invalid_flag,
+    lowstate_fault,
+)
 from march.sim2sim.deploy_bundle import INPUTS, OUTPUT, Bundle, UsageError
 from march.sim2sim.depth_camera import normalize_depth
 from march.sim2sim.guard import RangeGuard
@@ -212,7 +212,7 @@ class Controller:
         skipped: int = 0,
     ) -> hg.LowCmd_:
         """This step's LowCmd from the newest LowState (``None`` before the first). Every
-        reading is checked in every state (:func:`march.robot.checks.lowstate_fault`): a fault
+        reading is checked in every state (:func:`march.robot.wire_checks.lowstate_fault`): a fault
         damps at once, whatever ``guard`` says; the training-range guard acts per ``guard``."""
         faults: list[str] = []
         x = None

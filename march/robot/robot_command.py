@@ -131,9 +131,9 @@ def parse(argv: Sequence[str]) -> tuple[str, dict[str, Any]]:
 
 
 def policy(args: dict[str, Any]) -> int:
-    from march.robot.checks import BundleRefused
     from march.robot.policy_loop import Controller, load_bundle, run
     from march.robot.states import Timing
+    from march.robot.wire_checks import BundleRefused
     from march.sim2sim.guard import CommandRefused, check_command
 
     bundle = load_bundle(args["bundle"])

@@ -1,6 +1,6 @@
 """``python -m march.robot supervisor``: a small process that outlives the policy and damps.
 
-It watches ``rt/lowcmd`` and ``rt/lowstate`` (numpy, cyclonedds and :mod:`march.robot.checks`
+It watches ``rt/lowcmd`` and ``rt/lowstate`` (numpy, cyclonedds and :mod:`march.robot.wire_checks`
 only: no torch, no onnxruntime, no MuJoCo, so that it starts in a fraction of a second and a
 policy that dies of memory or a library fault does not take it along). It takes over - publishes
 the damping command (kp 0, kd ``damping_kd`` on every used slot, its CRC) on ``rt/lowcmd`` at the
@@ -8,7 +8,7 @@ control rate until it is stopped - when, after the policy's first command:
 
 - no LowCmd has come for ``timeout_s`` (default: 2 x ``watchdog_s``): the policy died, hung,
   or was stopped;
-- a LowCmd fails the loop's own last check (:func:`march.robot.checks.command_fault`, with kp
+- a LowCmd fails the loop's own last check (:func:`march.robot.wire_checks.command_fault`, with kp
   allowed: a non-finite value, kp / kd outside the motor's range, another ``mode_machine``, a
   used slot disabled or an unused one enabled, a bad CRC); with ``policy_pid=`` it first kills
   that process (SIGKILL): a live publisher of bad commands cannot be outvoted on a topic.
@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from march.robot import dds, hg
-from march.robot.checks import Limits, command_fault, damping_lowcmd
+from march.robot.wire_checks import Limits, command_fault, damping_lowcmd
 from march.sim2sim.bundle_schema import SchemaError, check_spec
 from march.sim2sim.deploy_bundle import UsageError
 
