@@ -314,8 +314,7 @@ def test_torque_limits_saturate_where_deploy_json_says(loaded):
 
 
 def test_deploy_json_wire_fields_are_read_and_held(loaded):
-    from march.robot.policy_loop import check_deploy_fields
-    from march.sim2sim.deploy_bundle import UsageError
+    from march.robot.wire_checks import BundleRefused, check_deploy_fields
 
     check_deploy_fields(loaded.spec)
     cases = {
@@ -332,5 +331,5 @@ def test_deploy_json_wire_fields_are_read_and_held(loaded):
         for p in path[:-1]:
             node = node[p]
         node[path[-1]] = value
-        with pytest.raises(UsageError, match=word):
+        with pytest.raises(BundleRefused, match=word):
             check_deploy_fields(bad)

@@ -37,7 +37,9 @@ from march.robot.states import (
 )
 from march.robot.states import command_for as state_command
 from march.robot.wire_checks import (
+    PROFILES,
     Limits,
+    check_deploy_fields,
     command_fault,
     damping_lowcmd,
     depth_image,
@@ -96,6 +98,7 @@ class Controller:
     command: tuple[float, float] = (math.nan, math.nan)
     guard_action: str = "damp"  # damp: a guard flag enters damping; report: only recorded
     deadline_action: str = "damp"  # damp: the deadline budget damps; report: only counted
+    robot: str = "g1"  # a key of PROFILES: what the LowState publisher is
     log: list[StepLog] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -124,6 +127,7 @@ class Controller:
         self.ramp_from = self.default.copy()
         self.depth = spec["depth"]
         self.mode_machine = int(dep["mode_machine"])
+        self.profile = PROFILES[self.robot]
         self.mode_pr = int(dep["mode_pr"])
         self.limits = Limits.from_spec(spec, self.motor_index)
         self.damping = damping_lowcmd(self.limits, self.timing.damping_kd, self.mode_pr)
@@ -217,13 +221,14 @@ class Controller:
         faults: list[str] = []
         x = None
         if ls is not None:
-            fault = lowstate_fault(ls, self.limits)
+            fault = lowstate_fault(ls, self.limits, crc=self.profile.lowstate_crc)
             if fault is None:
                 x = self.read(ls)
-                faults += self._frozen(int(ls.tick), now)
+                faults += self._frozen(int(ls.tick), now) if self.profile.tick_advances else []
             else:
                 faults.append(fault)
-        variant_ok = ls is None or int(ls.mode_machine) == self.mode_machine
+        want = self.mode_machine if self.profile.mode_machine is None else self.profile.mode_machine
+        variant_ok = ls is None or int(ls.mode_machine) == want
         flags: list[str] = []
         prev = self.machine.state
         late = missed and self.deadline_action == "damp"
@@ -336,34 +341,26 @@ class DdsDepth:
         return img, int(msg.tick)
 
 
-DEPLOY_FIELDS = {
-    ("msg_type",): "hg",
-    ("heading_reference",): "imu_yaw",
-    ("num_motor_slots",): hg.NUM_MOTORS,
-}
-
-
-def check_deploy_fields(spec: dict[str, Any]) -> None:
-    """deploy.json's facts about the wire that this loop implements, read and held to it."""
-    dep = spec["deploy"]
-    for (key,), want in DEPLOY_FIELDS.items():
-        if dep[key] != want:
-            raise UsageError(f"deploy.json deploy.{key} = {dep[key]!r}: this loop speaks {want!r}")
-    if abs(float(dep["deadline"]["period_s"]) - float(spec["rates"]["control_dt_s"])) > 1e-9:
-        raise UsageError("deploy.json deploy.deadline.period_s differs from rates.control_dt_s")
-    if float(dep["watchdog_s"]) * float(dep["lowstate_hz"]) < 2.0:
-        raise UsageError(
-            f"deploy.json deploy.watchdog_s {dep['watchdog_s']} s is under two LowState periods "
-            f"at lowstate_hz {dep['lowstate_hz']}"
-        )
-
-
 def fault_line(err: BaseException) -> str:
     """The one line naming an exception that ended the loop's normal steps."""
     if isinstance(err, InputFault):
         return str(err)
     text = str(err).splitlines()[0] if str(err) else ""
     return f"exception: {type(err).__name__}: {text}"[:300]
+
+
+def _wait_until(t: float, writer: Any, cmd: Any, resend_hz: float) -> None:
+    """Sleep until ``t``; with ``resend_hz``, re-publish ``cmd`` (already checked) meanwhile."""
+    while True:
+        wait = t - time.perf_counter()
+        if wait <= 0:
+            return
+        if resend_hz <= 0 or cmd is None:
+            time.sleep(wait)
+            return
+        time.sleep(min(wait, 1.0 / resend_hz))
+        if time.perf_counter() < t - 0.2 / resend_hz:
+            writer.write(cmd)
 
 
 def _newer(box: Any, tick: int, timeout: float) -> None:
@@ -412,13 +409,12 @@ def run(
     period = float(dep["deadline"]["period_s"])
     t0 = time.perf_counter()
     k, missed, skipped, policy_t0, shown, used_tick = 0, False, 0, None, 0, -1
+    last_cmd = None
     ctl.skipped_total = 0
     try:
         while ctl.machine.state != DONE:
             tick_start = t0 + k * period
-            wait = tick_start - time.perf_counter()
-            if wait > 0:
-                time.sleep(wait)
+            _wait_until(tick_start, cmd_writer, last_cmd, ctl.profile.resend_hz)
             now = time.perf_counter()
             try:
                 if ctl.machine.state == DAMPING:
@@ -439,6 +435,7 @@ def run(
                 ctl.machine.fault(now - t0, fault_line(err))
                 cmd = ctl.damping
             cmd_writer.write(cmd)
+            last_cmd = cmd
             done = time.perf_counter()
             if ctl.machine.state == POLICY and policy_t0 is None:
                 policy_t0 = now

@@ -14,7 +14,9 @@ only; ``lo`` only: the self-test's default, where other processes share the CPU)
 timings; ``log=<file.json>`` writes every step; ``lockstep=true`` (``lo`` only: the
 self-test) waits for the lockstep robot's answer before each step. A fault (any exception, a
 malformed message, a bad CRC, an impossible reading, a stale LowState, the deadline budget, a
-guard flag) damps for ``damping_s`` and exits 1 with one line naming it. ``sim``: the MuJoCo robot
+guard flag) damps for ``damping_s`` and exits 1 with one line naming it. ``robot=unitree_mujoco``
+(``lo`` only): Unitree's MuJoCo bridge publishes the LowState (mode_machine 0, no CRC, tick 0;
+the command re-sent at 200 Hz). ``sim``: the MuJoCo robot
 (:mod:`march.robot.sim_robot`). ``selftest``: both on loopback (:mod:`march.robot.selftest`). ``supervisor``
 (:mod:`march.robot.supervisor`): damps when the policy's LowCmds stop (``timeout_s``) or go
 invalid (``policy_pid=``: kill that process first). ``camera`` (:mod:`march.robot.camera`):
@@ -67,13 +69,14 @@ KEYS: dict[str, Any] = {
     "cmd_timeout": float,
     "timeout_s": float,
     "policy_pid": int,
+    "robot": str,
     "source": str,
     "file": str,
     "fps": float,
 }
 ALLOWED = {
     "policy": {"bundle", "domain", "interface", "seconds", "start", "guard", "deadlines", "vx", "vy", "log",
-               "zero_torque_s", "ramp_s", "hold_s", "damping_s", "max_seconds", "lockstep"},
+               "zero_torque_s", "ramp_s", "hold_s", "damping_s", "max_seconds", "lockstep", "robot"},
     "sim": {"bundle", "domain", "interface", "seconds", "course", "band", "lockstep", "log",
             "cmd_timeout"},
     "selftest": {"bundle", "domain", "interface", "seconds", "guard", "deadlines", "course", "keep"},
@@ -114,6 +117,7 @@ def parse(argv: Sequence[str]) -> tuple[str, dict[str, Any]]:
         "cmd_timeout": lambda v: 0 <= v < 600,
         "timeout_s": lambda v: 0.005 <= v <= 10,
         "policy_pid": lambda v: v > 0,
+        "robot": lambda v: v in ("g1", "unitree_mujoco"),
         "source": lambda v: v in ("realsense", "file"),
         "fps": lambda v: 1 <= v <= 90,
         "course": lambda v: v in ("hardware", "stones"),
@@ -124,7 +128,11 @@ def parse(argv: Sequence[str]) -> tuple[str, dict[str, Any]]:
     for key, ok in checks.items():
         if key in args and not ok(args[key]):
             raise UsageError(f"{key}={args[key]}: not allowed ({USAGE})")
-    for key, loose in (("guard", "report"), ("deadlines", "report"), ("lockstep", "true")):
+    loose_values = (
+        ("guard", "report"), ("deadlines", "report"), ("lockstep", "true"),
+        ("robot", "unitree_mujoco"),
+    )  # fmt: skip
+    for key, loose in loose_values:
         if job == "policy" and args.get(key) == loose and args.get("interface", "eth0") != "lo":
             raise UsageError(f"{key}={loose} only on the loopback interface (a simulated robot)")
     return job, args
@@ -148,7 +156,12 @@ def policy(args: dict[str, Any]) -> int:
         raise UsageError(str(err)) from None
     try:
         ctl = Controller(
-            bundle, timing, (vx, vy), args.get("guard", "damp"), args.get("deadlines", "damp")
+            bundle,
+            timing,
+            (vx, vy),
+            args.get("guard", "damp"),
+            args.get("deadlines", "damp"),
+            robot=args.get("robot", "g1"),
         )
     except BundleRefused as err:
         raise UsageError(str(err)) from None

@@ -11,6 +11,9 @@ reached it by another road than :class:`march.sim2sim.deploy_bundle.Bundle`.
   impossible IMU value, a joint reading not finite or past its limit, |dq| past the motor's).
 - :func:`depth_fault`: a depth message whose size is not the camera's, or not finite in a way
   no camera produces (inf / negative), and an image that is mostly invalid pixels.
+- :func:`check_deploy_fields`: deploy.json's wire facts (message type, slots, heading
+  reference, period, LowState rate) held to what the loop implements; :data:`PROFILES`: what the
+  loop expects of its LowState publisher (a G1, or Unitree's MuJoCo bridge).
 - :func:`command_fault`: the last check before a LowCmd is published (finite targets, kp / kd
   within bounds, kp > 0 only in ramp / hold / policy, dq and tau 0, unused slots off, CRC).
 
@@ -84,13 +87,14 @@ def _first(bad: np.ndarray) -> int:
     return int(np.flatnonzero(bad)[0])
 
 
-def lowstate_fault(ls: Any, lim: Limits) -> str | None:
-    """Why the loop must not act on ``ls`` (None: it may)."""
+def lowstate_fault(ls: Any, lim: Limits, crc: bool = True) -> str | None:
+    """Why the loop must not act on ``ls`` (None: it may). ``crc=False`` only for a simulator
+    that sends none (:data:`march.robot.policy_loop.PROFILES`)."""
     if not isinstance(ls, hg.LowState_):
         return f"LowState: not a LowState ({type(ls).__name__})"
     if len(ls.motor_state) != hg.NUM_MOTORS:
         return f"LowState: {len(ls.motor_state)} motor states, expected {hg.NUM_MOTORS}"
-    if hg.lowstate_crc(ls) != int(ls.crc):
+    if crc and hg.lowstate_crc(ls) != int(ls.crc):
         return f"LowState: CRC mismatch (tick {int(ls.tick)})"
     imu = ls.imu_state
     quat = np.asarray(imu.quaternion, dtype=np.float64)
@@ -180,3 +184,47 @@ def damping_lowcmd(lim: Limits, kd: float, mode_pr: int) -> hg.LowCmd_:
         m.mode, m.kd = lim.enable, float(kd)
     msg.crc = hg.lowcmd_crc(msg)
     return msg
+
+
+@dataclass(frozen=True)
+class RobotProfile:
+    """What the loop expects of its LowState publisher (``robot=`` on the command line)."""
+
+    mode_machine: int | None  # the LowState's mode_machine; None: deploy.json's
+    lowstate_crc: bool  # the LowState carries Unitree's CRC
+    tick_advances: bool  # the LowState tick counts up (a frozen tick is a stale robot)
+    resend_hz: float  # re-publish the current LowCmd this often between steps (0: never)
+
+
+PROFILES = {
+    "g1": RobotProfile(None, True, True, 0.0),
+    "unitree_mujoco": RobotProfile(0, False, False, 200.0),
+}
+"""``g1``: a G1 (and march.robot sim). ``unitree_mujoco``: Unitree's MuJoCo bridge
+(simulate_python), loopback only: its LowState has mode_machine 0, no CRC and tick 0, and it
+computes the PD torque once per LowCmd and holds it until the next, so the loop re-sends each
+command at the bridge's 200 Hz physics rate (docs/deploying.md)."""
+
+
+DEPLOY_FIELDS = {
+    ("msg_type",): "hg",
+    ("heading_reference",): "imu_yaw",
+    ("num_motor_slots",): hg.NUM_MOTORS,
+}
+
+
+def check_deploy_fields(spec: dict[str, Any]) -> None:
+    """deploy.json's facts about the wire that this loop implements, read and held to it."""
+    dep = spec["deploy"]
+    for (key,), want in DEPLOY_FIELDS.items():
+        if dep[key] != want:
+            raise BundleRefused(
+                f"deploy.json deploy.{key} = {dep[key]!r}: this loop speaks {want!r}"
+            )
+    if abs(float(dep["deadline"]["period_s"]) - float(spec["rates"]["control_dt_s"])) > 1e-9:
+        raise BundleRefused("deploy.json deploy.deadline.period_s differs from rates.control_dt_s")
+    if float(dep["watchdog_s"]) * float(dep["lowstate_hz"]) < 2.0:
+        raise BundleRefused(
+            f"deploy.json deploy.watchdog_s {dep['watchdog_s']} s is under two LowState periods "
+            f"at lowstate_hz {dep['lowstate_hz']}"
+        )
