@@ -70,13 +70,14 @@ KEYS: dict[str, Any] = {
     "timeout_s": float,
     "policy_pid": int,
     "robot": str,
+    "resend_hz": float,
     "source": str,
     "file": str,
     "fps": float,
 }
 ALLOWED = {
     "policy": {"bundle", "domain", "interface", "seconds", "start", "guard", "deadlines", "vx", "vy", "log",
-               "zero_torque_s", "ramp_s", "hold_s", "damping_s", "max_seconds", "lockstep", "robot"},
+               "zero_torque_s", "ramp_s", "hold_s", "damping_s", "max_seconds", "lockstep", "robot", "resend_hz"},
     "sim": {"bundle", "domain", "interface", "seconds", "course", "band", "lockstep", "log",
             "cmd_timeout"},
     "selftest": {"bundle", "domain", "interface", "seconds", "guard", "deadlines", "course", "keep"},
@@ -118,6 +119,7 @@ def parse(argv: Sequence[str]) -> tuple[str, dict[str, Any]]:
         "timeout_s": lambda v: 0.005 <= v <= 10,
         "policy_pid": lambda v: v > 0,
         "robot": lambda v: v in ("g1", "unitree_mujoco"),
+        "resend_hz": lambda v: 0 <= v <= 1000,
         "source": lambda v: v in ("realsense", "file"),
         "fps": lambda v: 1 <= v <= 90,
         "course": lambda v: v in ("hardware", "stones"),
@@ -132,6 +134,8 @@ def parse(argv: Sequence[str]) -> tuple[str, dict[str, Any]]:
         ("guard", "report"), ("deadlines", "report"), ("lockstep", "true"),
         ("robot", "unitree_mujoco"),
     )  # fmt: skip
+    if job == "policy" and "resend_hz" in args and args.get("interface", "eth0") != "lo":
+        raise UsageError("resend_hz= only on the loopback interface (a simulated robot)")
     for key, loose in loose_values:
         if job == "policy" and args.get(key) == loose and args.get("interface", "eth0") != "lo":
             raise UsageError(f"{key}={loose} only on the loopback interface (a simulated robot)")
@@ -163,6 +167,10 @@ def policy(args: dict[str, Any]) -> int:
             args.get("deadlines", "damp"),
             robot=args.get("robot", "g1"),
         )
+        if "resend_hz" in args:  # the profile's rate, overridden (loopback only)
+            from dataclasses import replace
+
+            ctl.profile = replace(ctl.profile, resend_hz=args["resend_hz"])
     except BundleRefused as err:
         raise UsageError(str(err)) from None
     domain, iface = args.get("domain", 0), args.get("interface", "eth0")
