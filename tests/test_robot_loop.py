@@ -333,3 +333,41 @@ def test_deploy_json_wire_fields_are_read_and_held(loaded):
         node[path[-1]] = value
         with pytest.raises(BundleRefused, match=word):
             check_deploy_fields(bad)
+
+
+def test_the_unitree_mujoco_profile_is_explicit_and_loopback_only(loaded):
+    """Unitree's MuJoCo bridge publishes LowState with mode_machine 0, crc 0 and tick 0: the
+    G1 profile damps on it at once; robot=unitree_mujoco accepts exactly that (and still every
+    reading check); the profile is refused off lo."""
+    from march.robot import hg
+    from march.robot.policy_loop import Controller
+    from march.robot.robot_command import parse
+    from march.robot.states import Timing
+    from march.sim2sim.deploy_bundle import UsageError
+    from march.sim2sim.motors import motor_table
+
+    slots = motor_table(loaded.spec)
+    bridge = hg.LowState_(mode_machine=0, tick=0)  # what the bridge sends: no crc
+    for i, s in enumerate(slots):
+        bridge.motor_state[int(s)].q = float(loaded.spec["robot"]["default_joint_pos"][i])
+    timing = Timing.from_spec(loaded.spec["deploy"], **FAST)
+    g1 = Controller(loaded, timing)
+    g1.step(bridge, 0.0, (None, -1), 0.0)
+    assert g1.machine.state == "damping" and "mode_machine" in g1.machine.fault_reason
+    g1 = Controller(loaded, timing)
+    variant5 = copy.deepcopy(bridge)
+    variant5.mode_machine = 5  # the right variant, no crc
+    g1.step(variant5, 0.0, (None, -1), 0.0)
+    assert g1.machine.state == "damping" and "CRC" in g1.machine.fault_reason
+    um = Controller(loaded, timing, robot="unitree_mujoco")
+    for k in range(30):  # zero torque -> ramp -> hold on a frozen tick 0: no fault
+        um.step(bridge, 0.0, (None, -1), k * 0.02)
+    assert um.machine.state == "hold", um.machine.transitions
+    nan = copy.deepcopy(bridge)
+    nan.motor_state[int(slots[2])].dq = float("nan")
+    um.step(nan, 0.0, (None, -1), 0.62)
+    assert um.machine.state == "damping" and "not finite" in um.machine.fault_reason
+    with pytest.raises(UsageError, match="loopback"):
+        parse(["policy", "bundle=x", "robot=unitree_mujoco", "interface=eth0"])
+    with pytest.raises(UsageError, match="loopback"):
+        parse(["policy", "bundle=x", "resend_hz=200", "interface=eth0"])
