@@ -34,8 +34,15 @@ def _start(*words: str) -> subprocess.Popen:
 
 
 def _until(proc: subprocess.Popen, text: str, timeout: float = 60.0) -> str:
+    """Lines of ``proc`` up to the one holding ``text``; fails after ``timeout`` even when the
+    process prints nothing (a select on its pipe, not a blocking read)."""
+    import select
+
     seen, end = [], time.monotonic() + timeout
     while time.monotonic() < end:
+        ready, _, _ = select.select([proc.stdout], [], [], max(0.0, end - time.monotonic()))
+        if not ready:
+            break
         line = proc.stdout.readline()
         if not line:
             break
