@@ -56,7 +56,7 @@ docs: $(VENV)/.installed  ## the documentation site: mkdocs build --strict -> si
 # processes), the supervisor taking over from a killed policy, the camera through librealsense,
 # the self-test; one process at a time (the matrix measures latencies). ~8 min on 2 cores.
 robot-check: $(VENV)/.installed  ## the robot loop's fault matrix, supervisor, camera, self-test
-	$(PY) -m pytest -q -p no:xdist -s tests/test_robot_faults.py tests/test_robot_supervisor.py \
+	$(PY) -m pytest -q -p no:xdist -s -m "" tests/test_robot_faults.py tests/test_robot_supervisor.py \
 		tests/test_robot_camera.py tests/test_robot_checks.py tests/test_robot_loop.py \
 		tests/test_robot_states.py tests/test_robot_hg.py $(ARGS)
 

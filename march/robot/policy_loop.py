@@ -324,17 +324,27 @@ class InputFault(RuntimeError):
     """A message the loop cannot use (its text is the one line that names it)."""
 
 
+DEPTH_STALE_S = 0.25
+"""Seconds: in the policy state, a depth image older than this (7 frames of a 30 Hz camera) is a
+stale input - the camera stopped - and damps; before the policy the image is not used."""
+
+
 class DdsDepth:
     """The depth topic as a :class:`DepthSource`; a malformed message is an :class:`InputFault`
-    (in every state: a camera that sends garbage before the policy starts is not trusted)."""
+    (in every state: a camera that sends garbage before the policy starts is not trusted), and
+    so is, in the policy state, an image older than :data:`DEPTH_STALE_S`."""
 
     def __init__(self, box: Any, height: int, width: int) -> None:
         self.box, self.height, self.width = box, height, width
+        self.in_policy = False  # set by the loop each step
 
     def latest(self) -> tuple[np.ndarray | None, int]:
-        msg, _ = self.box.take()
+        msg, arrived = self.box.take()
         if msg is None:
             return None, -1
+        age = time.perf_counter() - arrived
+        if self.in_policy and age > DEPTH_STALE_S:
+            raise InputFault(f"depth: stale image ({age * 1e3:.0f} ms old, tick {int(msg.tick)})")
         img, problem = depth_image(msg, self.height, self.width)
         if problem is not None:
             raise InputFault(problem)
@@ -429,6 +439,8 @@ def run(
                     want_start = start == "auto" or (enter is not None and enter())
                     over = policy_t0 is not None and now - policy_t0 >= policy_seconds
                     quit_now = stop["flag"] or over or now - t0 >= max_seconds
+                    if isinstance(source, DdsDepth):
+                        source.in_policy = ctl.machine.state == POLICY
                     image = source.latest()
                     cmd = ctl.step(ls, age, image, now - t0, missed, want_start, quit_now, skipped)
             except Exception as err:  # noqa: BLE001 - every fault ends in damping
