@@ -66,6 +66,8 @@ LATENCY_S = 0.2
 """Seconds from the fault to the first damping command: 10 control periods (a loaded shared
 machine; the measured figures are printed)."""
 KNEE = 3
+DEPTH_STALE_S = 0.25
+"""docs/deploying.md: in the policy state a depth image older than this damps."""
 WRAPPER = """
 import os, sys
 import march.robot.policy_loop as pl
@@ -250,8 +252,6 @@ def judge(robot: FakeRobot, fault, state, rc, err, resumed) -> dict:
     if fault == "stale":
         t0 += float(robot.spec["deploy"]["watchdog_s"])
     if fault == "depth_stale":
-        from march.robot.policy_loop import DEPTH_STALE_S
-
         t0 += DEPTH_STALE_S
     gained = [
         i for i, (tt, _, kp, _) in enumerate(robot.cmds) if tt > robot.planted_at and kp.any()
