@@ -259,7 +259,7 @@ def test_watchdog_and_ctrl_c_over_dds(bundle):
         out, err = loop.communicate(timeout=60)
         out = head + out
         assert loop.returncode == 1, out  # a fault: damping, then exit 1 naming it
-        assert "policy -> damping  (watchdog: LowState stale" in out, out
+        assert "policy -> damping  (watchdog: LowState" in out, out  # stale, or its tick frozen
         assert "error: the robot loop damped on a fault: watchdog" in err
         assert "damping -> done" in out
         # Ctrl-C
