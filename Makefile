@@ -52,6 +52,29 @@ test: $(VENV)/.installed  ## the test suite CI runs (slow extras left out)
 docs: $(VENV)/.installed  ## the documentation site: mkdocs build --strict -> site/
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet
 
+# The robot loop on loopback DDS: the fault matrix (8 faults x 4 states, each in its own
+# processes), the supervisor taking over from a killed policy, the camera through librealsense,
+# the self-test; one process at a time (the matrix measures latencies). ~8 min on 2 cores.
+robot-check: $(VENV)/.installed  ## the robot loop's fault matrix, supervisor, camera, self-test
+	$(PY) -m pytest -q -p no:xdist -s -m "" tests/test_robot_faults.py tests/test_robot_supervisor.py \
+		tests/test_robot_camera.py tests/test_robot_checks.py tests/test_robot_loop.py \
+		tests/test_robot_states.py tests/test_robot_hg.py $(ARGS)
+
+# march.robot policy against Unitree's own MuJoCo bridge (unitree_mujoco's simulate_python, run
+# headless by march/robot/unitree_mujoco_run.py from your clone; nothing of it is copied), on
+# loopback, robot=unitree_mujoco (its LowState: mode_machine 0, no CRC, tick 0; each command
+# re-sent at its 200 Hz). Needs UNITREE_MUJOCO=<unitree_mujoco clone>, UNITREE_SDK2=<unitree_sdk2_python
+# clone>, pygame installed, BUNDLE=<export folder>. Not in CI. docs/deploying.md has the outcome.
+UNITREE_DOMAIN ?= 3
+unitree-sim: $(VENV)/.installed  ## the robot loop against unitree_mujoco's bridge (UNITREE_MUJOCO= UNITREE_SDK2= BUNDLE=)
+	@test -n "$(UNITREE_MUJOCO)" -a -n "$(UNITREE_SDK2)" -a -n "$(BUNDLE)" || \
+		{ echo "give UNITREE_MUJOCO=<clone> UNITREE_SDK2=<clone> BUNDLE=<folder>"; exit 2; }
+	PYTHONPATH=$(UNITREE_SDK2):$$PYTHONPATH $(PY) -m march.robot.unitree_mujoco_run \
+		unitree_mujoco=$(UNITREE_MUJOCO) domain=$(UNITREE_DOMAIN) seconds=20 band_s=8 & sim=$$!; \
+	sleep 3; $(PY) -m march.robot policy bundle=$(BUNDLE) domain=$(UNITREE_DOMAIN) interface=lo \
+		robot=unitree_mujoco start=auto seconds=4 guard=report zero_torque_s=1 ramp_s=2 hold_s=1 \
+		$(ARGS); rc=$$?; wait $$sim; exit $$rc
+
 test-all: $(VENV)/.installed  ## including tests marked slow
 	$(PY) -m pytest -q -m "" $(XDIST) $(ARGS)
 

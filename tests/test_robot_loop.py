@@ -175,6 +175,34 @@ def test_selftest_agrees_with_sim2sim(bundle, tmp_path):
     bad = shadow(b, "hardware", log, states)
     assert bad["max_abs_diff"] >= 1e-4 - 1e-6
     assert report(bad, log, "", 1.0, 2.0, 1, "lo") == 1
+    # what reached the motors: the honest run's targets and gains agree with sim2sim's ...
+    assert honest["commands_compared"] >= 10
+    assert honest["target_diff"] <= 2e-5 and honest["gain_diff"] <= 1e-6
+    # ... and a loop that logs its action but sends it clipped fails. This student's actions
+    # stay inside +-0.46, where a +-1 clip changes nothing (no comparison can see it), so the
+    # clip is at half the largest |action| it produced
+    from march.robot.selftest import motor_commands
+    from march.sim2sim.motors import motor_table
+
+    acts = np.array([s["action"] for s in log["steps"] if s["action"] is not None])
+    limit = 0.5 * np.abs(acts).max()
+    spec, slots = b.spec, motor_table(b.spec)
+    off, sc = np.asarray(spec["action"]["offset"]), np.asarray(spec["action"]["scale"])
+    at = {int(t): i for i, t in enumerate(states["cmd_ticks"])}
+    clipped = dict(states, cmds=states["cmds"].copy())
+    for s in log["steps"]:
+        if s["action"] is not None and s["state"] == "policy" and s["lowstate_tick"] in at:
+            a = np.clip(np.asarray(s["action"]), -limit, limit)
+            clipped["cmds"][at[s["lowstate_tick"]]][0][slots] = off + sc * a
+    actions = [np.asarray(s["action"]) for s in log["steps"] if s["action"] is not None]
+    seen = motor_commands(b, log, clipped, actions)
+    assert seen["target_diff"] > 1e-3, seen
+    assert report({**honest, **seen}, log, "", 1.0, 2.0, 1, "lo") == 1
+    # and kp sent twice the table's at one joint of one policy step
+    raised = dict(states, cmds=states["cmds"].copy())
+    k = at[next(s["lowstate_tick"] for s in log["steps"] if s["state"] == "policy")]
+    raised["cmds"][k][1][slots[0]] *= 2.0
+    assert motor_commands(b, log, raised, actions)["gain_diff"] > 0.3
 
 
 def test_selftest_with_the_guard_on_damps_the_smoke_student(bundle):
@@ -185,12 +213,12 @@ def test_selftest_with_the_guard_on_damps_the_smoke_student(bundle):
     assert res.returncode == 0 and "-> OK" in res.stdout
 
 
-def _start(*words: str) -> subprocess.Popen:
+def _start(*words: str, stderr=subprocess.STDOUT) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "march.robot", *words],
         cwd=ROOT,
         stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
+        stderr=stderr,
         text=True,
     )
 
@@ -221,15 +249,18 @@ def test_watchdog_and_ctrl_c_over_dds(bundle):
         # the watchdog: the robot dies while the policy runs
         sim = start("sim", *common, "band=100", "lockstep=true")
         assert "[sim] publishing" in sim.stdout.readline()
-        loop = start("policy", *common, "start=auto", "guard=report", "deadlines=report", *fast)
+        loop = _start("policy", *common, "start=auto", "guard=report", "deadlines=report", *fast,
+                      stderr=subprocess.PIPE)  # fmt: skip
+        procs.append(loop)
         head = _until(loop, "hold -> policy")
         time.sleep(0.3)
         sim.kill()
         sim.wait()
-        out, _ = loop.communicate(timeout=60)
+        out, err = loop.communicate(timeout=60)
         out = head + out
-        assert loop.returncode == 0, out
-        assert "policy -> damping  (watchdog: LowState stale" in out, out
+        assert loop.returncode == 1, out  # a fault: damping, then exit 1 naming it
+        assert "policy -> damping  (watchdog: LowState" in out, out  # stale, or its tick frozen
+        assert "error: the robot loop damped on a fault: watchdog" in err
         assert "damping -> done" in out
         # Ctrl-C
         sim = start("sim", *common, "band=100", "lockstep=true")
@@ -247,3 +278,96 @@ def test_watchdog_and_ctrl_c_over_dds(bundle):
             if p.poll() is None:
                 p.kill()
                 p.wait()
+
+
+def test_torque_limits_saturate_where_deploy_json_says(loaded):
+    """Every motor driven 10 rad past its target with the joints' kp saturates at exactly
+    deploy.json's torque_limit (the scene's force range); a bundle whose torque limits say
+    otherwise (x2, as slipped through the sim-to-sim tests) is refused in one line."""
+    from march.robot import hg
+    from march.robot.sim_robot import SimRobot
+    from march.sim2sim.deploy_bundle import Bundle, UsageError
+    from march.sim2sim.motors import motor_table
+
+    spec = loaded.spec
+    slots = motor_table(spec)
+    limit = np.array([j["torque_limit"] for j in spec["joints"]])
+    for sign in (1.0, -1.0):
+        robot = SimRobot(loaded, band_s=100.0)
+        q = robot.bus.q(robot.data)
+        cmd = hg.LowCmd_(mode_machine=robot.mode_machine)
+        for i, s in enumerate(slots):
+            m = cmd.motor_cmd[int(s)]
+            m.mode, m.kp, m.kd = 1, spec["joints"][i]["kp"], 0.0
+            m.q = float(q[int(s)] + sign * 10.0)
+        cmd.crc = hg.lowcmd_crc(cmd)
+        assert robot.apply(cmd)
+        robot.physics_step()
+        ls = robot.lowstate()
+        tau = np.array([ls.motor_state[int(s)].tau_est for s in slots])
+        np.testing.assert_allclose(tau, sign * limit, rtol=1e-6)  # saturated, each its own
+    for scale in (2.0, 0.5):
+        bad = copy.deepcopy(spec)
+        bad["joints"][7]["torque_limit"] *= scale
+        with pytest.raises(UsageError, match=r"joints\[7\]\.torque_limit"):
+            SimRobot(Bundle(loaded.onnx_path, bad), band_s=100.0)
+
+
+def test_deploy_json_wire_fields_are_read_and_held(loaded):
+    from march.robot.wire_checks import BundleRefused, check_deploy_fields
+
+    check_deploy_fields(loaded.spec)
+    cases = {
+        ("msg_type",): ("go", "msg_type"),
+        ("heading_reference",): ("world", "heading_reference"),
+        ("num_motor_slots",): (29, "num_motor_slots"),
+        ("deadline", "period_s"): (0.01, "period_s"),
+        ("watchdog_s",): (0.003, "watchdog_s"),
+        ("lowstate_hz",): (30.0, "lowstate_hz"),
+    }
+    for path, (value, word) in cases.items():
+        bad = copy.deepcopy(loaded.spec)
+        node = bad["deploy"]
+        for p in path[:-1]:
+            node = node[p]
+        node[path[-1]] = value
+        with pytest.raises(BundleRefused, match=word):
+            check_deploy_fields(bad)
+
+
+def test_the_unitree_mujoco_profile_is_explicit_and_loopback_only(loaded):
+    """Unitree's MuJoCo bridge publishes LowState with mode_machine 0, crc 0 and tick 0: the
+    G1 profile damps on it at once; robot=unitree_mujoco accepts exactly that (and still every
+    reading check); the profile is refused off lo."""
+    from march.robot import hg
+    from march.robot.policy_loop import Controller
+    from march.robot.robot_command import parse
+    from march.robot.states import Timing
+    from march.sim2sim.deploy_bundle import UsageError
+    from march.sim2sim.motors import motor_table
+
+    slots = motor_table(loaded.spec)
+    bridge = hg.LowState_(mode_machine=0, tick=0)  # what the bridge sends: no crc
+    for i, s in enumerate(slots):
+        bridge.motor_state[int(s)].q = float(loaded.spec["robot"]["default_joint_pos"][i])
+    timing = Timing.from_spec(loaded.spec["deploy"], **FAST)
+    g1 = Controller(loaded, timing)
+    g1.step(bridge, 0.0, (None, -1), 0.0)
+    assert g1.machine.state == "damping" and "mode_machine" in g1.machine.fault_reason
+    g1 = Controller(loaded, timing)
+    variant5 = copy.deepcopy(bridge)
+    variant5.mode_machine = 5  # the right variant, no crc
+    g1.step(variant5, 0.0, (None, -1), 0.0)
+    assert g1.machine.state == "damping" and "CRC" in g1.machine.fault_reason
+    um = Controller(loaded, timing, robot="unitree_mujoco")
+    for k in range(30):  # zero torque -> ramp -> hold on a frozen tick 0: no fault
+        um.step(bridge, 0.0, (None, -1), k * 0.02)
+    assert um.machine.state == "hold", um.machine.transitions
+    nan = copy.deepcopy(bridge)
+    nan.motor_state[int(slots[2])].dq = float("nan")
+    um.step(nan, 0.0, (None, -1), 0.62)
+    assert um.machine.state == "damping" and "not finite" in um.machine.fault_reason
+    with pytest.raises(UsageError, match="loopback"):
+        parse(["policy", "bundle=x", "robot=unitree_mujoco", "interface=eth0"])
+    with pytest.raises(UsageError, match="loopback"):
+        parse(["policy", "bundle=x", "resend_hz=200", "interface=eth0"])

@@ -1,8 +1,9 @@
 """The robot loop's safety state machine over many generated fault timings (no DDS, no clock).
 
 Each scenario is a 50 Hz tick sequence with random timings: when LowState starts, a gap in it
-(stale: the watchdog), missed deadlines (scattered or in a row), a guard flag, a hardware
-variant change, a stop request (Ctrl-C), when start is pressed. An oracle written apart from
+(stale: the watchdog, in zero torque too once a LowState has come), missed deadlines
+(scattered or in a row) and skipped periods (each a missed deadline), a fault or guard flag (in
+any state), a hardware variant change, a stop request (Ctrl-C), when start is pressed. An oracle written apart from
 the machine (per-tick predicates over the whole schedule) gives the tick where damping must
 begin and why; the machine must start damping exactly there, never pass a state out of order,
 keep each start-up state for its time, damp for ``damping_s`` and end ``done``.
@@ -55,12 +56,15 @@ def scenario(rng: np.random.Generator, n: int = 300) -> dict:
     if rng.random() < 0.2:
         k = int(rng.integers(n - 5))
         missed[k : k + 3] = True
+    skipped = np.zeros(n, dtype=int)
+    if rng.random() < 0.2:
+        skipped[int(rng.integers(n))] = int(rng.integers(1, 30))
     flag_at = rng.uniform(0.0, 6.0) if rng.random() < 0.3 else np.inf
     stop_at = rng.uniform(0.0, 6.0) if rng.random() < 0.5 else np.inf
     variant_bad_at = rng.uniform(0.0, 6.0) if rng.random() < 0.1 else np.inf
     start_at = rng.uniform(0.5, 3.0)
     return dict(
-        t=t, age=age, missed=missed, flag_at=flag_at, stop_at=stop_at,
+        t=t, age=age, missed=missed, skipped=skipped, flag_at=flag_at, stop_at=stop_at,
         variant_bad_at=variant_bad_at, start_at=start_at,
     )  # fmt: skip
 
@@ -69,11 +73,12 @@ def drive(s: dict, machine: SafetyMachine) -> list[str]:
     states = []
     for i, now in enumerate(s["t"]):
         age = None if np.isnan(s["age"][i]) else float(s["age"][i])
-        flags = ("guard",) if now >= s["flag_at"] and machine.state == POLICY else ()
+        flags = ("guard",) if now >= s["flag_at"] else ()
         tick = Tick(
             now=float(now),
             lowstate_age=age,
             missed_deadline=bool(s["missed"][i]),
+            skipped=int(s["skipped"][i]),
             flags=flags,
             start=now >= s["start_at"],
             stop=now >= s["stop_at"],
@@ -95,15 +100,20 @@ def oracle_first_damping(s: dict, states: list[str]) -> tuple[int | None, str | 
             return i, "stop"
         if now >= s["variant_bad_at"]:
             return i, "variant"
-        active = prev in (RAMP, HOLD, POLICY)
+        active = prev in (ZERO_TORQUE, RAMP, HOLD, POLICY)
         if active:
-            if np.isnan(age[i]) or age[i] > TIMING.watchdog_s:
+            waiting = prev == ZERO_TORQUE and np.isnan(age[i])  # no LowState yet
+            if not waiting and (np.isnan(age[i]) or age[i] > TIMING.watchdog_s):
                 return i, "watchdog"
-            window = (window + [bool(missed[i])])[-TIMING.window_steps :]
-            row = row + 1 if missed[i] else 0
-            if sum(window) > TIMING.max_missed_in_window or row >= TIMING.max_missed_in_a_row:
+            spent = False
+            for m in [True] * int(s["skipped"][i]) + [bool(missed[i])]:
+                window = (window + [m])[-TIMING.window_steps :]
+                row = row + 1 if m else 0
+                spent |= sum(window) > TIMING.max_missed_in_window
+                spent |= row >= TIMING.max_missed_in_a_row
+            if spent:
                 return i, "deadline"
-            if prev == POLICY and now >= s["flag_at"]:
+            if now >= s["flag_at"]:
                 return i, "guard"
         if states[i] == DONE:
             return None, None
@@ -168,6 +178,7 @@ def test_a_clean_run_reaches_the_policy_and_stays():
     s = scenario(np.random.default_rng(0))
     s.update(
         age=np.zeros_like(s["t"]), missed=np.zeros_like(s["missed"]), flag_at=np.inf,
+        skipped=np.zeros_like(s["skipped"]),
         stop_at=np.inf, variant_bad_at=np.inf, start_at=0.0,
     )  # fmt: skip
     m = SafetyMachine(TIMING)

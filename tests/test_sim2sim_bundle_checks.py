@@ -255,3 +255,38 @@ def test_export_refuses_an_existing_file_as_out_before_any_work(tmp_path):
 
 def test_schema_covers_every_section_the_export_writes(spec):
     assert set(SCHEMA) == set(spec)
+
+
+@pytest.mark.parametrize(
+    "field,value,words",
+    [
+        ("kp", -500.0, "kp = -500"),
+        ("torque_limit", 1e9, "torque_limit = 1e+09"),
+        ("kd", -1.0, "kd = -1"),
+        ("default_pos", 3.5, "default_pos = 3.5"),
+    ],
+)
+def test_motor_values_out_of_the_g1_ranges_are_refused_by_sim2sim_and_the_robot(
+    spec, good, field, value, words
+):
+    """kp -500 and a torque limit of 1e9 passed both tools before (issue 47, item 3)."""
+    broken = copy.deepcopy(spec)
+    broken["joints"][3][field] = value  # left knee
+    if field == "default_pos":
+        broken["robot"]["default_joint_pos"][3] = value
+    good.with_suffix(".deploy.json").write_text(json.dumps(broken))
+    try:
+        for cmd in (
+            ["march.sim2sim", f"onnx={good}", "seconds=0.1"],
+            ["march.robot", "selftest", f"bundle={good}", "seconds=0.5"],
+            ["march.robot", "policy", f"bundle={good}", "interface=lo"],
+        ):
+            res = subprocess.run(
+                [sys.executable, "-m", *cmd], cwd=ROOT, capture_output=True, text=True,
+                timeout=300,
+            )  # fmt: skip
+            lines = res.stderr.strip().splitlines()
+            assert res.returncode == 2 and len(lines) == 1, (cmd, res.stderr[-500:])
+            assert words in lines[0] and "joints[3]" in lines[0], lines[0]
+    finally:
+        good.with_suffix(".deploy.json").write_text(json.dumps(spec))

@@ -278,10 +278,12 @@ def depth_intrinsics(width: int, height: int, fovy_deg: float) -> dict[str, Any]
 REAL_DEPTH_RECIPE = [
     "1. Read the depth frame in metres (RealSense z16: value x depth_scale, 0.001 m by default); "
     "RealSense depth is already planar (distance along the optical axis), as the training's.",
-    "2. For each of the 32x24 pixels (row i from the top, col j from the left) take the ray "
-    "through its centre (intrinsics above: fovy 55.2 deg, fovx ~69.8 deg, both inside a D435's "
-    "depth field of view), project it into the real camera with its own intrinsics and read "
-    "the depth there (nearest pixel; the training renders one ray per pixel, no averaging).",
+    "2. Lay the 32x24 pixel grid (row i from the top, col j from the left; intrinsics above: "
+    "fovy 55.2 deg, fovx ~69.8 deg, both inside a D435's depth field of view) over the real "
+    "camera's through both intrinsics; each pixel is the mean of the valid (> 0) camera pixels "
+    "whose centres fall in it, invalid when fewer than half are valid (the training renders one "
+    "ray per pixel; a single RealSense pixel is noisier than their mean). python -m "
+    "march.robot camera does this.",
     "3. Invalid (0, NaN) -> max_range_m; clip to [min_range_m, max_range_m]; "
     "(d - min_range_m) / (max_range_m - min_range_m) -> [0, 1].",
     "4. Feed as depth (1, 1, 24, 32) float32, row 0 at the top of the image.",

@@ -25,8 +25,27 @@ from typing import Any, Protocol
 import numpy as np
 
 from march.robot import hg
-from march.robot.states import DONE, POLICY, RAMP, MotorCommand, SafetyMachine, Tick, Timing
+from march.robot.states import (
+    DAMPING,
+    DONE,
+    POLICY,
+    RAMP,
+    MotorCommand,
+    SafetyMachine,
+    Tick,
+    Timing,
+)
 from march.robot.states import command_for as state_command
+from march.robot.wire_checks import (
+    PROFILES,
+    Limits,
+    check_deploy_fields,
+    command_fault,
+    damping_lowcmd,
+    depth_image,
+    depth_invalid_flag,
+    lowstate_fault,
+)
 from march.sim2sim.deploy_bundle import INPUTS, OUTPUT, Bundle, UsageError
 from march.sim2sim.depth_camera import normalize_depth
 from march.sim2sim.guard import RangeGuard
@@ -79,6 +98,7 @@ class Controller:
     command: tuple[float, float] = (math.nan, math.nan)
     guard_action: str = "damp"  # damp: a guard flag enters damping; report: only recorded
     deadline_action: str = "damp"  # damp: the deadline budget damps; report: only counted
+    robot: str = "g1"  # a key of PROFILES: what the LowState publisher is
     log: list[StepLog] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -107,7 +127,12 @@ class Controller:
         self.ramp_from = self.default.copy()
         self.depth = spec["depth"]
         self.mode_machine = int(dep["mode_machine"])
+        self.profile = PROFILES[self.robot]
         self.mode_pr = int(dep["mode_pr"])
+        self.limits = Limits.from_spec(spec, self.motor_index)
+        self.damping = damping_lowcmd(self.limits, self.timing.damping_kd, self.mode_pr)
+        self.last_tick, self.tick_since = -1, 0.0
+        check_deploy_fields(spec)
 
     def _warm_up(self, calls: int = 5) -> None:
         """onnxruntime's first calls allocate and plan: make them before the clock starts,
@@ -171,6 +196,8 @@ class Controller:
         flags = []
         if not np.any(np.isfinite(img) & (img > 0)):
             flags.append("depth: image all NaN / zero")
+        elif (mostly := depth_invalid_flag(img)) is not None:
+            flags.append(mostly)
         img = np.where(np.isfinite(img), img, 0.0)
         norm = normalize_depth(img, float(d["min_range_m"]), float(d["max_range_m"]))
         return norm.astype(np.float32)[None, None], flags
@@ -186,17 +213,28 @@ class Controller:
         missed: bool = False,
         start: bool = False,
         stop: bool = False,
+        skipped: int = 0,
     ) -> hg.LowCmd_:
-        """This step's LowCmd from the newest LowState (``None`` before the first)."""
-        x = self.read(ls) if ls is not None else None
-        variant_ok = ls is None or int(ls.mode_machine) == self.mode_machine
+        """This step's LowCmd from the newest LowState (``None`` before the first). Every
+        reading is checked in every state (:func:`march.robot.wire_checks.lowstate_fault`): a fault
+        damps at once, whatever ``guard`` says; the training-range guard acts per ``guard``."""
+        faults: list[str] = []
+        x = None
+        if ls is not None:
+            fault = lowstate_fault(ls, self.limits, crc=self.profile.lowstate_crc)
+            if fault is None:
+                x = self.read(ls)
+                faults += self._frozen(int(ls.tick), now) if self.profile.tick_advances else []
+            else:
+                faults.append(fault)
+        want = self.mode_machine if self.profile.mode_machine is None else self.profile.mode_machine
+        variant_ok = ls is None or int(ls.mode_machine) == want
         flags: list[str] = []
         prev = self.machine.state
-        if x is not None and prev == POLICY:
-            flags += [f"dq over the limit at {n}" for n in self._too_fast(x["dq"])]
-        acted = tuple(flags) if self.guard_action == "damp" else ()
         late = missed and self.deadline_action == "damp"
-        state = self.machine.tick(Tick(now, lowstate_age, late, acted, start, stop, variant_ok))
+        skip = skipped if self.deadline_action == "damp" else 0
+        tick = Tick(now, lowstate_age, late, skip, tuple(faults), start, stop, variant_ok)
+        state = self.machine.tick(tick)
         elapsed = now - (self.machine.since or now)
         action, target = None, None
         if state == POLICY and x is not None:
@@ -233,6 +271,11 @@ class Controller:
             timing=self.timing,
             policy_target=target,
         )
+        msg = self.lowcmd(cmd)
+        unsafe = command_fault(msg, state, self.limits)
+        if unsafe is not None:  # the last check before publish: never sent
+            state = self.machine.fault(now, unsafe)
+            msg = self.damping
         self.log.append(
             StepLog(
                 state,
@@ -240,14 +283,27 @@ class Controller:
                 int(depth[1]),
                 action,  # computed this step (sent unless the step damped)
                 self.heading_ref,
-                flags=tuple(flags),
+                flags=tuple(faults + flags),
             )
         )
-        return self.lowcmd(cmd)
+        return msg
 
-    def _too_fast(self, dq: np.ndarray) -> list[str]:
-        names = self.spec["robot"]["joint_names"]
-        return [names[i] for i in np.flatnonzero(np.abs(dq) > self.vel_limit)]
+    def _frozen(self, tick: int, now: float) -> list[str]:
+        """A LowState whose tick stops advancing is stale, however often it is re-sent."""
+        if tick != self.last_tick:
+            self.last_tick, self.tick_since = tick, now
+            return []
+        if now - self.tick_since > self.timing.watchdog_s:
+            return [
+                f"watchdog: LowState tick frozen at {tick} ({(now - self.tick_since) * 1e3:.0f} ms)"
+            ]
+        return []
+
+    def damping_step(self, now: float) -> hg.LowCmd_:
+        """A step once damping has begun: the damping command, nothing read."""
+        self.machine.tick(Tick(now, 0.0, stop=True))
+        self.log.append(StepLog(self.machine.state, -1, -1, None, self.heading_ref))
+        return self.damping
 
     def lowcmd(self, cmd: MotorCommand) -> hg.LowCmd_:
         msg = hg.LowCmd_(mode_pr=self.mode_pr, mode_machine=self.mode_machine)
@@ -264,18 +320,69 @@ class Controller:
 # The loop over DDS on a fixed-rate clock.
 
 
-class DdsDepth:
-    """The depth topic as a :class:`DepthSource`."""
+class InputFault(RuntimeError):
+    """A message the loop cannot use (its text is the one line that names it)."""
 
-    def __init__(self, box: Any) -> None:
-        self.box = box
+
+DEPTH_STALE_S = 0.25
+"""Seconds: in the policy state, a depth image older than this (7 frames of a 30 Hz camera) is a
+stale input - the camera stopped - and damps; before the policy the image is not used."""
+
+
+class DdsDepth:
+    """The depth topic as a :class:`DepthSource`; a malformed message is an :class:`InputFault`
+    (in every state: a camera that sends garbage before the policy starts is not trusted), and
+    so is, in the policy state, an image older than :data:`DEPTH_STALE_S`."""
+
+    def __init__(self, box: Any, height: int, width: int) -> None:
+        self.box, self.height, self.width = box, height, width
+        self.in_policy = False  # set by the loop each step
 
     def latest(self) -> tuple[np.ndarray | None, int]:
-        msg, _ = self.box.take()
+        msg, arrived = self.box.take()
         if msg is None:
             return None, -1
-        img = np.asarray(msg.depth_m, dtype=np.float64).reshape(msg.height, msg.width)
+        age = time.perf_counter() - arrived
+        if self.in_policy and age > DEPTH_STALE_S:
+            raise InputFault(f"depth: stale image ({age * 1e3:.0f} ms old, tick {int(msg.tick)})")
+        img, problem = depth_image(msg, self.height, self.width)
+        if problem is not None:
+            raise InputFault(problem)
         return img, int(msg.tick)
+
+
+def fault_line(err: BaseException) -> str:
+    """The one line naming an exception that ended the loop's normal steps."""
+    if isinstance(err, InputFault):
+        return str(err)
+    text = str(err).splitlines()[0] if str(err) else ""
+    return f"exception: {type(err).__name__}: {text}"[:300]
+
+
+def _wait_until(t: float, writer: Any, cmd: Any, resend_hz: float) -> None:
+    """Sleep until ``t``; with ``resend_hz``, re-publish ``cmd`` (already checked) meanwhile."""
+    while True:
+        wait = t - time.perf_counter()
+        if wait <= 0:
+            return
+        if resend_hz <= 0 or cmd is None:
+            time.sleep(wait)
+            return
+        time.sleep(min(wait, 1.0 / resend_hz))
+        if time.perf_counter() < t - 0.2 / resend_hz:
+            writer.write(cmd)
+
+
+def _newer(box: Any, tick: int, timeout: float) -> None:
+    """Lockstep: poll until a LowState newer than ``tick`` arrives (or ``timeout``)."""
+    end = time.perf_counter() + timeout
+    while True:
+        box.poll()
+        if box.sample is not None and int(box.sample.tick) > tick:
+            return
+        if time.perf_counter() >= end:
+            return
+        time.sleep(2e-4)
 
 
 def run(
@@ -286,17 +393,22 @@ def run(
     policy_seconds: float = math.inf,
     max_seconds: float = math.inf,
     depth: DepthSource | None = None,
+    lockstep_s: float = 0.0,
 ) -> list[StepLog]:
     """Drive ``ctl`` at the control rate until done. ``start``: ``enter`` (a line on stdin
     starts the policy from hold) or ``auto``; the policy runs ``policy_seconds`` then stops
-    (damping); SIGINT / SIGTERM stop it too."""
+    (damping); SIGINT / SIGTERM stop it too. Any exception in a step (a malformed message, a
+    bug) is a fault: damping from that step on, for its full time, sent by a path that reads
+    nothing. ``lockstep_s`` > 0 (the self-test against a lockstep robot only): each step first
+    waits up to that long for the LowState that answers the previous command."""
     from march.robot import dds
 
     dp = dds.participant(domain, interface)
     dep = ctl.spec["deploy"]
     state_box = dds.Latest(dp, dep["lowstate_topic"], hg.LowState_)
     cmd_writer = dds.writer(dp, dep["lowcmd_topic"], hg.LowCmd_)
-    source = depth or DdsDepth(dds.Latest(dp, dds.DEPTH_TOPIC, dds.DepthImage_))
+    hw = (int(ctl.depth["height"]), int(ctl.depth["width"]))
+    source = depth or DdsDepth(dds.Latest(dp, dds.DEPTH_TOPIC, dds.DepthImage_), *hw)
     stop = {"flag": False}
 
     def on_signal(signum, frame):  # noqa: ARG001
@@ -304,35 +416,52 @@ def run(
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     enter = _stdin_lines() if start == "enter" else None
-    period = float(ctl.spec["rates"]["control_dt_s"])
+    period = float(dep["deadline"]["period_s"])
     t0 = time.perf_counter()
-    k, missed, policy_t0, shown = 0, False, None, 0
+    k, missed, skipped, policy_t0, shown, used_tick = 0, False, 0, None, 0, -1
+    last_cmd = None
+    ctl.skipped_total = 0
     try:
         while ctl.machine.state != DONE:
             tick_start = t0 + k * period
-            wait = tick_start - time.perf_counter()
-            if wait > 0:
-                time.sleep(wait)
+            _wait_until(tick_start, cmd_writer, last_cmd, ctl.profile.resend_hz)
             now = time.perf_counter()
-            ls, arrived = state_box.take()
-            age = None if arrived is None else now - arrived
-            want_start = start == "auto" or (enter is not None and enter())
-            over = policy_t0 is not None and now - policy_t0 >= policy_seconds
-            quit_now = stop["flag"] or over or now - t0 >= max_seconds
-            cmd = ctl.step(ls, age, source.latest(), now - t0, missed, want_start, quit_now)
+            try:
+                if ctl.machine.state == DAMPING:
+                    cmd = ctl.damping_step(now - t0)
+                else:
+                    if lockstep_s > 0:
+                        _newer(state_box, used_tick, lockstep_s)
+                        now = time.perf_counter()
+                    ls, arrived = state_box.take()
+                    used_tick = int(ls.tick) if ls is not None else used_tick
+                    age = None if arrived is None else now - arrived
+                    want_start = start == "auto" or (enter is not None and enter())
+                    over = policy_t0 is not None and now - policy_t0 >= policy_seconds
+                    quit_now = stop["flag"] or over or now - t0 >= max_seconds
+                    if isinstance(source, DdsDepth):
+                        source.in_policy = ctl.machine.state == POLICY
+                    image = source.latest()
+                    cmd = ctl.step(ls, age, image, now - t0, missed, want_start, quit_now, skipped)
+            except Exception as err:  # noqa: BLE001 - every fault ends in damping
+                ctl.machine.fault(now - t0, fault_line(err))
+                cmd = ctl.damping
             cmd_writer.write(cmd)
+            last_cmd = cmd
             done = time.perf_counter()
             if ctl.machine.state == POLICY and policy_t0 is None:
                 policy_t0 = now
             missed = done > tick_start + period  # the command went out after its period
-            ctl.log[-1].work_ms, ctl.log[-1].missed = (done - now) * 1e3, missed
+            if ctl.log:
+                ctl.log[-1].work_ms, ctl.log[-1].missed = (done - now) * 1e3, missed
             for t, a, b, why in ctl.machine.transitions[shown:]:  # as they happen
                 print(f"[policy] {t:7.3f} s  {a} -> {b}  ({why})", flush=True)
             shown = len(ctl.machine.transitions)
             k += 1
             behind = time.perf_counter() - (t0 + k * period)
-            if behind > period:  # more than a whole period late: skip to the grid
-                k += int(behind // period)
+            skipped = int(behind // period) if behind > period else 0
+            k += skipped  # whole periods with no command: each a missed deadline
+            ctl.skipped_total += skipped
     finally:
         for s, h in old.items():
             signal.signal(s, h)

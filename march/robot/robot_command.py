@@ -11,8 +11,18 @@ runs before damping (default: until Ctrl-C); ``vx`` / ``vy`` the command [m/s, b
 ``guard=damp`` (default: a guard flag enters damping) or ``report`` (flags only recorded; ``lo``
 only); ``deadlines=damp`` (default: the missed-deadline budget damps) or ``report`` (counted
 only; ``lo`` only: the self-test's default, where other processes share the CPU); ``zero_torque_s`` / ``ramp_s`` / ``hold_s`` / ``damping_s`` override the bundle's
-timings; ``log=<file.json>`` writes every step. ``sim``: the MuJoCo robot
-(:mod:`march.robot.sim_robot`). ``selftest``: both on loopback (:mod:`march.robot.selftest`).
+timings; ``log=<file.json>`` writes every step; ``lockstep=true`` (``lo`` only: the
+self-test) waits for the lockstep robot's answer before each step. A fault (any exception, a
+malformed message, a bad CRC, an impossible reading, a stale LowState, the deadline budget, a
+guard flag) damps for ``damping_s`` and exits 1 with one line naming it. ``robot=unitree_mujoco``
+(``lo`` only): Unitree's MuJoCo bridge publishes the LowState (mode_machine 0, no CRC, tick 0;
+the command re-sent at 200 Hz). ``sim``: the MuJoCo robot
+(:mod:`march.robot.sim_robot`). ``selftest``: both on loopback (:mod:`march.robot.selftest`). ``supervisor``
+(:mod:`march.robot.supervisor`): damps when the policy's LowCmds stop (``timeout_s``) or go
+invalid (``policy_pid=``: kill that process first). ``camera`` (:mod:`march.robot.camera`):
+publishes the depth topic from a RealSense (``source=realsense``) or a recording
+(``source=file file=<.bag or .npz>``), preprocessed as in training. ``sim cmd_timeout=S``: the
+simulated motors damp after S s without a valid LowCmd.
 Bad input is one line on stderr and exit status 2, before anything starts.
 """
 
@@ -27,9 +37,13 @@ from typing import Any
 
 from march.sim2sim.deploy_bundle import UsageError
 
-JOBS = ("policy", "sim", "selftest")
+LOCKSTEP_WAIT_S = 2.0
+"""``lockstep=true`` (loopback only): how long a step waits for the lockstep robot's answer
+to the previous command before the watchdog judges the LowState's age."""
+
+JOBS = ("policy", "sim", "selftest", "supervisor", "camera")
 USAGE = (
-    "usage: python -m march.robot policy|sim|selftest bundle=<dir> [domain=N] [interface=lo] "
+    "usage: python -m march.robot policy|sim|selftest|supervisor|camera bundle=<dir> [domain=N] [interface=lo] "
     "[seconds=S] [start=enter|auto] [guard=damp|report] [band=S] [lockstep=true] [log=<file>]"
 )
 KEYS: dict[str, Any] = {
@@ -52,12 +66,23 @@ KEYS: dict[str, Any] = {
     "hold_s": float,
     "damping_s": float,
     "max_seconds": float,
+    "cmd_timeout": float,
+    "timeout_s": float,
+    "policy_pid": int,
+    "robot": str,
+    "resend_hz": float,
+    "source": str,
+    "file": str,
+    "fps": float,
 }
 ALLOWED = {
     "policy": {"bundle", "domain", "interface", "seconds", "start", "guard", "deadlines", "vx", "vy", "log",
-               "zero_torque_s", "ramp_s", "hold_s", "damping_s", "max_seconds"},
-    "sim": {"bundle", "domain", "interface", "seconds", "course", "band", "lockstep", "log"},
+               "zero_torque_s", "ramp_s", "hold_s", "damping_s", "max_seconds", "lockstep", "robot", "resend_hz"},
+    "sim": {"bundle", "domain", "interface", "seconds", "course", "band", "lockstep", "log",
+            "cmd_timeout"},
     "selftest": {"bundle", "domain", "interface", "seconds", "guard", "deadlines", "course", "keep"},
+    "supervisor": {"bundle", "domain", "interface", "seconds", "timeout_s", "policy_pid"},
+    "camera": {"bundle", "domain", "interface", "seconds", "source", "file", "fps"},
 }  # fmt: skip
 
 
@@ -90,6 +115,13 @@ def parse(argv: Sequence[str]) -> tuple[str, dict[str, Any]]:
         "deadlines": lambda v: v in ("damp", "report"),
         "lockstep": lambda v: v in ("true", "false"),
         "band": lambda v: 0 <= v < math.inf,
+        "cmd_timeout": lambda v: 0 <= v < 600,
+        "timeout_s": lambda v: 0.005 <= v <= 10,
+        "policy_pid": lambda v: v > 0,
+        "robot": lambda v: v in ("g1", "unitree_mujoco"),
+        "resend_hz": lambda v: 0 <= v <= 1000,
+        "source": lambda v: v in ("realsense", "file"),
+        "fps": lambda v: 1 <= v <= 90,
         "course": lambda v: v in ("hardware", "stones"),
         "vx": math.isfinite,
         "vy": math.isfinite,
@@ -98,15 +130,22 @@ def parse(argv: Sequence[str]) -> tuple[str, dict[str, Any]]:
     for key, ok in checks.items():
         if key in args and not ok(args[key]):
             raise UsageError(f"{key}={args[key]}: not allowed ({USAGE})")
-    for key in ("guard", "deadlines"):
-        if job == "policy" and args.get(key) == "report" and args.get("interface", "eth0") != "lo":
-            raise UsageError(f"{key}=report only on the loopback interface (a simulated robot)")
+    loose_values = (
+        ("guard", "report"), ("deadlines", "report"), ("lockstep", "true"),
+        ("robot", "unitree_mujoco"),
+    )  # fmt: skip
+    if job == "policy" and "resend_hz" in args and args.get("interface", "eth0") != "lo":
+        raise UsageError("resend_hz= only on the loopback interface (a simulated robot)")
+    for key, loose in loose_values:
+        if job == "policy" and args.get(key) == loose and args.get("interface", "eth0") != "lo":
+            raise UsageError(f"{key}={loose} only on the loopback interface (a simulated robot)")
     return job, args
 
 
 def policy(args: dict[str, Any]) -> int:
     from march.robot.policy_loop import Controller, load_bundle, run
     from march.robot.states import Timing
+    from march.robot.wire_checks import BundleRefused
     from march.sim2sim.guard import CommandRefused, check_command
 
     bundle = load_bundle(args["bundle"])
@@ -119,9 +158,21 @@ def policy(args: dict[str, Any]) -> int:
         check_command(spec, (vx, vy, 0.0))
     except CommandRefused as err:
         raise UsageError(str(err)) from None
-    ctl = Controller(
-        bundle, timing, (vx, vy), args.get("guard", "damp"), args.get("deadlines", "damp")
-    )
+    try:
+        ctl = Controller(
+            bundle,
+            timing,
+            (vx, vy),
+            args.get("guard", "damp"),
+            args.get("deadlines", "damp"),
+            robot=args.get("robot", "g1"),
+        )
+        if "resend_hz" in args:  # the profile's rate, overridden (loopback only)
+            from dataclasses import replace
+
+            ctl.profile = replace(ctl.profile, resend_hz=args["resend_hz"])
+    except BundleRefused as err:
+        raise UsageError(str(err)) from None
     domain, iface = args.get("domain", 0), args.get("interface", "eth0")
     print(f"[policy] domain {domain}, interface {iface}; zero torque until LowState", flush=True)
     log = run(
@@ -131,9 +182,14 @@ def policy(args: dict[str, Any]) -> int:
         args.get("start", "enter"),
         args.get("seconds", math.inf),
         args.get("max_seconds", math.inf),
+        lockstep_s=LOCKSTEP_WAIT_S if args.get("lockstep") == "true" else 0.0,
     )
-    missed = sum(s.missed for s in log)
-    print(f"[policy] {len(log)} steps, {missed} missed deadlines", flush=True)
+    missed = sum(s.missed for s in log) + ctl.skipped_total
+    print(
+        f"[policy] {len(log)} steps, {missed} missed deadlines "
+        f"({ctl.skipped_total} periods skipped)",
+        flush=True,
+    )
     if args.get("log"):
         out = {
             "period_s": float(spec["rates"]["control_dt_s"]),
@@ -158,6 +214,10 @@ def policy(args: dict[str, Any]) -> int:
         tmp = Path(args["log"]).with_suffix(".tmp")
         tmp.write_text(json.dumps(out))
         tmp.replace(args["log"])
+    why = ctl.machine.fault_reason
+    if why is not None:
+        print(f"error: the robot loop damped on a fault: {why}", file=sys.stderr, flush=True)
+        return 1
     return 0
 
 
@@ -174,6 +234,7 @@ def sim(args: dict[str, Any]) -> int:
         args.get("lockstep", "false") == "true",
         args.get("seconds", math.inf),
         args.get("log", ""),
+        args.get("cmd_timeout", 0.0),
     )
     print("[sim] done: " + ", ".join(f"{k} {v}" for k, v in stats.items()), flush=True)
     return 0
@@ -194,11 +255,29 @@ def selftest(args: dict[str, Any]) -> int:
     )
 
 
+def supervisor(args: dict[str, Any]) -> int:
+    from march.robot.supervisor import main as run_supervisor
+
+    return run_supervisor(args)
+
+
+def camera(args: dict[str, Any]) -> int:
+    from march.robot.camera import main as run_camera
+
+    return run_camera(args)
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     words = list(sys.argv[1:] if argv is None else argv)
     try:
         job, args = parse(words)
-        rc = {"policy": policy, "sim": sim, "selftest": selftest}[job](args)
+        rc = {
+            "policy": policy,
+            "sim": sim,
+            "selftest": selftest,
+            "supervisor": supervisor,
+            "camera": camera,
+        }[job](args)
     except UsageError as err:
         print(f"error: {err}", file=sys.stderr)
         raise SystemExit(2) from None

@@ -54,7 +54,7 @@ def shadow(bundle: Bundle, course: str, loop: dict[str, Any], states: dict) -> d
     if steps:
         sim.command_spec = dict(sim.command_spec, heading_target_rad=steps[0]["heading_ref"])
     sim.set_command(*loop["command"][:2])
-    worst, prev, per_step = 0.0, None, []
+    worst, prev, per_step, actions = 0.0, None, [], []
 
     def put(tick: int) -> None:
         i = ticks[tick]
@@ -88,7 +88,58 @@ def shadow(bundle: Bundle, course: str, loop: dict[str, Any], states: dict) -> d
         per_step.append(diff)
         worst = max(worst, diff)
         prev = action
-    return {"compared": len(steps), "max_abs_diff": worst, "per_step": per_step}
+        actions.append(np.asarray(action, dtype=np.float64).reshape(-1))
+    out = {"compared": len(steps), "max_abs_diff": worst, "per_step": per_step}
+    out.update(motor_commands(bundle, loop, states, actions))
+    return out
+
+
+TARGET_TOL = 2e-5
+"""Rad: a target's float32 rounding on the wire (|q| < 3: 2e-7) plus the largest action scale
+(0.55) x ACTION_TOL."""
+GAIN_RTOL = 1e-6
+"""kp / kd go on the wire as float32."""
+
+
+def motor_commands(
+    bundle: Bundle, loop: dict[str, Any], states: dict, actions: list[np.ndarray]
+) -> dict[str, Any]:
+    """What reached the simulated robot's motors (its log of applied LowCmds, by slot) against
+    what sim-to-sim says each policy step must send: target = offset + scale x (its action), the
+    joints table's kp / kd; and damping (kp 0, kd damping_kd) after the policy. A loop that
+    logs one action but sends another (a clipped one, say) fails here."""
+    from march.sim2sim.motors import motor_table
+
+    spec = bundle.spec
+    if "cmd_ticks" not in states or not len(states["cmd_ticks"]):
+        return {"commands_compared": 0, "target_diff": np.inf, "gain_diff": np.inf}
+    at = {int(t): i for i, t in enumerate(states["cmd_ticks"])}
+    cmds = states["cmds"]
+    slots = motor_table(spec)
+    offset = np.asarray(spec["action"]["offset"], dtype=np.float64)
+    scale = np.asarray(spec["action"]["scale"], dtype=np.float64)
+    kp = np.array([j["kp"] for j in spec["joints"]])
+    kd = np.array([j["kd"] for j in spec["joints"]])
+    damp_kd = float(spec["deploy"]["shutdown"]["damping_kd"])
+    policy_steps = [s for s in loop["steps"] if s["action"] is not None]
+    n, t_diff, g_diff = 0, 0.0, 0.0
+    for s, a in zip(policy_steps, actions, strict=False):
+        i = at.get(int(s["lowstate_tick"]))
+        if i is None or s["state"] != "policy":
+            continue  # the step damped, or its command was not the one applied at that tick
+        q, p, d = cmds[i][0][slots], cmds[i][1][slots], cmds[i][2][slots]
+        t_diff = max(t_diff, float(np.abs(q - (offset + scale * a)).max()))
+        g_diff = max(
+            g_diff, float(np.abs(p - kp).max() / kp.max()), float(np.abs(d - kd).max() / kd.max())
+        )
+        n += 1
+    last = at[max(at)]  # the last command applied: the loop's damping
+    if (
+        np.abs(cmds[last][1][slots]).max() > 0
+        or np.abs(cmds[last][2][slots] - damp_kd).max() > 1e-6
+    ):
+        g_diff = max(g_diff, 1.0)
+    return {"commands_compared": n, "target_diff": t_diff, "gain_diff": g_diff}
 
 
 def _python() -> list[str]:
@@ -131,7 +182,8 @@ def run_selftest(
         t0 = time.perf_counter()
         loop = subprocess.run(
             [*_python(), "policy", *common, "start=auto", f"seconds={seconds}",
-             f"guard={guard}", f"deadlines={deadlines}", f"log={loop_log}", *fast],
+             f"guard={guard}", f"deadlines={deadlines}", f"log={loop_log}", "lockstep=true",
+             *fast],
             capture_output=True,
             text=True,
             env=env,
@@ -147,9 +199,11 @@ def run_selftest(
         except subprocess.TimeoutExpired:
             sim.kill()
             out, _ = sim.communicate()
-    if loop.returncode != 0 or not loop_log.is_file():
+    fault = loop.stderr.strip().splitlines()[-1] if loop.stderr.strip() else ""
+    guarded = guard == "damp" and "fault: guard:" in fault  # the guard acted, as asked
+    if (loop.returncode != 0 and not (loop.returncode == 1 and guarded)) or not loop_log.is_file():
         print(loop.stdout[-2000:] + loop.stderr[-2000:], file=sys.stderr)
-        raise UsageError(f"the robot loop failed (exit {loop.returncode})")
+        raise UsageError(f"the robot loop failed (exit {loop.returncode}): {fault}")
     if not sim_log.is_file():
         raise UsageError(f"the simulated robot wrote no log: {out[-500:]}")
     log = json.loads(loop_log.read_text())
@@ -171,6 +225,12 @@ def report(
     work = np.array([s["work_ms"] for s in steps])
     missed = sum(s["missed"] for s in steps)
     ok = result["compared"] > 0 and result["max_abs_diff"] <= ACTION_TOL
+    sent_ok = (
+        result.get("commands_compared", 0) > 0
+        and result["target_diff"] <= TARGET_TOL
+        and result["gain_diff"] <= GAIN_RTOL
+    )
+    ok = ok and sent_ok
     period_ms = log["period_s"] * 1e3
     print(
         f"selftest: robot loop and MuJoCo robot as two processes on DDS domain {domain}, "
@@ -182,6 +242,13 @@ def report(
         f"the same states: max |action difference| = {result['max_abs_diff']:.2e} "
         f"(tolerance {ACTION_TOL:.0e}) -> {verdict}"
     )
+    if "commands_compared" in result:
+        print(
+            f"motors: {result['commands_compared']} applied commands against sim2sim: max "
+            f"|target difference| = {result['target_diff']:.2e} rad (tolerance {TARGET_TOL:.0e}), "
+            f"max relative kp / kd difference = {result['gain_diff']:.2e} (tolerance "
+            f"{GAIN_RTOL:.0e}), damping at the end -> {'OK' if sent_ok else 'DISAGREE'}"
+        )
     print(
         f"missed deadlines: {missed} of {len(steps)} control steps (period {period_ms:g} ms; "
         f"deadlines={log.get('deadlines', 'damp')})"

@@ -17,7 +17,11 @@ seconds of simulated time the pelvis is held at its spawn pose (position and ori
 velocity after every physics step): the robot on a stand, its legs free, the stiff limit of
 ``unitree_mujoco``'s elastic band (a spring on the pelvis made the limp robot pitch over, and
 a stiff one at 5 ms steps was unstable); then it lets go. ``log=<file.npz>``: the state (qpos, qvel) behind
-every published tick, written on exit (SIGINT / SIGTERM).
+every published tick and the command applied at each tick (q, kp, kd per slot: what reached
+the motors), written on exit (SIGINT / SIGTERM). ``cmd_timeout=S`` (real time only): no valid
+LowCmd for S seconds of wall time puts every motor in damping (kp 0, kd ``damping_kd``) until
+the next valid one - the timeout an operator sets on a robot's motor side; 0 (the default)
+keeps the last command, as a motor driver without a timeout does.
 """
 
 from __future__ import annotations
@@ -47,6 +51,7 @@ class SimRobot:
         self.sim.reset(bundle.cell(course, 0.0, 0), seed=-1)  # the start point, standing
         m = self.model
         self.limit = m.actuator_forcerange[self.bus.act, 1].copy()
+        self.check_torque_limits()
         self.mode_machine, self.mode_pr = int(dep["mode_machine"]), int(dep["mode_pr"])
         self.decimation = self.sim.decimation
         self.tick = 0
@@ -59,6 +64,25 @@ class SimRobot:
         accel = [i for i in range(m.nsensor) if m.sensor(i).name.endswith("imu_lin_acc")]
         self.accel = int(m.sensor_adr[accel[0]]) if accel else None
         self.states: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.applied: dict[int, np.ndarray] = {}  # tick -> (3, slots): q, kp, kd as applied
+        self.damping_kd = float(dep["shutdown"]["damping_kd"])
+        self.timeouts = 0
+
+    def check_torque_limits(self) -> None:
+        """deploy.json's torque limits are the scene's force ranges (the motors the robot has):
+        a bundle that says otherwise is refused, not simulated with the scene's."""
+        from march.sim2sim.deploy_bundle import UsageError
+        from march.sim2sim.motors import motor_table
+
+        slots = motor_table(self.spec)
+        for i, j in enumerate(self.spec["joints"]):
+            scene = float(self.limit[int(slots[i])])
+            lo, hi = self.model.actuator_forcerange[self.bus.act[int(slots[i])]]
+            if abs(j["torque_limit"] - scene) > 1e-6 * scene or abs(lo + hi) > 1e-6 * scene:
+                raise UsageError(
+                    f"deploy.json joints[{i}].torque_limit = {j['torque_limit']:g} ({j['name']}): "
+                    f"the scene's motor saturates at +-{scene:g} N m"
+                )
 
     def limp(self) -> None:
         """Every motor off (kp = kd = 0) until a LowCmd says otherwise."""
@@ -86,7 +110,19 @@ class SimRobot:
             ff = float(mc.tau) + kd * float(mc.dq)
             d.ctrl[a] = float(mc.q) + (ff / kp if kp > 0 and on else 0.0)
         self.commands += 1
+        self.applied[self.tick] = np.array(
+            [[float(c.q), float(c.kp), float(c.kd)] for c in cmd.motor_cmd]
+        ).T
         return True
+
+    def damp(self) -> None:
+        """The motors' own damping (the LowCmd timeout): kp 0, kd ``damping_kd``."""
+        a = self.bus.act
+        self.model.actuator_gainprm[a, 0] = 0.0
+        self.model.actuator_biasprm[a, 1] = 0.0
+        self.model.actuator_biasprm[a, 2] = -self.damping_kd
+        self.data.ctrl[a] = 0.0
+        self.timeouts += 1
 
     def physics_step(self) -> None:
         d = self.data
@@ -134,7 +170,9 @@ class SimRobot:
         qpos = np.stack([self.states[t][0] for t in ticks])
         qvel = np.stack([self.states[t][1] for t in ticks])
         tmp = Path(path).with_suffix(".tmp.npz")
-        np.savez(tmp, ticks=ticks, qpos=qpos, qvel=qvel)
+        cmd_ticks = np.array(sorted(self.applied), dtype=np.int64)
+        cmds = np.stack([self.applied[t] for t in cmd_ticks]) if len(cmd_ticks) else np.zeros(0)
+        np.savez(tmp, ticks=ticks, qpos=qpos, qvel=qvel, cmd_ticks=cmd_ticks, cmds=cmds)
         tmp.replace(path)
 
 
@@ -145,6 +183,7 @@ def serve(
     lockstep: bool,
     seconds: float = math.inf,
     log: str = "",
+    cmd_timeout: float = 0.0,
 ) -> dict[str, int]:
     """Run ``robot`` on DDS until SIGINT / SIGTERM or ``seconds`` of wall time."""
     dp = dds.participant(domain, interface)
@@ -171,6 +210,7 @@ def serve(
     publish(True)
     print(f"[sim] publishing on domain {domain}, interface {interface}", flush=True)
     k = 0
+    last_ok, timed_out = time.perf_counter(), False
     while not stop["flag"] and time.perf_counter() - t0 < seconds:
         if lockstep:
             if not cmd_box.wait(0.01):
@@ -186,7 +226,12 @@ def serve(
             cmd, _ = cmd_box.take()
             if cmd is not None and cmd_box.count != seen:
                 seen = cmd_box.count
-                robot.apply(cmd)
+                if robot.apply(cmd):
+                    last_ok, timed_out = time.perf_counter(), False
+            if cmd_timeout > 0 and not timed_out and time.perf_counter() - last_ok > cmd_timeout:
+                robot.damp()
+                timed_out = True
+                print(f"[sim] no valid LowCmd for {cmd_timeout:g} s: motors damping", flush=True)
             robot.physics_step()
             k += 1
             publish(k % robot.decimation == 0)
@@ -195,4 +240,5 @@ def serve(
                 time.sleep(wait)
     if log:
         robot.save(log)
-    return {"commands": robot.commands, **{f"dropped_{k}": v for k, v in robot.dropped.items()}}
+    drops = {f"dropped_{k}": v for k, v in robot.dropped.items()}
+    return {"commands": robot.commands, **drops, "timeouts": robot.timeouts}

@@ -8,10 +8,13 @@ the default pose over ``ramp_s``) -> ``hold`` (the default pose, until started) 
 :class:`SafetyMachine.tick` takes one control step's facts (:class:`Tick`: the time, whether a
 fresh LowState has arrived and how old the latest is, whether the previous step met its
 deadline, the guard flags raised this step, start and stop requests) and returns the state for
-this step. Damping is entered from any active state on: a stop request (Ctrl-C, the end of the
-run), a stale LowState (older than ``watchdog_s``: the watchdog), the deadline budget spent
-(:class:`DeadlineBudget`), any guard flag, or a LowState of another hardware variant. Damping
-always runs its full time; nothing leaves it but ``done``. Every transition is recorded with its
+this step. Damping is entered from every active state (zero torque included) on: a stop request
+(Ctrl-C, the end of the run), a stale LowState (older than ``watchdog_s``: the watchdog; in zero
+torque once the first LowState has come), the deadline budget spent (:class:`DeadlineBudget`;
+a skipped period counts as a missed deadline), any fault or guard flag of the step (a bad CRC,
+a non-finite or out-of-limit reading, a malformed message, an exception), or a LowState of
+another hardware variant. Damping always runs its full time; nothing leaves it but ``done``.
+:attr:`SafetyMachine.fault_reason` is the cause when damping was not asked for. Every transition is recorded with its
 time and reason. No DDS, no clock: the tests drive it with generated fault timings.
 """
 
@@ -33,8 +36,12 @@ ZERO_TORQUE, RAMP, HOLD, POLICY, DAMPING, DONE = (
 )
 EPS = 1e-6
 """Seconds: a time limit counts as reached this close to it (ticks are sums of float periods)."""
-ACTIVE = (RAMP, HOLD, POLICY)
-"""States that command positions: the watchdog and the deadline budget apply."""
+ACTIVE = (ZERO_TORQUE, RAMP, HOLD, POLICY)
+"""States before damping: the watchdog, the deadline budget and every fault apply."""
+GAINS = (RAMP, HOLD, POLICY)
+"""The only states whose commands may carry kp > 0."""
+ORDERLY = ("stop requested",)
+"""Damping reasons that are not faults (the loop exits 0 after them)."""
 
 
 @dataclass
@@ -96,6 +103,7 @@ class Tick:
     now: float
     lowstate_age: float | None  # seconds since the newest LowState; None: none yet
     missed_deadline: bool = False
+    skipped: int = 0  # whole periods the clock skipped before this step: each a missed deadline
     flags: tuple[str, ...] = ()
     start: bool = False
     stop: bool = False
@@ -126,13 +134,25 @@ class SafetyMachine:
             return "LowState of another hardware variant (mode_machine)"
         if self.state not in ACTIVE:
             return None
-        if k.lowstate_age is None or k.lowstate_age > self.timing.watchdog_s:
+        waiting = self.state == ZERO_TORQUE and k.lowstate_age is None  # none yet: may wait
+        if not waiting and (k.lowstate_age is None or k.lowstate_age > self.timing.watchdog_s):
             age = "none" if k.lowstate_age is None else f"{k.lowstate_age * 1e3:.0f} ms"
             return f"watchdog: LowState stale ({age})"
-        if self.budget.record(k.missed_deadline):
-            return f"deadline budget spent ({self.budget.total} missed)"
+        spent = any([self.budget.record(True) for _ in range(k.skipped)])
+        spent = self.budget.record(k.missed_deadline) or spent
+        if spent:
+            skipped = f", {k.skipped} periods skipped" if k.skipped else ""
+            return f"deadline budget spent ({self.budget.total} missed{skipped})"
         if k.flags:
-            return "guard: " + "; ".join(k.flags[:3])
+            return "; ".join(k.flags[:3])
+        return None
+
+    @property
+    def fault_reason(self) -> str | None:
+        """Why the loop damped or ended when nobody asked it to (None: an orderly end)."""
+        for _, _, b, why in self.transitions:
+            if b == DAMPING or (b == DONE and why == "no LowState"):
+                return None if why in ORDERLY else why
         return None
 
     def fault(self, now: float, why: str) -> str:

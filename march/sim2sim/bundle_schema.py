@@ -8,6 +8,13 @@ finite), ``str``, ``bool``, ``None``; ``[t]`` a list of t, ``[t, n]`` of exactly
 fixed set of keys; :class:`Opt` a value that may also be null; :class:`Map` a dict of any keys.
 Cross-checks that need two keys (sizes that must agree, paths that must stay in the bundle) are
 in :mod:`march.sim2sim.deploy_bundle`.
+
+:func:`check_motor_ranges` (run by :func:`check_spec`, and again by the robot loop on the values
+it will send) holds everything that reaches a motor to the G1's physical ranges
+(:data:`G1_MOTORS`): kp, kd >= 0 and at most the motor's :data:`KP_MAX_ERROR_RAD` /
+:data:`KD_MAX_S` bounds, a torque limit > 0 and within the motor's rating, the default pose
+inside the joint's limits, 0 < |action scale| <= :data:`MAX_ACTION_SCALE_RAD`, the damping kd
+within every motor's kd bound.
 """
 
 from __future__ import annotations
@@ -315,6 +322,93 @@ def check(value: Any, kind: Any, where: str) -> None:
         raise SchemaError(f"{where}: expected {_kind(kind)}, got {_short(value)}")
 
 
+G1_MOTORS: tuple[tuple[str, str, float], ...] = (
+    ("wrist_pitch", "4010", 5.0),
+    ("wrist_yaw", "4010", 5.0),
+    ("hip_roll", "7520-22", 139.0),
+    ("knee", "7520-22", 139.0),
+    ("hip_pitch", "7520-14", 88.0),
+    ("hip_yaw", "7520-14", 88.0),
+    ("waist_yaw", "7520-14", 88.0),
+    ("ankle", "2x5020", 50.0),
+    ("waist", "2x5020", 50.0),
+    ("", "5020", 25.0),
+)
+"""(joint-name part, motor, rated peak torque [N m]), first match: Unitree's G1 motors as mjlab's
+G1 model rates them (4010 5, 7520-22 139, 7520-14 88, the ankle / waist 2x5020 linkages 50, 5020
+25)."""
+KP_MAX_ERROR_RAD = 0.1
+"""kp at most rating / 0.1 rad [N m / rad]: the rated torque at 0.1 rad of error (7520-22: 1390,
+5020: 250, 4010: 50; Unitree's own G1 examples use 40-150)."""
+KD_MAX_S = 0.2
+"""kd at most max(10, rating x 0.2 s) [N m s / rad] (7520-22: 27.8, 5020 and 4010: 10, so
+Unitree's damping kd 8 fits every motor)."""
+MAX_ACTION_SCALE_RAD = 1.0
+"""|action scale| at most 1 rad per unit of action (mjlab's G1: 0.07-0.44)."""
+POS_LIMIT_MARGIN_RAD = 0.1
+"""A measured joint position this far past its limit is a sensor or model fault (the robot
+loop's reading check; the default pose must be inside the limits themselves)."""
+
+
+def motor_of(joint: str) -> tuple[str, float]:
+    """The G1 motor driving ``joint`` and its rated torque [N m]."""
+    return next((motor, torque) for part, motor, torque in G1_MOTORS if part in joint)
+
+
+def gain_bounds(joint: str) -> tuple[float, float, float]:
+    """(kp max [N m/rad], kd max [N m s/rad], rated torque [N m]) of ``joint``'s motor."""
+    _, torque = motor_of(joint)
+    return torque / KP_MAX_ERROR_RAD, max(10.0, torque * KD_MAX_S), torque
+
+
+def check_motor_ranges(spec: Any) -> None:
+    """Everything that reaches a motor within the G1's physical ranges; one line at the first
+    value out of range (``joints[3].kp = -500 (left_knee_joint, 7520-22): outside [0, 1390]``)."""
+    for i, j in enumerate(spec["joints"]):
+        name = j["name"]
+        motor, _ = motor_of(name)
+        kp_max, kd_max, rated = gain_bounds(name)
+        where = f"deploy.json.joints[{i}]"
+        for key, lo, hi in (("kp", 0.0, kp_max), ("kd", 0.0, kd_max)):
+            if not lo <= j[key] <= hi:
+                raise SchemaError(
+                    f"{where}.{key} = {j[key]:g} ({name}, {motor}): outside [{lo:g}, {hi:g}]"
+                )
+        if not 0.0 < j["torque_limit"] <= rated * (1 + 1e-6):
+            raise SchemaError(
+                f"{where}.torque_limit = {j['torque_limit']:g} ({name}, {motor}): outside "
+                f"(0, {rated:g}] N m, the motor's rating"
+            )
+        lo, hi = j["pos_limits"]
+        if not lo < hi:
+            raise SchemaError(f"{where}.pos_limits = {[lo, hi]}: empty")
+        for key, value in (("default_pos", j["default_pos"]),):
+            if not lo <= value <= hi:
+                raise SchemaError(f"{where}.{key} = {value:g} ({name}): outside {[lo, hi]}")
+        if not 0.0 < abs(j["action_scale"]) <= MAX_ACTION_SCALE_RAD:
+            raise SchemaError(
+                f"{where}.action_scale = {j['action_scale']:g} ({name}): outside "
+                f"(0, {MAX_ACTION_SCALE_RAD:g}] rad"
+            )
+    names = [j["name"] for j in spec["joints"]]
+    for key, values in (
+        ("robot.default_joint_pos", spec["robot"]["default_joint_pos"]),
+        ("action.scale", spec["action"]["scale"]),
+    ):
+        table = [j["default_pos" if "pos" in key else "action_scale"] for j in spec["joints"]]
+        if len(values) != len(table) or any(
+            abs(a - b) > 1e-9 for a, b in zip(values, table, strict=False)
+        ):
+            raise SchemaError(f"deploy.json.{key}: differs from the joints table")
+    kd = spec["deploy"]["shutdown"]["damping_kd"]
+    worst = min(names, key=lambda n: gain_bounds(n)[1])
+    if not 0.0 <= kd <= gain_bounds(worst)[1]:
+        raise SchemaError(
+            f"deploy.json.deploy.shutdown.damping_kd = {kd:g}: outside [0, "
+            f"{gain_bounds(worst)[1]:g}] ({worst}'s motor)"
+        )
+
+
 def check_spec(spec: Any) -> None:
     """``spec`` (a parsed deploy.json) against :data:`SCHEMA`; one line at the first fault."""
     check(spec, SCHEMA, "deploy.json")
@@ -323,3 +417,4 @@ def check_spec(spec: Any) -> None:
         raise SchemaError("deploy.json.command: missing key 'heading_control'")
     check(cmd["heading_control"], BOOL, "deploy.json.command.heading_control")
     check(cmd, HEADING if cmd["heading_control"] else FIXED_YAW, "deploy.json.command")
+    check_motor_ranges(spec)
