@@ -14,8 +14,13 @@ import numpy as np
 import pytest
 import torch
 
-from march.clf.diagnostics import ClfStats, columns, output_terms, quantiles_from_histogram
-from march.clf.diagnostics import histogram_edges
+from march.clf.diagnostics import (
+    ClfStats,
+    columns,
+    histogram_edges,
+    output_terms,
+    quantiles_from_histogram,
+)
 from march.clf.lyapunov import ClfCfg, ClfModel
 
 RELATIVE_BIN = 10 ** (1 / 100) - 1  # one histogram bin's relative width (2.3 %)

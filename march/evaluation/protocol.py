@@ -422,8 +422,7 @@ def format_summary(row: dict[str, Any]) -> str:
         f"  success           {pm('success_rate', ' %', 100.0)}\n"
         f"  |joint torque|    {pm('abs_torque_nm', ' N m')}\n"
         f"  |angular jerk|    {pm('abs_ang_jerk', ' rad/s^3')}\n"
-        f"  teacher reward    {pm('reward')} (episode return)"
-        + clf_summary(row)
+        f"  teacher reward    {pm('reward')} (episode return)" + clf_summary(row)
     )
 
 

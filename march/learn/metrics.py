@@ -30,6 +30,7 @@ METRIC_COLUMNS = (
     "entropy",
     "learning_rate",
     "action_std",
+    "kl_normaliser",  # teacher: KL of the normaliser updates alone (march.learn.teacher)
     "loss",
     "action_error",
     "teacher_reward",
@@ -218,10 +219,10 @@ def _fmt(v: Any) -> Any:
     return v
 
 
-PER_TERM_PREFIXES = ("reward/", "termination/", "loss/")
+PER_TERM_PREFIXES = ("reward/", "termination/", "loss/", "clf/")
 """Columns named after the run's own terms, added after ``METRIC_COLUMNS`` as they appear:
 ``reward/<term>``, ``termination/<term>`` (march.env.term_meter) and the distillation's
-``loss/<part>``."""
+``loss/<part>``, and the CLF diagnostics ``clf/...`` (march.env.clf_meter)."""
 EXTERNAL_NAMES = {"reward/": "Episode_Reward/", "termination/": "Episode_Termination/"}
 """How tensorboard and wandb name the per-term scalars (as mjlab and rsl-rl do)."""
 

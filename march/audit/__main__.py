@@ -1,0 +1,3 @@
+from march.audit.command import main
+
+main()
