@@ -87,7 +87,7 @@ def test_quantiles_saturation_validity_and_shares(model, blocks):
     rng = np.random.default_rng(1)
     stats = ClfStats(names, model.v_max, "cpu")
     all_ratios, all_shares, valid_count, samples = [], [], 0, 0
-    for step in range(30):
+    for _ in range(30):
         e = 40
         ratio = np.exp(rng.uniform(np.log(0.01), np.log(5.0), e))
         eta = np.zeros((e, n))
