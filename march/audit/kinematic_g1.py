@@ -74,7 +74,7 @@ class IkCfg:
     stance_cost: float = 300.0
     """Cost of the stance-foot pose (position [1/m] and orientation [1/rad]): > 10x every
     output's sqrt(P_11) (the largest, swing_z, is 25.8), so the stance foot stays put."""
-    leg_posture_cost: float = 0.3
+    leg_posture_cost: float = 0.05
     """Cost pulling the 12 leg joints toward the default pose [1/rad]: a regulariser of the
     IK's null space (the outputs fix 17 + 12 = 29 of the legs' and base's 18 dofs but not
     all their combinations), small against the outputs' costs."""
