@@ -61,6 +61,10 @@ class KinematicReference:
         self.replans = np.full(self.num_envs, -1)
         self.last_v_ratio = np.zeros(self.num_envs)
         """V / Vmax of each env's pose against its y_ref, as the IK measured it."""
+        self.last_y = np.zeros((self.num_envs, 29))
+        """(E, 29) the outputs of the poses the last :meth:`act` placed, as the IK measured
+        them (and their rates: ``last_ydot``)."""
+        self.last_ydot = np.zeros((self.num_envs, 29))
 
     def _sim_state(self) -> tuple[np.ndarray, np.ndarray]:
         """(E, nq) and (E, nv) the robot's state in the kinematic model's layout."""
@@ -127,6 +131,7 @@ class KinematicReference:
             qpos[i], qvel[i] = tick.qpos, self.kin.data.qvel.copy()
             self.qpos[i] = tick.qpos
             self.last_v_ratio[i] = tick.v_ratio
+            self.last_y[i], self.last_ydot[i] = tick.y, tick.ydot
         self.place(env, qpos, qvel)
         joints = torch.as_tensor(qpos[:, self.env_q], dtype=torch.float32, device=env.device)
         return (joints - self.action.offset) / self.action.scale
