@@ -148,29 +148,57 @@ def study(runs: list, standing: float | None) -> dict:
     rows = []
 
     def add(name: str, arm: str, ci: dict, direction: str, threshold: float = 0.0) -> None:
-        rows.append({"criterion": name, "arm": arm, **ci, "verdict": verdict(ci, direction, threshold)})
+        rows.append(
+            {"criterion": name, "arm": arm, **ci, "verdict": verdict(ci, direction, threshold)}
+        )
 
     clf = by_arm.get("clf", [])
     ctrl = by_arm.get("modelfree_ref", [])
     if clf:
-        add("C1 median V/Vmax, last - first", "clf",
-            t_interval([window_change(d, "clf/v_p50") for _, d in clf]), "down")
-        add("C2 saturated share, last - first", "clf",
-            t_interval([window_change(d, "clf/saturated") for _, d in clf]), "down")
+        add(
+            "C1 median V/Vmax, last - first",
+            "clf",
+            t_interval([window_change(d, "clf/v_p50") for _, d in clf]),
+            "down",
+        )
+        add(
+            "C2 saturated share, last - first",
+            "clf",
+            t_interval([window_change(d, "clf/saturated") for _, d in clf]),
+            "down",
+        )
     if clf and ctrl:
-        add("C3 median V/Vmax, clf - modelfree_ref (last)", "clf vs ctrl",
-            welch_interval([last_window(d, "clf/v_p50") for _, d in clf],
-                           [last_window(d, "clf/v_p50") for _, d in ctrl]), "down")
+        add(
+            "C3 median V/Vmax, clf - modelfree_ref (last)",
+            "clf vs ctrl",
+            welch_interval(
+                [last_window(d, "clf/v_p50") for _, d in clf],
+                [last_window(d, "clf/v_p50") for _, d in ctrl],
+            ),
+            "down",
+        )
     if clf and standing is not None:
         ci = t_interval([last_window(d, "clf/v_p50") for _, d in clf])
         add(f"C4 median V/Vmax (last) vs standing's {standing:.3g}", "clf", ci, "down", standing)
     for arm, items in sorted(by_arm.items()):
-        add("C5 episode length, last - first", arm,
-            t_interval([window_change(d, "mean_episode_length") for _, d in items]), "up")
-        add("C5 training distance [m], last - first", arm,
-            t_interval([window_change(d, "mean_distance_m") for _, d in items]), "up")
-        add("C5 eval distance [m], last eval - first", arm,
-            t_interval([eval_change(r) for r, _ in items]), "up")
+        add(
+            "C5 episode length, last - first",
+            arm,
+            t_interval([window_change(d, "mean_episode_length") for _, d in items]),
+            "up",
+        )
+        add(
+            "C5 training distance [m], last - first",
+            arm,
+            t_interval([window_change(d, "mean_distance_m") for _, d in items]),
+            "up",
+        )
+        add(
+            "C5 eval distance [m], last eval - first",
+            arm,
+            t_interval([eval_change(r) for r, _ in items]),
+            "up",
+        )
     health = {
         arm: {
             "seeds": [r.seed for r, _ in items],
@@ -200,7 +228,9 @@ def markdown(result: dict) -> str:
             f"| {r['criterion']} | {r['arm']} | {_fmt(r['mean'])} | {ci} | {r['n']} | {r['verdict']} |"
         )
     lines.append("")
-    lines.append("| arm | seeds | env steps | final eval distance [m] | final lr | action std | kl_normaliser |")
+    lines.append(
+        "| arm | seeds | env steps | final eval distance [m] | final lr | action std | kl_normaliser |"
+    )
     lines.append("|---|---|---|---|---|---|---|")
     for arm, h in result["arms"].items():
         d = h["final_eval_distance_m"]

@@ -493,7 +493,9 @@ class Check:
         for both) at the teacher phase's env count, each for the same wall time (env build
         included), their per-iteration curves into ``gpu_check.json`` (``results.signal``)."""
         left = self.args.deadline - (time.time() - self.t0)
-        each = min(self.args.signal_seconds * (2.0 if self.args.cpu else 1.0), left / len(SIGNAL_ARMS))
+        each = min(
+            self.args.signal_seconds * (2.0 if self.args.cpu else 1.0), left / len(SIGNAL_ARMS)
+        )
         out: dict[str, Any] = {"wall_s_per_arm": round(each, 1), "arms": {}}
         self.results["signal"] = out
         for arm in SIGNAL_ARMS:

@@ -132,19 +132,33 @@ def figure(arm: dict[str, Any], path: Path) -> Path:
     if has_v:
         ax = axes[1]
         for i, r in enumerate(rows):
-            v = r.get("v_over_vmax")
-            if not v:
+            by = r.get("v_p50_by_step")
+            if not by:
                 continue
-            ax.plot([v["p10"], v["p90"]], [i, i], color="tab:blue", lw=3)
-            ax.plot(v["p50"], i, "o", color="tab:blue")
-            ax.text(v["p90"], i + 0.15, f" {100 * r['saturated']:.0f}% saturated", fontsize=8)
-        ax.axvline(1.0, color="tab:red", ls="--")
-        ax.text(1.0, len(rows) - 0.5, " V = Vmax: r_clf flat (e^-1)", color="tab:red", fontsize=8)
-        ax.set_xscale("log")
-        ax.set_yticks(y, names)
-        ax.set_ylim(-0.5, len(rows) - 0.3)
-        ax.set_xlabel("V / Vmax per step (line: 10th-90th percentile, dot: median)")
-        ax.set_title("how far each behaviour is from the reference", fontsize=10)
+            t = np.arange(1, len(by) + 1) * arm["step_dt"]
+            yv = np.array([np.nan if x is None else x for x in by], float)
+            ax.plot(
+                t,
+                yv,
+                color=cmap(2 * i % 20),
+                lw=1.8,
+                label=f"{r['behaviour']} (pooled median {r['v_over_vmax']['p50']:.2f}, "
+                f"{100 * r['saturated']:.0f}% saturated)",
+            )
+        ax.axhline(1.0, color="tab:red", ls="--")
+        ax.text(
+            0.0,
+            1.0,
+            " V = Vmax: r_clf flat at e^-1 above",
+            color="tab:red",
+            fontsize=8,
+            va="bottom",
+        )
+        ax.set_yscale("log")
+        ax.set_xlabel("time since reset [s] (median over the rollouts still running)")
+        ax.set_ylabel("V / Vmax")
+        ax.legend(fontsize=7)
+        ax.set_title("how far each behaviour is from the reference, over time", fontsize=10)
         k = 2
     ax = axes[k]
     for i, r in enumerate(rows):

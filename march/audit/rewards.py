@@ -9,7 +9,7 @@ the same courses, commands and randomisation for every behaviour):
 - ``random``: actions drawn N(0, 1) (the PPO actor's initial spread), seeded;
 - ``checkpoint``: a teacher checkpoint's deterministic policy (``teacher_ckpt=``), if given;
 - ``reference``: the kinematic G1 placed on the planner's reference by whole-body IK every step
-  (:class:`march.audit.kinematic_g1.KinematicReference`), where the arm has the reference. Its V
+  (:class:`march.audit.kinematic_reference.KinematicReference`), where the arm has the reference. Its V
   is the floor that perfect kinematic tracking reaches; it ignores dynamics (the pose is placed,
   not reached by torques), so it says what the reward would pay for tracking, not that tracking
   is physically achievable.
@@ -60,6 +60,10 @@ class BehaviourResult:
     """The share of rollouts each termination term ended (several can end one)."""
     v_ratio: np.ndarray | None = None
     """V/Vmax of every counted step (flattened), None without the reference."""
+    v_by_step: np.ndarray | None = None
+    """(horizon,) the median V/Vmax over the rollouts still running at each step (NaN once none
+    is): V at equal time since reset, which a pooled median confounds with survival (a policy
+    that survives longer spends more steps where the reference has walked away)."""
     notes: list[str] = field(default_factory=list)
 
     def summary(self) -> dict[str, Any]:
@@ -80,6 +84,10 @@ class BehaviourResult:
             out["v_over_vmax"] = {"p10": q10, "p50": q50, "p90": q90}
             out["saturated"] = float((self.v_ratio >= 1.0).mean())
             out["r_clf_mean"] = float(np.exp(-np.minimum(self.v_ratio, 1.0)).mean())
+        if self.v_by_step is not None:
+            out["v_p50_by_step"] = [
+                None if not np.isfinite(x) else float(x) for x in self.v_by_step
+            ]
         out["notes"] = list(self.notes)
         return out
 
@@ -162,10 +170,13 @@ def roll_behaviour(env: Any, act: Act, name: str, seed: int, horizon: int) -> Be
             # progress before the auto-reset is not readable after it: keep the last alive one
             distance = torch.where(alive & ~done, ruler.progress(), distance)
             alive &= ~done
-    v = None
+    v = by_step = None
     if ratios:
-        r = torch.stack(ratios).cpu().numpy().ravel()
+        r = torch.stack(ratios).cpu().numpy()
         v = r[np.isfinite(r)]
+        alive_any = np.isfinite(r).any(1)
+        by_step = np.full(len(r), np.nan)
+        by_step[alive_any] = np.nanmedian(r[alive_any], axis=1)
     t = terms.cpu().numpy()
     return BehaviourResult(
         name=name,
@@ -176,6 +187,7 @@ def roll_behaviour(env: Any, act: Act, name: str, seed: int, horizon: int) -> Be
         ended=ended.cpu().numpy(),
         ended_by={k: float(v) for k, v in zip(end_terms, ended_by.mean(0).tolist(), strict=True)},
         v_ratio=v,
+        v_by_step=by_step,
     )
 
 
@@ -194,7 +206,7 @@ def behaviours(env: Any, cfg: Any, policy: Act | None) -> dict[str, Act]:
     if policy is not None:
         out["checkpoint"] = policy
     if getattr(env, "clf_meter", None) is not None:
-        from march.audit.kinematic_g1 import KinematicReference
+        from march.audit.kinematic_reference import KinematicReference
 
         tracker = KinematicReference(env)
         out["reference"] = lambda obs: tracker.act(env)

@@ -174,6 +174,8 @@ class TeacherRunner(StageRunner):
         "ep_len": "mean_episode_length",
         "dist_m": "mean_distance_m",
         "value_loss": "value_loss",
+        "V/Vmax_p50": "clf/v_p50",  # arms with the reference (march.env.clf_meter)
+        "saturated": "clf/saturated",
     }
 
     def __init__(
