@@ -45,6 +45,7 @@ LAYERS: dict[str, int] = {
     "viz": 8,
     "export": 8,
     "sim2sim": 8,
+    "audit": 8,
     # the robot loop over DDS builds on the sim-to-sim loop (same bundle, observation and
     # action path; its self-test runs sim2sim in-process), so it sits one layer above the tools
     "robot": 9,

@@ -49,8 +49,9 @@ def draw_floors(levels: list[dict[str, Any]], path: Path, options: FeasibilityCf
     pos_ax.plot(
         x, 100 * jump, "--s", color=colors[2], ms=4, label="CoM reference jump at touchdown, p90"
     )
-    pos_ax.axhline(100 * options.tol_swing_pos, color="grey", lw=0.8, ls="--")
-    pos_ax.text(x[0], 100 * options.tol_swing_pos, " swing-foot reach tolerance", va="bottom")
+    for tol, name in ((options.tol_swing_pos, "swing foot"), (options.tol_com, "CoM")):
+        pos_ax.axhline(100 * tol, color="grey", lw=0.8, ls="--")
+        pos_ax.text(x[-1], 100 * tol, f"{name} reach tolerance ", va="bottom", ha="right")
     pos_ax.set(xlabel="curriculum level (difficulty 0 -> 1)", ylabel="|y - y_ref| [cm]")
     pos_ax.set_title("position outputs: error the G1's best pose keeps")
     angles = (
