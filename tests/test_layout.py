@@ -65,6 +65,7 @@ TOOLS = {
     "march.export": "march/export/__main__.py",
     "march.sim2sim": "march/sim2sim/__main__.py",
     "march.robot": "march/robot/__main__.py",
+    "march.audit": "march/audit/__main__.py",
 }
 """The ``python -m`` commands of the README and the file each one runs."""
 
