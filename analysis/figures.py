@@ -168,19 +168,17 @@ def analyze(
     if partial:
         notes.append("claims: incomplete runs left out: " + ", ".join(partial))
     complete = {k: [r for r in v if r.complete] for k, v in groups.items()}
-    claim_rows = claims(
-        ClaimsInput(
-            {k: v for k, v in complete.items() if v},
-            arm=pairs[0],
-            reference=pairs[1],
-            full=comp.reference_variant,
-            ablation_teacher=comp.ablation_teacher,
-            threshold_fraction=threshold_fraction,
-        ),
-        notes,
+    claims_input = ClaimsInput(
+        {k: v for k, v in complete.items() if v},
+        arm=pairs[0],
+        reference=pairs[1],
+        full=comp.reference_variant,
+        ablation_teacher=comp.ablation_teacher,
+        threshold_fraction=threshold_fraction,
     )
+    claim_rows = claims(claims_input, notes)
     claim_rows.to_csv(out / "claims.csv", index=False)
-    (out / "claims.md").write_text(claims_markdown(claim_rows))
+    (out / "claims.md").write_text(claims_markdown(claim_rows, claims_input.refused))
     written += [out / "claims.csv", out / "claims.md"]
     if table.empty:
         notes.append("skip final_metrics: no complete run with a student summary.json")
@@ -206,6 +204,7 @@ def analyze(
         "final": table,
         "listing": listing,
         "claims": claim_rows,
+        "refused": claims_input.refused,
     }
 
 
