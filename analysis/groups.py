@@ -45,7 +45,6 @@ MAY_VARY = (
     "compute.device",
     "compute.torch_threads",
     "compute.dist_timeout_s",
-    "compute.eval_num_envs",
     "compute.compile_math",
     "compute.compile_mode",
     "teacher.save_interval",
@@ -61,9 +60,9 @@ MAY_VARY = (
 the seed itself; where files go (``out``, ``resume``) and how often checkpoints are written;
 what is logged and drawn (``logger``, ``figures``, labels and colours); what a sweeper optimises
 (``objective``); and where and how fast the same numbers are computed (the device, threads, the
-process group's timeout, ``torch.compile`` of the same maths, and ``compute.eval_num_envs``:
-evaluation rows do not depend on the wave size, march.evaluation.protocol). Everything else is
-the experiment."""
+process group's timeout, ``torch.compile`` of the same maths). Everything else is the
+experiment: ``compute.eval_num_envs`` included, because an evaluation's rows depend on its wave
+size (mjlab draws each wave's randomisation for the whole batch; march.evaluation.sharding)."""
 
 NAMED = {
     "reward": "reward.name",
