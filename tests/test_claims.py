@@ -343,3 +343,49 @@ def test_coverage_by_simulation():
         )
         assert fired / reps <= 0.04  # nominal 0.025; 2 SE of 600 replicates above it
     print("; ".join(report))
+
+
+def _cfg_run(label: str, seed: int, **changes) -> Run:
+    """A run whose config.yaml is the smoke config with dotted ``changes`` (flattened as
+    analysis.rundirs reads it)."""
+    config = {
+        "reward.name": "clf",
+        "student.variant": "full",
+        "student.fusion": "transformer",
+        "curriculum.name": "stones",
+        "compute.name": "smoke",
+        "compute.device": "cpu",
+        "eval.pushes": "true",
+        "dr.push_lin_vel": "1.0",
+        "logger.name": "csv",
+        "seed": str(seed),
+        "out": "null",
+    }
+    config.update({k: str(v) for k, v in changes.items()})
+    return _run(label, seed=seed, config=config)
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "by", "name"),
+    [
+        ("student.fusion", "gru", "variant", "full [student.fusion=gru]"),
+        ("dr.push_lin_vel", "0.5", "reward", "clf [dr.push_lin_vel=0.5]"),
+        ("eval.pushes", "false", "reward", "clf [eval.pushes=false]"),
+        ("some.future_option", "7", "reward", "clf [some.future_option=7]"),
+    ],
+)
+def test_any_config_value_separates_groups_and_names_the_series(key, value, by, name):
+    """The key is derived from the whole config: a value no list names (a future option
+    included) separates the groups, and the series is named by it; the seed, the device, the
+    logger and output paths do not."""
+    runs = [_cfg_run(f"r{s}", s) for s in range(3)]
+    odd = _cfg_run("odd", 0, **{key: value})
+    groups = group_runs([*runs, odd])  # the same seed: not a duplicate, another experiment
+    assert sorted(len(v) for v in groups.values()) == [1, 3]
+    names = series_names(list(groups), by)
+    assert name in names.values()
+    same = [
+        _cfg_run("a", 0),
+        _cfg_run("b", 1, **{"compute.device": "cuda:1", "logger.name": "wandb", "out": "x"}),
+    ]
+    assert len(group_runs(same)) == 1
