@@ -150,7 +150,10 @@ def _eval_curves(
     """Group runs by ``key_of(run)`` and aggregate their ``stage`` eval rows per iteration: every
     group found, and a ``missing`` entry for each expected ``series`` without rows."""
     out = Curves()
-    for name in _ordered(set(series) | {key_of(r) for r in runs}, order):
+    found = {key_of(r) for r in runs}
+    # An expected arm drawn only as named groups (``clf [eval.pushes=false]``, ...) has rows.
+    series = [s for s in series if not any(f.startswith(f"{s} [") for f in found)]
+    for name in _ordered(set(series) | found, order):
         group = [r for r in runs if key_of(r) == name]
         frames = [f for f in (eval_rows(r, stage) for r in group) if f is not None]
         if frames:
