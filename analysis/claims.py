@@ -287,7 +287,9 @@ def _baseline_rows(name: str, a: list[Run], b: list[Run], inp: ClaimsInput) -> l
             claim_row(
                 f"{name}: {label}, paired cells both arms completed (final evaluation)",
                 f"<= {paper:+.0%}",
-                Estimate(point, lo, hi, n, n, "" if n else "no seed pair with rollout rows"),
+                Estimate(
+                    point, lo, hi, n, n, "" if n else "no seed pair with a cell both arms completed"
+                ),
                 _scale(a, b) + "; per seed pair",
                 paper,
                 "le",

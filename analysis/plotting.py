@@ -362,6 +362,7 @@ def plot_teacher_training(
                 "top", functions=(lambda s: s / per_iter, lambda i: i * per_iter)
             )
             top.set_xlabel("teacher iteration", fontsize=8)
+            top.xaxis.set_major_locator(MaxNLocator(integer=True))  # no iteration 1.5
             top.tick_params(labelsize=7)
     _legend_below(fig, legend)
     fig.suptitle(
