@@ -65,6 +65,7 @@ def ablation_rows(inp, notes: list[str]) -> list[dict]:
             notes.append(f"claims: ablation {names[kv]} has no {inp.full} group to compare with")
             continue
         v, f = inp.groups[kv], inp.groups[kf]
+        inp.used |= {kv, kf}
         stage = f" (stage {kv.stage})" if kv.stage != "student" else ""
         for column, label in ABLATION_METRICS:
             est = rel_estimate(final_values(v, f"mean_{column}"), final_values(f, f"mean_{column}"))

@@ -98,6 +98,7 @@ class ClaimsInput:
     threshold_fraction: float = 0.9
     conf_dir: Path = CONF_DIR
     refused: list[str] = field(default_factory=list)  # what was not compared, and why
+    used: set = field(default_factory=set)  # the groups some claim row compared
 
 
 def from_iteration(distill_budget) -> int:
@@ -348,6 +349,7 @@ def claims(inp: ClaimsInput, notes: list[str]) -> pd.DataFrame:
     for ka, kb in pairs:
         label = "baseline" if len(pairs) == 1 else f"baseline {names[ka]} vs {names[kb]}"
         rows += _baseline_rows(label, inp.groups[ka], inp.groups[kb], inp)
+        inp.used |= {ka, kb}
         for kc in ref_keys:
             if kc in paper_ref:
                 continue
@@ -364,8 +366,27 @@ def claims(inp: ClaimsInput, notes: list[str]) -> pd.DataFrame:
             for r in control:
                 r["paper"] = f"(control) {r['paper']}"
             rows += [r for r in control if "paired" not in r["claim"]]
+            inp.used.add(kc)
     rows += ablation_rows(inp, notes)
+    _unused(inp, names, arm_keys)
     return pd.DataFrame(rows, columns=CLAIM_COLUMNS)
+
+
+def _unused(inp: ClaimsInput, named: dict, listed: list[GroupKey]) -> None:
+    """Name every group no claim compared and no line above mentions, with why."""
+    rest = [k for k in inp.groups if k not in inp.used and k not in listed]
+    names = series_names(rest, "reward", inp.conf_dir) if rest else {}
+    for k in rest:
+        if k.reward not in (inp.arm, inp.reference, inp.ablation_teacher):
+            why = f"reward {k.reward} is neither {inp.arm}, {inp.reference} nor the ablation's"
+        elif k.variant != inp.full and k.reward != inp.ablation_teacher:
+            why = f"student {k.variant} of reward {k.reward}: no claim compares it"
+        elif k in named or k.stage == "all":
+            why = "no comparable group to pair it with"
+        else:
+            why = f"stage {k.stage} {k.variant} student: no comparable group"
+        if not any(line.startswith(names[k]) for line in inp.refused):
+            inp.refused.append(f"{names[k]} ({len(inp.groups[k])} seeds): not compared: {why}")
 
 
 def _pct(x) -> str:

@@ -128,3 +128,21 @@ def test_a_run_differing_in_one_setting_is_a_separate_series(
     assert any(named in x for x in md.split("## Not compared")[1].splitlines())
     final = res["final"]
     assert any(named in str(name) for name in final["reward"])  # a series of its own
+
+
+def test_every_group_no_claim_uses_is_listed_with_why(tmp_path, three_seeds, monkeypatch):
+    """A run of a reward neither arm names (clf_only) appears under "Not compared" with why."""
+    for table, value in (
+        (syn.TEACHER_EVAL_SLOPE, 0.05),
+        (syn.TEACHER_ITERS, 60),
+        (syn.TRAIN_SLOPE, 1.0),
+    ):
+        monkeypatch.setitem(table, "clf_only", value)
+    monkeypatch.setitem(syn.FINAL, ("clf_only", "full", 0), syn.FINAL[("clf", "full", 0)])
+    runs = [(r, s, {}) for r in ("clf", "modelfree") for s in (0, 1, 2)]
+    runs.append(("clf_only", 0, {}))
+    sweep = _sweep(tmp_path, runs)
+    fig.analyze([sweep], tmp_path / "o")
+    listed = _claims_md(tmp_path / "o").split("## Not compared")[1]
+    line = next(x for x in listed.splitlines() if x.startswith("- clf_only"))
+    assert "reward clf_only is neither clf, modelfree nor the ablation's" in line
