@@ -150,6 +150,9 @@ def final_table(runs: list[Run], mode: str, notes: list[str], comp: Comparisons)
             if big and not math.isnan(rel):
                 _, lo, hi = fieller_rel(a_vals, b_vals)
                 ci = f" [{format_rel(lo)}, {format_rel(hi)}]"
+            n_runs = (int(table.at[i, "n_runs"]), int(table.at[j, "n_runs"]))
+            if a_vals is not None and b_vals is not None and (a_vals.size, b_vals.size) != n_runs:
+                ci += f" (n={a_vals.size} vs {b_vals.size} with a value)"  # the seeds it used
             parts.append(f"{short} {format_rel(rel)}{ci}")
         n_a, n_b = int(table.at[i, "n_runs"]), int(table.at[j, "n_runs"])
         if min(n_a, n_b) < 3:
