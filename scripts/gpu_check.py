@@ -63,6 +63,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # run as a script: import this checkout's march
 
+from march import strict_json  # noqa: E402
 from march.bench.check_results import (  # noqa: E402
     BENCH_KEYS,  # noqa: F401 - read by the tests through this script
     bench_results,
@@ -406,7 +407,7 @@ class Check:
             "targets": judged_targets(self.results),
         }
         tmp = self.out / "gpu_check.json.tmp"
-        tmp.write_text(json.dumps(report, indent=2, default=str) + "\n")
+        tmp.write_text(strict_json.dumps(report, indent=2, default=str) + "\n")
         tmp.replace(self.out / "gpu_check.json")
         return report
 

@@ -26,6 +26,8 @@ LAYERS: dict[str, int] = {
     "errors": 0,
     # torch.compile of pure maths (compute.compile_math): torch only
     "compiled_math": 0,
+    # strict JSON for every file march writes (null for undefined values): plain Python
+    "strict_json": 0,
     # stage 0-2 mathematics: plain numpy / torch
     "world": 1,
     "reference": 2,

@@ -64,6 +64,7 @@ from march.learn.metrics import (
     append_rows,
     truncate_rows,
 )
+from march.strict_json import null_because, strict
 
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv
@@ -400,8 +401,12 @@ def evaluate(
 
 
 def write_summary(row: dict[str, Any], run_dir: Path, extra: dict[str, Any]) -> Path:
+    """summary.json, strict JSON: an undefined mean or SE (no successful rollout, one rollout)
+    is null, and ``null_because`` names the count that says why (march.strict_json)."""
     path = run_dir / "summary.json"
-    write_json_atomic({**row, **extra}, path)
+    counts = {metric: count for count, metric in COUNTED.items()}
+    why = null_because(row, counts, "n_rollouts")
+    write_json_atomic(strict({**row, **extra, **({"null_because": why} if why else {})}), path)
     return path
 
 
