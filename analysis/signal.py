@@ -41,6 +41,7 @@ if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from analysis.rundirs import discover  # noqa: E402
+from march.strict_json import dumps  # noqa: E402
 
 WINDOW = 5
 """Iterations averaged at the start and at the end of a run."""
@@ -312,7 +313,7 @@ def main(argv: list[str] | None = None) -> None:
     md = markdown(result)
     print(md)
     (out / "signal.md").write_text(md + "\n")
-    (out / "signal.json").write_text(json.dumps(result, indent=2, allow_nan=False, default=str))
+    (out / "signal.json").write_text(dumps(result, indent=2, default=str))
     steps = {a: h["env_steps"] for a, h in result["arms"].items()}
     png = figure(runs, out / "signal.png", f"learning-signal study, env steps per run {steps}")
     print(f"wrote {out / 'signal.md'}, {out / 'signal.json'} and {png}")

@@ -2,33 +2,18 @@
 
 from __future__ import annotations
 
-import json
-import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-
-def strict(obj: Any) -> Any:
-    """``obj`` with every non-finite float (and numpy scalar) made JSON-strict: NaN / inf -> None."""
-    if isinstance(obj, dict):
-        return {str(k): strict(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [strict(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return strict(obj.tolist())
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
+from march.strict_json import dumps
 
 
 def write_json(obj: Any, path: Path) -> Path:
     """Strict JSON (no NaN / Infinity tokens; json.dumps refuses them)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(strict(obj), indent=2, allow_nan=False) + "\n")
+    path.write_text(dumps(obj, indent=2) + "\n")
     return path
 
 
