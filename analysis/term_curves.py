@@ -57,12 +57,25 @@ SHARE_GROUPS = (
 """Output groups the per-output shares of V are summed into (29 lines would be unreadable)."""
 
 
+def _in_group(name: str, keys: tuple[str, ...]) -> bool:
+    """``com_`` is a prefix, ``_joint`` a suffix, any other key an exact output name (a
+    substring test would put ``swing_yaw`` under ``swing_y`` too)."""
+    return any(
+        name.startswith(k)
+        if k.endswith("_")
+        else name.endswith(k)
+        if k.startswith("_")
+        else name == k
+        for k in keys
+    )
+
+
 def share_groups(rows: pd.DataFrame) -> dict[str, pd.Series]:
     """Each output group's share of V (the sum of its outputs' ``clf/share/<output>``)."""
     out = {}
     cols = [c for c in rows.columns if c.startswith("clf/share/")]
     for name, keys in SHARE_GROUPS:
-        mine = [c for c in cols if any(k in c[len("clf/share/") :] for k in keys)]
+        mine = [c for c in cols if _in_group(c[len("clf/share/") :], keys)]
         if mine:
             out[name] = sum(pd.to_numeric(rows[c], errors="coerce") for c in mine)
     return out

@@ -172,3 +172,25 @@ def test_a_wrong_vmax_is_caught(model, blocks):
     expected = (ratio >= 1).mean()
     assert right.pop()["clf/saturated"] == pytest.approx(expected, abs=0.011)
     assert wrong.pop()["clf/saturated"] != pytest.approx(expected, abs=0.011)
+
+
+def test_share_groups_cover_every_output_once(model):
+    """figures --terms sums the 29 output shares into 5 groups: every output in exactly one (the
+    group sums equal the total on generated rows), CoM = the three com_ outputs."""
+    import pandas as pd
+
+    from analysis.term_curves import share_groups
+
+    names = model.cfg.output_names
+    rng = np.random.default_rng(4)
+    raw = rng.random((12, len(names)))
+    shares = raw / raw.sum(1, keepdims=True)
+    rows = pd.DataFrame(shares, columns=[f"clf/share/{n}" for n in names])
+    groups = share_groups(rows)
+    assert len(groups) == 5
+    total = sum(groups.values())
+    np.testing.assert_allclose(total.to_numpy(), 1.0, atol=1e-12)
+    com = [names.index(k) for k in ("com_x", "com_y", "com_z")]
+    np.testing.assert_allclose(groups["CoM"].to_numpy(), shares[:, com].sum(1))
+    sw = [names.index(k) for k in ("swing_roll", "swing_pitch", "swing_yaw")]
+    np.testing.assert_allclose(groups["swing orientation"].to_numpy(), shares[:, sw].sum(1))
