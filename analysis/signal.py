@@ -22,6 +22,11 @@ the claimed direction, otherwise "no signal at this scale"):
   and training distance (``mean_episode_length``, ``mean_distance_m``), and the evaluation
   distance at the last evaluation minus the first. Signal: lower > 0.
 
+Added after the runs were read (reported beside the criteria above, which stay as declared):
+the same changes with the first window after the start-up transient (:data:`TRANSIENT`), and
+C1e, the median V/Vmax of the deterministic policy's evaluation rollouts, last evaluation minus
+first (eval.csv).
+
 PPO's health is reported beside them (no criterion): the learning rate the adaptive schedule ends
 at, the action std, and ``kl_normaliser`` (the KL the schedule sees before any gradient step).
 """
@@ -45,6 +50,13 @@ from march.strict_json import dumps  # noqa: E402
 
 WINDOW = 5
 """Iterations averaged at the start and at the end of a run."""
+TRANSIENT = 5
+"""Iterations the start-up transient lasts at the cpu preset (added after reading the runs, and
+reported beside the criteria as declared, not instead of them): every env starts standing at
+t = 0 and falls or times out over the first few iterations, so the ended episodes' length and
+the pooled V/Vmax (more steps late in an episode, where V is large) rise over iterations 1-4
+whatever the policy learns. The "after the transient" rows take their first window from
+iteration TRANSIENT + 1 on."""
 CURVES = (
     ("mean_reward", "episode return (training)"),
     ("clf/v_p50", "median V/Vmax (training steps)"),
@@ -99,11 +111,23 @@ def teacher_metrics(run) -> pd.DataFrame | None:
     return df if len(df) >= 2 * WINDOW else None
 
 
-def window_change(df: pd.DataFrame, col: str) -> float:
+def window_change(df: pd.DataFrame, col: str, skip: int = 0) -> float:
+    """Mean of the last WINDOW iterations minus the mean of WINDOW iterations from ``skip``."""
     if col not in df:
         return math.nan
     y = pd.to_numeric(df[col], errors="coerce").to_numpy()
-    return float(np.nanmean(y[-WINDOW:]) - np.nanmean(y[:WINDOW]))
+    if len(y) < skip + 2 * WINDOW:
+        return math.nan
+    return float(np.nanmean(y[-WINDOW:]) - np.nanmean(y[skip : skip + WINDOW]))
+
+
+def eval_column_change(run, col: str) -> float:
+    ev = run.evals
+    if ev is None or col not in ev:
+        return math.nan
+    ev = ev[ev["stage"] == "teacher"].sort_values("iteration")
+    y = pd.to_numeric(ev[col], errors="coerce").to_numpy()
+    return float(y[-1] - y[0]) if len(y) >= 2 else math.nan
 
 
 def last_window(df: pd.DataFrame, col: str) -> float:
@@ -168,6 +192,17 @@ def study(runs: list, standing: float | None) -> dict:
             t_interval([window_change(d, "clf/saturated") for _, d in clf]),
             "down",
         )
+    if clf:
+        for col, label in (("clf/v_p50", "median V/Vmax"), ("clf/saturated", "saturated share")):
+            after = [window_change(d, col, TRANSIENT) for _, d in clf]
+            add(f"C1/C2 {label}, after the transient", "clf", t_interval(after), "down")
+        evals = [eval_column_change(r, "clf/v_p50") for r, _ in clf]
+        add(
+            "C1e median V/Vmax of evaluation rollouts, last - first",
+            "clf",
+            t_interval(evals),
+            "down",
+        )
     if clf and ctrl:
         add(
             "C3 median V/Vmax, clf - modelfree_ref (last)",
@@ -188,6 +223,8 @@ def study(runs: list, standing: float | None) -> dict:
             t_interval([window_change(d, "mean_episode_length") for _, d in items]),
             "up",
         )
+        after = [window_change(d, "mean_episode_length", TRANSIENT) for _, d in items]
+        add("C5 episode length, after the transient", arm, t_interval(after), "up")
         add(
             "C5 training distance [m], last - first",
             arm,
@@ -310,6 +347,7 @@ def main(argv: list[str] | None = None) -> None:
         standing = float(zero[0]["v_over_vmax"]["p50"])
     result = study(runs, standing)
     out = args.out or args.dirs[0]
+    out.mkdir(parents=True, exist_ok=True)
     md = markdown(result)
     print(md)
     (out / "signal.md").write_text(md + "\n")
