@@ -39,7 +39,10 @@ METRICS = {
     "abs_torque_nm": ("torque", "mean |joint torque| [Nm]"),
     "abs_ang_jerk": ("jerk", "mean |angular jerk| [rad/s^3]"),
     "reward": ("return", "episode return (teacher's full reward)"),
-    "reward_per_step": ("reward/step", "teacher's full reward per step"),
+    "reward_per_step": (
+        "reward/step",
+        "teacher's reward per step\n(the paper's ablation metric)",
+    ),
     "torque_success": ("torque (success)", "|joint torque|, successful rollouts [Nm]"),
     "jerk_success": ("jerk (success)", "|angular jerk|, successful rollouts [rad/s^3]"),
 }
@@ -147,7 +150,10 @@ def _eval_curves(
     """Group runs by ``key_of(run)`` and aggregate their ``stage`` eval rows per iteration: every
     group found, and a ``missing`` entry for each expected ``series`` without rows."""
     out = Curves()
-    for name in _ordered(set(series) | {key_of(r) for r in runs}, order):
+    found = {key_of(r) for r in runs}
+    # An expected arm drawn only as named groups (``clf [eval.pushes=false]``, ...) has rows.
+    series = [s for s in series if not any(f.startswith(f"{s} [") for f in found)]
+    for name in _ordered(set(series) | found, order):
         group = [r for r in runs if key_of(r) == name]
         frames = [f for f in (eval_rows(r, stage) for r in group) if f is not None]
         if frames:
@@ -281,14 +287,17 @@ SE_COLUMNS = [
 ]
 
 
-def relative_target(curves: Curves, fraction: float) -> float:
-    """``fraction`` x the better series' final seed-mean evaluation distance (NaN if none)."""
-    finals = [
-        float(c["mean_distance_m"].dropna().iloc[-1])
-        for c in curves.series.values()
+def relative_target(curves: Curves, fraction: float, among: list[str] | None = None) -> float:
+    """``fraction`` x the better final seed-mean evaluation distance of the series ``among``
+    (the compared pair, as the claims take it; every series when None or none of them has
+    one); NaN if none."""
+    finals = {
+        name: float(c["mean_distance_m"].dropna().iloc[-1])
+        for name, c in curves.series.items()
         if c["mean_distance_m"].notna().any()
-    ]
-    return fraction * max(finals) if finals else math.nan
+    }
+    chosen = [v for k, v in finals.items() if among and k in among] or list(finals.values())
+    return fraction * max(chosen) if chosen else math.nan
 
 
 def sample_efficiency(
@@ -303,13 +312,18 @@ def sample_efficiency(
     evaluation distance (eval.csv teacher rows, no smoothing) reaches the target: ``target``
     [m] if given, else ``fraction`` x the better group's final distance (the paper's "reaches
     the model-free distance"); per run the same. Pairs compare each arm's primary group."""
-    if target is None:
-        target = relative_target(curves, fraction)
-        source = f"{fraction:.0%} of the better final distance"
-    else:
-        source = "--target-distance"
     chosen = teacher_runs(runs)
     name_of = _namer(chosen, "reward", teacher=True) if chosen else None
+    keys = list(dict.fromkeys(GroupKey.of(r).teacher_part() for r in chosen))
+    names = series_names(keys, "reward")
+    if target is None:
+        # The claims' target: the better of the first compared pair's arms, not of the controls.
+        pair = comp.pairs[0] if comp.pairs else ()
+        among = [names[k] for k in (primary(keys, a) for a in pair) if k is not None]
+        target = relative_target(curves, fraction, among)
+        source = f"{fraction:.0%} of the better final distance of {' and '.join(among) or 'all'}"
+    else:
+        source = "--target-distance"
     records = []
     for series, curve in curves.series.items():
         idx = first_reach(curve["iteration"], curve["mean_distance_m"], target)
@@ -339,8 +353,6 @@ def sample_efficiency(
             }
         )
     eff = pd.DataFrame(records, columns=SE_COLUMNS)
-    keys = list(dict.fromkeys(GroupKey.of(r).teacher_part() for r in chosen))
-    names = series_names(keys, "reward")
     by = {row["reward"]: row for _, row in eff.iterrows()}
     for a, b in comp.pairs:
         ka, kb = primary(keys, a), primary(keys, b)

@@ -3,51 +3,77 @@
 One row per claim (``claims.csv`` / ``claims.md``; columns :data:`CLAIM_COLUMNS`):
 
 * **sample efficiency** -- the clf teacher reaches the model-free distance with half the
-  training: teacher env steps until the seed-mean evaluation distance (eval.csv teacher rows)
-  first reaches ``threshold_fraction`` (default 0.9) of the better arm's final seed-mean distance,
-  clf / modelfree. Paper: 10k vs 20k iterations, a ratio of 0.5; claimed "<= 0.5".
+  training: per seed, the teacher env steps until its evaluation distance (eval.csv teacher rows)
+  first reaches ``threshold_fraction`` (default 0.9) of the better arm's final seed-mean
+  distance; the ratio of the arms' mean step counts, clf / modelfree, with Fieller's interval.
+  A seed that never reaches the target counts with its last evaluated step count, a lower
+  bound: then only the verdict that bound cannot flatter is given. Paper: 10k vs 20k
+  iterations, a ratio of 0.5; claimed "<= 0.5".
 * **torque** and **angular jerk** after distillation -- "at least 12% / 39% less after 500
   distillation iterations": over the student evaluation rows from distillation iteration
   ``500 / 1500`` of the runs' distillation budget on, the LARGEST relative difference of seed
   means (clf - modelfree) / modelfree over those iterations (the weakest reduction: "at least X%
-  at every iteration" <=> it is <= -X). Headline: over successful rollouts only
+  at every iteration" <=> it is <= -X), with a simultaneous interval
+  (:func:`analysis.stats.worst_over_iterations`). Headline: over successful rollouts only
   (``torque_success`` / ``jerk_success``: gait, not falls); the same over all rollouts follows
   as a secondary row; and, where both arms of a seed wrote ``eval_rollouts.csv``, the paired
   per-cell difference on the cells both arms completed in the final evaluation.
-* **ablation** -- the full student ahead of each ablated one: (variant - full) / |full| of the
-  final reward per step (the teacher's full reward per control step of a student rollout; the
-  return would pay for standing, docs/decisions.md), claimed "< 0".
+* **ablation** -- the full student ahead of each ablated one, by the paper's metric and two task
+  metrics beside it (:mod:`analysis.ablation_claims`).
 * **controls** (``+sweep=factorial``): the sample-efficiency, torque and jerk rows again with each
   other group of the reference arm (modelfree on stones at the clf budget, with the reference
   observation) in place of the paper's modelfree, so the CLF reward's own effect can be read.
 
-Intervals (95%, across seeds, :mod:`analysis.stats`): Fieller's interval with Welch's degrees of
-freedom for relative differences of means (per iteration for the "every iteration from 500 on"
-rows), Student's t for paired per-seed differences, the percentile bootstrap over seeds for the
-sample-efficiency ratio; verdicts by :func:`analysis.stats.verdict` (``inconclusive`` with fewer
-than 3 seeds per arm).
+Which groups are compared (:mod:`analysis.groups`): two groups only when they differ in the
+compared arms' own fields (what ``conf/experiment/<arm>.yaml`` chooses) and nothing else; every
+pair refused, and every group that is not the paper's arm, is listed with the reason in
+``claims.md`` ("Not compared").
+
+Every verdict counts the finite per-seed values it was computed from, per arm (and per iteration
+for the "every iteration" rows): ``n_seeds`` reports them; fewer than 3 on either side is
+``inconclusive`` with the reason in ``why`` (:func:`analysis.stats.judge`).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from analysis.groups import GroupKey, primary, series_names
+from analysis.ablation_claims import ablation_rows
+from analysis.groups import (
+    CONF_DIR,
+    GroupKey,
+    arm_fields,
+    foreign,
+    series_names,
+    shorten,
+    spec_mismatch,
+)
 from analysis.rundirs import Run, stage_rows
 from analysis.stats import (
     MIN_SEEDS,
-    bootstrap,
-    fieller_rel,
+    Estimate,
+    judge,
     mean_interval,
-    verdict,
+    ratio_estimate,
     worst_over_iterations,
 )
 
-CLAIM_COLUMNS = ["claim", "paper", "measured", "ci_low", "ci_high", "n_seeds", "scale", "verdict"]
+CLAIM_COLUMNS = [
+    "claim",
+    "paper",
+    "measured",
+    "ci_low",
+    "ci_high",
+    "n_seeds",
+    "scale",
+    "verdict",
+    "why",
+]
 PAPER_DISTILL_ITERATIONS = 1500
 PAPER_FROM_ITERATION = 500
 PAPER_STEP_RATIO = 0.5  # 10k vs 20k teacher iterations
@@ -70,6 +96,9 @@ class ClaimsInput:
     full: str = "full"
     ablation_teacher: str = "clf"
     threshold_fraction: float = 0.9
+    conf_dir: Path = CONF_DIR
+    refused: list[str] = field(default_factory=list)  # what was not compared, and why
+    used: set = field(default_factory=set)  # the groups some claim row compared
 
 
 def from_iteration(distill_budget) -> int:
@@ -81,92 +110,96 @@ def from_iteration(distill_budget) -> int:
     return math.ceil(PAPER_FROM_ITERATION / PAPER_DISTILL_ITERATIONS * budget)
 
 
-def _seeds(a: list[Run], b: list[Run]) -> str:
-    text = f"{len(a)} vs {len(b)}"
-    return text if min(len(a), len(b)) >= MIN_SEEDS else f"{text} (fewer than {MIN_SEEDS})"
+def seeds_text(est: Estimate) -> str:
+    """``n_seeds``: the finite values per arm the statistic used (never the runs found)."""
+    text = f"{est.n_a} vs {est.n_b}"
+    return text if min(est.n_a, est.n_b) >= MIN_SEEDS else f"{text} (fewer than {MIN_SEEDS})"
 
 
-def _row(claim, paper, stat, n_a, n_b, scale, claimed, direction, seeds) -> dict:
-    point, lo, hi = stat
+def claim_row(claim, paper, est: Estimate, scale, claimed, direction, seeds=None) -> dict:
+    verdict, why = judge(est, claimed, direction)
     return {
         "claim": claim,
         "paper": paper,
-        "measured": point,
-        "ci_low": lo,
-        "ci_high": hi,
-        "n_seeds": seeds,
+        "measured": est.point,
+        "ci_low": est.low,
+        "ci_high": est.high,
+        "n_seeds": seeds or seeds_text(est),
         "scale": scale,
-        "verdict": verdict(lo, hi, claimed, direction, n_a, n_b),
+        "verdict": verdict,
+        "why": why,
     }
 
 
-def _student_matrix(runs: list[Run], column: str, start: int) -> tuple[np.ndarray, list[int]]:
-    """(runs, iterations) of eval.csv student ``column`` from iteration ``start`` on, over the
-    iterations every run has; NaN where a run has no value."""
-    frames = [stage_rows(r.evals, "student") for r in runs]
-    its: set[int] | None = None
-    for f in frames:
-        got = set() if f is None else {int(i) for i in f["iteration"] if i >= start}
-        its = got if its is None else its & got
-    grid = sorted(its or ())
+def _student_matrix(runs: list[Run], column: str, grid: list[int]) -> np.ndarray:
+    """(runs, iterations of ``grid``) of eval.csv student ``column``; NaN where a run has no
+    value (a metric undefined at that evaluation: no successful rollout)."""
     out = np.full((len(runs), len(grid)), np.nan)
-    for i, f in enumerate(frames):
+    for i, r in enumerate(runs):
+        f = stage_rows(r.evals, "student")
         if f is None or column not in f.columns:
             continue
         values = dict(zip(f["iteration"].astype(int), f[column], strict=False))
         out[i] = [values.get(it, np.nan) for it in grid]
-    return out, grid
+    return out
 
 
-def _teacher_curves(runs: list[Run]) -> tuple[np.ndarray, np.ndarray]:
-    """(runs, iterations) teacher evaluation distance on the iterations every run has, and the
-    mean env steps at each."""
-    frames = [stage_rows(r.evals, "teacher", "mean_distance_m") for r in runs]
-    if any(f is None for f in frames):
-        return np.empty((len(runs), 0)), np.empty(0)
-    its = set.intersection(*({int(i) for i in f["iteration"]} for f in frames))
-    grid = sorted(its)
-    dist = np.array(
-        [
-            [
-                dict(zip(f["iteration"].astype(int), f["mean_distance_m"], strict=True))[i]
-                for i in grid
-            ]
-            for f in frames
-        ]
-    )
-    steps = np.array(
-        [
-            [dict(zip(f["iteration"].astype(int), f["env_steps"], strict=True))[i] for i in grid]
-            for f in frames
-        ]
-    )
-    return dist.astype(float), steps.mean(axis=0).astype(float)
+def student_grid(runs: list[Run], start: int) -> list[int]:
+    """The student evaluation iterations from ``start`` on that every one of ``runs`` has."""
+    its: set[int] | None = None
+    for r in runs:
+        f = stage_rows(r.evals, "student")
+        got = set() if f is None else {int(i) for i in f["iteration"] if i >= start}
+        its = got if its is None else its & got
+    return sorted(its or ())
 
 
-def steps_to_reach(curves: np.ndarray, steps: np.ndarray, threshold: np.ndarray) -> np.ndarray:
-    """(R,) env steps at which each mean curve (R, T) first reaches ``threshold`` (R,); inf
-    where it never does."""
-    hit = curves >= threshold[:, None]
-    first = hit.argmax(axis=1)
-    return np.where(hit.any(axis=1), steps[first], np.inf)
+def teacher_curve(run: Run) -> tuple[np.ndarray, np.ndarray] | None:
+    """(env steps, evaluation distance) of a run's eval.csv teacher rows, or None."""
+    f = stage_rows(run.evals, "teacher", "mean_distance_m")
+    if f is None:
+        return None
+    return f["env_steps"].to_numpy(dtype=float), f["mean_distance_m"].to_numpy(dtype=float)
 
 
-def sample_efficiency_stat(steps_a: np.ndarray, steps_b: np.ndarray, fraction: float):
-    """The statistic of the sample-efficiency claim for resampled arms A (R, n_a, T_a) and B:
-    steps_to_reach(A) / steps_to_reach(B) with the threshold ``fraction`` x the better final
-    seed-mean distance of the two (NaN where neither reaches it)."""
+def steps_to_target(a: list[Run], b: list[Run], fraction: float) -> tuple[Estimate, float, str]:
+    """The sample-efficiency statistic: per seed, the env steps at which its teacher's
+    evaluation distance first reaches ``fraction`` x the better arm's final seed-mean distance;
+    the ratio of the arms' means with Fieller's interval (``ratio_estimate``). Returns the
+    estimate, the target [m] and a note on censored seeds. A seed that never reaches the target
+    gives its last evaluated step count, a lower bound on its true count: in arm ``a`` it can
+    only flatter the ratio downwards (no ``reproduced``), in ``b`` upwards (no ``not
+    reproduced``); ``Estimate.allowed`` says which verdicts remain."""
+    ca = [c for c in (teacher_curve(r) for r in a) if c is not None]
+    cb = [c for c in (teacher_curve(r) for r in b) if c is not None]
+    finals = [
+        float(np.mean(x))
+        for x in ([c[1][-1] for c in ca], [c[1][-1] for c in cb])
+        if len(x) and np.isfinite(x).all()
+    ]
+    if len(finals) < 2:
+        return Estimate.none("no eval.csv teacher rows", len(ca), len(cb)), math.nan, ""
+    target = fraction * max(finals)
 
-    def stat(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        ma, mb = a.mean(axis=1), b.mean(axis=1)
-        threshold = fraction * np.maximum(ma[:, -1], mb[:, -1])
-        sa = steps_to_reach(ma, steps_a, threshold)
-        sb = steps_to_reach(mb, steps_b, threshold)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            ratio = sa / sb
-        return np.where(np.isinf(sa) & np.isinf(sb), np.nan, ratio)
+    def reach(curves) -> tuple[np.ndarray, int]:
+        out, censored = [], 0
+        for steps, dist in curves:
+            hit = np.nonzero(dist >= target)[0]
+            censored += hit.size == 0
+            out.append(steps[hit[0]] if hit.size else steps[-1])
+        return np.asarray(out, dtype=float), censored
 
-    return stat
+    (sa, na), (sb, nb) = reach(ca), reach(cb)
+    est = ratio_estimate(sa, sb)
+    allowed, why = {"reproduced", "not reproduced"}, []
+    if na:
+        allowed.discard("reproduced")
+        why.append(f"{na} seed(s) of the arm never reach the target (last step count used)")
+    if nb:
+        allowed.discard("not reproduced")
+        why.append(f"{nb} seed(s) of the reference never reach it (last step count used)")
+    est = replace(est, allowed=tuple(sorted(allowed)), why="; ".join(why) or est.why)
+    return est, target, "; ".join(why)
 
 
 def _scale(a: list[Run], b: list[Run], start: int | None = None) -> str:
@@ -218,142 +251,142 @@ def stage_rows_last(rows: pd.DataFrame) -> pd.DataFrame | None:
 def _baseline_rows(name: str, a: list[Run], b: list[Run], inp: ClaimsInput) -> list[dict]:
     """The sample-efficiency, gait and paired rows of arm runs ``a`` vs reference runs ``b``
     (stage=all runs: each trained its own teacher, whose eval.csv teacher rows it holds)."""
-    rows = []
-    ta, tb = a, b
-    ca, sa = _teacher_curves(ta)
-    cb, sb = _teacher_curves(tb)
-    stat = (math.nan, math.nan, math.nan)
-    if ca.shape[1] and cb.shape[1]:
-        stat = bootstrap(sample_efficiency_stat(sa, sb, inp.threshold_fraction), ca, cb)
-    rows.append(
-        _row(
+    est, target, _ = steps_to_target(a, b, inp.threshold_fraction)
+    where = f" ({target:.3g} m)" if np.isfinite(target) else ""
+    rows = [
+        claim_row(
             f"{name}: teacher env steps to {inp.threshold_fraction:.0%} of the better final "
-            f"distance, {inp.arm} / {inp.reference}",
+            f"distance{where}, mean over seeds, {inp.arm} / {inp.reference}",
             f"<= {PAPER_STEP_RATIO} (10k vs 20k it)",
-            stat,
-            len(ta),
-            len(tb),
-            _scale(ta, tb),
+            est,
+            _scale(a, b),
             PAPER_STEP_RATIO,
             "le",
-            _seeds(ta, tb),
         )
-    )
+    ]
     start = from_iteration(next((r.distill_budget for r in a + b), None))
+    grid = student_grid(a + b, start)
     for column, label, paper in GAIT:
-        ma, _ = _student_matrix(a, f"mean_{column}", start)
-        mb, _ = _student_matrix(b, f"mean_{column}", start)
-        stat = (math.nan, math.nan, math.nan)
-        if ma.shape[1] and ma.shape[1] == mb.shape[1]:
-            stat = worst_over_iterations(ma, mb)
+        ma = _student_matrix(a, f"mean_{column}", grid)
+        mb = _student_matrix(b, f"mean_{column}", grid)
         rows.append(
-            _row(
-                f"{name}: {label}, worst (a - b) / b from distill it {start} on",
+            claim_row(
+                f"{name}: {label}, worst (a - b) / b from distill it {start} on "
+                f"({len(grid)} evaluations, simultaneous)",
                 f"<= {paper:+.0%}",
-                stat,
-                len(a),
-                len(b),
+                worst_over_iterations(ma, mb, names=grid),
                 _scale(a, b, start),
                 paper,
                 "le",
-                _seeds(a, b),
             )
         )
     for metric, label, paper in PAIRED:
         per_pair = _paired_cells(a, b, metric)
-        stat = (math.nan, math.nan, math.nan)
-        if per_pair.size:
-            stat = mean_interval(per_pair)
+        n = int(np.isfinite(per_pair).sum())
+        point, lo, hi = mean_interval(per_pair) if n else (math.nan,) * 3
         rows.append(
-            _row(
+            claim_row(
                 f"{name}: {label}, paired cells both arms completed (final evaluation)",
                 f"<= {paper:+.0%}",
-                stat,
-                per_pair.size,
-                per_pair.size,
+                Estimate(
+                    point, lo, hi, n, n, "" if n else "no seed pair with a cell both arms completed"
+                ),
                 _scale(a, b) + "; per seed pair",
                 paper,
                 "le",
-                f"{per_pair.size} seed pairs"
-                + ("" if per_pair.size >= MIN_SEEDS else f" (fewer than {MIN_SEEDS})"),
+                f"{n} seed pairs" + ("" if n >= MIN_SEEDS else f" (fewer than {MIN_SEEDS})"),
             )
         )
     return rows
 
 
-def _final(runs: list[Run], column: str) -> np.ndarray:
-    out = []
-    for r in runs:
-        f = stage_rows(r.evals, "student", column)
-        out.append(float(f[column].iloc[-1]) if f is not None else np.nan)
-    return np.asarray(out, dtype=float)
+def _paper_arm(key: GroupKey, arm: str, conf_dir: Path) -> list[str]:
+    """Why ``key`` is not the paper's ``arm`` (empty: it is)."""
+    why = spec_mismatch(key, arm, conf_dir)
+    if key.observe_reference and not any(w.startswith("reward.observe_reference") for w in why):
+        why.append("reward.observe_reference=true")
+    return why
 
 
 def claims(inp: ClaimsInput, notes: list[str]) -> pd.DataFrame:
-    """Every claim row the groups allow (module docstring); what is missing goes to ``notes``."""
+    """Every claim row the groups allow (module docstring); what is missing goes to ``notes``,
+    what was not compared and why to ``inp.refused``."""
     keys = [k for k in inp.groups if k.variant == inp.full and k.stage == "all"]
-    rows: list[dict] = []
-    ka, kb = primary(keys, inp.arm), primary(keys, inp.reference)
-    names = series_names(keys, "reward")
-    if ka is None or kb is None:
-        notes.append(
-            f"claims: no single {inp.arm} and {inp.reference} group of {inp.full} students "
-            f"(groups: {', '.join(names.values()) or 'none'}); baseline claims not measured"
+    names = series_names(keys, "reward", inp.conf_dir)
+    own = tuple(
+        sorted(
+            set(arm_fields(inp.arm, inp.conf_dir)) | set(arm_fields(inp.reference, inp.conf_dir))
         )
-    else:
-        a, b = inp.groups[ka], inp.groups[kb]
-        rows += _baseline_rows("baseline", a, b, inp)
-        for kc in keys:
-            if kc.reward == inp.reference and kc != kb:
-                control = _baseline_rows(
-                    f"control {inp.arm} vs {names[kc]}", a, inp.groups[kc], inp
+    )
+    arm_keys = [k for k in keys if k.reward == inp.arm]
+    ref_keys = [k for k in keys if k.reward == inp.reference]
+    paper_arm = [k for k in arm_keys if not _paper_arm(k, inp.arm, inp.conf_dir)]
+    paper_ref = [k for k in ref_keys if not _paper_arm(k, inp.reference, inp.conf_dir)]
+    for k in arm_keys:
+        if k not in paper_arm:
+            inp.refused.append(
+                f"{names[k]} ({len(inp.groups[k])} seeds): not the paper's {inp.arm} arm "
+                f"({shorten(_paper_arm(k, inp.arm, inp.conf_dir))}); a separate series"
+            )
+    rows: list[dict] = []
+    pairs = []
+    for ka in paper_arm:
+        for kb in paper_ref:
+            bad = foreign(ka, kb, own)
+            if bad:
+                inp.refused.append(
+                    f"{names[ka]} vs {names[kb]}: not compared: they differ in {shorten(bad)} "
+                    f"(only the arms' own fields {', '.join(own)} may differ)"
                 )
-                for r in control:
-                    r["paper"] = f"(control) {r['paper']}"
-                rows += [r for r in control if "paired" not in r["claim"]]
-    rows += _ablation_rows(inp, notes)
+            else:
+                pairs.append((ka, kb))
+    if not pairs:
+        notes.append(
+            f"claims: no {inp.arm} and {inp.reference} groups of {inp.full} students that differ "
+            f"only in the arms' own fields (groups: {', '.join(names.values()) or 'none'}); "
+            "baseline claims not measured"
+        )
+    for ka, kb in pairs:
+        label = "baseline" if len(pairs) == 1 else f"baseline {names[ka]} vs {names[kb]}"
+        rows += _baseline_rows(label, inp.groups[ka], inp.groups[kb], inp)
+        inp.used |= {ka, kb}
+        for kc in ref_keys:
+            if kc in paper_ref:
+                continue
+            bad = foreign(ka, kc, own)
+            if bad:
+                inp.refused.append(
+                    f"control {names[ka]} vs {names[kc]}: not compared: they differ in "
+                    f"{shorten(bad)}"
+                )
+                continue
+            control = _baseline_rows(
+                f"control {names[ka]} vs {names[kc]}", inp.groups[ka], inp.groups[kc], inp
+            )
+            for r in control:
+                r["paper"] = f"(control) {r['paper']}"
+            rows += [r for r in control if "paired" not in r["claim"]]
+            inp.used.add(kc)
+    rows += ablation_rows(inp, notes)
+    _unused(inp, names, arm_keys)
     return pd.DataFrame(rows, columns=CLAIM_COLUMNS)
 
 
-def _ablation_rows(inp: ClaimsInput, notes: list[str]) -> list[dict]:
-    rows = []
-    teacher = [k for k in inp.groups if k.reward == inp.ablation_teacher]
-    for kv in teacher:
-        if kv.variant == inp.full:
-            continue
-        kf = next((k for k in teacher if k.variant == inp.full and _same_but_variant(k, kv)), None)
-        if kf is None:
-            notes.append(f"claims: ablation {kv.variant} has no {inp.full} group to compare with")
-            continue
-        column = "mean_reward_per_step"
-        fv, ff = _final(inp.groups[kv], column), _final(inp.groups[kf], column)
-        v = [r for r, x in zip(inp.groups[kv], fv, strict=True) if np.isfinite(x)]
-        f = [r for r, x in zip(inp.groups[kf], ff, strict=True) if np.isfinite(x)]
-        fv, ff = fv[np.isfinite(fv)], ff[np.isfinite(ff)]
-        if not v or not f:
-            notes.append(f"claims: ablation {kv.variant} (stage {kv.stage}): no {column} rows")
-            continue
-        stat = fieller_rel(fv, ff)
-        rows.append(
-            _row(
-                f"ablation: {inp.full} ahead of {kv.variant}: reward per step, "
-                f"({kv.variant} - {inp.full}) / |{inp.full}|, final evaluation"
-                + (f" (stage {kv.stage})" if kv.stage != "student" else ""),
-                "< 0 (full ahead)",
-                stat,
-                len(v),
-                len(f),
-                _scale(v, f),
-                0.0,
-                "le",
-                _seeds(v, f),
-            )
-        )
-    return rows
-
-
-def _same_but_variant(a: GroupKey, b: GroupKey) -> bool:
-    return replace(a, variant="") == replace(b, variant="")
+def _unused(inp: ClaimsInput, named: dict, listed: list[GroupKey]) -> None:
+    """Name every group no claim compared and no line above mentions, with why."""
+    rest = [k for k in inp.groups if k not in inp.used and k not in listed]
+    names = series_names(rest, "reward", inp.conf_dir) if rest else {}
+    for k in rest:
+        if k.reward not in (inp.arm, inp.reference, inp.ablation_teacher):
+            why = f"reward {k.reward} is neither {inp.arm}, {inp.reference} nor the ablation's"
+        elif k.variant != inp.full and k.reward != inp.ablation_teacher:
+            why = f"student {k.variant} of reward {k.reward}: no claim compares it"
+        elif k in named or k.stage == "all":
+            why = "no comparable group to pair it with"
+        else:
+            why = f"stage {k.stage} {k.variant} student: no comparable group"
+        if not any(line.startswith(names[k]) for line in inp.refused):
+            inp.refused.append(f"{names[k]} ({len(inp.groups[k])} seeds): not compared: {why}")
 
 
 def _pct(x) -> str:
@@ -364,22 +397,28 @@ def _pct(x) -> str:
     return f"{x:+.1%}"
 
 
-def claims_markdown(table: pd.DataFrame) -> str:
-    """claims.md: the table (relative values in percent, ratios as numbers) and how to read it."""
+def claims_markdown(table: pd.DataFrame, refused: list[str] = ()) -> str:
+    """claims.md: the table (relative values in percent, ratios as numbers), how to read it, and
+    what was not compared and why."""
     lines = [
         "# The paper's claims, measured",
         "",
-        "Each row: the paper's figure, march's value with a 95% interval across seeds (relative "
-        "differences of means: Fieller's interval with Welch's degrees of freedom, per iteration "
-        "for the 'from iteration 500 on' rows, combined as [max low, max high]; paired rows: "
-        "Student's t over seed pairs; the sample-efficiency ratio: percentile bootstrap over "
-        "seeds, 10,000 resamples), the seeds behind it and the scale of the runs. Verdict: `reproduced` when the whole interval satisfies the claim, "
-        "`not reproduced` when the whole interval violates it, `inconclusive` otherwise or with "
-        f"fewer than {MIN_SEEDS} seeds per arm (a smoke-scale run measures plumbing, not the "
-        "paper).",
+        "Each row: the paper's figure, march's value with a 95% interval across seeds, the seeds "
+        "behind it (finite values per arm: a seed whose metric is undefined, e.g. no successful "
+        "rollout, does not count) and the scale of the runs. Intervals: relative differences "
+        "of means, Fieller's interval with Welch's degrees of freedom; the 'worst from "
+        "iteration 500 on' rows, a simultaneous interval for the largest difference over the "
+        "evaluations (upper end: the largest per-iteration upper end; lower end: the largest "
+        "Bonferroni-corrected lower end); the sample-efficiency ratio, Fieller's interval for "
+        "the ratio of the arms' mean step counts; paired rows, Student's t over seed pairs. "
+        "Verdict: `reproduced` when the whole interval satisfies the claim, `not reproduced` "
+        "when the whole interval violates it, `inconclusive` otherwise, with fewer than "
+        f"{MIN_SEEDS} seeds with a value per arm, or when a censored seed forbids it (column "
+        "'why'); a smoke-scale run measures plumbing, not the paper. Two groups are compared "
+        "only when they differ in the compared arms' own fields and nothing else.",
         "",
-        "| claim | paper | measured | 95% CI | n seeds | scale | verdict |",
-        "|---|---|---|---|---|---|---|",
+        "| claim | paper | measured | 95% CI | n seeds | scale | verdict | why |",
+        "|---|---|---|---|---|---|---|---|",
     ]
 
     def cell(text) -> str:
@@ -390,7 +429,9 @@ def claims_markdown(table: pd.DataFrame) -> str:
         show = (lambda x: "n/a" if pd.isna(x) else f"{x:.3g}") if ratio else _pct
         lines.append(
             f"| {cell(r['claim'])} | {cell(r['paper'])} | {show(r['measured'])} | "
-            f"[{show(r['ci_low'])}, {show(r['ci_high'])}] | {r['n_seeds']} | {r['scale']} | "
-            f"**{r['verdict']}** |"
+            f"[{show(r['ci_low'])}, {show(r['ci_high'])}] | {r['n_seeds']} | {cell(r['scale'])} | "
+            f"**{r['verdict']}** | {cell(r['why'])} |"
         )
+    lines += ["", "## Not compared", ""]
+    lines += [f"- {cell(line)}" for line in refused] or ["- (every group found was compared)"]
     return "\n".join(lines) + "\n"

@@ -20,13 +20,17 @@ evaluation set under one protocol for every arm). Written into ``--out`` (defaul
   ``stage == "student"``; error bars 4 x SE (the paper's Fig. 4).
 * ``sample_efficiency.{png,pdf}`` -- both teachers' distance and success on the fixed stone
   evaluation set vs teacher iteration, and distance vs teacher env steps; ``eval.csv`` rows
-  ``stage == "teacher"`` (every ``teacher.eval_interval`` iterations); bars 1 x SE.
+  ``stage == "teacher"`` (every ``teacher.eval_interval`` iterations); bars 1 x SE; the target
+  line is the claims' (``--threshold-fraction`` x the better final distance of the compared
+  pair, controls left out) unless ``--target-distance`` is given.
   ``sample_efficiency.csv``: the first teacher iteration / env steps at which each arm's
-  seed-mean evaluation distance reaches ``--target-distance``, per arm and per run, and clf vs
-  modelfree as (clf - modelfree) / modelfree.
-* ``ablation.{png,pdf}`` -- episode return under the teacher's full reward (``mean_reward``),
-  distance and success vs distillation iteration for the clf teacher's students full /
-  no_transformer / no_mdn; ``eval.csv`` rows ``stage == "student"``; bars 1 x SE.
+  seed-mean evaluation distance reaches the target, per arm and per run, and clf vs modelfree
+  as (clf - modelfree) / modelfree.
+* ``ablation.{png,pdf}`` -- the paper's ablation metric, the teacher's reward per control step on
+  student rollouts (``mean_reward_per_step``), with distance and success beside it (standing
+  still can score on the first, not on these) vs distillation iteration for the clf teacher's
+  students full / no_transformer / no_mdn; ``eval.csv`` rows ``stage == "student"``; bars
+  1 x SE.
 * ``teacher_curves.{png,pdf}`` -- a training DIAGNOSTIC, not a comparison: ``metrics.csv``
   teacher rows (training rollouts, each arm on its own curriculum), moving average ``--smooth``.
 * ``final_metrics.{md,csv}`` -- per reward x student variant the final evaluation
@@ -37,8 +41,9 @@ evaluation set under one protocol for every arm). Written into ``--out`` (defaul
 * ``runs.{md,csv}`` -- every run found, its config keys, state, row counts and problems.
 
 A run without the rows a figure needs (an old run without teacher evaluations, a teacher-only
-run) is named on stdout and in a grey note on the figure's axes; a figure with no rows at all is
-skipped with a note. ``eval.csv`` files with fewer columns (older versions) load as they are.
+run) is named on stdout and in a grey note above the panel (never over its data); a figure with
+no rows at all is skipped with a note. ``claims.{md,csv}`` -- the paper's claims with intervals,
+the seeds behind each, verdicts and what was not compared (analysis/claims.py). ``eval.csv`` files with fewer columns (older versions) load as they are.
 
 Combining several seeds (``--se-mode``): with ``seeds`` (default) the mean is the mean of the
 per-seed means and the standard error is the SE *across seeds*, std(ddof=1)/sqrt(n); a point
@@ -168,19 +173,17 @@ def analyze(
     if partial:
         notes.append("claims: incomplete runs left out: " + ", ".join(partial))
     complete = {k: [r for r in v if r.complete] for k, v in groups.items()}
-    claim_rows = claims(
-        ClaimsInput(
-            {k: v for k, v in complete.items() if v},
-            arm=pairs[0],
-            reference=pairs[1],
-            full=comp.reference_variant,
-            ablation_teacher=comp.ablation_teacher,
-            threshold_fraction=threshold_fraction,
-        ),
-        notes,
+    claims_input = ClaimsInput(
+        {k: v for k, v in complete.items() if v},
+        arm=pairs[0],
+        reference=pairs[1],
+        full=comp.reference_variant,
+        ablation_teacher=comp.ablation_teacher,
+        threshold_fraction=threshold_fraction,
     )
+    claim_rows = claims(claims_input, notes)
     claim_rows.to_csv(out / "claims.csv", index=False)
-    (out / "claims.md").write_text(claims_markdown(claim_rows))
+    (out / "claims.md").write_text(claims_markdown(claim_rows, claims_input.refused))
     written += [out / "claims.csv", out / "claims.md"]
     if table.empty:
         notes.append("skip final_metrics: no complete run with a student summary.json")
@@ -206,6 +209,7 @@ def analyze(
         "final": table,
         "listing": listing,
         "claims": claim_rows,
+        "refused": claims_input.refused,
     }
 
 

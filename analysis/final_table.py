@@ -10,7 +10,6 @@ own column.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 import pandas as pd
@@ -68,7 +67,7 @@ def final_table(runs: list[Run], mode: str, notes: list[str], comp: Comparisons)
     var_rank = {n: i for i, n in enumerate(comp.variant_order)}
     # One row per group (analysis.groups): the arm named by its reward plus what tells it
     # from the other groups of that reward, the variant in its own column.
-    arm_keys = {r.path: replace(GroupKey.of(r), variant="") for r in done}
+    arm_keys = {r.path: GroupKey.of(r).arm_part() for r in done}
     arm_name = series_names(list(dict.fromkeys(arm_keys.values())), "reward")
     name_of = {p: arm_name[k] for p, k in arm_keys.items()}
     primary_name = {}
@@ -151,6 +150,9 @@ def final_table(runs: list[Run], mode: str, notes: list[str], comp: Comparisons)
             if big and not math.isnan(rel):
                 _, lo, hi = fieller_rel(a_vals, b_vals)
                 ci = f" [{format_rel(lo)}, {format_rel(hi)}]"
+            n_runs = (int(table.at[i, "n_runs"]), int(table.at[j, "n_runs"]))
+            if a_vals is not None and b_vals is not None and (a_vals.size, b_vals.size) != n_runs:
+                ci += f" (n={a_vals.size} vs {b_vals.size} with a value)"  # the seeds it used
             parts.append(f"{short} {format_rel(rel)}{ci}")
         n_a, n_b = int(table.at[i, "n_runs"]), int(table.at[j, "n_runs"])
         if min(n_a, n_b) < 3:

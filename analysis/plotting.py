@@ -2,7 +2,7 @@
 
 Every figure is drawn from a tidy frame with the columns of ``POINT_COLUMNS``; the same frame is
 written to ``figure_data.csv``, so what a figure shows can be read back number by number. A
-series or metric without rows is named in a grey note on the axes instead of being left out
+series or metric without rows is named in a grey note above its panel instead of being left out
 silently.
 """
 
@@ -126,18 +126,22 @@ def eval_points(spec: FigureSpec, curves: Curves) -> pd.DataFrame:
 
 
 def _note(ax, lines: list[str]) -> None:
+    """The panel's grey notes as its title: above the axes, never over a data point."""
     if lines:
-        ax.text(
-            0.02,
-            0.98,
-            "\n".join(textwrap.fill(line, 55) for line in lines),
-            transform=ax.transAxes,
-            va="top",
-            ha="left",
+        ax.set_title(
+            "\n".join(textwrap.fill(line, 60) for line in lines),
+            loc="left",
             fontsize=7,
             color="dimgray",
-            bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"},
         )
+
+
+def _steps_label(x: float) -> str:
+    """An env-step count as a tick label: 64, 98k, 1.2M."""
+    for div, unit in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
+        if abs(x) >= div:
+            return f"{x / div:.3g}{unit}"
+    return f"{x:.0f}"
 
 
 def _legend_below(fig, legend: dict[str, object]) -> None:
@@ -194,7 +198,10 @@ def plot_eval_figure(
         notes = [f"no data: {m} ({why})" for m, why in curves.missing.items()]
         sel = points[(points["panel"] == key) & (points["x_name"] == xcol)]
         xs = np.unique(sel["x"].to_numpy(dtype=float))
-        step = float(np.min(np.diff(xs))) if xs.size > 1 else 1.0
+        if xs.size > 1:
+            step = float(np.min(np.diff(xs)))
+        else:  # one evaluation: spread the arms by a fifth of its env steps (1 iteration)
+            step = 1.0 if xcol == "iteration" or not xs.size else max(0.2 * abs(xs[0]), 1.0)
         drawn = [n for n in names if not sel[sel["series"] == n].empty]
         empty = [n for n in names if n in curves.series and n not in drawn]
         if empty:
@@ -207,9 +214,10 @@ def plot_eval_figure(
             if pts.empty:
                 continue
             color, label = _style(styles, name)
-            # Arms side by side: each series shifted by a fraction of the x spacing.
+            # Arms side by side: each series shifted by a fraction of the x spacing (iterations
+            # and env steps alike: two arms at one x would hide each other's bars).
             k = drawn.index(name)
-            shift = (k - (len(drawn) - 1) / 2) * 0.12 * step if xcol == "iteration" else 0.0
+            shift = (k - (len(drawn) - 1) / 2) * 0.12 * step
             n = int(pts["n"].max())
             text = f"{label} (n={n}{', no SE bar' if n < 2 and spec.err_mult else ''})"
             handle = ax.errorbar(
@@ -231,11 +239,12 @@ def plot_eval_figure(
             line = ax.axhline(target, color="gray", ls="--", lw=1)
             legend.setdefault(f"target {target:.3g} m (reach: dotted lines)", line)
         ax.set_xlabel(X_LABELS[spec.xstage].get(xcol, xcol))
-        if xcol == "iteration" and 0 < xs.size <= 8:
+        if 0 < xs.size <= 8:  # few evaluations: a tick at each, none in between
             ax.set_xticks(xs)
-            ax.set_xticklabels([f"{int(x)}" for x in xs])
+            show = (lambda x: f"{int(x)}") if xcol == "iteration" else _steps_label
+            ax.set_xticklabels([show(x) for x in xs])
             ax.set_xlim(xs[0] - 0.6 * step, xs[-1] + 0.6 * step)
-        elif xcol == "iteration":
+        else:
             ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_ylabel(METRICS[key][1])
         ax.grid(alpha=0.3)
@@ -353,6 +362,7 @@ def plot_teacher_training(
                 "top", functions=(lambda s: s / per_iter, lambda i: i * per_iter)
             )
             top.set_xlabel("teacher iteration", fontsize=8)
+            top.xaxis.set_major_locator(MaxNLocator(integer=True))  # no iteration 1.5
             top.tick_params(labelsize=7)
     _legend_below(fig, legend)
     fig.suptitle(

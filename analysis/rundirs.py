@@ -49,6 +49,7 @@ class Run:
     csv_problem: bool = False
     meta: dict = field(default_factory=dict)  # group -> {label, color, order} from config.yaml
     figures: dict = field(default_factory=dict)  # the run's figures.* config (comparisons)
+    config: dict = field(default_factory=dict)  # the whole config.yaml, flattened (groups)
 
     @property
     def complete(self) -> bool:
@@ -72,6 +73,32 @@ class Run:
         if self.state == "running":
             return "incomplete (running)"
         return f"incomplete ({self.state})"
+
+
+def norm(value) -> str:
+    """A config value as text that compares equal when the values are (10 and 10.0 alike)."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        x = float(value)
+        return str(int(x)) if x.is_integer() and abs(x) < 1e15 else repr(x)
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(norm(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k}: {norm(v)}" for k, v in sorted(value.items())) + "}"
+    return str(value)
+
+
+def flatten(node, prefix: str = "") -> dict[str, str]:
+    """Nested config -> {dotted key: :func:`norm` text}; an empty mapping is one value."""
+    if isinstance(node, dict) and node:
+        out: dict[str, str] = {}
+        for k, v in node.items():
+            out.update(flatten(v, f"{prefix}{k}."))
+        return out
+    return {prefix.rstrip("."): norm(node)} if prefix else {}
 
 
 def _natural_key(name: str):
@@ -174,6 +201,7 @@ def load_run(path: Path) -> Run:
         run.issues.append(f"{cfg_path.name} unreadable ({type(exc).__name__})")
     if not isinstance(cfg, dict):
         cfg = {}
+    run.config = flatten(cfg)
     for attr, key in [
         ("reward", "reward.name"),
         ("variant", "student.variant"),

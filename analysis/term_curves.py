@@ -23,6 +23,13 @@ from analysis.rundirs import Run  # noqa: E402
 PANELS = (
     ("teacher", "reward/", "reward per env step (weighted)"),
     ("teacher", "termination/", "fraction of ended episodes"),
+    (
+        "teacher",
+        "clf/v_",
+        "V/Vmax quantiles over the training steps (r_clf flat above the red line)",
+    ),
+    ("teacher", "clf/fractions", "CLF: share of steps saturated (V >= Vmax), with dV/dt defined"),
+    ("teacher", "clf/share/", "CLF: share of V by output group"),
     ("student", "loss/", "distillation objective"),
     ("student", "loss/", "student diagnostics (action error, mixture weights, spread)"),
 )
@@ -38,8 +45,46 @@ def _smooth(y: pd.Series, window: int) -> pd.Series:
     return y.rolling(max(1, window), min_periods=1).mean()
 
 
+CLF_FRACTIONS = ("clf/saturated", "clf/dvdt_valid")
+"""The CLF diagnostics drawn as shares of steps (march.clf.diagnostics)."""
+SHARE_GROUPS = (
+    ("CoM", ("com_",)),
+    ("pelvis", ("pelvis_",)),
+    ("swing position", ("swing_x", "swing_y", "swing_z")),
+    ("swing orientation", ("swing_roll", "swing_pitch", "swing_yaw")),
+    ("upper-body joints", ("_joint",)),
+)
+"""Output groups the per-output shares of V are summed into (29 lines would be unreadable)."""
+
+
+def _in_group(name: str, keys: tuple[str, ...]) -> bool:
+    """``com_`` is a prefix, ``_joint`` a suffix, any other key an exact output name (a
+    substring test would put ``swing_yaw`` under ``swing_y`` too)."""
+    return any(
+        name.startswith(k)
+        if k.endswith("_")
+        else name.endswith(k)
+        if k.startswith("_")
+        else name == k
+        for k in keys
+    )
+
+
+def share_groups(rows: pd.DataFrame) -> dict[str, pd.Series]:
+    """Each output group's share of V (the sum of its outputs' ``clf/share/<output>``)."""
+    out = {}
+    cols = [c for c in rows.columns if c.startswith("clf/share/")]
+    for name, keys in SHARE_GROUPS:
+        mine = [c for c in cols if _in_group(c[len("clf/share/") :], keys)]
+        if mine:
+            out[name] = sum(pd.to_numeric(rows[c], errors="coerce") for c in mine)
+    return out
+
+
 def term_columns(metrics: pd.DataFrame, prefix: str, title: str = "") -> list[str]:
     """The columns of a panel: ``prefix``'s, the loss parts split by :data:`OBJECTIVE_PARTS`."""
+    if prefix == "clf/fractions":
+        return [c for c in CLF_FRACTIONS if c in metrics.columns]
     cols = [c for c in metrics.columns if c.startswith(prefix)]
     if prefix == "loss/" and title:
         objective = title == PANELS[2][2]
@@ -74,15 +119,25 @@ def term_figure(run: Run, smooth: int = 1) -> plt.Figure | None:
     fig, axes = plt.subplots(n, 1, figsize=(7.0, 2.6 * n), sharex=False, squeeze=False)
     for ax, (stage, prefix, title) in zip(axes[:, 0], panels, strict=False):
         rows = m[m["stage"] == stage]
-        for col in term_columns(rows, prefix, title):
-            y = pd.to_numeric(rows[col], errors="coerce")
+        if prefix == "clf/share/":
+            series = share_groups(rows)
+        else:
+            series = {
+                c[len(prefix) :] if prefix.endswith("/") or prefix == "clf/v_" else c: rows[c]
+                for c in term_columns(rows, prefix, title)
+            }
+        if prefix == "clf/v_":
+            ax.set_yscale("log")
+            ax.axhline(1.0, color="tab:red", ls="--", lw=1)
+        for label, col in series.items():
+            y = pd.to_numeric(col, errors="coerce")
             seen = y.notna()
             if seen.any():  # an iteration where no episode ended has no termination value
                 few = int(seen.sum()) <= MARKERS_UP_TO
                 ax.plot(
                     rows["env_steps"][seen],
                     _smooth(y[seen], smooth),
-                    label=col[len(prefix) :],
+                    label=label,
                     marker="o" if few else None,
                     markersize=3,
                 )

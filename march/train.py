@@ -41,6 +41,7 @@ from march.learn import run_dir as run_files
 from march.learn.checkpoint import CheckpointError, write_json_atomic, write_text_durably
 from march.learn.eta import ETA_ITERATIONS, EtaMetricsLog, EtaWatch
 from march.learn.faults import NumericalFault
+from march.strict_json import strict
 
 
 def _seed_everything(seed: int) -> None:
@@ -52,7 +53,9 @@ def _seed_everything(seed: int) -> None:
 
 
 def _write_status(run_dir: Path, state: str, **extra: Any) -> None:
-    write_json_atomic({"state": state, "time": time.time(), **extra}, run_dir / "status.json")
+    write_json_atomic(
+        strict({"state": state, "time": time.time(), **extra}), run_dir / "status.json"
+    )
 
 
 def banner(

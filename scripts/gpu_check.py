@@ -63,6 +63,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # run as a script: import this checkout's march
 
+from march import strict_json  # noqa: E402
 from march.bench.check_results import (  # noqa: E402
     BENCH_KEYS,  # noqa: F401 - read by the tests through this script
     bench_results,
@@ -128,6 +129,30 @@ LIMITS = {"bench": 150.0, "warm": 540.0, "syncs": 80.0, "teacher_clf": 130.0}
 what is left before the deadline, at most ``--phase-timeout``."""
 
 
+def finite(x: float | None) -> float | None:
+    """None for NaN / inf (gpu_check.json is strict JSON)."""
+    return x if x is not None and x == x and abs(x) != float("inf") else None
+
+
+SIGNAL_ARMS = ("clf", "modelfree_ref")
+"""The signal phase's teachers (conf/experiment/): the clf arm and its reward-only control."""
+SIGNAL_COLUMNS = (
+    "iteration",
+    "env_steps",
+    "wall_s",
+    "mean_reward",
+    "mean_episode_length",
+    "mean_distance_m",
+    "clf/v_p10",
+    "clf/v_p50",
+    "clf/v_p90",
+    "clf/saturated",
+    "learning_rate",
+    "kl_normaliser",
+)
+"""The per-iteration columns of the signal phase's curves (metrics.csv)."""
+
+
 class Stopped(Exception):
     """SIGTERM or SIGINT reached the check: the running phase is stopped, the summary written."""
 
@@ -150,6 +175,9 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
         default=None,
         help="whole check [s]: 390 on a GPU (the README's device plan), 180 with --warm, 600 "
         "with --cpu",
+    )
+    p.add_argument(
+        "--signal-seconds", type=float, default=75.0, help="signal phase: wall time per arm [s]"
     )
     p.add_argument("--skip", nargs="*", default=[], help="phases to leave out")
     args = p.parse_args(argv)
@@ -379,7 +407,7 @@ class Check:
             "targets": judged_targets(self.results),
         }
         tmp = self.out / "gpu_check.json.tmp"
-        tmp.write_text(json.dumps(report, indent=2, default=str) + "\n")
+        tmp.write_text(strict_json.dumps(report, indent=2, default=str) + "\n")
         tmp.replace(self.out / "gpu_check.json")
         return report
 
@@ -460,6 +488,45 @@ class Check:
             self.finish(ph)
         return ckpt if rows and ckpt.is_file() else None
 
+    def signal(self) -> None:
+        """The learning signal (issue 50): the clf teacher and its control (modelfree_ref: the
+        same stones, budget and reference observation, only the reward differs; V is measured
+        for both) at the teacher phase's env count, each for the same wall time (env build
+        included), their per-iteration curves into ``gpu_check.json`` (``results.signal``)."""
+        left = self.args.deadline - (time.time() - self.t0)
+        each = min(
+            self.args.signal_seconds * (2.0 if self.args.cpu else 1.0), left / len(SIGNAL_ARMS)
+        )
+        out: dict[str, Any] = {"wall_s_per_arm": round(each, 1), "arms": {}}
+        self.results["signal"] = out
+        for arm in SIGNAL_ARMS:
+            name, run = f"signal_{arm}", self.work / "runs" / f"signal_{arm}"
+            shutil.rmtree(run, ignore_errors=True)
+            cmd = [sys.executable, "-m", "march.train", "stage=teacher", f"+experiment={arm}"]
+            cmd += [*self.common, *self.s["teacher"], "teacher.max_iterations=1000000"]
+            cmd += ["teacher.eval_interval=0", "teacher.save_interval=1000000"]
+            cmd += [f"hydra.run.dir={run}"]
+            ph = self.add(name, cmd, optional=True)
+            start = time.time()
+            try:
+                ph.run(each, lambda t=start: time.time() - t >= each)
+            finally:
+                rows = read_rows(run / "metrics.csv", "teacher")
+                curve = [{k: finite(number(r.get(k))) for k in SIGNAL_COLUMNS} for r in rows]
+                out["arms"][arm] = {"iterations": len(rows), "curve": curve}
+                if rows:
+                    ph.rc = 0 if ph.note in ("stopped at its budget", "") else ph.rc
+                    first, last = curve[0], curve[-1]
+                    print(
+                        f"[gpu_check] signal {arm}: {len(rows)} iterations in {each:.0f} s; "
+                        + ", ".join(
+                            f"{k} {first[k]} -> {last[k]}"
+                            for k in ("clf/v_p50", "clf/saturated", "mean_episode_length")
+                        ),
+                        flush=True,
+                    )
+                self.finish(ph)
+
     def student(self, teacher_ckpt: Path) -> None:
         run = self.work / "runs" / "student"
         shutil.rmtree(run, ignore_errors=True)
@@ -500,7 +567,9 @@ def main(argv: list[str] | None = None) -> int:
             if "syncs" not in skip:
                 guard("syncs", lambda: check.syncs("syncs", "env_march,env_rough"))
             ckpt = None if "teacher_clf" in skip else guard("teacher_clf", check.teacher)
-            if "bench_eager" not in skip:  # optional from here: only with time left
+            if "signal" not in skip:  # optional from here: only with time left
+                guard("signal", check.signal)
+            if "bench_eager" not in skip:
                 eager = ["compute.compile_math=false"]
                 guard(
                     "bench_eager",

@@ -45,13 +45,24 @@ FINAL = {
 }
 
 
-def config_yaml(reward: str, variant: str, seed: int, stage: str = "all") -> str:
+def config_yaml(
+    reward: str, variant: str, seed: int, stage: str = "all", extra: dict | None = None
+) -> str:
+    """A run's config.yaml; ``extra`` (nested) is merged over it (e.g. ``{"eval": {"pushes":
+    False}}``, ``{"compute": {"name": "gpu"}}``)."""
+    from omegaconf import OmegaConf
+
     curriculum = "flat_first" if reward == "modelfree" else "stones"
-    return (
-        f"reward:\n  name: {reward}\nstudent:\n  variant: {variant}\n"
-        f"curriculum:\n  name: {curriculum}\nseed: {seed}\nstage: {stage}\n"
-        "compute:\n  name: smoke\n"
-    )
+    cfg = {
+        "reward": {"name": reward},
+        "student": {"variant": variant},
+        "curriculum": {"name": curriculum},
+        "seed": seed,
+        "stage": stage,
+        "compute": {"name": "smoke"},
+    }
+    merged = OmegaConf.merge(OmegaConf.create(cfg), OmegaConf.create(extra or {}))
+    return OmegaConf.to_yaml(merged)
 
 
 def teacher_train_rows(reward: str, n_iter: int) -> list[dict]:
@@ -153,11 +164,12 @@ def make_run(
     final: bool = True,
     truncate: bool = False,
     status: bool = True,
+    extra: dict | None = None,
 ) -> Path:
     """One run dir. stage "student" runs (the ablation sweep: a fixed teacher checkpoint) and
     stage "eval" runs have no teacher rows; ``teacher_iters`` defaults to TEACHER_ITERS[reward]."""
     d.mkdir(parents=True)
-    cfg = config_yaml(reward, variant, seed, stage)
+    cfg = config_yaml(reward, variant, seed, stage, extra)
     if hydra_only:
         (d / ".hydra").mkdir()
         (d / ".hydra" / "config.yaml").write_text(cfg)

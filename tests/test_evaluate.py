@@ -597,3 +597,51 @@ def test_an_older_eval_csv_gets_the_new_columns(tmp_path):
     assert list(rows[0]) == list(EVAL_COLUMNS)
     assert (rows[0]["mean_distance_m"], rows[0]["n_torque"]) == ("1.5", "")
     assert (rows[1]["iteration"], rows[1]["n_torque"]) == ("2", "3")
+
+
+# ------------------------------------------------------------------ strict JSON (issue 49)
+
+
+def test_summary_json_is_strict_with_the_count_beside_each_null(tmp_path):
+    """No successful rollout and a single rollout: the undefined means and SEs are null and
+    ``null_because`` names the count; the file loads with a parser that refuses NaN."""
+    from march import strict_json
+    from march.evaluation.protocol import write_summary
+
+    per = {name: torch.tensor([1.5]) for name in EVAL_METRICS}
+    per["torque_success"] = per["jerk_success"] = torch.tensor([float("nan")])
+    row = {"stage": "student", "iteration": 1, "env_steps": 8, "n_rollouts": 1, **summarise(per)}
+    assert math.isnan(row["mean_torque_success"]) and math.isnan(row["se_distance_m"])
+    path = write_summary(row, tmp_path, {"wall_s": float("inf")})
+    text = path.read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    data = strict_json.loads(text)
+    assert data["mean_torque_success"] is None and data["n_torque_success"] == 0
+    assert data["wall_s"] is None and data["mean_distance_m"] == 1.5
+    assert data["null_because"]["mean_torque_success"] == "n_torque_success = 0 (a mean needs 1)"
+    assert data["null_because"]["se_distance_m"] == "n_rollouts = 1 (a standard error needs 2)"
+    assert "mean_distance_m" not in data["null_because"]
+    with pytest.raises(ValueError, match="not strict JSON: NaN"):
+        strict_json.loads('{"x": NaN}')
+    with pytest.raises(TypeError):
+        strict_json.dumps({"x": object()})  # not JSON at all: still an error, never a guess
+    assert strict_json.dumps({"a": np.float32("nan"), "b": (1.0, np.float64(2.5))}) == (
+        '{"a": null, "b": [1.0, 2.5]}'
+    )
+
+
+def test_every_json_file_a_smoke_run_writes_is_strict(smoke_run, bundle):
+    """``python -m march.train compute=smoke`` and its export: every JSON file loads with a
+    parser that refuses NaN and Infinity (JavaScript's, Go's, serde_json's behaviour)."""
+    from march import strict_json
+
+    files = sorted(smoke_run.rglob("*.json")) + sorted(bundle.parent.glob("*.json"))
+    names = {p.name for p in files}
+    assert {"summary.json", "status.json"} <= names
+    assert any(n.endswith(".deploy.json") for n in names)
+    for path in files:
+        strict_json.loads(path.read_text())  # raises on NaN / Infinity
+    summary = strict_json.loads((smoke_run / "summary.json").read_text())
+    for key, why in summary.get("null_because", {}).items():
+        assert summary[key] is None and why.split(" = ")[0] in summary
+    print(f"{len(files)} JSON files strict: {', '.join(sorted(names))}")

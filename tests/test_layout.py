@@ -26,6 +26,8 @@ LAYERS: dict[str, int] = {
     "errors": 0,
     # torch.compile of pure maths (compute.compile_math): torch only
     "compiled_math": 0,
+    # strict JSON for every file march writes (null for undefined values): plain Python
+    "strict_json": 0,
     # stage 0-2 mathematics: plain numpy / torch
     "world": 1,
     "reference": 2,
@@ -45,6 +47,7 @@ LAYERS: dict[str, int] = {
     "viz": 8,
     "export": 8,
     "sim2sim": 8,
+    "audit": 8,
     # the robot loop over DDS builds on the sim-to-sim loop (same bundle, observation and
     # action path; its self-test runs sim2sim in-process), so it sits one layer above the tools
     "robot": 9,
@@ -64,6 +67,7 @@ TOOLS = {
     "march.export": "march/export/__main__.py",
     "march.sim2sim": "march/sim2sim/__main__.py",
     "march.robot": "march/robot/__main__.py",
+    "march.audit": "march/audit/__main__.py",
 }
 """The ``python -m`` commands of the README and the file each one runs."""
 

@@ -26,11 +26,11 @@ and :mod:`march.bench.planner_speed` (``planner``).
 
 from __future__ import annotations
 
-import json
 import sys
 from collections.abc import Sequence
 from typing import Any
 
+from march import strict_json
 from march.bench.env_speed import bench_env
 from march.bench.harness import WORKLOADS
 from march.bench.planner_speed import bench_planner_share
@@ -150,4 +150,4 @@ def main(argv: Sequence[str] | None = None) -> None:
         "planner": lambda cfg: bench_planner_share(cfg, opts["steps"], opts["warmup"]),
     }
     result = run_tool(jobs, args, usage=USAGE)
-    print(json.dumps(result, indent=2), flush=True)
+    print(strict_json.dumps(result, indent=2), flush=True)

@@ -306,18 +306,21 @@ def _write_partial(
     (atomic, rewritten after each workload), for a run that a time limit may stop."""
     from march.compiled_math import compile_report
     from march.learn.checkpoint import write_json_atomic
+    from march.strict_json import strict
 
     write_json_atomic(
-        {
-            "partial": len(results) < len(workloads),
-            "completed_workloads": list(results),
-            "device": cfg.compute.device,
-            "num_envs": cfg.compute.num_envs,
-            "build_s": build,
-            **_headline(results),
-            "workloads": results,
-            "compile": compile_report() if cfg.compute.compile_math else None,
-        },
+        strict(
+            {
+                "partial": len(results) < len(workloads),
+                "completed_workloads": list(results),
+                "device": cfg.compute.device,
+                "num_envs": cfg.compute.num_envs,
+                "build_s": build,
+                **_headline(results),
+                "workloads": results,
+                "compile": compile_report() if cfg.compute.compile_math else None,
+            }
+        ),
         path,
     )
 

@@ -438,8 +438,8 @@ def make_env(
     with _output_to(log):
         env = ManagerBasedRlEnv(cfg=env_cfg, device=cfg.compute.device)
     keep_termination_counts_on_device(env)  # no .item() per term and reset (reset_extras)
-    if purpose != "eval":  # per-term reward / termination sums on the device (term_meter)
-        attach_term_meter(env)
+    # per-term reward / termination sums (not for evaluation) and CLF diagnostics, on the device
+    attach_term_meter(env, per_term=purpose != "eval")
     env.march_spec = EnvSpec(  # type: ignore[attr-defined]
         purpose=purpose,
         num_envs=env.num_envs,

@@ -67,3 +67,19 @@ def course_scene(cfg: MarchConfig, course: str) -> tuple[Any, Any, Any]:
     model = scene.spec.compile()
     env_cfg.sim.mujoco.apply(model)
     return model, env_cfg, scene
+
+
+def g1_mjcf_spec() -> mujoco.MjSpec:
+    """mjlab's G1 MJCF as it is (a fresh ``MjSpec``: the caller may add geoms to it before
+    compiling, e.g. stones to film on), for the kinematic audit (:mod:`march.audit`)."""
+    return g1.get_spec()
+
+
+def g1_default_pose() -> tuple[dict[str, float], tuple[float, float, float]]:
+    """The G1's default joint positions by joint name (mjlab's ``init_state``: the env's
+    ``default_joint_pos``, which the upper-body CLF outputs are relative to) and its initial
+    root position [m]."""
+    init = g1.get_g1_robot_cfg().init_state
+    table = dict(init.joint_pos or {})
+    pose = {n: float(joint_value(table, n, 0.0) or 0.0) for n in g1_joint_names()}
+    return pose, tuple(float(x) for x in init.pos)

@@ -190,6 +190,8 @@ class ReferenceCommand(CommandTerm):
         """(E,) CLF value V of the last env step (see :meth:`clf_state`)."""
         self.vdot = torch.zeros(e, device=dev)
         self.v_valid = torch.zeros(e, dtype=torch.bool, device=dev)
+        self.v_products = torch.zeros(e, 2 * NUM_OUTPUTS, device=dev)
+        """(E, 58) the interleaved products whose sum is V (pairs: each output's term of V)."""
         self._v_step = -1
         self.metrics["touchdowns"] = torch.zeros(e, device=dev)
         self.metrics["timeouts"] = torch.zeros(e, device=dev)
@@ -467,7 +469,9 @@ class ReferenceCommand(CommandTerm):
             else:
                 ref_pos, ref_vel = self.reference(self.tau + self._env.step_dt)
             sim_pos, sim_vel = self.measured()
-            self.v = self.clf.value_of_outputs(sim_pos, sim_vel, ref_pos, ref_vel, self.mask)
+            prod = self.clf.products_of_outputs(sim_pos, sim_vel, ref_pos, ref_vel, self.mask)
+            self.v_products = prod  # each output's term of V, for march.env.clf_meter
+            self.v = prod.sum(-1)
             self.vdot, self.v_valid = self.v_history.update(self.v)
         return self.v, self.vdot, self.v_valid
 

@@ -24,6 +24,9 @@ from typing import Any
 
 import torch
 
+from march.env.clf_meter import attach as attach_clf_meter
+from march.env.clf_meter import pop_clf
+
 REWARD_PREFIX = "reward/"
 TERMINATION_PREFIX = "termination/"
 
@@ -88,14 +91,20 @@ def _levels(env: Any) -> torch.Tensor | None:
     return levels if isinstance(levels, torch.Tensor) else None
 
 
-def attach(env: Any) -> TermMeter:
-    """Put a :class:`TermMeter` on ``env`` (``env.term_meter``) and return it."""
+def attach(env: Any, per_term: bool = True) -> TermMeter | None:
+    """Put a :class:`TermMeter` on ``env`` (``env.term_meter``) if ``per_term``, and the CLF
+    diagnostics (:mod:`march.env.clf_meter`) where the env has the reference command."""
+    attach_clf_meter(env)
+    if not per_term:
+        return None
     meter = TermMeter(env)
     env.term_meter = meter
     return meter
 
 
 def pop_terms(env: Any) -> dict[str, float]:
-    """The meter's columns of ``env`` (unwrapped or rsl-rl-wrapped), or {} without one."""
+    """The meter's columns of ``env`` (unwrapped or rsl-rl-wrapped), or {} without one, and the
+    CLF diagnostics (``clf/...``, :mod:`march.env.clf_meter`) where the env has them."""
     meter = getattr(getattr(env, "unwrapped", env), "term_meter", None)
-    return meter.pop() if meter is not None else {}
+    row = meter.pop() if meter is not None else {}
+    return {**row, **pop_clf(env)}

@@ -49,9 +49,11 @@ import torch
 
 from march.config import MarchConfig
 from march.env.build import SUCCESS_TERMINATION, reseed_env
+from march.env.clf_meter import pop_clf
 from march.env.course import CourseRuler, assign_eval_cells, eval_cells
 from march.env.depth import camera_paused
 from march.evaluation.sharding import sharded_rollouts
+from march.learn import distributed
 from march.learn.checkpoint import write_json_atomic
 from march.learn.metrics import (
     EVAL_COLUMNS,
@@ -62,6 +64,7 @@ from march.learn.metrics import (
     append_rows,
     truncate_rows,
 )
+from march.strict_json import null_because, strict
 
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv
@@ -271,7 +274,10 @@ def _wave(env: ManagerBasedRlEnv, policy: Policy, ruler: CourseRuler) -> dict[st
     queue = replan_queue(env)
     deferred: list[torch.Tensor] = []
     finished = torch.zeros(env.num_envs, dtype=torch.bool, device=env.device)
+    clf_meter = getattr(env, "clf_meter", None)  # counts each rollout up to its end only
     for _ in range(int(env.max_episode_length) + 1):
+        if clf_meter is not None:
+            clf_meter.active = ~finished
         rec["progress"].append(ruler.progress())
         before = None if queue is None else queue.deferred_count.clone()
         obs, reward, terminated, truncated, _ = env.step(policy(obs))
@@ -287,6 +293,8 @@ def _wave(env: ManagerBasedRlEnv, policy: Policy, ruler: CourseRuler) -> dict[st
         finished |= terminated | truncated
         if finished.all():
             break
+    if clf_meter is not None:
+        clf_meter.active = None
     s = {k: torch.stack(v) for k, v in rec.items()}
     if not torch.equal((s["terminated"] | s["truncated"]).any(0), finished):
         raise RuntimeError("evaluation: the recorded done flags lost an episode end")
@@ -368,16 +376,19 @@ def evaluate(
     summary of all of them.
     ``sees_depth=False`` (a teacher): the env's depth camera is not rendered meanwhile
     (:func:`march.env.depth.camera_paused`; the same numbers, a cheaper step)."""
+    pop_clf(env)  # the CLF diagnostics of this evaluation's rollouts only (clf_meter)
     with nullcontext() if sees_depth else camera_paused(env):
         per = sharded_rollouts(env, policy, num_rollouts, rollout_metrics)  # N ranks: waves
+    clf = distributed.mean_over_ranks(pop_clf(env))  # {} without the reference command
     row = {
         "stage": stage,
         "iteration": iteration,
         "env_steps": env_steps,
         "n_rollouts": num_rollouts,
         **summarise(per),
+        **clf,
     }
-    append_row(run_dir / "eval.csv", EVAL_COLUMNS, row)
+    append_row(run_dir / "eval.csv", EVAL_COLUMNS + tuple(clf), row)
     # The side files follow eval.csv: rows of a resumed run's re-done evaluations replace the
     # ones written before the kill (eval.csv itself is truncated by the runners on resume).
     for side in ("eval_levels.csv", "eval_rollouts.csv"):
@@ -390,8 +401,12 @@ def evaluate(
 
 
 def write_summary(row: dict[str, Any], run_dir: Path, extra: dict[str, Any]) -> Path:
+    """summary.json, strict JSON: an undefined mean or SE (no successful rollout, one rollout)
+    is null, and ``null_because`` names the count that says why (march.strict_json)."""
     path = run_dir / "summary.json"
-    write_json_atomic({**row, **extra}, path)
+    counts = {metric: count for count, metric in COUNTED.items()}
+    why = null_because(row, counts, "n_rollouts")
+    write_json_atomic(strict({**row, **extra, **({"null_because": why} if why else {})}), path)
     return path
 
 
@@ -412,5 +427,20 @@ def format_summary(row: dict[str, Any]) -> str:
         f"  success           {pm('success_rate', ' %', 100.0)}\n"
         f"  |joint torque|    {pm('abs_torque_nm', ' N m')}\n"
         f"  |angular jerk|    {pm('abs_ang_jerk', ' rad/s^3')}\n"
-        f"  teacher reward    {pm('reward')} (episode return)"
+        f"  teacher reward    {pm('reward')} (episode return)" + clf_summary(row)
+    )
+
+
+def clf_summary(row: dict[str, Any]) -> str:
+    """The CLF diagnostics' summary lines (a clf-arm row; "" without them): V/Vmax quantiles,
+    saturation (V >= Vmax: r_clf flat at e^-1) and the outputs with the largest share of V."""
+    if "clf/v_p50" not in row:
+        return ""
+    shares = {k.split("/", 2)[2]: v for k, v in row.items() if k.startswith("clf/share/")}
+    top = sorted(((v, k) for k, v in shares.items() if v == v), reverse=True)[:4]
+    return (
+        f"\n  CLF V/Vmax        p10 {row['clf/v_p10']:.3g}, p50 {row['clf/v_p50']:.3g}, "
+        f"p90 {row['clf/v_p90']:.3g}; saturated {100 * row['clf/saturated']:.0f} % of steps "
+        f"(r_clf flat at e^-1 there); dV/dt defined {100 * row['clf/dvdt_valid']:.0f} %"
+        f"\n  share of V        " + ", ".join(f"{k} {100 * v:.0f} %" for v, k in top)
     )

@@ -230,8 +230,9 @@ def write_bundle(
     spec["onnx"] = {"file": onnx_path.name, "sha256": _sha256(onnx_path), **extra}
     spec["courses"] = courses
     from march.learn.checkpoint import write_json_atomic
+    from march.strict_json import strict
 
-    write_json_atomic(spec, files["json"])
+    write_json_atomic(strict(spec), files["json"])
     return files
 
 

@@ -30,6 +30,7 @@ METRIC_COLUMNS = (
     "entropy",
     "learning_rate",
     "action_std",
+    "kl_normaliser",  # teacher: KL of the normaliser updates alone (march.learn.teacher)
     "loss",
     "action_error",
     "teacher_reward",
@@ -219,18 +220,46 @@ def _fmt(v: Any) -> Any:
 
 
 PER_TERM_PREFIXES = ("reward/", "termination/", "loss/")
-"""Columns named after the run's own terms, added after ``METRIC_COLUMNS`` as they appear:
-``reward/<term>``, ``termination/<term>`` (march.env.term_meter) and the distillation's
-``loss/<part>``."""
+"""Columns named after the run's own terms: ``reward/<term>``, ``termination/<term>``
+(march.env.term_meter) and the distillation's ``loss/<part>``. Every column a row brings that
+``METRIC_COLUMNS`` lacks (these, or any other a meter adds, e.g. ``clf/...``) is added after
+them as it appears: nothing a row carries is dropped."""
 EXTERNAL_NAMES = {"reward/": "Episode_Reward/", "termination/": "Episode_Termination/"}
-"""How tensorboard and wandb name the per-term scalars (as mjlab and rsl-rl do)."""
+"""How tensorboard and wandb name the per-term scalars (as mjlab and rsl-rl do), under the
+stage's prefix."""
+STAGE_PREFIX = {"teacher": "Teacher", "student": "Distill"}
+"""Each stage's scalars live under their own prefix in tensorboard and wandb, so the student's
+``Distill/Episode_Reward/clf`` never lands on the teacher's curve."""
 
 
 def _scalar_name(stage: str, key: str) -> str:
+    head = STAGE_PREFIX.get(stage, stage.capitalize())
     for prefix, name in EXTERNAL_NAMES.items():
         if key.startswith(prefix):
-            return name + key[len(prefix) :]
-    return f"{stage}/{key}"
+            return f"{head}/{name}{key[len(prefix) :]}"
+    return f"{head}/{key}"
+
+
+def stage_offsets(path: Path) -> dict[str, int]:
+    """stage -> the env steps of the stages metrics.csv ``path`` holds before it (in the order
+    they first appear, each counted by its largest ``env_steps``): the external loggers' step
+    is this offset + the row's ``env_steps``, one axis that only increases across the stages of
+    a run, a resumed one included."""
+    if not path.is_file():
+        return {}
+    order: dict[str, int] = {}
+    with path.open(newline="") as f:
+        for r in csv.DictReader(f):
+            try:
+                steps = int(float(r.get("env_steps") or 0))
+            except ValueError:
+                continue
+            order[r["stage"]] = max(order.get(r["stage"], 0), steps)
+    out, total = {}, 0
+    for stage, steps in order.items():
+        out[stage] = total
+        total += steps
+    return out
 
 
 class MetricsLog:
@@ -242,6 +271,7 @@ class MetricsLog:
         self._writer: Any = None
         self._wandb: Any = None
         self._columns: tuple[str, ...] | None = None
+        self._offsets: dict[str, int] = {}  # stage -> its first step on the loggers' axis
         if not writes_files():  # N processes: rank 0 alone logs
             return
         if logger.name == "tensorboard":
@@ -260,7 +290,7 @@ class MetricsLog:
         truncate_rows(self.path, stage, iteration)
 
     def columns(self, row: dict[str, Any]) -> tuple[str, ...]:
-        """METRIC_COLUMNS, then every per-term column the file or this row has (a student row
+        """METRIC_COLUMNS, then every other column the file or this row has (a student row
         keeps the teacher's per-term columns: a resumed or appended file loses none)."""
         if self._columns is None:
             self._columns = METRIC_COLUMNS
@@ -268,19 +298,29 @@ class MetricsLog:
                 with self.path.open(newline="") as f:
                     header = next(csv.reader(f), None) or []
                 self._columns += tuple(c for c in header if c not in METRIC_COLUMNS)
-        new = [k for k in row if k.startswith(PER_TERM_PREFIXES) and k not in self._columns]
+        new = [k for k in row if k not in self._columns]
         self._columns += tuple(new)
         return self._columns
 
+    def step(self, row: dict[str, Any]) -> int:
+        """The external loggers' step of ``row``: its stage's offset (:func:`stage_offsets`,
+        read once per stage after the stage's first row is in metrics.csv) + its env steps."""
+        stage = row["stage"]
+        if stage not in self._offsets:
+            self._offsets[stage] = stage_offsets(self.path).get(stage, 0)
+        return self._offsets[stage] + int(row["env_steps"])
+
     def log(self, row: dict[str, Any]) -> None:
         append_row(self.path, self.columns(row), row)
-        step = int(row["env_steps"])
+        if self._writer is None and self._wandb is None:
+            return
+        step = self.step(row)
         scalars = {
             _scalar_name(row["stage"], k): float(v)
             for k, v in row.items()
-            if k not in ("stage", "iteration", "env_steps")
+            if k != "stage"
             and isinstance(v, (int, float))
-            and not (isinstance(v, float) and math.isnan(v))
+            and not (isinstance(v, float) and not math.isfinite(v))
         }
         if self._writer is not None:
             for k, v in scalars.items():

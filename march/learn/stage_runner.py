@@ -294,7 +294,7 @@ class StageRunner:
                 "nonfinite_updates": self.guard.pop(),
             }
             self.log.log(row)
-            fields = {label: row[col] for label, col in self.progress_columns.items()}
+            fields = {label: row[col] for label, col in self.progress_columns.items() if col in row}
             print(progress.line(it, fields), flush=True)
             final = self.iteration == total_iterations
             # Evaluate before the checkpoint: a run killed in between resumes from the previous

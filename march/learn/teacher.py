@@ -174,6 +174,8 @@ class TeacherRunner(StageRunner):
         "ep_len": "mean_episode_length",
         "dist_m": "mean_distance_m",
         "value_loss": "value_loss",
+        "V/Vmax_p50": "clf/v_p50",  # arms with the reference (march.env.clf_meter)
+        "saturated": "clf/saturated",
     }
 
     def __init__(
@@ -277,7 +279,22 @@ class TeacherRunner(StageRunner):
         self.obs = obs
 
     def update(self, batch: None) -> dict[str, float]:
-        return distributed.mean_over_ranks(self.alg.update())
+        drift = float(self.normaliser_kl())  # one host read per iteration, as rsl-rl's losses
+        return distributed.mean_over_ranks({**self.alg.update(), "kl_normaliser": drift})
+
+    def normaliser_kl(self) -> torch.Tensor:
+        """Mean KL between the policy that acted (the rollout's stored distributions) and the same
+        weights after the rollout's observation-normaliser updates, before any gradient step:
+        the KL the adaptive schedule sees at its first mini-batch that no learning caused
+        (issue 50: above 2 x desired_kl it cuts the learning rate with nothing learned). One
+        forward pass over the batch; no sampling (the random stream is untouched)."""
+        st, actor = self.alg.storage, self.alg.actor
+        with torch.inference_mode():
+            obs = st.observations.flatten(0, 1)
+            actor.distribution.update(actor.mlp(actor.get_latent(obs)))
+            new = actor.output_distribution_params
+            old = tuple(p.flatten(0, 1) for p in st.distribution_params)
+            return actor.get_kl_divergence(old, new).mean()
 
     def row_columns(self, batch: None, losses: dict[str, float]) -> dict[str, Any]:
         return {
@@ -285,6 +302,7 @@ class TeacherRunner(StageRunner):
             "surrogate_loss": losses.get("surrogate", float("nan")),
             "entropy": losses.get("entropy", float("nan")),
             "learning_rate": self.alg.learning_rate,
+            "kl_normaliser": losses.get("kl_normaliser", float("nan")),
             "action_std": self.alg.get_policy().output_std.mean().item(),
             **self.replans.pop(),
         }

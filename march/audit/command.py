@@ -1,0 +1,102 @@
+"""``python -m march.audit <job>``: the science checks that need no GPU (issue 50).
+
+    python -m march.audit rewards [reward=clf|modelfree] [teacher_ckpt=<file>] [out=<file>.json]
+    python -m march.audit reference [out=<file>.json]
+
+Every job composes the same config as ``march.train`` and takes its ``key=value`` overrides
+(``compute.num_envs``, ``seed``, ``+experiment=...``); it prints a table and writes strict JSON
+plus a PNG beside it (``out=``, default ``outputs/audit/<job>_<reward>.json``).
+
+- ``rewards`` (:mod:`march.audit.rewards`): the arm's training env, canonical behaviours rolled
+  from the same seeds, every reward term's return, V/Vmax, distance, falls, and the verdict
+  "does this reward rank tracking above standing?" with a 95 % interval over rollouts.
+- ``reference`` (:mod:`march.audit.feasibility`): the G1's whole-body IK along planned
+  references at every curriculum level: the error floor per output and of V/Vmax under perfect
+  kinematic tracking, and where the plan is out of the G1's reach.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from march.config import MarchConfig
+from march.config.cli import fail, run_tool
+
+USAGE = (
+    "usage: python -m march.audit rewards|reference [out=<file>.json] [teacher_ckpt=<file>] "
+    "[key=value ...]"
+)
+
+
+def _out(cfg: MarchConfig, job: str) -> Path:
+    out = Path(cfg.out or f"outputs/audit/{job}_{cfg.reward.name}.json")
+    if out.suffix != ".json":
+        fail(f"out={out}: give a .json file (the PNG is written beside it)")
+    return out
+
+
+def _teacher_policy(cfg: MarchConfig, env):
+    """The deterministic policy of ``teacher_ckpt=`` on ``env`` (its reward arm must be the
+    audited one: its observation layout is that arm's)."""
+    from march.config.resume import check_checkpoint
+    from march.evaluation.protocol import policy_from_checkpoint
+    from march.learn.checkpoint import load_checkpoint
+
+    payload = load_checkpoint(cfg.teacher_ckpt, "teacher", cfg.compute.device)
+    check_checkpoint(payload, "teacher", f"teacher_ckpt={cfg.teacher_ckpt}")
+    return policy_from_checkpoint(env, cfg, "teacher", payload, cfg.teacher_ckpt)
+
+
+def _checkpoint_arm(cfg: MarchConfig) -> None:
+    """Refuse, before any env, a checkpoint trained with another reward arm (one line)."""
+    from march.config.resume import check_checkpoint
+    from march.errors import ConfigError
+    from march.learn.checkpoint import CheckpointError, load_checkpoint
+
+    try:
+        payload = load_checkpoint(cfg.teacher_ckpt, "teacher", "cpu")
+        saved = check_checkpoint(payload, "teacher", f"teacher_ckpt={cfg.teacher_ckpt}")
+    except (CheckpointError, ConfigError) as err:
+        fail(str(err))
+    if saved is not None and saved.reward.name != cfg.reward.name:
+        fail(
+            f"teacher_ckpt={cfg.teacher_ckpt} was trained with reward={saved.reward.name}; "
+            f"audit it with reward={saved.reward.name} (its observations are that arm's)"
+        )
+
+
+def rewards(cfg: MarchConfig) -> dict:
+    from march.audit.report import figure, table, write_json
+    from march.audit.rewards import audit_arm
+    from march.env.build import make_env
+
+    out = _out(cfg, "rewards")
+    if cfg.teacher_ckpt:
+        _checkpoint_arm(cfg)
+    env = make_env(cfg, "teacher", log=out.with_suffix(".env.log"))
+    policy = _teacher_policy(cfg, env) if cfg.teacher_ckpt else None
+    arm = audit_arm(env, cfg, policy)
+    print(table(arm))
+    write_json(arm, out)
+    png = figure(arm, out.with_suffix(".png"))
+    print(f"wrote {out} and {png}")
+    return arm
+
+
+def reference(cfg: MarchConfig) -> dict:
+    from march.audit.feasibility import reference_report
+
+    return reference_report(cfg, str(_out(cfg, "reference")))
+
+
+JOBS = {"rewards": rewards, "reference": reference}
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    run_tool(JOBS, argv, usage=USAGE)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

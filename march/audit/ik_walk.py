@@ -1,0 +1,218 @@
+"""Planned walks tracked by the kinematic G1: the planner's receding-horizon loop with the
+whole-body IK in place of the robot.
+
+:func:`ik_walks` plays the loop of :func:`march.reference.walk.walk_course` (plan at each
+touchdown, take step 0, stop at the goal platform or at an infeasible plan) over a batch of
+courses, and at every control tick of every step poses :class:`~march.audit.kinematic_g1.KinematicG1`
+for that instant's reference (:func:`march.reference.trajectory.reference_at`). As in the env
+(``march.env.reference_command``), a touchdown happens at the planned duration (the first tick
+with tau >= T: ideal timing), the next plan starts from where the IK's swing foot actually
+landed, the new stance foot is held at its landing pose, and the new swing foot lifts off from
+where it stands; so a step the G1 cannot reach moves the walk where the robot really is, and a
+landing off the stones ends the walk as an infeasible plan.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+import torch
+
+from march.audit.kinematic_g1 import KinematicG1, rotation_zyx
+from march.reference.hlip import HlipCfg
+from march.reference.planner import PlannerCfg, plan_footsteps
+from march.reference.trajectory import (
+    ReferenceCfg,
+    StepState,
+    reference_at,
+    step_state_from_plan,
+)
+from march.world.footholds import Footholds
+
+NUM_UPPER = 17
+
+
+@dataclass
+class WalkTrace:
+    """One course walked by the kinematic G1: every tick's errors and every step's landing."""
+
+    eta: list[np.ndarray] = field(default_factory=list)
+    """Per tick (29,) y - y_ref (angles wrapped)."""
+    etadot: list[np.ndarray] = field(default_factory=list)
+    """Per tick (29,) ydot - ydot_ref."""
+    v_ratio: list[float] = field(default_factory=list)
+    """Per tick V / Vmax."""
+    tick_step: list[int] = field(default_factory=list)
+    """Per tick the index of its step."""
+    qpos: list[np.ndarray] = field(default_factory=list)
+    """Per tick the solved configuration (for the film)."""
+    y_ref: list[np.ndarray] = field(default_factory=list)
+    """Per tick the reference outputs (29,)."""
+    touchdown_eta: list[np.ndarray] = field(default_factory=list)
+    """Per step (29,) eta at its touchdown tick."""
+    step_max_eta: list[np.ndarray] = field(default_factory=list)
+    """Per step (29,) max |eta| over its ticks."""
+    step_length: list[float] = field(default_factory=list)
+    """Per step the planned step length: horizontal distance from the stance foot to the
+    target (the planner's ``max_step`` bounds it) [m]."""
+    step_rise: list[float] = field(default_factory=list)
+    """Per step the planned height change from the stance foot to the target [m]."""
+    duration: list[float] = field(default_factory=list)
+    """Per step the planned duration [s]."""
+    com_jump: list[float] = field(default_factory=list)
+    """Per step after the first: how far the CoM reference jumps in xy at its touchdown,
+    |y_ref,com(new step, tau = 0) - y_ref,com(old step, last tick)| [m] (the HLIP orbit of
+    the new step, anchored at the new stance foot, need not start where the old one ended
+    when consecutive steps differ in length or duration)."""
+    end: str = "max_steps"
+    """Why the walk ended: goal, plan_infeasible or max_steps."""
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The per-tick and per-step lists as arrays (empty walks give (0, 29) arrays)."""
+        out = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, list):
+                wide = ("eta", "etadot", "y_ref", "touchdown_eta", "step_max_eta")
+                width = 29 if f.name in wide else None
+                arr = np.asarray(value, dtype=np.float64)
+                if arr.size == 0 and width is not None:
+                    arr = arr.reshape(0, width)
+                out[f.name] = arr
+        return out
+
+
+def step_row(step: StepState, i: int, n: int) -> StepState:
+    """Env ``i`` of a batched step state, repeated ``n`` times (one row per tick)."""
+    values = {}
+    for f in fields(step):
+        value = getattr(step, f.name)
+        values[f.name] = None if value is None else value[i : i + 1].expand(n, *value.shape[1:])
+    return StepState(**values)
+
+
+def site_pose(kin: KinematicG1, left: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(3,) position and (3, 3) rotation of the left / right foot site in the last measured
+    state (``kin.data``)."""
+    sid = kin.site_ids[0 if left else 1]
+    return kin.data.site_xpos[sid].copy(), kin.data.site_xmat[sid].reshape(3, 3).copy()
+
+
+def track_step(
+    kin: KinematicG1,
+    trace: WalkTrace,
+    step: StepState,
+    k: int,
+    held: tuple[np.ndarray, np.ndarray],
+    first: bool,
+    reference: ReferenceCfg,
+    hlip: HlipCfg,
+    keep_qpos: bool = False,
+) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
+    """Track one step (``step``: a one-env ``StepState``, step index ``k``) from the kinematic
+    G1's current pose with the stance foot ``held`` (position, rotation), one tick per
+    ``IkCfg.dt`` until the planned duration (the touchdown tick: the first with tau >= T);
+    ``first``: the walk starts here, standing (:meth:`KinematicG1.stand` at tau = 0).
+    Appends the ticks and the step's summary to ``trace``; returns the new stance foot's pose
+    (the swing foot where it landed) and the new swing foot's lift-off position."""
+    dt = kin.cfg.dt
+    is_left = bool(step.stance_is_left[0])
+    duration = float(step.duration[0])
+    n = max(1, math.ceil(duration / dt - 1e-6))
+    tau = torch.arange(0, n + 1, dtype=torch.float32) * dt
+    ref = reference_at(step_row(step, 0, n + 1), tau, reference, hlip, NUM_UPPER)
+    ref_pos, ref_vel = (x.double().numpy() for x in ref.flatten())
+    if first:
+        kin.stand(ref_pos[0], is_left, *held)
+    elif trace.y_ref:
+        trace.com_jump.append(float(np.linalg.norm(ref_pos[0, 0:2] - trace.y_ref[-1][0:2])))
+    for j in range(1, n + 1):
+        tick = kin.track(ref_pos[j], ref_vel[j], is_left, *held)
+        trace.eta.append(tick.eta)
+        trace.etadot.append(tick.etadot)
+        trace.v_ratio.append(tick.v_ratio)
+        trace.tick_step.append(k)
+        trace.y_ref.append(ref_pos[j])
+        if keep_qpos:
+            trace.qpos.append(tick.qpos)
+    trace.touchdown_eta.append(trace.eta[-1])
+    trace.step_max_eta.append(np.abs(np.asarray(trace.eta[-n:])).max(0))
+    anchor, target = step.stance_pos[0], step.target[0]
+    trace.step_length.append(float(torch.linalg.norm(target[:2] - anchor[:2])))
+    trace.step_rise.append(float(target[2] - anchor[2]))
+    trace.duration.append(duration)
+    # Touchdown: the swing foot is the new stance foot where it landed; the old stance foot
+    # lifts off from where it stood.
+    old_stance, _ = site_pose(kin, is_left)
+    return site_pose(kin, not is_left), old_stance
+
+
+def ik_walks(
+    kin: KinematicG1,
+    footholds: Footholds,
+    command: torch.Tensor,
+    max_steps: int = 30,
+    seed: int = 0,
+    planner: PlannerCfg | None = None,
+    hlip: HlipCfg | None = None,
+    reference: ReferenceCfg | None = None,
+    keep_qpos: bool = False,
+) -> list[WalkTrace]:
+    """Walk every course of ``footholds`` (E envs) at ``command`` (E, 2|3) [m/s] with the
+    kinematic G1 (module docstring); one :class:`WalkTrace` per env. ``keep_qpos`` keeps each
+    tick's configuration (the film needs it)."""
+    planner = planner or PlannerCfg()
+    hlip = hlip or HlipCfg()
+    reference = reference or ReferenceCfg()
+    gen = torch.Generator().manual_seed(seed)
+    e = footholds.num_envs
+    axis = footholds.direction
+    lat = torch.stack([-axis[:, 1], axis[:, 0]], dim=-1)
+    yaw0 = torch.atan2(axis[:, 1], axis[:, 0])
+    stance = footholds.start_xy + 0.3 * axis + 0.5 * planner.step_width * lat
+    left = torch.ones(e, dtype=torch.bool)
+    active = torch.ones(e, dtype=torch.bool)
+    swing: torch.Tensor | None = None
+    qpos: list[np.ndarray | None] = [None] * e
+    held: list[tuple[np.ndarray, np.ndarray] | None] = [None] * e
+    traces = [WalkTrace() for _ in range(e)]
+    zero = torch.zeros(e)
+    for k in range(max_steps):
+        plan = plan_footsteps(stance, left, command[:, :2], footholds, planner, gen)
+        for i in torch.nonzero(active & ~plan.feasible).flatten().tolist():
+            traces[i].end = "plan_infeasible"
+        active = active & plan.feasible
+        if not bool(active.any()):
+            break
+        ramp_from = None
+        if swing is None:
+            swing = plan.start.clone()
+            swing[:, :2] -= planner.step_width * lat
+            ramp_from = 0.5 * (plan.start[:, :2] + swing[:, :2])
+        step = step_state_from_plan(plan, plan.start, swing, yaw0, zero, axis, ramp_from=ramp_from)
+        next_swing = swing.clone()
+        for i in torch.nonzero(active).flatten().tolist():
+            is_left = bool(step.stance_is_left[i])
+            if held[i] is None:  # the walk starts standing, both feet flat, course heading
+                start_pose = step.stance_pos[i].double().numpy()
+                held[i] = (start_pose, rotation_zyx(0.0, 0.0, float(yaw0[i])))
+            else:
+                kin.reset(qpos[i])
+            first = k == 0
+            held[i], old_stance = track_step(
+                kin, traces[i], step_row(step, i, 1), k, held[i], first, reference, hlip, keep_qpos
+            )
+            qpos[i] = kin.qpos
+            stance[i] = torch.as_tensor(held[i][0][:2], dtype=stance.dtype)
+            next_swing[i] = torch.as_tensor(old_stance, dtype=swing.dtype)
+            left[i] = not is_left
+        swing = next_swing
+        reached = footholds.progress(stance) >= footholds.goal_distance + 0.3
+        for i in torch.nonzero(active & reached).flatten().tolist():
+            traces[i].end = "goal"
+        active = active & ~reached
+        if not bool(active.any()):
+            break
+    return traces
