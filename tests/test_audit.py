@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from march.audit.report import table, write_json
-from march.audit.rewards import audit_arm, paired_verdict, roll_behaviour
+from march.audit.reward_audit import audit_arm, paired_verdict, roll_behaviour
 
 T_975_DOF3 = 3.182446305284263  # scipy.stats.t.ppf(0.975, 3), from a table
 

@@ -3,6 +3,6 @@ import os
 # MuJoCo picks its rendering backend when first imported (the reference job films the G1).
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from march.audit.command import main  # noqa: E402
+from march.audit.audit_command import main  # noqa: E402
 
 main()

@@ -7,7 +7,7 @@ Every job composes the same config as ``march.train`` and takes its ``key=value`
 (``compute.num_envs``, ``seed``, ``+experiment=...``); it prints a table and writes strict JSON
 plus a PNG beside it (``out=``, default ``outputs/audit/<job>_<reward>.json``).
 
-- ``rewards`` (:mod:`march.audit.rewards`): the arm's training env, canonical behaviours rolled
+- ``rewards`` (:mod:`march.audit.reward_audit`): the arm's training env, canonical behaviours rolled
   from the same seeds, every reward term's return, V/Vmax, distance, falls, and the verdict
   "does this reward rank tracking above standing?" with a 95 % interval over rollouts.
 - ``reference`` (:mod:`march.audit.feasibility`): the G1's whole-body IK along planned
@@ -69,7 +69,7 @@ def _checkpoint_arm(cfg: MarchConfig) -> None:
 
 def rewards(cfg: MarchConfig) -> dict:
     from march.audit.report import figure, table, write_json
-    from march.audit.rewards import audit_arm
+    from march.audit.reward_audit import audit_arm
     from march.env.build import make_env
 
     out = _out(cfg, "rewards")
