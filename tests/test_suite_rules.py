@@ -10,11 +10,13 @@ Allowed: a hang guard that compares a clock reading with a deadline read from th
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
 
 TESTS = Path(__file__).resolve().parent
+ROOT = TESTS.parent
 
 CLOCKS = {"time", "perf_counter", "monotonic", "process_time", "thread_time", "default_timer"}
 CLOCKS |= {f"{c}_ns" for c in CLOCKS}
@@ -189,3 +191,48 @@ def test_the_rule_reads_a_planted_test_file(tmp_path):
     (tmp_path / "test_planted.py").write_text(planted)
     hits = timed_assertions((tmp_path / "test_planted.py").read_text(), "test_planted.py")
     assert len(hits) == 1 and hits[0].endswith("time.time() - t0 < 60"), hits
+
+
+# ------------------------------------------------------------- docs: strict for real (item 4)
+
+DOC_PATH = re.compile(r"\bdocs/[\w./-]*\w\.(?:py|md|yml|png|svg|css|js)\b")
+NAMING = ["march/**/*.py", "tests/*.py", "scripts/*.py", "Makefile", "README.md", "mkdocs.yml"]
+
+
+def doc_paths(text: str) -> set[str]:
+    """Every ``docs/...`` file a text names."""
+    return set(DOC_PATH.findall(text))
+
+
+def test_every_docs_file_the_code_points_to_exists():
+    named = {
+        (path, f.relative_to(ROOT).as_posix())
+        for pattern in NAMING
+        for f in ROOT.glob(pattern)
+        if f != Path(__file__)  # it names a dead pointer on purpose, below
+        for path in doc_paths(f.read_text())
+    }
+    assert len(named) > 20  # the pointers are read at all
+    assert [n for n in sorted(named) if not (ROOT / n[0]).exists()] == []
+
+
+def test_a_dead_docs_pointer_is_found():
+    """The one issue 48 found, march/config/field_docs.py naming ``docs/hooks.py``."""
+    text = "The mkdocs hook (``docs/hooks.py``) writes it; see docs/hooks/march_docs.py."
+    assert doc_paths(text) == {"docs/hooks.py", "docs/hooks/march_docs.py"}
+    assert not (ROOT / "docs/hooks.py").exists() and (ROOT / "docs/hooks/march_docs.py").exists()
+
+
+def test_the_docs_build_fails_on_a_broken_anchor():
+    """``make docs`` (what CI runs) is strict for real: anchors are validated at ``warn``, which
+    ``--strict`` makes an error, and the build runs without ``--quiet`` (mkdocs 1.6 drops
+    warnings before its strict count then) and without ``-v`` (which skips anchor checks)."""
+    config = (ROOT / "mkdocs.yml").read_text()
+    after = config.split("\nvalidation:\n", 1)[1].splitlines()
+    block = after[: next(i for i, ln in enumerate(after) if not ln.startswith(" "))]
+    levels = dict(ln.strip().split(": ", 1) for ln in block if ": " in ln)
+    assert levels.get("anchors") == "warn" and "info" not in levels.values(), levels
+    recipe = (ROOT / "Makefile").read_text().split("\ndocs:", 1)[1].split("\n\n")[0]
+    build = next(ln for ln in recipe.splitlines() if "mkdocs build" in ln)
+    flags = build.split("mkdocs build", 1)[1].split()
+    assert "--strict" in flags and not {"--quiet", "-q", "--verbose", "-v"} & set(flags), build
