@@ -233,6 +233,6 @@ def test_the_docs_build_fails_on_a_broken_anchor():
     levels = dict(ln.strip().split(": ", 1) for ln in block if ": " in ln)
     assert levels.get("anchors") == "warn" and "info" not in levels.values(), levels
     recipe = (ROOT / "Makefile").read_text().split("\ndocs:", 1)[1].split("\n\n")[0]
-    build = next(ln for ln in recipe.splitlines() if "mkdocs build" in ln)
+    build = next(ln for ln in recipe.splitlines() if ln.startswith("\t") and "mkdocs build" in ln)
     flags = build.split("mkdocs build", 1)[1].split()
     assert "--strict" in flags and not {"--quiet", "-q", "--verbose", "-v"} & set(flags), build
