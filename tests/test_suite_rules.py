@@ -47,7 +47,10 @@ def _walk_scope(root: ast.AST):
             todo.extend(ast.iter_child_nodes(node))
 
 
-def _assigned(a: ast.Assign | ast.AnnAssign) -> set[str]:
+ASSIGNS = ast.Assign | ast.AnnAssign | ast.AugAssign
+
+
+def _assigned(a: ast.Assign | ast.AnnAssign | ast.AugAssign) -> set[str]:
     """The names an assignment binds (``t0``, ``t0, t1``)."""
     targets = a.targets if isinstance(a, ast.Assign) else [a.target]
     return {n.id for t in targets for n in ast.walk(t) if isinstance(n, ast.Name)}
@@ -59,7 +62,7 @@ class _Scope:
     the names of the one around it."""
 
     def __init__(self, body: ast.AST, outer: _Scope | None = None):
-        assigns = [n for n in _walk_scope(body) if isinstance(n, ast.Assign | ast.AnnAssign)]
+        assigns = [n for n in _walk_scope(body) if isinstance(n, ASSIGNS)]
         own = set().union(*map(_assigned, assigns))  # a local name hides the outer one
         self.readings: set[str] = set(outer.readings) - own if outer else set()
         self.durations: set[str] = set(outer.durations) - own if outer else set()
@@ -103,6 +106,11 @@ class _Scope:
         return False
 
 
+def _zero(node: ast.AST) -> bool:
+    """``0``: a sign check (``deadline - time.time() > 0`` is a hang guard), no time budget."""
+    return isinstance(node, ast.Constant) and node.value == 0
+
+
 def timed_assertions(source: str, filename: str = "<test>") -> list[str]:
     """``file:line: text`` of every comparison of a measured duration with something that is no
     clock reading (a number, a name such as ``timeout_s + 30``)."""
@@ -118,9 +126,8 @@ def timed_assertions(source: str, filename: str = "<test>") -> list[str]:
             if not isinstance(node, ast.Compare):
                 continue
             sides = [node.left, *node.comparators]
-            if any(scope.is_duration(s) for s in sides) and not all(
-                scope.has_reading(s) for s in sides
-            ):
+            fixed = [s for s in sides if not scope.has_reading(s)]
+            if any(scope.is_duration(s) for s in sides) and any(not _zero(s) for s in fixed):
                 found.add((node.lineno, ast.get_source_segment(source, node) or ""))
     return [f"{filename}:{line}: {text}" for line, text in sorted(found)]
 
@@ -150,6 +157,7 @@ TIMED = [
     "assert timeit.default_timer() - t0 < 3",
     "assert time.monotonic_ns() - t0 < 10**9",
     "elapsed = time.time() - t0\nok = elapsed < 60\nassert ok",
+    "total = 0.0\ntotal += time.time() - t0\nassert total < 9",
     "def inner():\n    assert time.time() - t0 < 5\ninner()",  # t0 from the function around
 ]
 ALLOWED = [
@@ -159,6 +167,7 @@ ALLOWED = [
     "proc.communicate(timeout=60)",
     "assert t_sim - t_start < 60",  # simulated time, no clock call
     "assert time.time() - t0 >= time.time() - t1",  # two durations, no fixed number
+    "deadline = time.time() + 5\nwhile deadline - time.time() > 0:\n    pass",  # a sign check
     "assert elapsed < 60",  # a name not from a clock (a controller's elapsed seconds)
     "def other():\n    took = 3\n    assert took < 5",  # a name of its own
 ]
