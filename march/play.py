@@ -7,8 +7,10 @@
 
 ``viewer=viser`` serves mjlab's browser viewer (viser) on ``port`` instead of writing a video:
 play / pause / step / reset, march's reward terms in its Rewards tab, and the footstep plan drawn
-(:mod:`march.env.plan_drawing`); it runs until Ctrl-C, or for ``steps`` control steps. The video
-(``viewer=video``, the default) gets the same plan drawing on its frames.
+(:mod:`march.env.plan_drawing`); it runs until Ctrl-C, or for ``steps`` control steps, and writes
+no file (the env's build log goes to a temporary folder removed at the end). The video
+(``viewer=video``, the default) gets the same plan drawing on its frames; the build log is written
+beside it (``<out>.env.log``).
 
 The checkpoint defines the policy: its saved config's reward set, student network and observation
 layout replace the command line's (``march.learn.provenance``); a conflicting explicit choice
@@ -27,6 +29,7 @@ EGL works without a GPU; Debian/Ubuntu packages ``libegl1 libgl1-mesa-dri``); se
 from __future__ import annotations
 
 import sys
+import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -173,10 +176,16 @@ def play(
 
     torch.manual_seed(cfg.seed)
     own_env = env is None
+    log_dir = None
     if own_env:
         from march.env.build import make_env
 
-        env = make_env(cfg, "eval", num_envs=1, log=Path(out).with_suffix(".env.log"))
+        if view.viewer == "video":
+            log = Path(out).with_suffix(".env.log")  # beside the video asked for
+        else:  # the browser viewer writes no file: its build log lives while play runs
+            log_dir = tempfile.TemporaryDirectory(prefix="march-play-")
+            log = Path(log_dir.name) / "env.log"
+        env = make_env(cfg, "eval", num_envs=1, log=log)
     renderer = None
     try:
         obs, _ = env.reset()
@@ -228,6 +237,8 @@ def play(
             renderer.close()
         if own_env:
             env.close()
+        if log_dir is not None:
+            log_dir.cleanup()
     result = PlayResult(
         out=out,
         kind=kind,

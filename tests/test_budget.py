@@ -98,4 +98,5 @@ def test_the_budget_job_prints_the_table_and_refuses_bad_input(tmp_path):
     assert "| teacher | 10000 |" in ok.stdout and "| baseline (2 arms x 3 seeds) | 6 |" in ok.stdout
     for bad in ("budget.bench=/no/such.json", "budget.bogus=1"):
         res = run("compute=gpu", bad)
-        assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
+        both = [ln for ln in [*res.stdout.splitlines(), *res.stderr.splitlines()] if ln.strip()]
+        assert res.returncode == 2 and len(both) == 1, res.stdout + res.stderr

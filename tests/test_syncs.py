@@ -8,14 +8,17 @@ on the data (``.nonzero()``, single-argument ``torch.where``, boolean-mask index
 they are counted here on CPU, where the suite runs: :class:`SyncCounter` (a
 ``torch.overrides.TorchFunctionMode``) sees every torch call and records those issued from a file
 under ``march/`` (the first frame outside torch's own package decides; mjlab's own syncs, e.g.
-its ``len(reset_env_ids)``, are not march's to remove). ``len()`` of a tensor is not counted: the
+its ``len(reset_env_ids)``, are not march's to remove; a wrapper another module bound in torch's
+place, whatever was imported first, only passes a call on). ``len()`` of a tensor is not counted: the
 shape is known on the host; the ``nonzero()`` that made a data-dependent shape is.
 """
 
 from __future__ import annotations
 
+import functools
 import sys
 from pathlib import Path
+from types import FunctionType
 
 import pytest
 import torch
@@ -31,7 +34,6 @@ no copy), which is not a host-to-device copy."""
 TRANSPARENT = {"scoped": "march/env/step_cache.py"}
 """March wrappers that only pass a call through (step_cache's per-compute scope around mjlab's
 reward and observation managers): a sync inside an mjlab term they call is not march's."""
-TORCH_DIR = str(Path(torch.__file__).resolve().parent) + "/"
 
 ALWAYS_SYNC = {
     "item",
@@ -70,10 +72,11 @@ def _has_host_index(index: object) -> bool:
     return any(isinstance(i, list) or type(i).__module__ == "numpy" for i in _items(index))
 
 
-def sync_kind(func: object, args: tuple) -> str | None:
+def sync_kind(func: object, args: tuple, name: str | None = None) -> str | None:
     """The kind of host sync ``func(*args)`` causes (``h2d ...``: a host-to-device copy of data
-    made on the host), or None."""
-    name = getattr(func, "__name__", "")
+    made on the host), or None. ``name``: the torch name ``func`` is bound under, where that is
+    not its own ``__name__`` (a wrapper bound in torch's place)."""
+    name = name or getattr(func, "__name__", "")
     if name in ALWAYS_SYNC:
         if name == "repeat_interleave" and not any(isinstance(a, torch.Tensor) for a in args[1:2]):
             return None  # an int repeat count has a host-known size
@@ -110,21 +113,63 @@ def _march_cause(frame: object) -> str | None:
     return None
 
 
+def _in_torch(frame: object) -> bool:
+    """A frame of torch's own code, known by its module's name (``torch``, ``torch.*``): a file
+    path would miss torch reached through another path (a symlinked ``lib64``, a copy)."""
+    module = frame.f_globals.get("__name__") or ""
+    return module == "torch" or module.startswith("torch.")
+
+
+def _rebound_wrappers() -> dict[object, str]:
+    """The code of every function some other module has bound in place of a torch function or
+    tensor method a sync can come from (``torch.Tensor.unique = wrap(torch.Tensor.unique)``, at
+    import, by whatever was imported first), and of what such a wrapper wraps in turn. A call from
+    march goes through the wrapper into torch: the wrapper only passes it on, and the sync is
+    still the caller's (it was missed: "Right contains one more item: 'unique'"). Each wrapper
+    maps to the torch name it stands for: torch's C methods hand a mode the function bound under
+    their name now, the wrapper, whatever its own ``__name__``."""
+    names = ALWAYS_SYNC | HOST_DATA | {"where", "__getitem__", "__setitem__"}
+    todo = [(getattr(owner, n, None), n) for owner in (torch, torch.Tensor) for n in names]
+    found: dict[object, str] = {}
+    while todo:
+        f, name = todo.pop()
+        code = getattr(f, "__code__", None)
+        if code is None or f in found:
+            continue  # a builtin: torch's own C function or method
+        module = getattr(f, "__globals__", {}).get("__name__") or ""
+        if module == "torch" or module.startswith("torch."):
+            continue  # torch's own Python function (functools.wraps copies __module__, not this)
+        found[f] = name
+        todo.append((getattr(f, "__wrapped__", None), name))
+        todo += [(c.cell_contents, name) for c in f.__closure__ or () if callable(c.cell_contents)]
+    return found
+
+
 class SyncCounter(TorchFunctionMode):
     """Records every host sync: ``hits`` those issued from a line of march's own modules
-    (``root``), ``every`` all of them as ``(kind, file:line, march cause or None)``."""
+    (``root``), ``every`` all of them as ``(kind, file:line, march cause or None)``. The caller is
+    the first frame outside torch and outside any wrapper another module bound in place of a
+    torch function (read when the counter starts, so whatever was imported first is seen)."""
 
     def __init__(self, root: str = MARCH_DIR) -> None:
         super().__init__()
         self.root = root
         self.hits: list[tuple[str, str]] = []
         self.every: list[tuple[str, str, str | None]] = []
+        self.rebound: dict[object, str] = {}  # wrapper function -> the torch name it stands for
+        self.pass_through: set[object] = set()  # their code: frames that only pass a call on
+
+    def __enter__(self):
+        self.rebound = _rebound_wrappers()
+        self.pass_through = {f.__code__ for f in self.rebound}
+        return super().__enter__()
 
     def __torch_function__(self, func, types, args=(), kwargs=None):
-        kind = sync_kind(func, args)
+        name = self.rebound.get(func) if isinstance(func, FunctionType) else None
+        kind = sync_kind(func, args, name)
         if kind is not None:
             frame = sys._getframe(1)
-            while frame is not None and frame.f_code.co_filename.startswith(TORCH_DIR):
+            while frame is not None and (_in_torch(frame) or frame.f_code in self.pass_through):
                 frame = frame.f_back
             if frame is not None and not (kind.startswith("h2d") and WARP_WRAP in name_of(frame)):
                 name = frame.f_code.co_filename
@@ -207,6 +252,43 @@ def test_counter_sees_every_sync_kind_issued_from_march():
     hits = _run(SYNCING_SNIPPET, MARCH_DIR + "example.py")
     assert [k for k, _ in hits] == SYNCING_KINDS
     assert all(where.startswith("march/example.py:") for _, where in hits)
+
+
+def _pass_on(f):
+    """A wrapper as a library binds one in place of a torch function (a compat shim, a
+    deprecation notice): it only passes the call on."""
+
+    @functools.wraps(f)
+    def wrapper(*args, **kwargs):
+        return f(*args, **kwargs)
+
+    return wrapper
+
+
+def _pass_on_plain(f):
+    return lambda *args, **kwargs: f(*args, **kwargs)  # no __wrapped__: found in its closure
+
+
+@pytest.mark.parametrize("layers", [1, 2])
+def test_counter_sees_syncs_through_what_an_earlier_import_bound_in_torchs_place(
+    monkeypatch, layers
+):
+    """The order-dependent failure ("Right contains one more item: 'unique'"): a module imported
+    earlier in the same process had bound a wrapper in place of ``torch.Tensor.unique``, so the
+    first frame outside torch was the wrapper's, and march's ``x.unique()`` was not counted."""
+    for owner, name in [(torch.Tensor, "unique"), (torch, "unique"), (torch.Tensor, "item")]:
+        f = getattr(owner, name)
+        for _ in range(layers):
+            f = _pass_on(f) if layers == 1 else _pass_on_plain(_pass_on(f))
+        monkeypatch.setattr(owner, name, f)
+    assert torch.Tensor.unique.__code__.co_filename == __file__  # bound from outside torch
+    hits = _run(SYNCING_SNIPPET, MARCH_DIR + "example.py")
+    assert [k for k, _ in hits] == SYNCING_KINDS
+    assert all(where.startswith("march/example.py:") for _, where in hits)
+    assert _run(SYNCING_SNIPPET, str(ROOT / "tests" / "example.py")) == []
+    with SyncCounter() as counter:
+        torch.unique(torch.arange(3))  # from this file, through the wrapper: not march's
+    assert counter.hits == [] and [k for k, _, _ in counter.every] == ["unique"]
 
 
 def test_counter_ignores_other_files_and_sync_free_ops():

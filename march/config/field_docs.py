@@ -4,8 +4,9 @@ Every field of :class:`march.config.MarchConfig` and its sections: its type, def
 first ``[...]`` of its docstring), the values its section's ``__post_init__`` allows (read from
 the calls to the :mod:`march.config.checks` helpers: ``_one_of``, ``_interval``, ``_at_least``,
 ``_positive``, ``_identifier``) and its docstring; then every option of every ``conf/`` group with
-its YAML. The mkdocs hook (``docs/hooks.py``) writes it as a page at build time, so it cannot go
-stale; ``tests/test_docs.py`` fails when a field has no docstring. Pure data: no simulator import.
+its YAML. The mkdocs hook (``docs/hooks/march_docs.py``) writes it as a page at build time, so it
+cannot go stale; ``tests/test_docs.py`` fails when a field has no docstring. Pure data: no
+simulator import.
 """
 
 from __future__ import annotations
