@@ -168,15 +168,12 @@ def test_a_sweep_gives_up_a_trial_whose_job_is_gone_and_asks_its_parameters_agai
     sweep, cmd, env, job = _launch_and_kill_driver(tmp_path, "steps=40", "step_s=0.5")
     os.kill(job, signal.SIGKILL)
     time.sleep(0.5)
-    t0 = time.time()
     again = _run(cmd, env)
-    took = time.time() - t0
     assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
     assert f"trial 0 was cut short (its job (pid {job} on " in again.stdout
     trials = _trials(sweep)
     assert [t.state.name for t in trials] == ["FAIL", "COMPLETE", "COMPLETE"]
     assert trials[0].user_attrs["interrupted"] and trials[1].params == trials[0].params
-    assert took < 120, took
 
 
 def test_a_job_whose_trial_was_given_up_does_not_run_it(tmp_path):
