@@ -124,7 +124,7 @@ Intro text.
 """
 
 
-def test_decision_log_splits_into_numbered_records():
+def test_decision_log_splits_into_records_with_stable_addresses():
     recs = march_docs.decision_records(LOG)
     assert [(r["number"], r["title"], r["section"]) for r in recs] == [
         ("1", "First", "Early decisions"),
@@ -136,10 +136,21 @@ def test_decision_log_splits_into_numbered_records():
     assert recs[0]["content"] == "one\ntwo"
     assert "- **not a record**" in recs[3]["content"]
     appended = march_docs.decision_records(LOG + "\n## Later\n\n- **Gamma.** g\n")
-    assert [r["file"] for r in appended[:5]] == [r["file"] for r in recs]  # numbers kept
-    assert appended[5]["file"] == "006-gamma.md"
+    assert [r["file"] for r in appended[:5]] == [r["file"] for r in recs]  # addresses kept
+    assert appended[5]["file"] == "gamma.md"
+    # a record inserted ABOVE the others moves no address (issue 48: numbered by position, an
+    # insertion renumbered every later page)
+    inserted = march_docs.decision_records("- **Zeroth.** z\n" + LOG)
+    assert [r["file"] for r in inserted[1:]] == [r["file"] for r in recs]
+    assert inserted[0]["file"] == "zeroth.md"
+    # the same title twice gets its section in front, never a position
+    twice = march_docs.decision_records(LOG + "\n## Later\n\n- **Alpha.** again\n")
+    assert [r["file"] for r in twice if r["title"] == "Alpha"] == [
+        "a-section-issue-1--alpha.md",
+        "later--alpha.md",
+    ]
     pages = march_docs.decision_pages(LOG)
-    assert "- [4. Alpha](004-alpha.md)" in pages["decisions/index.md"]
+    assert "- [4. Alpha](alpha.md)" in pages["decisions/index.md"]
 
 
 def test_the_real_log_keeps_every_decision():

@@ -9,7 +9,8 @@
   usage line(s), read from the source (no tool is imported: no simulator starts);
 - ``decisions/``: ``docs/decisions.md`` (the file engineers append to) split into one record per
   decision (each ``- **Title.**`` bullet; a section's text before its first bullet is a record of
-  its own), numbered in file order so that appended decisions get new numbers and old ones keep
+  its own), numbered in file order for reading, each page's address taken from its title (not
+  its number) so that a record inserted anywhere moves no other page; old ones keep
   theirs, and an index grouped by the log's ``##`` sections.
 
 Nothing generated is committed; ``tests/test_docs.py`` builds the same pages.
@@ -140,8 +141,16 @@ def decision_records(text: str) -> list[dict[str, str]]:
                 title = f"{section}: overview"
                 content = "\n".join(chunk).strip()
             records.append({"section": section, "title": title, "content": content})
-    for n, rec in enumerate(records, start=1):
-        rec["file"] = f"{n:03d}-{_slug(rec['title'])}.md"
+    # Addresses come from the record's own words, never its position: a record inserted above
+    # (or a union merge of two sessions' appends) moves no other page. A title used twice gets
+    # its section's slug in front; a third use, its order among the same title and section.
+    seen: dict[str, int] = {}
+    titles = [_slug(r["title"]) for r in records]
+    for n, (rec, slug) in enumerate(zip(records, titles, strict=True), start=1):
+        if titles.count(slug) > 1:
+            slug = f"{_slug(rec['section'])}--{slug}"
+        seen[slug] = seen.get(slug, 0) + 1
+        rec["file"] = f"{slug}.md" if seen[slug] == 1 else f"{slug}-{seen[slug]}.md"
         rec["number"] = str(n)
     return records
 
