@@ -16,7 +16,7 @@ import torch
 
 from march.config import LoggerCfg, StudentCfg
 from march.config.cli import load
-from march.learn.checkpoint import load_checkpoint
+from march.store.checkpoint import load_checkpoint
 from march.learn.distill import DistillRunner, distill_update
 from march.learn.metrics import MetricsLog
 from march.learn.teacher import EpisodeStats

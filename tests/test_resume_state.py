@@ -21,7 +21,7 @@ from saved_runs import train_cli
 
 from march.config import ConfigError
 from march.config.cli import load
-from march.learn.checkpoint import (
+from march.store.checkpoint import (
     CheckpointError,
     load_checkpoint,
     save_atomic,

@@ -52,7 +52,7 @@ from march.env.build import SUCCESS_TERMINATION, reseed_env
 from march.env.course import CourseRuler, assign_eval_cells, eval_cells
 from march.env.depth import camera_paused
 from march.evaluation.sharding import sharded_rollouts
-from march.learn.checkpoint import write_json_atomic
+from march.store.checkpoint import write_json_atomic
 from march.learn.metrics import (
     EVAL_COLUMNS,
     EVAL_LEVEL_COLUMNS,

@@ -12,7 +12,7 @@ from typing import IO, Any
 
 from march.config import ConfigError, LoggerCfg
 from march.config.schema import EVAL_METRICS
-from march.learn.checkpoint import replace_durably, write_text_durably
+from march.store.checkpoint import replace_durably, write_text_durably
 from march.learn.distributed import writes_files
 
 METRIC_COLUMNS = (

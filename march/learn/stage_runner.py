@@ -38,7 +38,7 @@ from march.config import MarchConfig
 from march.env.course import CourseRuler
 from march.env.term_meter import pop_terms
 from march.learn import distributed, preemption
-from march.learn.checkpoint import (
+from march.store.checkpoint import (
     check_layout,
     ensure_model_file,
     latest_checkpoint,
