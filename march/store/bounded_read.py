@@ -93,9 +93,10 @@ def read_in_folder(folder: Path, name: Any, what: str, limit: int) -> bytes:
                 f"{path}: the bundle's {what} is {st.st_size} bytes, more than the {limit} it can "
                 "be; not read"
             )
-        data = f.read(limit + 1)
-    if len(data) > limit:  # grew while being read
-        raise FileRefused(f"{path}: the bundle's {what} is more than {limit} bytes; not read")
+        # Its size + 1, not limit + 1: read(n) allocates n bytes before it reads any.
+        data = f.read(st.st_size + 1)
+    if len(data) > limit or len(data) > st.st_size:  # grew while being read
+        raise FileRefused(f"{path}: the bundle's {what} grew while it was read; not read")
     return data
 
 
