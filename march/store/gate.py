@@ -143,11 +143,15 @@ LAYOUT_MAX = 1 << 20
 
 def _expected_network(payload: dict[str, Any], kind: str, cfg: MarchConfig) -> torch.nn.Module:
     """The network a checkpoint's config and layout describe, on the ``meta`` device."""
+    # Imported before the meta context: their modules build tensors (and read them) at import.
+    from rsl_rl.models import MLPModel
+    from tensordict import TensorDict
+
+    from march.policies.student import StudentPolicy
+
     lay = payload["layout"]
     with torch.device("meta"):
         if kind == "student":
-            from march.policies.student import StudentPolicy
-
             return StudentPolicy(
                 cfg.student,
                 proprio_dim=lay["proprio_dim"],
@@ -156,9 +160,6 @@ def _expected_network(payload: dict[str, Any], kind: str, cfg: MarchConfig) -> t
                 image_hw=tuple(lay["image_hw"]),
                 num_actions=lay["num_actions"],
             )
-        from rsl_rl.models import MLPModel
-        from tensordict import TensorDict
-
         actor_cfg = copy.deepcopy(payload["ppo"]["actor"])  # rsl-rl pops from nested dicts
         actor_cfg.pop("class_name", None)
         obs = TensorDict({"actor": torch.zeros(1, lay["actor_obs_dim"])}, batch_size=[1])
