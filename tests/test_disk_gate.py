@@ -175,7 +175,8 @@ def test_weights_that_disagree_with_their_config_are_refused_before_any_env(smok
         f"hydra.run.dir={tmp_path / 'e'}",
     )
     assert out.returncode == 2, out.stdout[-1000:]
-    assert out.stdout.strip() == "", out.stdout[-1000:]  # no banner, no env built
+    # no banner, no env built: stdout holds at most PyOpenGL's import note
+    assert [ln for ln in out.stdout.splitlines() if "OpenGL" not in ln] == [], out.stdout[-1000:]
     (line,) = [ln for ln in out.stderr.splitlines() if ln.startswith("error:")]
     assert "its weights do not fit its config" in line and "has shape" in line, line
 
