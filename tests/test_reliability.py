@@ -24,7 +24,7 @@ from saved_runs import train_cli as _train
 
 from march.config import ConfigError
 from march.config.cli import load
-from march.store.resume_rules import RESUME_SAFE
+from march.learn.faults import NumericalFault, UpdateGuard, nonfinite_rows
 from march.store.checkpoint import (
     CheckpointError,
     ensure_model_file,
@@ -32,7 +32,7 @@ from march.store.checkpoint import (
     save_atomic,
     save_checkpoint,
 )
-from march.learn.faults import NumericalFault, UpdateGuard, nonfinite_rows
+from march.store.resume_rules import RESUME_SAFE
 
 ROOT = Path(__file__).resolve().parent.parent
 

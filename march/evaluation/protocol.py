@@ -52,7 +52,6 @@ from march.env.build import SUCCESS_TERMINATION, reseed_env
 from march.env.course import CourseRuler, assign_eval_cells, eval_cells
 from march.env.depth import camera_paused
 from march.evaluation.sharding import sharded_rollouts
-from march.store.checkpoint import write_json_atomic
 from march.learn.metrics import (
     EVAL_COLUMNS,
     EVAL_LEVEL_COLUMNS,
@@ -62,6 +61,7 @@ from march.learn.metrics import (
     append_rows,
     truncate_rows,
 )
+from march.store.checkpoint import write_json_atomic
 
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv
