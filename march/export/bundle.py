@@ -314,11 +314,11 @@ def export(cfg: MarchConfig, overrides: Sequence[str] = ()) -> dict[str, Any]:
     path = cfg.student_ckpt
     if not path:
         fail(f"give student_ckpt=<file> (outputs/<run>/student/latest.pt). {USAGE}")
+    out = output_path(cfg.out, path)  # refused before any work
     try:  # the disk gate; then the checkpoint decides the network, camera and layout
         payload, cfg, _ = policy_from_checkpoint(cfg, "student", path, overrides)
     except (CheckpointError, ConfigError) as err:
         fail(_one_line(err))
-    out = output_path(cfg.out, path)  # refused before any work
     from march.export.onnx_graph import export_student_onnx  # torch, rsl-rl, onnx: after the checks
 
     policy = rebuild_student(payload, path, cfg.student)

@@ -162,7 +162,7 @@ class Bundle:
         # Inflated in pieces, bounded before it is held (a crafted small file cannot fill memory).
         limit = min(MAX_SCENE_BYTES, MAX_INFLATION * len(packed))
         try:
-            raw = gunzip_bounded(packed, limit, str(path))
+            raw = gunzip_bounded(packed, limit, f"{path}: the {course} scene")
         except FileRefused as err:
             raise UsageError(str(err)) from None
         try:

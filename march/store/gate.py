@@ -275,19 +275,19 @@ def policy_from_checkpoint(
     payload: dict[str, Any] | None = None,
 ) -> tuple[dict[str, Any], MarchConfig, list[str]]:
     """(payload, config to run with, one line per policy field the checkpoint changed): the
-    checkpoint read through :func:`read_checkpoint` (or ``payload``, already read, checked
-    again), then its policy applied (:func:`march.store.provenance.apply_checkpoint_config`;
-    an explicit command-line choice that contradicts it is one line)."""
+    checkpoint through the checks of :func:`read_checkpoint` (``payload``: already read, checked
+    again), its policy applied (:func:`march.store.provenance.apply_checkpoint_config`; an
+    explicit command-line choice that contradicts it is one line, said before the weights)."""
     from march.store.provenance import apply_checkpoint_config, policy_changes
 
     label = f"{kind}_ckpt={path}"
     if payload is None:
-        payload, _ = read_checkpoint(path, kind, cfg.extra_modules, device)
-    else:
-        check_weights(
-            payload, kind, label, check_checkpoint(payload, kind, label, cfg.extra_modules)
-        )
+        payload = load_checkpoint(path, kind, device, source=label)
+    saved = check_checkpoint(payload, kind, label, cfg.extra_modules)
+    # A command-line choice that contradicts the checkpoint is said first (the user's fix is on
+    # the command line); then its weights against its config, still before any env.
     new = apply_checkpoint_config(cfg, payload, explicit_overrides, path, kind, distill=distill)
+    check_weights(payload, kind, label, saved)
     notes = [
         f"[checkpoint] {label} defines the policy: {c}" for c in policy_changes(cfg, new, kind)
     ]
