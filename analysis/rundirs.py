@@ -19,6 +19,8 @@ from pathlib import Path
 import pandas as pd
 from omegaconf import OmegaConf
 
+from march.store.status import read_status
+
 STRING_COLUMNS = {"stage"}
 
 
@@ -232,15 +234,14 @@ def load_run(path: Path) -> Run:
     if figures is not None:
         run.figures = figures if isinstance(figures, dict) else {}
 
-    status_path = path / "status.json"
-    if status_path.is_file():
-        try:
-            status = json.loads(status_path.read_text())
-            run.state = str(status.get("state", "unknown"))
-            run.error = status.get("error")
-        except (OSError, ValueError) as exc:
-            run.state = "unreadable status.json"
-            run.issues.append(f"status.json unreadable ({type(exc).__name__})")
+    # Through march's reader: a "running" status whose pid is gone on this host reads "killed".
+    status = read_status(path)
+    if status is not None and status["state"] == "unreadable":
+        run.state = "unreadable status.json"
+        run.issues.append(f"status.json unreadable ({status.get('error')})")
+    elif status is not None:
+        run.state = str(status["state"])
+        run.error = status.get("error")
 
     for attr, fname in [("metrics", "metrics.csv"), ("evals", "eval.csv")]:
         df, issues, problem = read_csv_tolerant(path / fname)

@@ -4,7 +4,8 @@ Observation groups and shapes (teacher ``actor``, ``critic``, ``student``, ``dep
 with weights, terminations, events (domain randomization) with their ranges, terrain and camera,
 and the pieces that are still placeholders. How a researcher checks a config before spending GPU
 hours. ``python -m march.inspect budget compute=gpu``: what those GPU hours are, per stage and
-sweep (:mod:`march.learn.budget`).
+sweep (:mod:`march.learn.budget`). ``python -m march.inspect run <run dir>``: the run's status
+as it truly is (a ``running`` run whose process is gone reads ``killed``) and its checkpoints.
 """
 
 from __future__ import annotations
@@ -231,6 +232,26 @@ def list_job(argv: list[str]) -> None:
     run_tool(job, argv, usage="usage: python -m march.inspect list [extra_modules=[...]] [...]")
 
 
+def run_job(argv: list[str]) -> None:
+    """``python -m march.inspect run <run dir>``: the run's status as its readers see it
+    (march.store.status: ``running`` with its pid gone on this host reads ``killed``) and its
+    newest checkpoints' iterations, as JSON. Reads only; builds no env."""
+    from pathlib import Path
+
+    from march.config.cli import fail
+    from march.store.checkpoint import latest_checkpoint
+    from march.store.status import read_status
+
+    if len(argv) != 1 or not Path(argv[0]).is_dir():
+        fail("usage: python -m march.inspect run <run dir>")
+    run = Path(argv[0])
+    report: dict[str, Any] = {"run": str(run), "status": read_status(run)}
+    for kind in ("teacher", "student"):
+        found = latest_checkpoint(run / kind) if (run / kind).is_dir() else None
+        report[f"{kind}_checkpoint"] = str(found) if found else None
+    print(json.dumps(report, indent=2))
+
+
 def main() -> None:
     def job(cfg: MarchConfig) -> None:
         report = inspect(cfg)
@@ -242,9 +263,13 @@ def main() -> None:
     if sys.argv[1:2] == ["list"]:
         list_job(sys.argv[2:])
         return
+    if sys.argv[1:2] == ["run"]:
+        run_job(sys.argv[2:])
+        return
     run_tool(
         job,
-        usage="usage: python -m march.inspect [key=value ...] | budget [key=value ...] | list",
+        usage="usage: python -m march.inspect [key=value ...] | budget [key=value ...] | list "
+        "| run <run dir>",
     )
 
 

@@ -13,7 +13,7 @@ no file (the env's build log goes to a temporary folder removed at the end). The
 beside it (``<out>.env.log``).
 
 The checkpoint defines the policy: its saved config's reward set, student network and observation
-layout replace the command line's (``march.learn.provenance``); a conflicting explicit choice
+layout replace the command line's (``march.store.provenance``); a conflicting explicit choice
 (``reward=clf`` for a modelfree checkpoint) is one line on stderr. One env built for the ``eval``
 purpose (the evaluation protocol as configured: command, episode length, depth corruption and
 domain randomization), one episode (until time-out or a fall),
@@ -148,26 +148,26 @@ def play(
     import torch
 
     from march.config import ConfigError
-    from march.learn.checkpoint import CheckpointError, load_checkpoint
-    from march.learn.provenance import apply_checkpoint_config, policy_changes
+    from march.store.checkpoint import CheckpointError
+    from march.store.gate import policy_from_checkpoint as read_policy
 
     view = view or ViewerArgs()
     kind, path = checkpoint_arg(cfg)
     out = out_path(cfg) if view.viewer == "video" else Path(DEFAULT_OUT)
-    try:  # a wrong or unreadable file fails here, before the env is built
-        payload = load_checkpoint(path, kind, cfg.compute.device)
-        policy_cfg = apply_checkpoint_config(cfg, payload, explicit_overrides, path, kind)
+    try:  # a wrong or unreadable file fails here (the disk gate), before the env is built
+        payload, policy_cfg, changes = read_policy(
+            cfg, kind, path, explicit_overrides, device=cfg.compute.device
+        )
     except (CheckpointError, ConfigError) as err:
         fail(str(err))
-    changes = policy_changes(cfg, policy_cfg, kind)
     if changes and env is not None:
         fail(
             f"the env passed to play() was built for another policy than {kind}_ckpt={path} "
-            f"({changes[0]}); build it from the checkpoint's config"
+            f"({changes[0].split('policy: ', 1)[-1]}); build it from the checkpoint's config"
         )
     cfg = policy_cfg
     for change in changes:
-        print(f"[checkpoint] {kind}_ckpt={path} defines the policy: {change}", flush=True)
+        print(change, flush=True)
     why = rendering_error() if view.viewer == "video" else None
     if why:
         fail(why)

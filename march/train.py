@@ -22,7 +22,6 @@ import os
 import random
 import socket
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -36,12 +35,14 @@ from march.config import ConfigError, MarchConfig, to_march_config
 from march.config.cli import duplicate_overrides, fail, renamed_group, resolve_compute
 from march.config.memory import check_memory
 from march.config.terms import check_terms, import_extra_modules
-from march.learn import distributed, preemption, run_lock, tuning
-from march.learn import run_dir as run_files
-from march.learn.checkpoint import CheckpointError, write_json_atomic, write_text_durably
+from march.learn import distributed, preemption, tuning
 from march.learn.eta import ETA_ITERATIONS, EtaMetricsLog, EtaWatch
 from march.learn.faults import NumericalFault
-from march.strict_json import strict
+from march.store import run_dir as run_files
+from march.store import run_lock
+from march.store.checkpoint import CheckpointError, write_text_durably
+from march.store.gate import apply_policy_checkpoint, read_checkpoint
+from march.store.status import read_status, write_status
 
 
 def _seed_everything(seed: int) -> None:
@@ -53,9 +54,7 @@ def _seed_everything(seed: int) -> None:
 
 
 def _write_status(run_dir: Path, state: str, **extra: Any) -> None:
-    write_json_atomic(
-        strict({"state": state, "time": time.time(), **extra}), run_dir / "status.json"
-    )
+    write_status(run_dir, state, **extra)
 
 
 def banner(
@@ -137,46 +136,6 @@ def _check_inputs(cfg: MarchConfig) -> None:
             )
 
 
-def policy_checkpoint(cfg: MarchConfig) -> tuple[str, str, bool] | None:
-    """(kind, path, distill) of the checkpoint that defines this run's policy, if any.
-
-    stage=eval: the evaluated checkpoint. stage=student: the teacher, whose reward set and
-    observation layout the distillation env must have (the "teacher reward on student rollouts"
-    is that reward); the run's own student and curriculum stay the command line's.
-    """
-    if cfg.stage == "eval":
-        kind = cfg.eval.policy
-        path = cfg.student_ckpt if kind == "student" else cfg.teacher_ckpt
-        return (kind, path, False) if path else None
-    if cfg.stage == "student" and cfg.teacher_ckpt:
-        return "teacher", cfg.teacher_ckpt, True
-    return None
-
-
-def apply_policy_checkpoint(
-    cfg: MarchConfig, explicit_overrides: list[str], payload: dict[str, Any] | None = None
-) -> tuple[MarchConfig, list[str]]:
-    """``cfg`` with its policy taken from the checkpoint it runs (march.learn.provenance), and
-    one line per value the checkpoint changed. Raises ConfigError on a conflicting explicit
-    command-line choice, CheckpointError on an unreadable checkpoint: before any simulation."""
-    from march.config.resume import check_checkpoint
-    from march.learn.checkpoint import load_checkpoint
-    from march.learn.provenance import apply_checkpoint_config, policy_changes
-
-    which = policy_checkpoint(cfg)
-    if which is None:
-        return cfg, []
-    kind, path, distill = which
-    if payload is None:
-        payload = load_checkpoint(path, kind, "cpu")
-    # Its config, iteration and env steps pass the command line's checks before any use.
-    check_checkpoint(payload, kind, f"{kind}_ckpt={path}")
-    new = apply_checkpoint_config(cfg, payload, explicit_overrides, path, kind, distill=distill)
-    changes = policy_changes(cfg, new, kind)
-    notes = [f"[checkpoint] {kind}_ckpt={path} defines the policy: {c}" for c in changes]
-    return new, notes
-
-
 def run_pipeline(
     cfg: MarchConfig, run_dir: Path, *, auto: bool = False, notes: list[str] | None = None
 ) -> dict[str, Any] | None:
@@ -197,7 +156,6 @@ def run_pipeline(
         policy_from_checkpoint,
         write_summary,
     )
-    from march.learn.checkpoint import load_checkpoint
     from march.learn.distill import DistillRunner, student_policy
     from march.learn.metrics import truncate_rows
     from march.learn.teacher import TeacherRunner, teacher_policy
@@ -206,14 +164,15 @@ def run_pipeline(
         torch.set_num_threads(cfg.compute.torch_threads)
     _seed_everything(cfg.seed)
     dev = cfg.compute.device
-    # Checkpoints the user passed are read before any simulation starts.
+    # Checkpoints the user passed are read (through the gate) before any simulation starts.
+    named = cfg.extra_modules
     teacher_payload = (
-        load_checkpoint(cfg.teacher_ckpt, "teacher", dev)
+        read_checkpoint(cfg.teacher_ckpt, "teacher", named, dev)[0]
         if cfg.teacher_ckpt and cfg.stage in ("student", "eval")
         else None
     )
     student_payload = (
-        load_checkpoint(cfg.student_ckpt, "student", dev)
+        read_checkpoint(cfg.student_ckpt, "student", named, dev)[0]
         if cfg.stage == "eval" and cfg.eval.policy == "student"
         else None
     )
@@ -282,8 +241,8 @@ def run_pipeline(
             return last_eval.get("teacher")  # the stage's final evaluation (for a sweeper)
 
         if cfg.stage in ("all", "student"):
-            if teacher_payload is None:
-                teacher_payload = load_checkpoint(teacher_path, "teacher", dev)
+            if teacher_payload is None:  # the run's own teacher, just written
+                teacher_payload = read_checkpoint(teacher_path, "teacher", named, dev)[0]
             env = make_env(cfg, "student", log=env_log)
             runner = DistillRunner(
                 env, cfg, run_dir, log, teacher_payload, teacher_path, eval_student
@@ -359,16 +318,19 @@ def main(dcfg: DictConfig) -> float | None:
     try:
         if dist.main:  # one writer per run directory, for the whole run; no link written through
             notes += run_files.claim(run_dir, option)
+        status = read_status(run_dir)
+        if status and status.get("note"):  # e.g. "running" with its pid gone: it was killed
+            notes.append(f"[status] {status['note']}")
         if cfg.resume and (run_dir / "config.yaml").is_file():
             # Continue with the run's own config (its sizes and seed), not today's defaults; an
             # override safe on resume applies (and goes into config.yaml), any other is refused.
-            from march.config.resume import resume_config
+            from march.store.resume_rules import resume_config
 
             cfg, resumed = resume_config(run_dir, cfg, overrides)
             notes += resumed
             auto = False  # the run's own compute preset, whatever compute= composed to today
         elif run_files.holds_run(run_dir):  # a new run pointed at a run: the same comparison
-            from march.config.resume import adopt_config
+            from march.store.resume_rules import adopt_config
 
             if not (run_dir / "config.yaml").is_file():
                 raise ConfigError(
@@ -378,7 +340,8 @@ def main(dcfg: DictConfig) -> float | None:
             cfg, adopted = adopt_config(run_dir, cfg)
             notes += adopted
         check_memory(cfg)
-        notes += run_files.check_run_checkpoints(run_dir, cfg, option)  # before any env
+        # before any env; a resume only on the number of ranks that wrote it
+        notes += run_files.check_run_checkpoints(run_dir, cfg, option, distributed.world_mismatch)
     except (ConfigError, CheckpointError) as err:
         run_lock.release_all()  # ours only (a lock another process holds was never ours)
         if hc.mode == RunMode.MULTIRUN:

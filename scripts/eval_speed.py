@@ -30,8 +30,8 @@ def main(overrides: list[str]) -> None:
     from march.evaluation.protocol import policy_from_checkpoint, rollout_metrics
     from march.evaluation.sharding import sharded_rollouts, waves
     from march.learn import distributed
-    from march.learn.checkpoint import load_checkpoint
-    from march.train import apply_policy_checkpoint
+    from march.store.checkpoint import load_checkpoint
+    from march.store.gate import apply_policy_checkpoint
 
     cfg = load(["stage=eval", "eval.policy=teacher", *overrides])
     cfg, _ = apply_policy_checkpoint(cfg, overrides)

@@ -126,7 +126,7 @@ def terrain_levels(path: Path) -> dict[int, float]:
 def checkpoint_levels(path: Path, kind: str) -> tuple[int, str, float] | None:
     """(iteration, levels digest, mean level) of the newest checkpoint in ``path``'s directory."""
     from march.env.env_state import levels_digest
-    from march.learn.checkpoint import load_checkpoint
+    from march.store.checkpoint import load_checkpoint
 
     files = [*path.parent.glob("model_*.pt"), path] if path.parent.is_dir() else []
     best = None
@@ -152,7 +152,7 @@ def craft_cuda_run(run: Path) -> None:
     config and device generator states (planner, distillation, CUDA default) in CUDA format."""
     import torch
 
-    from march.learn.checkpoint import load_checkpoint, save_atomic
+    from march.store.checkpoint import load_checkpoint, save_atomic
 
     def cuda_state(offset: int) -> torch.Tensor:
         return torch.tensor([0, offset], dtype=torch.int64).view(torch.uint8).clone()
@@ -251,7 +251,7 @@ class Trigger:
 def ckpt_iteration(path: Path, kind: str) -> int:
     """Iteration of the newest complete checkpoint on disk, latest.pt or any model_<it>.pt
     (0: none): what a resume must start from, so that no checkpointed iteration is lost."""
-    from march.learn.checkpoint import load_checkpoint
+    from march.store.checkpoint import load_checkpoint
 
     files = [*path.parent.glob("model_*.pt"), path] if path.parent.is_dir() else []
     its = [int(load_checkpoint(p, kind)["iteration"]) for p in files if p.is_file()]
@@ -278,7 +278,7 @@ def train_env() -> dict[str, str]:
 
 
 def run_trial(i: int, phase: str, rng: random.Random, out: Path) -> dict:
-    from march.learn.checkpoint import CheckpointError, load_checkpoint
+    from march.store.checkpoint import CheckpointError, load_checkpoint
 
     run = out / f"trial_{i:02d}"
     # A fresh run directory: a previous invocation's trial_NN would be resumed (already finished,

@@ -33,7 +33,7 @@ import torch
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # this checkout's march, whatever python runs the script
-from march.learn.checkpoint import load_checkpoint  # noqa: E402
+from march.store.checkpoint import load_checkpoint  # noqa: E402
 
 TORCHRUN = str(Path(sys.executable).with_name("torchrun"))
 RUN = [

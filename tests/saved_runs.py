@@ -12,7 +12,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from march.config.cli import load
-from march.config.resume import resume_config
+from march.store.resume_rules import resume_config
 
 ROOT = Path(__file__).resolve().parent.parent
 

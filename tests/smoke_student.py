@@ -13,8 +13,8 @@ def hardware_eval_cfg(smoke_run: Path) -> tuple[Any, Any]:
     the hardware course, no DR, no depth corruption, no proprioception noise."""
     from march.config.cli import load
     from march.env.build import build_env_cfg
-    from march.learn.checkpoint import load_checkpoint
-    from march.learn.provenance import apply_checkpoint_config
+    from march.store.checkpoint import load_checkpoint
+    from march.store.provenance import apply_checkpoint_config
 
     ckpt = str(smoke_run / "student" / "latest.pt")
     overrides = ["eval.randomization=false", "eval.corruption=false", "eval.course=hardware"]

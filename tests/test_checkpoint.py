@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import torch
 
-from march.learn.checkpoint import (
+from march.store.checkpoint import (
     CheckpointError,
     load_checkpoint,
     non_plain,
@@ -243,11 +243,11 @@ def test_every_checkpoint_read_goes_through_load_checkpoint():
         for src in sources
         for line, code in _unsafe_reads(ast.parse(src.read_text()))
     }
-    elsewhere = [w for w in reads if not w.startswith("march/learn/checkpoint.py:")]
+    elsewhere = [w for w in reads if not w.startswith("march/store/checkpoint.py:")]
     assert elsewhere == [], reads
     # checkpoint.py imports pickle for its UnpicklingError; its one read is weights-only
     calls = [code for code in reads.values() if not code.startswith("import ")]
-    assert calls == ["torch.load(p, map_location='cpu', weights_only=True)"], reads
+    assert calls == ["torch.load(f, map_location='cpu', weights_only=True)"], reads
     # the scanner finds what it must refuse
     bad = "import pickle\nfrom torch import load\ntorch.load(f)\nyaml.load(s, Loader=yaml.Loader)"
     assert len(_unsafe_reads(ast.parse(bad))) == 4

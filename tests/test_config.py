@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import re
 import subprocess
 import sys
 
@@ -191,7 +192,7 @@ TRAINED = [
 
 
 def test_checkpoint_policy_replaces_the_command_line_defaults():
-    from march.learn.provenance import apply_checkpoint_config, policy_changes
+    from march.store.provenance import apply_checkpoint_config, policy_changes
 
     today = ["compute=smoke", "stage=eval", "seed=7", "eval.num_rollouts=3", "dr=none"]
     cfg = load(today)
@@ -231,7 +232,7 @@ def test_checkpoint_policy_replaces_the_command_line_defaults():
     ],
 )
 def test_conflicting_explicit_choice_is_one_line_naming_both(explicit, named):
-    from march.learn.provenance import apply_checkpoint_config
+    from march.store.provenance import apply_checkpoint_config
 
     cfg = load(["compute=smoke", "stage=eval", *explicit])
     with pytest.raises(ConfigError) as err:
@@ -256,7 +257,7 @@ def test_conflicting_explicit_choice_is_one_line_naming_both(explicit, named):
     ],
 )
 def test_agreeing_or_protocol_choices_are_accepted(explicit):
-    from march.learn.provenance import apply_checkpoint_config
+    from march.store.provenance import apply_checkpoint_config
 
     cfg = load(["compute=smoke", *explicit])
     new = apply_checkpoint_config(cfg, _payload(TRAINED), explicit, "s.pt", "student")
@@ -268,7 +269,7 @@ def test_agreeing_or_protocol_choices_are_accepted(explicit):
 
 
 def test_teacher_checkpoint_keeps_the_users_student_and_distillation_curriculum():
-    from march.learn.provenance import apply_checkpoint_config
+    from march.store.provenance import apply_checkpoint_config
 
     teacher = _payload(["reward=modelfree", "curriculum=flat_first", "teacher.hidden_dims=[8,8]"])
     explicit = ["stage=student", "student=no_mdn", "curriculum=stones"]
@@ -285,14 +286,14 @@ def test_teacher_checkpoint_keeps_the_users_student_and_distillation_curriculum(
 
 
 def test_checkpoint_without_config_is_a_clear_error():
-    from march.learn.provenance import apply_checkpoint_config
+    from march.store.provenance import apply_checkpoint_config
 
     with pytest.raises(ConfigError, match="carries no saved config"):
         apply_checkpoint_config(load(["compute=smoke"]), {"kind": "student"}, [], "x.pt", "student")
 
 
 def test_checkpoint_from_an_older_schema_keeps_missing_fields():
-    from march.learn.provenance import apply_checkpoint_config
+    from march.store.provenance import apply_checkpoint_config
 
     payload = _payload(["reward=modelfree"])
     del payload["config"]["student"]["huber_delta"], payload["config"]["depth"]
@@ -313,8 +314,11 @@ def test_run_dirs_are_named_after_the_resolved_preset():
                 overrides=[f"compute={compute}", "reward=modelfree"],
                 return_hydra_config=True,
             )
-        assert cfg.hydra.run.dir.endswith(f"_modelfree_full_{suffix}")  # no CUDA here
-        assert cfg.hydra.sweep.dir.endswith(f"_{suffix}")
+        # no CUDA here; then the seed and this process's unique part (pid-random)
+        assert re.search(
+            rf"_modelfree_full_{suffix}_seed0_[0-9a-f]+-[0-9a-f]{{6}}$", cfg.hydra.run.dir
+        )
+        assert re.search(rf"_{suffix}_[0-9a-f]+-[0-9a-f]{{6}}$", cfg.hydra.sweep.dir)
 
 
 def test_compute_is_never_a_sweep_parameter(tmp_path):

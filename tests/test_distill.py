@@ -16,11 +16,11 @@ import torch
 
 from march.config import LoggerCfg, StudentCfg
 from march.config.cli import load
-from march.learn.checkpoint import load_checkpoint
 from march.learn.distill import DistillRunner, distill_update
 from march.learn.metrics import MetricsLog
 from march.learn.teacher import EpisodeStats
 from march.policies.student import StudentPolicy
+from march.store.checkpoint import load_checkpoint
 
 OVERRIDES = ["compute=smoke", "distill.num_steps_per_env=16", "distill.num_learning_epochs=1"]
 

@@ -81,8 +81,8 @@ def _state(seed: int) -> dict:
 
 
 def test_each_rank_takes_its_own_entry_and_another_rank_count_is_refused():
-    from march.learn.checkpoint import CheckpointError
     from march.learn.train_state import rank_payload
+    from march.store.checkpoint import CheckpointError
 
     states = [_state(11), _state(22), _state(33)]
     payload = {**states[0], "rank_states": states, "world_size": 3, "iteration": 5}
@@ -735,14 +735,15 @@ def test_two_nodes_on_one_machine_train_one_run(tmp_path):
 
 def test_a_resume_on_another_rank_count_is_refused_before_any_env(tmp_path):
     from march.config.cli import load
-    from march.learn.checkpoint import CheckpointError
-    from march.learn.run_dir import check_run_checkpoints
+    from march.learn.distributed import world_mismatch
+    from march.store.checkpoint import CheckpointError
+    from march.store.run_dir import check_run_checkpoints
 
     (tmp_path / "teacher").mkdir()
     payload = {"kind": "teacher", "iteration": 3, "world_size": 2, "rank_states": [{}, {}]}
     torch.save(payload, tmp_path / "teacher" / "latest.pt")
     with pytest.raises(CheckpointError) as err:  # this process is a one-process run
-        check_run_checkpoints(tmp_path, load(["compute=smoke"]), "resume")
+        check_run_checkpoints(tmp_path, load(["compute=smoke"]), "resume", world_mismatch)
     assert str(err.value) == (
         f"resume={tmp_path}: {tmp_path / 'teacher' / 'latest.pt'}: written by 2 rank(s), this "
         "run has 1: resume it with 2 process(es) (torchrun --nproc_per_node / Slurm tasks x "

@@ -51,7 +51,7 @@ def _metrics(row: dict) -> tuple[str, ...]:
 def test_evaluations_of_one_clf_teacher_are_bit_identical(tmp_path):
     from march.env.build import make_env
     from march.evaluation.protocol import evaluate, policy_from_checkpoint
-    from march.learn.checkpoint import load_checkpoint
+    from march.store.checkpoint import load_checkpoint
     from march.train import run_pipeline
 
     # 6 rollouts on 4 envs: two waves; 1 s episodes (the smoke teacher falls after ~1.2 s, so

@@ -35,6 +35,9 @@ LAYERS: dict[str, int] = {
     # the typed config (Hydra -> dataclasses) and the one bridge to mjlab
     "config": 3,
     "env": 4,
+    # what lives on disk: run directories, locks, status, checkpoints, bundles (the one gate
+    # every tool reads them through; no simulator)
+    "store": 5,
     # networks, runners, the shared evaluation protocol
     "policies": 5,
     "learn": 6,

@@ -15,8 +15,8 @@ from omegaconf import OmegaConf
 
 from march.config import ConfigError
 from march.config.cli import load
-from march.learn.checkpoint import CheckpointError, load_checkpoint
-from march.learn.provenance import apply_checkpoint_config
+from march.store.checkpoint import CheckpointError, load_checkpoint
+from march.store.provenance import apply_checkpoint_config
 from march.train import run_pipeline
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -80,7 +80,7 @@ def test_smoke_checkpoints_load(smoke_run):
 
 
 def test_student_checkpoint_rejects_other_variant(smoke_run):
-    from march.learn.checkpoint import check_layout
+    from march.store.checkpoint import check_layout
 
     payload = load_checkpoint(smoke_run / "student" / "latest.pt", "student")
     other = dict(payload["layout"], variant="no_mdn")

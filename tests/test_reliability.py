@@ -24,15 +24,15 @@ from saved_runs import train_cli as _train
 
 from march.config import ConfigError
 from march.config.cli import load
-from march.config.resume import RESUME_SAFE
-from march.learn.checkpoint import (
+from march.learn.faults import NumericalFault, UpdateGuard, nonfinite_rows
+from march.store.checkpoint import (
     CheckpointError,
     ensure_model_file,
     load_checkpoint,
     save_atomic,
     save_checkpoint,
 )
-from march.learn.faults import NumericalFault, UpdateGuard, nonfinite_rows
+from march.store.resume_rules import RESUME_SAFE
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -174,7 +174,7 @@ def test_a_failed_checkpoint_write_keeps_the_previous_one(tmp_path, monkeypatch)
 def test_latest_is_the_newest_complete_checkpoint_whenever_a_kill_lands(tmp_path):
     """latest.pt is written before model_<it>.pt: a kill between the two leaves latest.pt the
     newest checkpoint, and the resume writes the model file the kill cut short."""
-    from march.learn.checkpoint import latest_checkpoint
+    from march.store.checkpoint import latest_checkpoint
 
     assert latest_checkpoint(tmp_path) is None
     save_checkpoint(_payload(400, 2), tmp_path, 2)

@@ -21,19 +21,19 @@ from saved_runs import train_cli
 
 from march.config import ConfigError
 from march.config.cli import load
-from march.learn.checkpoint import (
-    CheckpointError,
-    load_checkpoint,
-    save_atomic,
-    save_checkpoint,
-    write_json_atomic,
-)
 from march.learn.metrics import METRIC_COLUMNS, append_row, drop_torn_row, truncate_rows
 from march.learn.train_state import (
     CUDA_STATE_BYTES,
     collect_streams,
     restore_streams,
     stream_seed,
+)
+from march.store.checkpoint import (
+    CheckpointError,
+    load_checkpoint,
+    save_atomic,
+    save_checkpoint,
+    write_json_atomic,
 )
 
 ROOT = Path(__file__).resolve().parent.parent

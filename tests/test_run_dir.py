@@ -24,11 +24,13 @@ from saved_runs import train_cli as _train
 from march.config import ConfigError
 from march.config.cli import check_output_dir, duplicate_overrides, literal_prefix, load
 from march.config.memory import SIM_BYTES_PER_ENV, check_memory, estimate
-from march.config.resume import RESUME_SAFE, adopt_config, check_checkpoint
-from march.learn import preemption, run_lock
-from march.learn.checkpoint import save_atomic
+from march.learn import preemption
 from march.learn.metrics import METRIC_COLUMNS, append_row
-from march.learn.run_dir import before_hydra, check_run_checkpoints, refuse_links
+from march.store import run_lock
+from march.store.checkpoint import save_atomic
+from march.store.gate import check_checkpoint
+from march.store.resume_rules import RESUME_SAFE, adopt_config
+from march.store.run_dir import before_hydra, check_run_checkpoints, refuse_links
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -125,7 +127,7 @@ def test_cli_new_run_in_a_folder_of_run_files_without_config_is_refused(tmp_path
 
 _HOLD = """
 import sys, time
-from march.learn import run_lock
+from march.store import run_lock
 run_lock.acquire(sys.argv[1])
 print("held", flush=True)
 time.sleep(120)
@@ -349,7 +351,31 @@ def _payload(kind: str = "teacher", **config_changes) -> dict:
         for p in parents:
             node = node[p]
         node[leaf] = value
-    return {"kind": kind, "iteration": 2, "env_steps": 64, "wall_s": 1.5, "config": cfg}
+    payload = {"kind": kind, "iteration": 2, "env_steps": 64, "wall_s": 1.5, "config": cfg}
+    return _with_weights(payload, kind)
+
+
+def _with_weights(payload: dict, kind: str) -> dict:
+    """The layout and (zero) weights of the network the smoke config describes: what the disk
+    gate compares a checkpoint's weights with."""
+    from march.learn.teacher import ppo_train_cfg
+    from march.store.gate import network_weights
+
+    cfg = load(["compute=smoke"])
+    if kind == "teacher":
+        payload["layout"] = {"actor_obs_dim": 764, "num_actions": 29}
+        payload["ppo"] = ppo_train_cfg(cfg.teacher)
+        payload["actor_state_dict"] = network_weights(payload, kind, cfg)
+    else:
+        payload["layout"] = {
+            "variant": "full",
+            "proprio_dim": 96,
+            "history_len": cfg.env.history_length,
+            "image_hw": [cfg.depth.height, cfg.depth.width],
+            "num_actions": 29,
+        }
+        payload["student_state_dict"] = network_weights(payload, kind, cfg)
+    return payload
 
 
 @pytest.mark.parametrize(

@@ -71,9 +71,9 @@ def _record(bundle, smoke_run) -> list[Stream]:
     from march.config.cli import load
     from march.env.build import PROPRIO_TERMS, build_env_cfg
     from march.env.dr_terms import control_delay_lags, install_control_delay, sample_control_delay
-    from march.learn.checkpoint import load_checkpoint
-    from march.learn.provenance import apply_checkpoint_config
     from march.sim2sim.deploy_bundle import Bundle
+    from march.store.checkpoint import load_checkpoint
+    from march.store.provenance import apply_checkpoint_config
 
     ckpt = str(smoke_run / "student" / "latest.pt")
     payload = load_checkpoint(ckpt, "student")

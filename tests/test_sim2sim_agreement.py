@@ -80,9 +80,9 @@ def _record(bundle, smoke_run, course: str, num_envs: int) -> list[Stream]:
     from march.config.cli import load
     from march.env.build import build_env_cfg
     from march.export.bundle import rebuild_student
-    from march.learn.checkpoint import load_checkpoint
-    from march.learn.provenance import apply_checkpoint_config
     from march.sim2sim.deploy_bundle import Bundle
+    from march.store.checkpoint import load_checkpoint
+    from march.store.provenance import apply_checkpoint_config
 
     ckpt = str(smoke_run / "student" / "latest.pt")
     payload = load_checkpoint(ckpt, "student")

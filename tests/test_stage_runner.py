@@ -14,10 +14,10 @@ import pytest
 
 from march.config.cli import load
 from march.learn import preemption
-from march.learn.checkpoint import load_checkpoint
 from march.learn.distill import DistillRunner
 from march.learn.stage_runner import StageRunner
 from march.learn.teacher import TeacherRunner
+from march.store.checkpoint import load_checkpoint
 
 pytestmark = pytest.mark.sim
 

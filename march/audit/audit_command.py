@@ -37,27 +37,18 @@ def _out(cfg: MarchConfig, job: str) -> Path:
     return out
 
 
-def _teacher_policy(cfg: MarchConfig, env):
-    """The deterministic policy of ``teacher_ckpt=`` on ``env`` (its reward arm must be the
-    audited one: its observation layout is that arm's)."""
-    from march.config.resume import check_checkpoint
-    from march.evaluation.protocol import policy_from_checkpoint
-    from march.learn.checkpoint import load_checkpoint
-
-    payload = load_checkpoint(cfg.teacher_ckpt, "teacher", cfg.compute.device)
-    check_checkpoint(payload, "teacher", f"teacher_ckpt={cfg.teacher_ckpt}")
-    return policy_from_checkpoint(env, cfg, "teacher", payload, cfg.teacher_ckpt)
-
-
-def _checkpoint_arm(cfg: MarchConfig) -> None:
-    """Refuse, before any env, a checkpoint trained with another reward arm (one line)."""
-    from march.config.resume import check_checkpoint
+def _read_teacher(cfg: MarchConfig) -> dict:
+    """``teacher_ckpt=`` through the disk gate (:func:`march.store.gate.read_checkpoint`: no
+    link, bounded size, config and weights checked, named modules consented), before any env;
+    a checkpoint of another reward arm is refused in one line (its observations are that arm's)."""
     from march.errors import ConfigError
-    from march.learn.checkpoint import CheckpointError, load_checkpoint
+    from march.store.checkpoint import CheckpointError
+    from march.store.gate import read_checkpoint
 
     try:
-        payload = load_checkpoint(cfg.teacher_ckpt, "teacher", "cpu")
-        saved = check_checkpoint(payload, "teacher", f"teacher_ckpt={cfg.teacher_ckpt}")
+        payload, saved = read_checkpoint(
+            cfg.teacher_ckpt, "teacher", cfg.extra_modules, cfg.compute.device
+        )
     except (CheckpointError, ConfigError) as err:
         fail(str(err))
     if saved is not None and saved.reward.name != cfg.reward.name:
@@ -65,6 +56,7 @@ def _checkpoint_arm(cfg: MarchConfig) -> None:
             f"teacher_ckpt={cfg.teacher_ckpt} was trained with reward={saved.reward.name}; "
             f"audit it with reward={saved.reward.name} (its observations are that arm's)"
         )
+    return payload
 
 
 def rewards(cfg: MarchConfig) -> dict:
@@ -73,10 +65,13 @@ def rewards(cfg: MarchConfig) -> dict:
     from march.env.build import make_env
 
     out = _out(cfg, "rewards")
-    if cfg.teacher_ckpt:
-        _checkpoint_arm(cfg)
+    payload = _read_teacher(cfg) if cfg.teacher_ckpt else None
     env = make_env(cfg, "teacher", log=out.with_suffix(".env.log"))
-    policy = _teacher_policy(cfg, env) if cfg.teacher_ckpt else None
+    policy = None
+    if payload is not None:
+        from march.evaluation.protocol import policy_from_checkpoint
+
+        policy = policy_from_checkpoint(env, cfg, "teacher", payload, cfg.teacher_ckpt)
     arm = audit_arm(env, cfg, policy)
     print(table(arm))
     write_json(arm, out)

@@ -305,7 +305,7 @@ def _write_partial(
     """``bench.partial``: what the finished workloads measured, under the final JSON's keys
     (atomic, rewritten after each workload), for a run that a time limit may stop."""
     from march.compiled_math import compile_report
-    from march.learn.checkpoint import write_json_atomic
+    from march.store.checkpoint import write_json_atomic
     from march.strict_json import strict
 
     write_json_atomic(

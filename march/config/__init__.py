@@ -3,7 +3,7 @@
 The whole config is :mod:`march.config.schema`; its sections live in
 :mod:`march.config.simulation` and :mod:`march.config.training`, the name tuples and checks in
 :mod:`march.config.checks`. :mod:`march.config.cli` composes a config for the command-line tools
-and :mod:`march.config.resume` decides what a resumed run may override. The names below are the
+and :mod:`march.store.resume_rules` decides what a resumed run may override. The names below are the
 public schema (``from march.config import MarchConfig``).
 """
 

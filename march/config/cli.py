@@ -42,6 +42,23 @@ def preset_name(name: str) -> str:
 # that actually runs (``_gpu``, ``_cpu``), not ``_auto``.
 OmegaConf.register_new_resolver("march_preset", preset_name, replace=True)
 
+_UNIQUE: list[str] = []
+
+
+def unique_part() -> str:
+    """This process's own part of a run directory's name: its pid and 3 random bytes, in hex
+    (``1a2b-9f3c01``), the same at every resolution in the process. Two runs started in the
+    same second (seeds launched in a loop, nodes of one Slurm array) never share a directory."""
+    if not _UNIQUE:
+        import secrets
+
+        _UNIQUE.append(f"{os.getpid():x}-{secrets.token_hex(3)}")
+    return _UNIQUE[0]
+
+
+# ``${march_unique:}`` in conf/config.yaml's directory templates (with ``seed${seed}``).
+OmegaConf.register_new_resolver("march_unique", unique_part, replace=True)
+
 
 def resolve_compute(cfg: DictConfig, overrides: Sequence[str]) -> DictConfig:
     """compute=auto -> the gpu preset when CUDA is available, else cpu.

@@ -54,7 +54,6 @@ from march.env.course import CourseRuler, assign_eval_cells, eval_cells
 from march.env.depth import camera_paused
 from march.evaluation.sharding import sharded_rollouts
 from march.learn import distributed
-from march.learn.checkpoint import write_json_atomic
 from march.learn.metrics import (
     EVAL_COLUMNS,
     EVAL_LEVEL_COLUMNS,
@@ -64,6 +63,7 @@ from march.learn.metrics import (
     append_rows,
     truncate_rows,
 )
+from march.store.checkpoint import write_json_atomic
 from march.strict_json import null_because, strict
 
 if TYPE_CHECKING:

@@ -5,7 +5,8 @@ an ONNX file plus the deployment bundle a robot-side loop needs.
     python -m march.export student_ckpt=outputs/<run>/student/latest.pt out=/tmp/g1_deploy
     python -m march.export student_ckpt=outputs/<run>/student/latest.pt out=/tmp/g1_student.onnx
 
-The checkpoint decides the policy (:func:`march.learn.provenance.apply_checkpoint_config`): its
+The checkpoint is read through the disk gate (:func:`march.store.gate.policy_from_checkpoint`:
+no link, bounded size, its config and weights checked) and decides the policy: its
 saved config's ``student`` section and its ``layout`` (proprio size, history length, image size,
 action count) rebuild the :class:`~march.policies.student.StudentPolicy`, and its camera and
 observation settings describe what deployment feeds; the command line does not change them.
@@ -131,7 +132,7 @@ def rebuild_student(payload: dict[str, Any], path: str, student_cfg: Any = None)
     """The StudentPolicy the checkpoint describes (its own config and layout), weights loaded.
 
     ``student_cfg``: the ``student`` section already taken from the checkpoint (by
-    :func:`march.learn.provenance.apply_checkpoint_config`); None merges ``payload["config"]``'s.
+    :func:`march.store.provenance.apply_checkpoint_config`); None merges ``payload["config"]``'s.
     """
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
@@ -229,7 +230,7 @@ def write_bundle(
     spec["deploy"]["measured_latency_ms"] = float(extra["latency_ms_p95"])
     spec["onnx"] = {"file": onnx_path.name, "sha256": _sha256(onnx_path), **extra}
     spec["courses"] = courses
-    from march.learn.checkpoint import write_json_atomic
+    from march.store.checkpoint import write_json_atomic
     from march.strict_json import strict
 
     write_json_atomic(strict(spec), files["json"])
@@ -276,8 +277,14 @@ def output_path(out_arg: str, ckpt: str) -> Path:
     that is a file or cannot be written."""
     import os
 
-    if not out_arg:
-        out = Path(ckpt).resolve().parent / DEFAULT_NAME
+    if not out_arg:  # beside the checkpoint as named: its folder in the run, not a link's target
+        folder = Path(os.path.abspath(ckpt)).parent
+        if folder.resolve() != folder:
+            fail(
+                f"student_ckpt={ckpt}: its folder {folder} is reached through a symbolic link (it "
+                f"is {folder.resolve()}); march writes no file through a link: give out=<folder>"
+            )
+        out = folder / DEFAULT_NAME
     elif out_arg.lower().endswith(".onnx"):
         out = Path(out_arg)
     else:
@@ -302,20 +309,16 @@ def output_path(out_arg: str, ckpt: str) -> Path:
 
 def export(cfg: MarchConfig, overrides: Sequence[str] = ()) -> dict[str, Any]:
     from march.config import ConfigError
-    from march.learn.checkpoint import CheckpointError, load_checkpoint
-    from march.learn.provenance import apply_checkpoint_config
+    from march.store.checkpoint import CheckpointError
+    from march.store.gate import policy_from_checkpoint
 
     path = cfg.student_ckpt
     if not path:
         fail(f"give student_ckpt=<file> (outputs/<run>/student/latest.pt). {USAGE}")
     out = output_path(cfg.out, path)  # refused before any work
-    try:
-        payload = load_checkpoint(path, "student", "cpu")
-    except CheckpointError as err:
-        fail(_one_line(err))
-    try:  # the checkpoint decides the network, the camera and the observation layout
-        cfg = apply_checkpoint_config(cfg, payload, overrides, path, "student")
-    except ConfigError as err:
+    try:  # the disk gate; then the checkpoint decides the network, camera and layout
+        payload, cfg, _ = policy_from_checkpoint(cfg, "student", path, overrides)
+    except (CheckpointError, ConfigError) as err:
         fail(_one_line(err))
     from march.export.onnx_graph import export_student_onnx  # torch, rsl-rl, onnx: after the checks
 

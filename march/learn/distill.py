@@ -20,11 +20,11 @@ from tensordict import TensorDict
 
 from march.config import MarchConfig
 from march.learn import distributed, rank_normalizers
-from march.learn.checkpoint import check_layout
 from march.learn.metrics import MetricsLog
 from march.learn.stage_runner import EpisodeStats, StageRunner
 from march.learn.teacher import build_teacher_actor, teacher_obs
 from march.policies.student import StudentPolicy
+from march.store.checkpoint import check_layout
 
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv

@@ -12,8 +12,8 @@ from typing import IO, Any
 
 from march.config import ConfigError, LoggerCfg
 from march.config.schema import EVAL_METRICS
-from march.learn.checkpoint import replace_durably, write_text_durably
 from march.learn.distributed import writes_files
+from march.store.checkpoint import replace_durably, write_text_durably
 
 METRIC_COLUMNS = (
     "stage",

@@ -38,16 +38,16 @@ from march.config import MarchConfig
 from march.env.course import CourseRuler
 from march.env.term_meter import pop_terms
 from march.learn import distributed, preemption
-from march.learn.checkpoint import (
+from march.learn.faults import EnvFaults, UpdateGuard
+from march.learn.metrics import MetricsLog, Progress, has_row, truncate_rows
+from march.learn.train_state import collect_state, mean_terrain_level, rank_payload, restore_state
+from march.store.checkpoint import (
     check_layout,
     ensure_model_file,
     latest_checkpoint,
     load_checkpoint,
     save_checkpoint,
 )
-from march.learn.faults import EnvFaults, UpdateGuard
-from march.learn.metrics import MetricsLog, Progress, has_row, truncate_rows
-from march.learn.train_state import collect_state, mean_terrain_level, rank_payload, restore_state
 
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv

@@ -23,9 +23,9 @@ from tensordict import TensorDict
 from march.config import MarchConfig, TeacherCfg
 from march.env.build import rsl_rl_env
 from march.learn import distributed, rank_normalizers
-from march.learn.checkpoint import check_layout
 from march.learn.metrics import MetricsLog
 from march.learn.stage_runner import EpisodeStats, StageRunner
+from march.store.checkpoint import check_layout
 
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv

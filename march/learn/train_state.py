@@ -35,7 +35,7 @@ from march.env.env_state import (
     restore_env_state,
 )
 from march.learn import distributed
-from march.learn.checkpoint import CheckpointError
+from march.store.checkpoint import CheckpointError
 
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv

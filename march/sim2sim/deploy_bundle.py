@@ -3,7 +3,8 @@
 :meth:`Bundle.load` checks, before anything is simulated: the JSON (format version, MuJoCo
 version, the schema of :mod:`march.sim2sim.bundle_schema`: every key, every type; sizes that
 must agree), the files it names (plain names inside the bundle's folder - no directories, no
-``..``, no absolute paths - read without following a symbolic link), the ONNX file's SHA-256;
+``..``, no absolute paths - read without following a symbolic link, sizes bounded before they
+are read: :mod:`march.store.bounded_read`), the ONNX file's SHA-256;
 :meth:`Bundle.scene` loads a course's compiled scene (gzipped MJB, SHA-256 checked) and
 :meth:`Bundle.cell` picks a course cell. :data:`INPUTS` and :data:`OUTPUT` name the ONNX graph's
 feeds and result. Every fault is a :class:`UsageError`: one line for the user, never a
@@ -12,11 +13,7 @@ feeds and result. Every fault is a :class:`UsageError`: one line for the user, n
 
 from __future__ import annotations
 
-import gzip
 import hashlib
-import json
-import os
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,13 +22,21 @@ import mujoco
 
 from march.sim2sim.bundle_schema import SchemaError, check_spec
 from march.sim2sim.motors import MotorTableError, motor_table
+from march.store.bounded_read import (
+    MAX_INFLATION,
+    MAX_ONNX_BYTES,
+    MAX_SCENE_BYTES,
+    MAX_SPEC_BYTES,
+    FileRefused,
+    gunzip_bounded,
+    parse_json_strict,
+    read_in_folder,
+)
 
 BUNDLE_FORMAT = 3
 """The ``deploy.json`` layout this loop reads (march.export.deploy_spec.BUNDLE_FORMAT)."""
 INPUTS = ("proprio_hist", "command", "depth")
 OUTPUT = "actions"
-MAX_FILE_BYTES = 1 << 30
-"""Larger files in a bundle are refused (a scene is ~2 MB, the ONNX ~10 MB)."""
 
 
 class UsageError(ValueError):
@@ -42,28 +47,14 @@ def _sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
-def read_in_bundle(folder: Path, name: Any, what: str) -> bytes:
-    """The bytes of the file ``name`` in ``folder``: a plain file name (no directory part,
-    not ``.`` / ``..``), a regular file, not a symbolic link (opened with O_NOFOLLOW)."""
-    if not isinstance(name, str) or not name or name in (".", "..") or "/" in name or "\\" in name:
-        raise UsageError(f"deploy.json: the {what} {name!r} is not a file name inside the bundle")
-    path = folder / name
+def read_in_bundle(folder: Path, name: Any, what: str, limit: int = MAX_ONNX_BYTES) -> bytes:
+    """The bytes of the file ``name`` in ``folder`` through the disk gate
+    (:func:`march.store.bounded_read.read_in_folder`: a plain name inside the folder, no link,
+    a regular file of at most ``limit`` bytes)."""
     try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
-    except FileNotFoundError:
-        raise UsageError(f"{path}: the bundle's {what} is missing") from None
-    except OSError as err:  # ELOOP: a link; EACCES; ...
-        why = "a symbolic link (not followed)" if path.is_symlink() else err.strerror
-        raise UsageError(f"{path}: the bundle's {what} cannot be read: {why}") from None
-    with os.fdopen(fd, "rb") as f:
-        st = os.fstat(f.fileno())
-        import stat
-
-        if not stat.S_ISREG(st.st_mode):
-            raise UsageError(f"{path}: the bundle's {what} is not a regular file")
-        if st.st_size > MAX_FILE_BYTES:
-            raise UsageError(f"{path}: the bundle's {what} is {st.st_size} bytes, too large")
-        return f.read()
+        return read_in_folder(folder, name, what, limit)
+    except FileRefused as err:
+        raise UsageError(str(err)) from None
 
 
 def _agree(spec: dict[str, Any]) -> None:
@@ -128,12 +119,12 @@ class Bundle:
                 f"onnx={onnx_path}: no deployment bundle beside it ({name}); export it "
                 "with python -m march.export student_ckpt=<file> out=<folder>"
             )
-        raw = read_in_bundle(folder, name, "deploy.json")
+        raw = read_in_bundle(folder, name, "deploy.json", MAX_SPEC_BYTES)
         path = folder / name
         try:
-            spec = json.loads(raw)
-        except (UnicodeDecodeError, ValueError, RecursionError) as err:
-            raise UsageError(f"{path}: not readable JSON ({err})") from None
+            spec = parse_json_strict(raw, str(path))
+        except FileRefused as err:
+            raise UsageError(str(err)) from None
         if not isinstance(spec, dict) or spec.get("format") != BUNDLE_FORMAT:
             found = spec.get("format") if isinstance(spec, dict) else None
             raise UsageError(f"{path}: bundle format {found!r}, this loop reads {BUNDLE_FORMAT}")
@@ -164,14 +155,19 @@ class Bundle:
             raise UsageError(f"course={course}: the bundle has {', '.join(courses)}")
         entry = courses[course]
         folder = self.onnx_path.parent
-        packed = read_in_bundle(folder, entry["scene"], f"{course} scene")
+        packed = read_in_bundle(folder, entry["scene"], f"{course} scene", MAX_SCENE_BYTES)
         path = folder / entry["scene"]
         if _sha256(packed) != entry["sha256"]:
             raise UsageError(f"{path}: its SHA-256 differs from the bundle's record")
+        # Inflated in pieces, bounded before it is held (a crafted small file cannot fill memory).
+        limit = min(MAX_SCENE_BYTES, MAX_INFLATION * len(packed))
         try:
-            raw = gzip.decompress(packed)
+            raw = gunzip_bounded(packed, limit, f"{path}: the {course} scene")
+        except FileRefused as err:
+            raise UsageError(str(err)) from None
+        try:
             return mujoco.MjModel.from_binary_path("scene.mjb", {"scene.mjb": raw})
-        except (OSError, EOFError, zlib.error, ValueError) as err:
+        except (OSError, EOFError, ValueError) as err:
             raise UsageError(f"{path}: not a MuJoCo {mujoco.__version__} scene ({err})") from None
 
     def cell(self, course: str, difficulty: float, seed: int) -> dict[str, Any]:

@@ -145,7 +145,7 @@ def evaluated(n: int, interval: int) -> list[int]:
 
 def check_checkpoints(checks: Checks, run: Path) -> None:
     code = (
-        "import sys; from march.learn.checkpoint import load_checkpoint\n"
+        "import sys; from march.store.checkpoint import load_checkpoint\n"
         "for kind in ('teacher', 'student'):\n"
         "    p = load_checkpoint(sys.argv[1] + f'/{kind}/latest.pt', kind, 'cpu')\n"
         "    print(kind, int(p['iteration']))\n"

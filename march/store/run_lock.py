@@ -3,7 +3,9 @@
 The lock is an exclusive ``flock`` on ``<run>/run.lock``, a file holding the holder's pid, host
 and start time (JSON). ``flock`` belongs to the open file: the kernel releases it when the
 holder exits however it exits (SIGKILL, OOM, a node's crash on NFS once its lease ends), so a
-lock file whose holder is gone is *stale* and the next run takes it over, saying whose it was.
+lock file whose holder is gone is *stale* and the next run takes it over, saying whose it was -
+on the same host only: a lock file left by another host is refused (on a shared file system flock
+may be node-local, so that holder may still run) unless ``MARCH_LOCK_TAKEOVER=1`` says it ended.
 A second writer (a second ``resume=``, a second sweep job given the same directory) gets one
 line naming the holder (:class:`RunLocked`, a :class:`ConfigError`) and writes nothing.
 
@@ -27,6 +29,8 @@ from pathlib import Path
 from march.errors import ConfigError
 
 LOCK_NAME = "run.lock"
+TAKEOVER_ENV = "MARCH_LOCK_TAKEOVER"
+"""Set to 1 to take over a lock left by a process on another host (this host cannot see it)."""
 
 
 class RunLocked(ConfigError):
@@ -65,6 +69,25 @@ def holder_text(info: dict | None) -> str:
     if isinstance(since, (int, float)):
         when = " since " + time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(since))
     return f"pid {info.get('pid', '?')} on host {info.get('host', '?')}{when}"
+
+
+def run_summary(run_dir: Path) -> str:
+    """``seed 3, stage all`` from the top level of ``<run>/config.yaml`` (read as text, bounded,
+    no link followed), or what is known of it."""
+    import re
+
+    try:
+        fd = os.open(Path(run_dir) / "config.yaml", os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+        with os.fdopen(fd, "rb") as f:
+            text = f.read(1 << 16).decode(errors="replace")
+    except OSError:
+        return "its config.yaml not written yet"
+    found = [
+        f"{key} {m.group(1)}"
+        for key in ("seed", "stage")
+        if (m := re.search(rf"^{key}: *([\w.-]{{1,40}}) *$", text, re.M))
+    ]
+    return ", ".join(found) or "a config.yaml without seed"
 
 
 def _read(fd: int) -> dict | None:
@@ -112,9 +135,16 @@ def acquire(run_dir: Path, option: str = "run directory") -> RunLock:
             os.close(fd)
             if err.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
                 raise ConfigError(f"{what}: cannot lock {path.name} ({err})") from None
+            if option == "resume":  # the user's own run, still running: wait or stop it
+                advice = "one writer at a time: wait for it to end (or stop it), then run again"
+            else:  # a new run given the directory of another one (e.g. two seeds, one second)
+                advice = (
+                    f"it is another run's directory ({run_summary(run_dir)}), and a new run does "
+                    "not share one: give this run its own hydra.run.dir (the default has the "
+                    "seed and a unique part)"
+                )
             raise RunLocked(
-                f"{what} is in use by {holder_text(info)} ({path}); one writer at a "
-                "time: wait for it to end (or stop it), then run again; nothing was written"
+                f"{what} is in use by {holder_text(info)} ({path}); {advice}; nothing was written"
             ) from None
         try:
             same = os.fstat(fd).st_ino == os.lstat(path).st_ino
@@ -125,6 +155,17 @@ def acquire(run_dir: Path, option: str = "run directory") -> RunLock:
             continue
         stale = _read(fd)
         me = {"pid": os.getpid(), "host": socket.gethostname(), "since": time.time()}
+        other = stale.get("host") if stale else None
+        if other is not None and other != me["host"] and os.environ.get(TAKEOVER_ENV) != "1":
+            # flock may be node-local on a shared file system: a holder on another host may
+            # be alive although this host got the lock. Only a person can tell; nothing written.
+            os.close(fd)
+            raise RunLocked(
+                f"{what}: {LOCK_NAME} names {holder_text(stale)}, another host than this one "
+                f"({me['host']}), and a lock on a shared file system may not reach across hosts, "
+                f"so march cannot tell whether it still runs; if it has ended, take the directory "
+                f"over with {TAKEOVER_ENV}=1; nothing was written"
+            )
         os.ftruncate(fd, 0)
         os.lseek(fd, 0, os.SEEK_SET)
         os.write(fd, json.dumps(me).encode())

@@ -1,7 +1,7 @@
 """A checkpoint defines its policy: the config a checkpoint was trained with wins over today's.
 
 ``stage=eval``, ``march.play``, ``march.export`` and ``stage=student`` (the teacher's reward set)
-read a checkpoint that carries the config it was trained with (``payload["config"]``, written with
+read a checkpoint (through :func:`march.store.gate.policy_from_checkpoint`) that carries the config it was trained with (``payload["config"]``, written with
 ``dataclasses.asdict(cfg)``). :func:`apply_checkpoint_config` takes from it everything that defines
 the policy - the reward set, the student variant and its network, the observation layout - and
 returns the config to run with; the evaluation protocol (``eval.*``, ``compute.*``, ``seed``,
@@ -19,7 +19,6 @@ from dataclasses import asdict, fields, is_dataclass, replace
 from typing import Any
 
 from march.config import ConfigError, MarchConfig
-from march.config.terms import import_extra_modules
 
 # What defines a policy, by the dotted path of its config field. A path naming a section takes
 # every field of that section.
@@ -185,8 +184,11 @@ def apply_checkpoint_config(
             f"{kind}_ckpt={path} carries no saved config, so it cannot say which policy it is; "
             "use a checkpoint written by march.train"
         )
-    # The plug-ins its run named (a student part or term of theirs) are imported first.
-    import_extra_modules(saved.get("extra_modules") or [])
+    # A module its run named (a student part or term of theirs) is never imported because the
+    # file names it: the user must name it too (and then the tool has imported it already).
+    from march.store.gate import check_named_modules
+
+    check_named_modules(saved.get("extra_modules"), cfg.extra_modules, f"{kind}_ckpt={path}")
     wanted = policy_fields(kind, distill)
     leaves = [leaf for f in wanted for leaf in _leaves(f, _get(cfg, f))]
     # 1. A conflicting explicit choice is an error, before anything is changed.

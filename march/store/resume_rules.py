@@ -24,6 +24,11 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from march.config import ConfigError, MarchConfig, to_march_config
+from march.config.terms import import_extra_modules
+from march.store.gate import _interpolations, check_named_modules
+
+MAX_CONFIG_BYTES = 1 << 20
+"""A run's config.yaml is ~10 KB; a larger one is not a file march wrote."""
 
 RESUME_SAFE = (
     "teacher.max_iterations",  # more iterations (never fewer than the run was started with)
@@ -69,40 +74,26 @@ def _safe(path: str) -> bool:
     return any(path == s or path.startswith(s + ".") for s in RESUME_SAFE)
 
 
-def _interpolations(node: Any, where: str = "") -> list[str]:
-    """Keys (dotted) of ``node`` whose key or string value holds ``${`` once parsed."""
-    found = []
-    items = (
-        node.items()
-        if isinstance(node, dict)
-        else enumerate(node)
-        if isinstance(node, list)
-        else ()
-    )
-    for k, v in items:
-        key = (
-            f"{where}.{k}" if where and isinstance(k, str) else f"{where}[{k}]" if where else str(k)
-        )
-        if isinstance(k, str) and "${" in k:
-            found.append(key)
-        elif isinstance(v, str):
-            if "${" in v:
-                found.append(key)
-        else:
-            found += _interpolations(v, key)
-    return found
-
-
-def load_saved_config(run_dir: Path, option: str = "resume") -> MarchConfig:
+def load_saved_config(
+    run_dir: Path, option: str = "resume", named: Sequence[str] | None = None
+) -> MarchConfig:
     """The run's config.yaml, validated. A value holding an interpolation or a resolver call
     (``${...}``, ``${oc.env:...}``, ``${oc.decode:...}``, however the YAML spells it: escapes
     such as ``"\\x24{"`` are decoded by the parser first) is refused, naming its key, and
-    nothing is resolved: march never writes one."""
+    nothing is resolved: march never writes one. ``named``: the modules the user named (their
+    ``extra_modules``); a module the file names and they did not is refused, never imported."""
+    from march.store.checkpoint import CheckpointError, open_plain_file
+
     path = run_dir / "config.yaml"
     try:
-        raw = OmegaConf.load(path)
+        with open_plain_file(path, f"{option}={run_dir}: {path}", MAX_CONFIG_BYTES, "a run") as f:
+            text = f.read().decode()
+        raw = OmegaConf.create(text)
         # Unresolved: the strings exactly as parsed, interpolations and all.
-        bad = _interpolations(OmegaConf.to_container(raw, resolve=False))
+        tree = OmegaConf.to_container(raw, resolve=False)
+        bad = _interpolations(tree)
+    except CheckpointError as err:
+        raise ConfigError(str(err)) from None
     except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise ConfigError(f"{option}={run_dir}: its config.yaml cannot be read ({first})") from None
@@ -112,6 +103,9 @@ def load_saved_config(run_dir: Path, option: str = "resume") -> MarchConfig:
             f"{f' (and {len(bad) - 1} more key(s))' if len(bad) > 1 else ''}, which march never "
             "writes; refusing to resolve a modified config (restore the file or start a new run)"
         )
+    if named is not None and isinstance(tree, dict):
+        check_named_modules(tree.get("extra_modules"), named, f"{option}={run_dir}: {path}")
+        import_extra_modules(tree.get("extra_modules") or [])  # the user named each one
     try:
         return to_march_config(OmegaConf.merge(OmegaConf.structured(MarchConfig), raw))
     except ConfigError as err:
@@ -157,7 +151,7 @@ def resume_config(
     ``HydraConfig.get().overrides.task``). Raises :class:`ConfigError` naming every override
     that cannot change on resume.
     """
-    saved = load_saved_config(run_dir)
+    saved = load_saved_config(run_dir, named=composed.extra_modules)
     changes: dict[str, Any] = {}
     refused: list[str] = []
     for key, text in _parse(overrides):
@@ -185,18 +179,8 @@ def resume_config(
             f"with its config.yaml); only {', '.join(RESUME_SAFE)} can. Drop "
             f"{'it' if len(refused) == 1 else 'them'}, or start a new run"
         )
+    check_changes(run_dir, saved, changes, "resume")
     notes = []
-    for path in GROWING:
-        if path in changes and changes[path] < _get(saved, path):
-            raise ConfigError(
-                f"resume={run_dir}: {path}={changes[path]} is below the run's "
-                f"{_get(saved, path)}; on resume iterations can only be added"
-            )
-    if "teacher.max_iterations" in changes and any((run_dir / "student").glob("*.pt")):
-        raise ConfigError(
-            f"resume={run_dir}: teacher.max_iterations cannot change once the distillation has "
-            "started (student/ holds checkpoints of a student of the current teacher)"
-        )
     sections: dict[str, dict[str, Any]] = {}
     for path, value in changes.items():
         section, _, name = path.partition(".")
@@ -246,10 +230,11 @@ def _listed(items: list[str], most: int = 6) -> str:
 
 def adopt_config(run_dir: Path, composed: MarchConfig) -> tuple[MarchConfig, list[str]]:
     """A new run started in ``run_dir``, which already holds a run (its config.yaml): the same
-    rule as ``resume=``. The identical config (the same command run again, a Slurm requeue)
-    continues the run; differences in :data:`RESUME_SAFE` apply (iterations only upwards);
-    any other difference is refused in one line naming the keys, before anything is written."""
-    saved = load_saved_config(run_dir, "hydra.run.dir")
+    rule as ``resume=`` (:func:`check_changes`). The identical config (the same command run
+    again, a Slurm requeue) continues the run; differences in :data:`RESUME_SAFE` apply
+    (iterations only upwards, the teacher's not once the distillation has started); any other
+    difference is refused in one line naming the keys, before anything is written."""
+    saved = load_saved_config(run_dir, "hydra.run.dir", named=composed.extra_modules)
     unsafe, safe = config_differences(saved, composed)
     if unsafe:
         raise ConfigError(
@@ -257,67 +242,27 @@ def adopt_config(run_dir: Path, composed: MarchConfig) -> tuple[MarchConfig, lis
             f"; a new run does not take over another run's directory: continue that run with "
             f"resume={run_dir}, or give this one its own hydra.run.dir"
         )
-    for path in GROWING:
-        if _get(composed, path) < _get(saved, path):
-            raise ConfigError(
-                f"hydra.run.dir={run_dir}: {path}={_get(composed, path)} is below the run's "
-                f"{_get(saved, path)}; a run's iterations can only be added"
-            )
+    changes = {p: _get(composed, p) for p in GROWING if _get(composed, p) != _get(saved, p)}
+    check_changes(run_dir, saved, changes, "hydra.run.dir")
     notes = [f"[run dir] {run_dir} holds this run: continuing it"]
     notes += [f"[run dir] {d}" for d in safe]
     check_device(run_dir, saved, composed)
     return composed, notes
 
 
-ITERATION_MAX = 10**9
-"""No march stage runs anywhere near this many iterations: a larger count is not a checkpoint's."""
-
-
-def check_checkpoint(payload: dict[str, Any], kind: str, label: str) -> MarchConfig | None:
-    """A checkpoint's config, iteration and env-step count through the command line's checks:
-    types and ranges, no interpolation or resolver, the config's own checks and the memory
-    bound. Returns the checkpoint's config (None when it has none: an older checkpoint).
-    Raises :class:`ConfigError` naming the file (``label``) and the bad entry."""
-    from omegaconf import OmegaConf
-
-    from march.config.memory import check_memory
-
-    def refuse(what: str) -> ConfigError:
-        return ConfigError(f"{label}: {what}; not a checkpoint march wrote (retrain or restore it)")
-
-    it = payload.get("iteration")
-    if type(it) is not int or not 0 <= it <= ITERATION_MAX:
-        raise refuse(f"its iteration {it!r} is not a whole number in [0, {ITERATION_MAX}]")
-    steps = payload.get("env_steps")
-    if type(steps) is not int or steps < 0:
-        raise refuse(f"its env_steps {steps!r} is not a whole number >= 0")
-    wall = payload.get("wall_s", 0.0)
-    if type(wall) not in (int, float) or not 0 <= wall < float("inf"):
-        raise refuse(f"its wall_s {wall!r} is not a finite number >= 0")
-    raw = payload.get("config")
-    if raw is None:
-        return None
-    if not isinstance(raw, dict):
-        raise refuse(f"its config is a {type(raw).__name__}, not a mapping")
-    bad = _interpolations(raw)
-    if bad:
-        raise refuse(f"its config key {bad[0]} holds a '${{...}}' interpolation or resolver")
-    try:
-        cfg = to_march_config(OmegaConf.merge(OmegaConf.structured(MarchConfig), raw))
-    except ConfigError as err:
-        raise refuse(f"its config is not valid: {err}") from None
-    except Exception as err:  # noqa: BLE001 - any malformed config is the same error
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise refuse(f"its config is not valid ({first})") from None
-    check_memory(cfg, f"{label}: its config: ")
-    section = cfg.teacher if kind == "teacher" else cfg.distill
-    per_it = section.num_steps_per_env * cfg.compute.num_envs
-    limit = cfg.teacher.iterations if kind == "teacher" else cfg.distill.max_iterations
-    if it > limit:
-        raise refuse(f"its iteration {it} is past its config's {limit} iterations")
-    if steps < it * per_it or steps % per_it:
-        raise refuse(
-            f"its env_steps {steps} is not a multiple of {per_it} (steps x envs of an "
-            f"iteration) of at least iteration x {per_it}"
+def check_changes(run_dir: Path, saved: MarchConfig, changes: dict[str, Any], option: str) -> None:
+    """The rules on a run's safe changes, one copy for ``resume=`` and for a new run in the
+    run's directory (``option``: ``resume`` | ``hydra.run.dir``): iteration counts only grow,
+    and the teacher's is fixed once ``student/`` holds a checkpoint (a student of that
+    teacher). ``changes``: dotted path -> new value, only the values that differ."""
+    for path in GROWING:
+        if path in changes and changes[path] < _get(saved, path):
+            raise ConfigError(
+                f"{option}={run_dir}: {path}={changes[path]} is below the run's "
+                f"{_get(saved, path)}; a run's iterations can only be added"
+            )
+    if "teacher.max_iterations" in changes and any((run_dir / "student").glob("*.pt")):
+        raise ConfigError(
+            f"{option}={run_dir}: teacher.max_iterations cannot change once the distillation has "
+            "started (student/ holds checkpoints of a student of the current teacher)"
         )
-    return cfg

@@ -3,7 +3,7 @@
 - :func:`before_hydra`: on the command line as typed, before Hydra creates or writes anything:
   a key set twice is refused; the output directory (``hydra.run.dir`` / ``hydra.sweep.dir``,
   or the literal part of the configured template) must be creatable and writable; a directory
-  that already holds a run is checked for links and locked now (:mod:`march.learn.run_lock`),
+  that already holds a run is checked for links and locked now (:mod:`march.store.run_lock`),
   and Hydra is told not to rewrite the run's ``.hydra/``.
 - :func:`claim`: in ``main``, the lock for the run's whole life (taken here if
   :func:`before_hydra` could not: a new directory, a sweep job) and no link among its files.
@@ -14,7 +14,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from omegaconf import OmegaConf
@@ -22,7 +22,7 @@ from omegaconf import OmegaConf
 from march.config import ConfigError, MarchConfig
 from march.config.cli import check_output_dir, duplicate_overrides, literal_prefix
 from march.config.registry import CONF_DIR
-from march.learn import run_lock
+from march.store import run_lock
 
 RUN_FILES = (
     "config.yaml",
@@ -112,7 +112,7 @@ def _compare_before_hydra(run_dir: Path, args: Sequence[str]) -> None:
     refusal leaves not even a line in the run's ``train.log`` (Hydra's job log, once Hydra has
     started). ``main`` compares again with the final config (a policy checkpoint applied)."""
     from march.config.cli import load
-    from march.config.resume import adopt_config
+    from march.store.resume_rules import adopt_config
 
     if not (run_dir / "config.yaml").is_file():
         return  # main refuses it in one line (run files without a config)
@@ -125,12 +125,20 @@ def _compare_before_hydra(run_dir: Path, args: Sequence[str]) -> None:
         adopt_config(run_dir, cfg)
 
 
-def check_run_checkpoints(run_dir: Path, cfg: MarchConfig, option: str) -> list[str]:
-    """Read the run's newest checkpoints (CPU) and check them like the command line, and that
-    they belong to this run (no difference a resume could not make); before any env is built."""
-    from march.config.resume import check_checkpoint, config_differences
-    from march.learn.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint
-    from march.learn.distributed import world_mismatch
+def check_run_checkpoints(
+    run_dir: Path,
+    cfg: MarchConfig,
+    option: str,
+    world_mismatch: Callable[[dict], str | None] | None = None,
+) -> list[str]:
+    """Read the run's newest checkpoints (CPU) through the gate (:func:`march.store.gate.
+    read_checkpoint`: the command line's checks, weights against config) and check that they
+    belong to this run (no difference a resume could not make); before any env is built.
+    ``world_mismatch``: why this process group cannot resume a payload (``march.learn.
+    distributed.world_mismatch``; the training room sits above this one)."""
+    from march.store.checkpoint import latest_checkpoint
+    from march.store.gate import read_checkpoint
+    from march.store.resume_rules import config_differences
 
     notes = []
     for kind in ("teacher", "student"):
@@ -139,10 +147,9 @@ def check_run_checkpoints(run_dir: Path, cfg: MarchConfig, option: str) -> list[
         if path is None:
             continue
         label = f"{option}={run_dir}: {path}"
-        payload = load_checkpoint(path, kind, "cpu", source=label)
-        if why := world_mismatch(payload):  # resumed on another number of ranks (issue 37)
-            raise CheckpointError(f"{label}: {why}")
-        saved = check_checkpoint(payload, kind, label)
+        payload, saved = read_checkpoint(
+            str(path), kind, cfg.extra_modules, source=label, world_mismatch=world_mismatch
+        )
         if saved is not None:
             # Rank 0 writes checkpoints with the run's own seed (march.learn.distributed).
             unsafe, _ = config_differences(saved, cfg)

@@ -13,7 +13,6 @@ import contextlib
 import dataclasses
 import enum
 import errno
-import json
 import os
 import pickle
 import re
@@ -27,13 +26,38 @@ from typing import Any
 import numpy as np
 import torch
 
-from march.learn.distributed import writes_files
+from march.strict_json import dumps
 
 LATEST = "latest.pt"
 
 
+def writes_files() -> bool:
+    """Whether this process writes run files: a single process, or rank 0 of the process group
+    (``march.learn.distributed`` joins it; after ``shutdown`` every process is alone again).
+    Read from torch.distributed itself, so that this room sits below the training loops."""
+    import torch.distributed as td
+
+    return not (td.is_available() and td.is_initialized()) or td.get_rank() == 0
+
+
+MAX_CHECKPOINT_BYTES = 4 << 30
+"""Larger files are refused before they are read (a full-size student checkpoint is ~50 MB,
+with its optimizer state; the smoke run's are 15 MB)."""
+
+
 class CheckpointError(RuntimeError):
     """A checkpoint that is missing or does not fit the current config; says how to fix it."""
+
+
+def open_plain_file(path: Path, label: str, limit: int, wanted: str) -> Any:
+    """:func:`march.store.bounded_read.open_regular` (no link, a regular file within ``limit``
+    bytes) with its refusal as a :class:`CheckpointError`."""
+    from march.store.bounded_read import FileRefused, open_regular
+
+    try:
+        return open_regular(path, label, limit, wanted)
+    except FileRefused as err:
+        raise CheckpointError(str(err)) from None
 
 
 def save_atomic(payload: dict[str, Any], path: Path) -> None:
@@ -107,11 +131,11 @@ def write_text_durably(path: Path, text: str) -> None:
 
 
 def write_json_atomic(obj: Any, path: Path) -> None:
-    """A JSON file replaced in one rename (fsynced): readers never see half of it (rank 0
-    only)."""
+    """A strict JSON file (:mod:`march.strict_json`: NaN and infinities as null) replaced in one
+    rename (fsynced): readers never see half of it (rank 0 only)."""
     if not writes_files():
         return
-    write_text_durably(path, json.dumps(obj, indent=2, default=float))
+    write_text_durably(path, dumps(obj, indent=2, default=float))  # strict: NaN -> null
 
 
 def save_checkpoint(payload: dict[str, Any], directory: Path, iteration: int) -> Path:
@@ -263,18 +287,19 @@ def load_checkpoint(
     """
     p = Path(path)
     label = source or f"{kind}_ckpt={path}"
-    if not p.is_file():
-        raise CheckpointError(
-            f"{label}: no such file; pass a checkpoint written by march.train "
-            f"(outputs/<run>/{kind}/latest.pt)"
-        )
+    f = open_plain_file(
+        p,
+        label,
+        MAX_CHECKPOINT_BYTES,
+        f"a checkpoint written by march.train (outputs/<run>/{kind}/latest.pt)",
+    )
     try:
         # Read onto the CPU whatever device wrote it (a GPU run's file loads on a CPU-only
         # machine); tensors are moved afterwards, RNG states never. torch warns about unusual
         # pickle protocols on stderr: the outcome is reported as one line instead.
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), f:
             warnings.simplefilter("ignore")
-            payload = torch.load(p, map_location="cpu", weights_only=True)
+            payload = torch.load(f, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as err:
         names_code, why = _why_refused(err)
         if names_code:
