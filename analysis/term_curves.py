@@ -23,6 +23,8 @@ from analysis.rundirs import Run  # noqa: E402
 PANELS = (
     ("teacher", "reward/", "reward per env step (weighted)"),
     ("teacher", "termination/", "fraction of ended episodes"),
+    ("student", "loss/", "distillation objective"),
+    ("student", "loss/", "student diagnostics (action error, mixture weights, spread)"),
     (
         "teacher",
         "clf/v_",
@@ -30,8 +32,6 @@ PANELS = (
     ),
     ("teacher", "clf/fractions", "CLF: share of steps saturated (V >= Vmax), with dV/dt defined"),
     ("teacher", "clf/share/", "CLF: share of V by output group"),
-    ("student", "loss/", "distillation objective"),
-    ("student", "loss/", "student diagnostics (action error, mixture weights, spread)"),
 )
 OBJECTIVE_PARTS = ("loss", "nll", "huber")
 """Distillation loss parts on the objective's scale; the others (action error, mode weights,
@@ -45,6 +45,8 @@ def _smooth(y: pd.Series, window: int) -> pd.Series:
     return y.rolling(max(1, window), min_periods=1).mean()
 
 
+OBJECTIVE_TITLE = "distillation objective"
+"""The loss panel that draws the objective's parts (the other loss panel draws the rest)."""
 CLF_FRACTIONS = ("clf/saturated", "clf/dvdt_valid")
 """The CLF diagnostics drawn as shares of steps (march.clf.diagnostics)."""
 SHARE_GROUPS = (
@@ -87,7 +89,7 @@ def term_columns(metrics: pd.DataFrame, prefix: str, title: str = "") -> list[st
         return [c for c in CLF_FRACTIONS if c in metrics.columns]
     cols = [c for c in metrics.columns if c.startswith(prefix)]
     if prefix == "loss/" and title:
-        objective = title == PANELS[2][2]
+        objective = title == OBJECTIVE_TITLE
         cols = [c for c in cols if (c[len(prefix) :] in OBJECTIVE_PARTS) == objective]
     return cols
 

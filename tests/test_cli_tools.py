@@ -54,7 +54,8 @@ def write_student_ckpt(path: Path, variant: str = "full") -> StudentPolicy:
         {
             "kind": "student",
             "iteration": 7,
-            "env_steps": 7 * 120 * 4,
+            # a whole number of its config's iterations (the disk gate checks it)
+            "env_steps": 7 * cfg.distill.num_steps_per_env * cfg.compute.num_envs,
             "wall_s": 1.0,
             "config": asdict(cfg),
             "layout": layout,

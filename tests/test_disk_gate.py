@@ -81,7 +81,7 @@ CRAFTED = {
 
 @pytest.mark.parametrize("fault", sorted(CRAFTED))
 def test_every_tool_gets_the_same_refusal_from_the_gate(smoke_run, tmp_path, fault):
-    """export, play, train stage=eval, train stage=student and a resume, on ONE crafted
+    """export, play, train stage=eval, train stage=student, march.audit rewards and a resume, on ONE crafted
     checkpoint: the same line (after the label naming the file), exit 2, nothing run."""
     entries, needle = CRAFTED[fault]
     ckpt = _crafted(smoke_run, tmp_path / "ck", **entries)
@@ -107,6 +107,16 @@ def test_every_tool_gets_the_same_refusal_from_the_gate(smoke_run, tmp_path, fau
                 "stage=student",
                 f"teacher_ckpt={teacher}",
                 f"hydra.run.dir={tmp_path / 's'}",
+            ),
+            f"teacher_ckpt={teacher}",
+        ),
+        "audit rewards": (
+            _run(
+                "march.audit",
+                "rewards",
+                "compute=smoke",
+                f"teacher_ckpt={teacher}",
+                f"out={tmp_path / 'a.json'}",
             ),
             f"teacher_ckpt={teacher}",
         ),

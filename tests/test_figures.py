@@ -374,9 +374,25 @@ def test_imports_no_simulator():
             elif isinstance(node, ast.ImportFrom) and node.module:
                 mods.add(node.module.split(".")[0])
     third_party = mods - set(sys.stdlib_module_names) - {"__future__", "analysis"}
-    # scipy: t quantiles of the intervals (analysis.stats); a dependency of march already
-    assert third_party == {"matplotlib", "numpy", "pandas", "omegaconf", "scipy"}
-    assert len(mods & {"march", "mjlab", "mujoco", "torch", "warp"}) == 0
+    # scipy: t quantiles of the intervals (analysis.stats); a dependency of march already;
+    # march: only its standard-library modules (strict JSON, a run's status), checked below
+    assert third_party == {"matplotlib", "numpy", "pandas", "omegaconf", "scipy", "march"}
+    assert len(mods & {"mjlab", "mujoco", "torch", "warp"}) == 0
+    # what importing the analysis loads, for real: no simulator, no torch
+    code = (
+        "import sys; sys.path.insert(0, sys.argv[1]);"
+        "import analysis.figures, analysis.signal;"
+        "print(sorted({m.split('.')[0] for m in sys.modules} & "
+        "{'torch', 'mjlab', 'mujoco', 'warp', 'mujoco_warp'}))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code, str(SCRIPT.parent.parent)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]", out.stdout
 
 
 def test_every_arm_found_is_drawn_in_a_colour_of_its_own(tmp_path):

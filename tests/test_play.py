@@ -148,7 +148,8 @@ def test_checkpoint_policy_conflict_is_one_line_before_any_env(tmp_path, capsys)
     from march.config.cli import load
 
     ckpt = tmp_path / "student.pt"
-    torch.save({"kind": "student", "config": asdict(load(["reward=modelfree"]))}, ckpt)
+    saved = asdict(load(["reward=modelfree"]))
+    torch.save({"kind": "student", "iteration": 0, "env_steps": 0, "config": saved}, ckpt)
     with pytest.raises(SystemExit) as exc:
         play.main([f"student_ckpt={ckpt}", "reward=clf", f"out={tmp_path / 'x.mp4'}"])
     assert exc.value.code == 2

@@ -29,6 +29,9 @@ TRAINING_STACK = ("torch", "warp", "mujoco_warp", "mjlab", "hydra", "omegaconf",
 MARCH_ALLOWED = ("march", "march.sim2sim")
 """march modules it may import, with their submodules (march/__init__.py is one docstring and a
 version)."""
+MARCH_ALSO = ("march.store", "march.store.bounded_read")
+"""The disk gate's bounded reads of a bundle (standard library only; march/store/__init__.py is
+a docstring): the robot side reads its files through the same door as every tool."""
 
 
 def run_py(code: str, timeout: int = 300) -> subprocess.CompletedProcess:
@@ -38,7 +41,12 @@ def run_py(code: str, timeout: int = 300) -> subprocess.CompletedProcess:
 
 
 def _allowed(name: str) -> bool:
-    return name == "march" or name == MARCH_ALLOWED[1] or name.startswith(MARCH_ALLOWED[1] + ".")
+    return (
+        name == "march"
+        or name in MARCH_ALSO
+        or name == MARCH_ALLOWED[1]
+        or name.startswith(MARCH_ALLOWED[1] + ".")
+    )
 
 
 def foreign_modules(names: list[str]) -> list[str]:

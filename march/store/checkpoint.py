@@ -270,28 +270,15 @@ def _place(obj: Any, device: str, key: Any = None) -> Any:
     return obj
 
 
-def load_checkpoint(
-    path: str | Path, kind: str, device: str = "cpu", source: str | None = None
-) -> dict[str, Any]:
-    """Load a march checkpoint of ``kind`` (teacher | student) or raise CheckpointError.
-
-    ``source``: how errors name the file (default ``<kind>_ckpt=<path>``, the option that passed
-    it; a resume passes ``resume=<run dir>: <path>``).
-
-    Only plain data is read (``weights_only=True``): a file that names any Python callable is
-    refused with one line, and nothing in it runs. Model and optimizer tensors come back on
-    ``device``; torch RNG states (``rng``, ``generator``) always come back as CPU uint8 tensors,
-    the only form ``torch.set_rng_state`` and ``Generator.set_state`` accept, so a checkpoint
-    written on one device resumes on any other (CPU, ``cuda``, ``cuda:1``, ``meta``); so do
-    the ``streams``, ``curriculum`` and ``episode`` entries (:mod:`march.learn.train_state`).
-    """
+def _read_plain(path: str | Path, label: str, wanted: str) -> Any:
+    """The one unpickling read of march: plain data only (``weights_only=True``), bounded in
+    size, no link; a file that names any Python callable is refused in one line."""
     p = Path(path)
-    label = source or f"{kind}_ckpt={path}"
     f = open_plain_file(
         p,
         label,
         MAX_CHECKPOINT_BYTES,
-        f"a checkpoint written by march.train (outputs/<run>/{kind}/latest.pt)",
+        wanted,
     )
     try:
         # Read onto the CPU whatever device wrote it (a GPU run's file loads on a CPU-only
@@ -316,6 +303,38 @@ def load_checkpoint(
         raise CheckpointError(
             f"{label}: not a readable checkpoint (truncated or corrupt: {why})"
         ) from None
+    return payload
+
+
+def load_plain_file(path: str | Path, label: str) -> Any:
+    """A plain-data torch file that is not a checkpoint (e.g. a test's trace of a rank's state)
+    through the same read as a checkpoint: weights only, bounded, no link; CheckpointError."""
+    payload = _read_plain(path, label, "a plain-data file written by march")
+    bad = non_plain(payload)
+    if bad is not None:
+        raise CheckpointError(f"{label}: holds {bad}, which is not plain data")
+    return payload
+
+
+def load_checkpoint(
+    path: str | Path, kind: str, device: str = "cpu", source: str | None = None
+) -> dict[str, Any]:
+    """Load a march checkpoint of ``kind`` (teacher | student) or raise CheckpointError.
+
+    ``source``: how errors name the file (default ``<kind>_ckpt=<path>``, the option that passed
+    it; a resume passes ``resume=<run dir>: <path>``).
+
+    Only plain data is read (``weights_only=True``): a file that names any Python callable is
+    refused with one line, and nothing in it runs. Model and optimizer tensors come back on
+    ``device``; torch RNG states (``rng``, ``generator``) always come back as CPU uint8 tensors,
+    the only form ``torch.set_rng_state`` and ``Generator.set_state`` accept, so a checkpoint
+    written on one device resumes on any other (CPU, ``cuda``, ``cuda:1``, ``meta``); so do
+    the ``streams``, ``curriculum`` and ``episode`` entries (:mod:`march.learn.train_state`).
+    """
+    label = source or f"{kind}_ckpt={path}"
+    payload = _read_plain(
+        path, label, f"a checkpoint written by march.train (outputs/<run>/{kind}/latest.pt)"
+    )
     if not isinstance(payload, dict) or payload.get("kind") != kind:
         found = payload.get("kind") if isinstance(payload, dict) else type(payload).__name__
         raise CheckpointError(f"{label}: this is a {found!r} checkpoint, not a {kind}")

@@ -239,10 +239,14 @@ def check_own_states(checks: Checks, name: str, trace: Path, text: str) -> None:
     if not checks.check(bool(found), f"{name}: the teacher resumed {found}"):
         return
     at = int(found[-1])
+    from march.store.checkpoint import CheckpointError, load_plain_file
+
     try:
-        saved = [torch.load(trace / f"teacher_save_{at}_rank{r}.pt") for r in (0, 1)]
-        restored = [torch.load(trace / f"teacher_restored_{at}_rank{r}.pt") for r in (0, 1)]
-    except FileNotFoundError as err:
+        saved = [load_plain_file(trace / f"teacher_save_{at}_rank{r}.pt", "trace") for r in (0, 1)]
+        restored = [
+            load_plain_file(trace / f"teacher_restored_{at}_rank{r}.pt", "trace") for r in (0, 1)
+        ]
+    except (FileNotFoundError, CheckpointError) as err:
         checks.check(False, f"{name}: rank traces of iteration {at} ({err})")
         return
     for r in (0, 1):
