@@ -44,6 +44,7 @@ from march.clf.lyapunov import CLF_OUTPUT_NAMES  # noqa: E402
 from march.config import MarchConfig  # noqa: E402
 from march.env.reference_cfg import ReferenceCommandCfg  # noqa: E402
 from march.errors import ConfigError  # noqa: E402
+from march.strict_json import strict  # noqa: E402
 from march.world.courses import flat_course, generate_course  # noqa: E402
 from march.world.footholds import footholds_from_layouts  # noqa: E402
 
@@ -265,17 +266,6 @@ def _num(x: float | None) -> str:
     return "    -" if x is None else f"{x:6.3f}"
 
 
-def _strict(value: Any) -> Any:
-    """JSON values with every non-finite float as null (strict JSON has no NaN)."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _strict(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_strict(v) for v in value]
-    return value
-
-
 def output_paths(out: str | None) -> tuple[Path, Path, Path]:
     """The JSON path (``out``, default ``audit_reference.json``) and the PNG and MP4 beside it
     (same stem); a name without the .json suffix is one clear error."""
@@ -325,7 +315,7 @@ def reference_report(
             report["files"]["mp4_skipped"] = problem
             print(f"no film: {problem}", file=sys.stderr)
     report["seconds"] = round(time.perf_counter() - started, 1)
-    report = _strict(report)
+    report = strict(report)
     json_path.write_text(json.dumps(report, indent=1, allow_nan=False))
     print(table(levels))
     films = f", {mp4_path}" if report["files"]["mp4"] else ""
