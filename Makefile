@@ -27,7 +27,7 @@ export PYTHONPYCACHEPREFIX ?= $(CURDIR)/$(VENV)/pycache
 $(VENV)/.installed: pyproject.toml constraints-cpu.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet --no-compile $(CONSTRAINTS) -e '.[dev,optuna,docs]'
+	$(PY) -m pip install --quiet --no-compile $(CONSTRAINTS) -e '.[dev,optuna,docs,camera]'
 	touch $@
 
 install: $(VENV)/.installed
