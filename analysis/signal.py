@@ -46,6 +46,7 @@ if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from analysis.rundirs import discover  # noqa: E402
+from analysis.stats import finite, mean_interval  # noqa: E402
 from march.strict_json import dumps  # noqa: E402
 
 WINDOW = 5
@@ -68,18 +69,16 @@ CURVES = (
 ARM_COLOURS = {"clf": "tab:blue", "modelfree_ref": "tab:orange", "modelfree": "tab:red"}
 
 
-def t_interval(x: np.ndarray) -> dict:
-    from scipy import stats
-
-    x = np.asarray([v for v in x if np.isfinite(v)], float)
-    n = len(x)
-    if n == 0:
-        return {"mean": None, "low": None, "high": None, "n": 0}
-    m = float(x.mean())
-    if n < 2:
-        return {"mean": m, "low": None, "high": None, "n": n}
-    h = float(stats.t.ppf(0.975, n - 1) * x.std(ddof=1) / math.sqrt(n))
-    return {"mean": m, "low": m - h, "high": m + h, "n": n}
+def t_interval(x) -> dict:
+    """Mean and 95 % t interval of the finite values (analysis.stats), None where undefined."""
+    x = finite(x)
+    m, lo, hi = mean_interval(x)
+    return {
+        "mean": None if math.isnan(m) else m,
+        "low": None if math.isnan(lo) else lo,
+        "high": None if math.isnan(hi) else hi,
+        "n": len(x),
+    }
 
 
 def welch_interval(a: np.ndarray, b: np.ndarray) -> dict:

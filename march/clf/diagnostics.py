@@ -117,8 +117,6 @@ class ClfStats:
         log_r = torch.log(ratio.clamp_min(1e-30).float())
         idx = torch.searchsorted(self._log_edges, log_r, right=True)
         w = torch.ones_like(v, dtype=torch.float64) if active is None else active.double()
-        hist = torch.zeros(self._n_bins, dtype=torch.float64, device=v.device)
-        hist.index_add_(0, idx, w)
         positive = (v > 0).double() * w
         shares = (terms / v.clamp_min(1e-30).unsqueeze(-1)).double() * positive.unsqueeze(-1)
         scalars = torch.stack(
@@ -129,7 +127,11 @@ class ClfStats:
                 positive.sum(),
             ]
         )
-        self._sums += torch.cat([hist, scalars, shares.sum(0)])
+        # straight into the one buffer's views: no per-step histogram or concatenation
+        b = self._n_bins
+        self._sums[:b].index_add_(0, idx, w)
+        self._sums[b : b + 4] += scalars
+        self._sums[b + 4 :] += shares.sum(0)
 
     def pop(self) -> dict[str, float]:
         """This interval's columns (``clf/...``; NaN without samples), then start over."""
