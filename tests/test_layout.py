@@ -28,6 +28,8 @@ LAYERS: dict[str, int] = {
     "compiled_math": 0,
     # strict JSON for every file march writes (null for undefined values): plain Python
     "strict_json": 0,
+    # random numbers keyed by (seed, rollout, draw) (an evaluation's streams): torch only
+    "keyed_random": 0,
     # stage 0-2 mathematics: plain numpy / torch
     "world": 1,
     "reference": 2,

@@ -61,6 +61,7 @@ from mjlab.managers.command_manager import CommandTerm
 
 from march.clf.lyapunov import CLF_OUTPUT_NAMES, UPPER_BODY_JOINTS, ClfModel, VHistory
 from march.compiled_math import maybe_fused
+from march.env import rollout_draws
 from march.env.clf_outputs import (
     body_masses,
     body_rows,
@@ -346,6 +347,7 @@ class ReferenceCommand(CommandTerm):
         # lateral speed across it (module docstring; the yaw rate is unused by the planner).
         twist = self._env.command_manager.get_command(self.cfg.velocity_command)[env_ids]
         cmd = twist[:, 0:1] * axis + twist[:, 1:2] * lat
+        keyed = rollout_draws.active(self._env)
         plan = plan_footsteps(
             stance[:, :2],
             left,
@@ -354,6 +356,8 @@ class ReferenceCommand(CommandTerm):
             self.cfg.planner,
             self.generator,
             compiled=self.cfg.compile_math,
+            # an evaluation: each env's samples from its rollout's stream (rollout_draws)
+            row_uniform=None if keyed is None else keyed.planner_uniform(env_ids, apply),
         )
         com = self._env.sim.data.subtree_com[env_ids, self._root_body, :2]
         st = step_state_from_plan(

@@ -9,15 +9,18 @@ as in training and the forward command ``eval.command_vx`` along the course.
 
 Sampling: rollout i runs on course cell (level i mod L, column (i // L + i mod L) mod C)
 (:func:`march.env.course.eval_cells`), in waves of ``env.num_envs``; each env contributes the
-first episode of its wave. Wave k is reseeded at its start from (seed, k)
-(:mod:`march.evaluation.sharding`, which also deals the waves to the ranks of an N-process run). Every level gets floor(n/L) or ceil(n/L) of the n rollouts, so the plain
-mean over rollouts weights the levels (nearly) equally.
+first episode of its wave (:mod:`march.evaluation.sharding` deals the waves to the ranks of an
+N-process run). Every level gets floor(n/L) or ceil(n/L) of the n rollouts, so the plain mean
+over rollouts weights the levels (nearly) equally.
 
-Seeding: every evaluation starts from the run's seed (``env.cfg.seed``), whatever ran before
-it: torch's random state is forked and seeded (DR, noise, corruption), and every random state
-the env owns besides it (the planner's generator, :func:`march.env.build.reseed_env`) is reseeded
-and its pending work dropped. Two evaluations of one checkpoint give bit-identical rows, the
-first after the env is built as later ones, and training's random stream is left untouched.
+Seeding: every random number of rollout i (reset pose, DR, observation noise and delays,
+pushes, command, depth corruption, the planner's samples) is keyed by (the run's seed
+``env.cfg.seed``, i) (:mod:`march.env.rollout_draws`): rollout i gives the same row whatever the
+wave size, its place in the wave, the number of ranks, or what the env ran before. Training's
+random stream is left untouched (torch's state is forked), the env's own state is put back where
+a full reset makes it independent of its past (:func:`march.env.build.reseed_env`); two
+evaluations of one checkpoint give bit-identical rows, the first after the env is built as
+later ones.
 
 Per rollout (its env's first episode, up to its end: success, fall or time-out), computed from
 per-step tensors by :func:`episode_metrics`:
@@ -52,6 +55,7 @@ from march.env.build import SUCCESS_TERMINATION, reseed_env
 from march.env.clf_meter import pop_clf
 from march.env.course import CourseRuler, assign_eval_cells, eval_cells
 from march.env.depth import camera_paused
+from march.env.rollout_draws import KeyedDraws, keyed_draws
 from march.evaluation.sharding import sharded_rollouts
 from march.learn import distributed
 from march.learn.metrics import (
@@ -328,6 +332,15 @@ def _eval_rng(env: ManagerBasedRlEnv):
     return torch.random.fork_rng(devices=devices)
 
 
+def start_wave(env: ManagerBasedRlEnv, draws: KeyedDraws, first: int) -> None:
+    """Rows b = 0.. of ``env`` run rollouts ``first + b`` from the next reset: their course cells,
+    the env's own state put back where a full reset makes it independent of its past (the replans
+    still queued, :func:`march.env.build.reseed_env`) and their keyed streams (``draws``)."""
+    assign_eval_cells(env, first)
+    reseed_env(env, draws.seed)
+    draws.start_wave(first)
+
+
 @torch.no_grad()
 def rollout_metrics(
     env: ManagerBasedRlEnv,
@@ -339,16 +352,14 @@ def rollout_metrics(
     """Per-rollout metrics of ``num_rollouts`` rollouts on the stratified course cells, run in
     waves of ``env.num_envs`` (the last wave keeps its first envs, i.e. the next rollout
     indices). ``first``: the index of the first rollout (a rank's share of a distributed
-    evaluation: one wave of march.evaluation.sharding, seeded ``seed``; default the env's)."""
+    evaluation: one wave of march.evaluation.sharding); ``seed``: default the env's."""
     ruler = CourseRuler(env)
     collected: dict[str, list[torch.Tensor]] = {}
     total = 0
     seed = int(env.cfg.seed or 0) if seed is None else int(seed)
-    with _eval_rng(env):
-        reseed_env(env, seed)  # first: its observation pass may draw from torch's generator
-        torch.manual_seed(seed)
+    with _eval_rng(env), keyed_draws(env, seed) as draws:
         while total < num_rollouts:
-            assign_eval_cells(env, first + total)
+            start_wave(env, draws, first + total)
             per = _wave(env, policy, ruler)
             take = min(env.num_envs, num_rollouts - total)
             rows, cols = env.scene.terrain.terrain_origins.shape[:2]

@@ -1,19 +1,17 @@
-"""An evaluation over N ranks: waves of rollouts, each seeded on its own, dealt to the ranks.
+"""An evaluation over N ranks: waves of rollouts dealt to the ranks and gathered.
 
 An evaluation of ``n`` rollouts on an eval env of ``W`` envs (``compute.eval_num_envs``) is a
 sequence of waves: wave ``k`` runs rollouts ``[k W, min((k + 1) W, n))`` (the last wave keeps its
-first envs) and is reseeded at its start from ``(seed, k)`` (:func:`wave_seed`; wave 0 keeps the
-run's seed, so a one-wave evaluation is unchanged). A wave's rollouts therefore depend on the
-policy, the seed, ``W`` and ``k`` only: not on what ran before it, nor on which process runs it.
+first envs). Every random number a rollout draws is keyed by (the evaluation's seed, its rollout
+index) (:mod:`march.env.rollout_draws`), so a rollout's row depends on the policy, the seed and
+its index only: not on ``W``, on what ran before it in its env, nor on which process runs it.
 
 Over N ranks rank r runs waves r, r + N, r + 2N, ... on its own eval env, and the per-rollout
 metrics of every wave are gathered (one ``all_gather_object``) and put back in rollout order, so
-a 1-rank and an N-rank evaluation of one checkpoint give the same rows (tested with gloo). Each
-rank steps only its waves; the evaluation's wall time falls with ranks when it has at least N
+1 rank in 1 wave, 1 rank in 4 waves and 2 ranks give the same rows (tested with gloo,
+tests/test_distributed.py). The evaluation's wall time falls with ranks when it has at least N
 waves: a run over N ranks that evaluates ``n`` rollouts should set ``compute.eval_num_envs`` to
-``n / N`` (docs/scaling.md). mjlab draws an env's randomisation from one generator for the whole
-batch, so the envs of one wave cannot be split between ranks without changing the rollouts:
-the wave is the unit that moves.
+``n / N`` (docs/scaling.md).
 """
 
 from __future__ import annotations
@@ -21,7 +19,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
 import torch
 
 from march.learn import distributed
@@ -29,15 +26,6 @@ from march.learn.distributed import Dist
 
 WaveFn = Callable[..., dict[str, torch.Tensor]]
 """``rollout_metrics(env, policy, count, first, seed)``: one wave's per-rollout metrics."""
-
-
-def wave_seed(seed: int, k: int) -> int:
-    """Wave ``k``'s seed in an evaluation seeded ``seed``: ``seed`` itself for wave 0, else a
-    number drawn from numpy's SeedSequence of (seed, k, 'wave') in 0..2^31-1 (warp takes int32)."""
-    if k == 0:
-        return int(seed)
-    entropy = [int(seed), int(k), 0x57A7E]
-    return int(np.random.SeedSequence(entropy).generate_state(1)[0] % 2**31)
 
 
 def waves(num_rollouts: int, wave_size: int) -> list[tuple[int, int, int]]:
@@ -62,10 +50,7 @@ def sharded_rollouts(
     # The run's seed (rank 0's env): rank r's env carries rank r's training seed.
     seed = distributed.agree(int(env.cfg.seed or 0))
     mine = {
-        k: {
-            name: v.cpu()
-            for name, v in run_wave(env, policy, count, first, wave_seed(seed, k)).items()
-        }
+        k: {name: v.cpu() for name, v in run_wave(env, policy, count, first, seed).items()}
         for k, first, count in rank_waves(num_rollouts, env.num_envs)
     }
     by_wave: dict[int, dict[str, torch.Tensor]] = {}

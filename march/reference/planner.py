@@ -63,8 +63,8 @@ The yaw-rate command is ignored for foothold placement (the course is straight a
 works in the course frame); the env's command term passes the forward command along the course
 direction (march.env.reference_command, "Velocity command, in the course frame").
 
-Randomness: every random draw has a shape independent of the number of envs and is shared by all
-envs, so a batched plan equals a per-env loop and a seeded ``torch.Generator`` fixes the plan.
+Randomness: draws shared by all envs (shapes independent of E: a batched plan equals a per-env
+loop; a seeded ``torch.Generator`` fixes the plan), or each env's own (``row_uniform``, evaluation).
 """
 
 from __future__ import annotations
@@ -93,7 +93,7 @@ from march.reference.plan_tables import (
     locate_on_stones,
     plan_tables,
 )
-from march.reference.search_inputs import planner_draws, score_layout
+from march.reference.search_inputs import RowUniform, planner_draws, score_layout
 from march.reference.step_cost import (
     _EPS,
     XY,
@@ -142,16 +142,15 @@ class PlannerCfg:
     w_velocity: float = 1.0
     """Weight of ||v_i - v_D||^2 [1/(m/s)^2] (paper: 1)."""
     w_time: float = 0.45
-    """Step-time regulariser weight on (dt - T_nom)^2 [1/s^2] (author's extra, not in the paper's
-    cost; it mostly breaks ties toward the middle duration on open ground). 0 = paper cost."""
+    """Step-time regulariser weight on (dt - T_nom)^2 [1/s^2] (author's extra, not the paper's:
+    mostly breaks ties toward the middle duration on open ground). 0 = paper cost."""
     num_candidate_stones: int = 8
     """M: stones per step nearest to the nominal foothold that are searched."""
     samples_per_stone: int = 4
     """K: random footholds drawn uniformly on each searched stone (with the hard margin)."""
     fuse_candidates: bool | None = None
-    """No effect since issue 41 (kept so that configs and tools that set it still load): the
-    search scores both candidate groups in one pass per term on every device. It chose between
-    one scoring call (CUDA) and two (CPU); the plans were the same either way."""
+    """No effect since issue 41 (kept so that configs that set it still load): the search scores
+    both candidate groups in one pass per term on every device (the plans were the same)."""
     explore_temperature: float = 0.2
     """Softmin temperature of the randomised rollouts [cost units]; 0 makes all rollouts greedy."""
     infeasible_cost: float = 1.0e4
@@ -260,6 +259,7 @@ def plan_footsteps(
     cfg: PlannerCfg | None = None,
     generator: torch.Generator | None = None,
     compiled: bool = False,
+    row_uniform: RowUniform | None = None,
 ) -> Plan:
     """Plan N footsteps for every env by random shooting with greedy rollouts.
 
@@ -268,12 +268,13 @@ def plan_footsteps(
     unused here); footholds: the envs' stones, or their :func:`plan_tables`. Deterministic for
     a seeded ``generator``. ``compiled``: run the search (everything but the random draws)
     under ``torch.compile`` (:func:`march.compiled_math.fused`): the same plans, fused into a
-    few kernels.
+    few kernels. ``row_uniform``: each env's own draws (an evaluation; search_inputs).
     """
     cfg = cfg or PlannerCfg()
+    args = (stance_xy, stance_is_left, command, footholds, cfg, row_uniform or generator, compiled)
     threads = torch.get_num_threads()
     if stance_xy.device.type != "cpu" or threads == 1:
-        return _plan(stance_xy, stance_is_left, command, footholds, cfg, generator, compiled)
+        return _plan(*args)
     # On CPU the planner runs on one thread: its ops (an 8-env batch: 18k-340k elements) pass
     # torch's intra-op grain size (32k) and the random draws fork too; each would start an
     # OpenMP region, which stalls on a busy machine (2 threads, loaded 2 cores, 16 envs: median
@@ -281,7 +282,7 @@ def plan_footsteps(
     # same plans on any thread count (no float sums; the generator's stream is serial).
     torch.set_num_threads(1)
     try:
-        return _plan(stance_xy, stance_is_left, command, footholds, cfg, generator, compiled)
+        return _plan(*args)
     finally:
         torch.set_num_threads(threads)
 
@@ -292,13 +293,13 @@ def _plan(
     command: torch.Tensor,
     footholds: Footholds | PlanTables,
     cfg: PlannerCfg,
-    generator: torch.Generator | None,
+    source: torch.Generator | RowUniform | None,
     compiled: bool,
 ) -> Plan:
-    """:func:`plan_footsteps` on the current thread count."""
+    """:func:`plan_footsteps` on the current thread count (``source``: generator or per env)."""
     tables = footholds if isinstance(footholds, PlanTables) else plan_tables(footholds, cfg)
     m = min(cfg.num_candidate_stones, tables.stones.shape[2])
-    unit, noise = planner_draws(cfg, m, generator, stance_xy.device, stance_xy.dtype)
+    unit, noise = planner_draws(cfg, m, source, stance_xy.device, stance_xy.dtype)
     search = fused(_search) if compiled else _search
     return search(stance_xy, stance_is_left, command, tables, unit, noise, cfg)
 
@@ -359,8 +360,7 @@ def _search(
     # floor), subtracted from the velocity rows (along, across, along) in one op.
     v_cmd = command[:, :2].T  # (2, E) world
     # One allocation for every buffer of the search (views below); under torch.compile each in
-    # its own shape (views of one shared flat base, with symbolic sizes, made the compile run
-    # for tens of minutes).
+    # its own shape (a flat base's views, symbolic sizes, made the compile take tens of minutes).
     shapes = [(3, e), (_G_ROWS, e, r, m, q), (_W_ROWS, e, r, m, q), (_F_ROWS, e, r, f)]
     shapes.append((n * _F_PICK + 2, e, r))
     if torch.compiler.is_compiling():
@@ -410,13 +410,14 @@ def _search(
         rows = rows.view(-1, e, r, m, 1)
         center, half = rows[_CENTER_XY], rows[_HALF]  # (2, E, R, M, 1)
         # (a) the nominal foothold clamped into each stone (hard and soft margins), (M, T, 2);
-        # (b) random points on each stone, (M, K).
+        # (b) random points on each stone, (M, K): draws shared (2, R, M, K) or per env (2, E, ...)
         lower, upper = (
             rows[s].view(2, 2, e, r, m).permute(1, 2, 3, 4, 0)[:, :, :, :, None]
             for s in (_LOWER, _UPPER)
         )  # (2 axes, E, R, M, 1, 2 margins)
         into(pos_a, torch.clamp, nom[:, :, :, None, :, None], lower, upper)
-        into(pos_b, torch.add, center, unit[i][:, None] * rows[_SPREAD])
+        unit_i = unit[i] if unit.dim() == 6 else unit[i][:, None]
+        into(pos_b, torch.add, center, unit_i * rows[_SPREAD])
         gbuf[_G_Z].copy_(rows[_CZ].expand(e, r, m, q))
         # What depends on the point only, (E, R, M, Q) per row.
         off = (pos - center).abs_().sub_(half)  # -(half - |xy - c|): minus the clearance

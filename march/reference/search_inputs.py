@@ -1,7 +1,8 @@
 """What the footstep planner's search reads besides the robot and the stones: the random draws of
 one plan and the fixed tables of its score layout (:mod:`march.reference.planner`).
 
-Both are independent of the number of envs. The draws stay outside ``torch.compile``
+Both are independent of the number of envs (an evaluation draws each env's own instead,
+:func:`planner_draws` with ``row_uniform``: its rollouts do not depend on the batch). The draws stay outside ``torch.compile``
 (``plan_footsteps`` makes them eagerly, so the generator is not traced and the compiled plans
 are the eager ones); the fixed parts (rollout 0's ring, the layout tables) are built once per
 configuration and device and kept (:mod:`march.reference.kept`). Plain torch.
@@ -20,6 +21,7 @@ Two candidate layouts (one pass each; the planner's module docstring, "Solver"):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING, NamedTuple
 
 import torch
@@ -28,6 +30,9 @@ from march.reference.kept import kept
 
 if TYPE_CHECKING:
     from march.reference.planner import PlannerCfg
+
+RowUniform = Callable[[tuple[int, ...]], torch.Tensor]
+"""``draw(shape)``: (E, *shape) uniforms in [0, 1), one stream per env of the batch."""
 
 
 def _ring(k: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
@@ -43,7 +48,7 @@ def _ring(k: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
 def planner_draws(
     cfg: PlannerCfg,
     m: int,
-    generator: torch.Generator | None,
+    generator: torch.Generator | RowUniform | None,
     device: torch.device,
     dtype: torch.dtype,
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -55,6 +60,8 @@ def planner_draws(
     from the same stream, in fewer ops (``uniform_(-1, 1)`` draws the same variates: 2 u - 1 is
     exact in float32; the temperature times the outer negation is one product by -T)."""
     r, n, k, nt = cfg.num_rollouts, cfg.num_steps, cfg.samples_per_stone, cfg.num_durations
+    if generator is not None and not isinstance(generator, torch.Generator):
+        return _row_draws(cfg, m, generator, device, dtype)  # each env's own stream
     gen_device = generator.device if generator is not None else device
     unit = torch.empty((n, 2, r, m, k), device=gen_device).uniform_(-1.0, 1.0, generator=generator)
     unit = unit.to(device, dtype)
@@ -64,6 +71,24 @@ def planner_draws(
     noise = u.clamp_(1e-12, 1.0 - 1e-7).log_().neg_().log_().mul_(-cfg.explore_temperature)
     noise = noise.to(device, dtype)
     noise[:, 0] = 0.0  # rollout 0 is plain greedy
+    return unit, noise
+
+
+def _row_draws(
+    cfg: PlannerCfg, m: int, row_uniform: RowUniform, device: torch.device, dtype: torch.dtype
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`planner_draws` with draws of each env's own (``row_uniform(shape)``: (E, *shape)
+    uniforms in [0, 1), an evaluation's streams keyed by rollout, march.env.rollout_draws):
+    unit points (N, 2, E, R, M, K) and noise (N, E, R, F), the same transforms of the
+    uniforms; the search reads the E axis where the shared draws broadcast."""
+    r, n, k, nt = cfg.num_rollouts, cfg.num_steps, cfg.samples_per_stone, cfg.num_durations
+    unit = row_uniform((n, 2, r, m, k)).to(device, dtype).mul_(2.0).sub_(1.0)
+    unit = unit.permute(1, 2, 0, 3, 4, 5)  # (N, 2, E, R, M, K)
+    unit[:, :, :, 0] = _ring(k, device, dtype)[None, :, None, None, :]
+    u = row_uniform((n, r, nt * m * (k + 2))).to(device)
+    noise = u.clamp_(1e-12, 1.0 - 1e-7).log_().neg_().log_().mul_(-cfg.explore_temperature)
+    noise = noise.to(dtype).permute(1, 0, 2, 3)  # (N, E, R, F)
+    noise[:, :, 0] = 0.0
     return unit, noise
 
 
