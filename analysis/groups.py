@@ -62,7 +62,8 @@ what is logged and drawn (``logger``, ``figures``, labels and colours); what a s
 (``objective``); and where and how fast the same numbers are computed (the device, threads, the
 process group's timeout, ``torch.compile`` of the same maths). Everything else is the
 experiment: ``compute.eval_num_envs`` included, because an evaluation's rows depend on its wave
-size (mjlab draws each wave's randomisation for the whole batch; march.evaluation.sharding)."""
+size in their last bits: every random number is keyed by rollout (march.env.rollout_draws), but
+mujoco_warp's contact solve is not batch-invariant and a fall amplifies it (docs/scaling.md)."""
 
 NAMED = {
     "reward": "reward.name",
