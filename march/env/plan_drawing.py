@@ -4,15 +4,15 @@ One drawing for both of play's outputs: mjlab's browser viewer (viser, ``viewer=
 offscreen MuJoCo frames of the MP4. It draws, for the visualised env, from the ``reference``
 command term:
 
-- the planned footholds (``plan_footholds``), numbered 1..N in plan order, blue for the left
-  foot and red for the right (the feet alternate; step 1 is the current swing foot's);
-- the swing-foot target of the current step (``step.target``): a yellow post on the stone, and
+- the planned footholds (``plan_footholds``), numbered 1..N in plan order, magenta for the
+  left foot and green for the right (the feet alternate; step 1 is the current swing foot's);
+- the swing-foot target of the current step (``step.target``): a red post on the stone, and
   an arrow from the swing foot to it;
-- the CoM reference of the current step (``reference(tau)`` over the step): an orange path,
-  with the reference CoM at the current ``tau`` as a larger orange ball;
+- the CoM reference of the current step (``reference(tau)`` over the step): an aqua path,
+  with the reference CoM at the current ``tau`` as a larger aqua ball;
 - the stones the planner considered: the ``num_candidate_stones`` stones nearest each planned
   foothold (the planner searches the M stones nearest each step's nominal foothold), as thin
-  translucent green slabs on the stones' tops.
+  translucent pink slabs on the stones' tops.
 
 Numbers: mjlab's visualizers drop ``label``; the MuJoCo scene's decor geoms carry a text label
 MuJoCo renders, and viser gets a scene label per foothold. The drawing copies a few tensors of
@@ -28,11 +28,27 @@ from typing import Any
 import numpy as np
 import torch
 
-LEFT_RGBA = (0.12, 0.47, 0.90, 1.0)
-RIGHT_RGBA = (0.90, 0.15, 0.15, 1.0)
-TARGET_RGBA = (1.0, 0.85, 0.0, 1.0)
-COM_RGBA = (1.0, 0.55, 0.0, 1.0)
-STONE_RGBA = (0.2, 0.85, 0.35, 0.45)
+LEFT_RGBA = (0.95, 0.1, 0.85, 1.0)
+"""Planned left-foot footholds: magenta."""
+RIGHT_RGBA = (0.1, 0.8, 0.1, 1.0)
+"""Planned right-foot footholds: green."""
+TARGET_RGBA = (0.95, 0.15, 0.05, 1.0)
+"""The current step's swing-foot target post and arrow: red."""
+COM_RGBA = (0.05, 1.0, 0.8, 1.0)
+"""The CoM reference path and ball: aqua."""
+STONE_RGBA = (1.0, 0.45, 0.55, 0.45)
+"""The considered stones' slabs: translucent pink."""
+MARKER_RGBAS = {
+    "left foothold": LEFT_RGBA,
+    "right foothold": RIGHT_RGBA,
+    "swing target": TARGET_RGBA,
+    "CoM reference": COM_RGBA,
+    "considered stone": STONE_RGBA,
+}
+"""Every colour the drawing uses. The course's boxes run blue (low) - grey - yellow (high)
+(:mod:`march.env.stone_terrain`), so the markers take the hues off that axis (magenta, green,
+red, aqua, pink): each is at least 50 CIELAB units from every box colour and from every other
+marker (tests/test_plan_drawing_colours.py; docs/decisions.md)."""
 COM_SAMPLES = 12
 """Points on the drawn CoM reference path of the current step."""
 FOOT_RADIUS = 0.045

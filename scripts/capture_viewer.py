@@ -1,0 +1,220 @@
+"""Re-take the docs' viewer picture (``docs/assets/viewer.png``): ``python -m march.play ...
+viewer=viser`` on a checkpoint, opened in headless Chromium and captured.
+
+    python scripts/capture_viewer.py STUDENT_CKPT [--out docs/assets/viewer.png] [--port 8093]
+        [--size 1400x900] [--settle 25] [--chromium chromium] [overrides ...]
+
+Not part of march's install nor of CI: it needs a Chromium (Debian: ``apt-get install chromium``)
+and talks to it over the DevTools protocol (``--remote-debugging-port``, through the
+``websockets`` package viser already brings). Headless Chromium draws WebGL in software
+(SwiftShader, ``--use-angle=swiftshader --enable-unsafe-swiftshader``), so viser's client shows
+its "Software WebGL rendering detected" notice (viser ``BrowserWarning.tsx``: a Mantine
+notification that never closes by itself). The script closes it with the notice's own close
+button, as a reader would, and checks no notification is left before the capture; it opens the
+**Rewards** tab of mjlab's panel. Overrides after the checkpoint go to ``march.play`` (default
+``compute=smoke``). It prints the picture's path and size.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import base64
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import urllib.request
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+
+CLOSE_NOTICES = """(() => {
+  const closes = [...document.querySelectorAll('.mantine-Notification-root button')];
+  closes.forEach((b) => b.click());
+  return closes.length;
+})()"""
+"""Clicks every notification's close button (viser's notices are Mantine notifications)."""
+
+NOTICES_LEFT = "document.querySelectorAll('.mantine-Notification-root').length"
+
+REWARDS_TAB = """(() => {
+  const tab = [...document.querySelectorAll('[role=tab]')]
+    .find((t) => t.textContent.trim() === 'Rewards');
+  if (!tab) return null;
+  const r = tab.getBoundingClientRect();
+  return {x: r.x + r.width / 2, y: r.y + r.height / 2, selected: tab.ariaSelected === 'true'};
+})()"""
+"""Where mjlab's Rewards tab is (viser's dock tabs answer pointer events, not ``click()``)."""
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _wait_for(what: str, check: Any, timeout: float) -> object:
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        got = check()
+        if got:
+            return got
+        time.sleep(0.5)
+    raise SystemExit(f"capture_viewer: {what} not ready after {timeout:.0f} s")
+
+
+def _drain(proc: subprocess.Popen) -> None:
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        print(line.rstrip())
+
+
+def _start_play(ckpt: str, port: int, overrides: list[str]) -> subprocess.Popen:
+    args = [sys.executable, "-m", "march.play", f"student_ckpt={ckpt}", "viewer=viser"]
+    args += [f"port={port}", *(overrides or ["compute=smoke"])]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(
+        args, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
+    )
+    assert proc.stdout is not None
+    for line in proc.stdout:  # the env builds, then play prints the viewer's address
+        print(line.rstrip())
+        if "mjlab's viewer at http://" in line:  # keep reading: a full pipe would stall play
+            threading.Thread(target=_drain, args=(proc,), daemon=True).start()
+            return proc
+    raise SystemExit(f"capture_viewer: march.play ended (exit {proc.wait()}) before serving")
+
+
+def _start_chromium(binary: str, size: tuple[int, int], profile: str) -> tuple[Any, int]:
+    port = _free_port()
+    args = [
+        binary,
+        "--headless=new",
+        "--no-sandbox",  # root in a container
+        "--use-angle=swiftshader",
+        "--enable-unsafe-swiftshader",
+        "--hide-scrollbars",
+        f"--window-size={size[0]},{size[1]}",
+        f"--remote-debugging-port={port}",
+        f"--user-data-dir={profile}",
+        "about:blank",
+    ]
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return proc, port
+
+
+def _page_ws(port: int) -> str:
+    def pages() -> str | None:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/json", timeout=2) as r:
+                tabs = json.load(r)
+        except OSError:
+            return None
+        return next((t["webSocketDebuggerUrl"] for t in tabs if t.get("type") == "page"), None)
+
+    return str(_wait_for("Chromium's DevTools", pages, 60))
+
+
+async def _capture(ws_url: str, url: str, size: tuple[int, int], settle: float) -> bytes:
+    import websockets
+
+    async with websockets.connect(ws_url, max_size=2**28) as ws:
+        counter = 0
+
+        async def call(method: str, **params: object) -> dict:
+            nonlocal counter
+            counter += 1
+            await ws.send(json.dumps({"id": counter, "method": method, "params": params}))
+            while True:
+                msg = json.loads(await ws.recv())
+                if msg.get("id") == counter:
+                    if "error" in msg:
+                        raise SystemExit(f"capture_viewer: {method}: {msg['error']}")
+                    return msg.get("result", {})
+
+        async def js(expr: str) -> object:
+            res = await call("Runtime.evaluate", expression=expr, returnByValue=True)
+            return res.get("result", {}).get("value")
+
+        await call(
+            "Emulation.setDeviceMetricsOverride",
+            width=size[0],
+            height=size[1],
+            deviceScaleFactor=1,
+            mobile=False,
+        )
+        await call("Page.navigate", url=url)
+        for _ in range(120):  # viser's client: the panel's tabs appear once the scene streams
+            tab = await js(REWARDS_TAB)
+            if tab:
+                break
+            await asyncio.sleep(1.0)
+        else:
+            raise SystemExit("capture_viewer: the viewer's Rewards tab never appeared")
+        for kind in ("mousePressed", "mouseReleased"):  # a reader's click on the tab
+            await call(
+                "Input.dispatchMouseEvent",
+                type=kind,
+                x=tab["x"],
+                y=tab["y"],
+                button="left",
+                clickCount=1,
+            )
+        await asyncio.sleep(settle)  # meshes loaded, the policy stepping, plots filled
+        if not (await js(REWARDS_TAB) or {}).get("selected"):
+            raise SystemExit("capture_viewer: the Rewards tab did not open")
+        closed = await js(CLOSE_NOTICES)
+        await asyncio.sleep(1.5)  # the notification's exit transition
+        left = await js(NOTICES_LEFT)
+        print(f"[capture] closed {closed} notice(s); {left} left")
+        if left:
+            raise SystemExit(f"capture_viewer: {left} notification(s) still shown")
+        shot = await call("Page.captureScreenshot", format="png")
+        return base64.b64decode(shot["data"])
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("ckpt", help="a student checkpoint (student/latest.pt of a run)")
+    p.add_argument("--out", default=str(REPO / "docs" / "assets" / "viewer.png"))
+    p.add_argument("--port", type=int, default=0, help="play's port (0: a free one)")
+    p.add_argument("--size", default="1400x900", help="the browser window, WIDTHxHEIGHT pixels")
+    p.add_argument("--settle", type=float, default=25.0, help="seconds before the capture")
+    p.add_argument("--chromium", default=shutil.which("chromium") or "chromium")
+    args, overrides = p.parse_known_args(argv)
+    size = tuple(int(v) for v in args.size.lower().split("x"))
+    port = args.port or _free_port()
+    play = _start_play(args.ckpt, port, overrides)
+    browser = None
+    try:
+        with tempfile.TemporaryDirectory(prefix="capture_viewer_") as profile:
+            browser, cdp_port = _start_chromium(args.chromium, size, profile)
+            try:
+                png = asyncio.run(
+                    _capture(_page_ws(cdp_port), f"http://localhost:{port}", size, args.settle)
+                )
+            finally:
+                browser.terminate()
+                browser.wait(timeout=30)
+    finally:
+        play.send_signal(signal.SIGINT)  # play closes the viewer and the env on Ctrl-C
+        try:
+            play.wait(timeout=120)
+        except subprocess.TimeoutExpired:
+            play.kill()
+    out = Path(args.out)
+    out.write_bytes(png)
+    print(f"[capture] wrote {out} ({size[0]}x{size[1]}, {len(png)} bytes)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
