@@ -152,25 +152,26 @@ async def _capture(ws_url: str, url: str, size: tuple[int, int], settle: float) 
             mobile=False,
         )
         await call("Page.navigate", url=url)
-        for _ in range(120):  # viser's client: the panel's tabs appear once the scene streams
+        for _ in range(120):  # the panel's tabs appear once the scene streams; click until open
             tab = await js(REWARDS_TAB)
-            if tab:
+            if tab and tab["selected"]:
                 break
+            if tab:
+                for kind in ("mousePressed", "mouseReleased"):  # a reader's click on the tab
+                    await call(
+                        "Input.dispatchMouseEvent",
+                        type=kind,
+                        x=tab["x"],
+                        y=tab["y"],
+                        button="left",
+                        clickCount=1,
+                    )
             await asyncio.sleep(1.0)
         else:
-            raise SystemExit("capture_viewer: the viewer's Rewards tab never appeared")
-        for kind in ("mousePressed", "mouseReleased"):  # a reader's click on the tab
-            await call(
-                "Input.dispatchMouseEvent",
-                type=kind,
-                x=tab["x"],
-                y=tab["y"],
-                button="left",
-                clickCount=1,
-            )
+            raise SystemExit("capture_viewer: the viewer's Rewards tab did not open")
         await asyncio.sleep(settle)  # meshes loaded, the policy stepping, plots filled
         if not (await js(REWARDS_TAB) or {}).get("selected"):
-            raise SystemExit("capture_viewer: the Rewards tab did not open")
+            raise SystemExit("capture_viewer: the Rewards tab closed again")
         closed = await js(CLOSE_NOTICES)
         await asyncio.sleep(1.5)  # the notification's exit transition
         left = await js(NOTICES_LEFT)

@@ -101,21 +101,32 @@ def plan_picture(term: Any, env_idx: int) -> dict[str, np.ndarray]:
 
 
 def _label_last(visualizer: Any, name: str, text: str, pos: np.ndarray) -> None:
-    """Give the geom just added a text label (MuJoCo scene) or put a viser label at ``pos``."""
+    """Give the geom just added a text label (MuJoCo scene) or put a viser label at ``pos``.
+
+    In viser the label is a child of the scene's ``/fixed_bodies`` frame (mjviser moves that
+    frame by the scene offset, which follows the robot when the camera tracks it), at ``pos``
+    in world coordinates: it moves in the same update as mjlab's debug primitives. Placed at
+    ``pos`` plus the scene offset read now, it lagged one scene update behind them, and a label
+    could stand beside the next foothold's ball."""
     scn = getattr(visualizer, "_mjv_scene", None)
     if scn is not None and scn.ngeom > 0:
         scn.geoms[scn.ngeom - 1].label = text
         return
     server = getattr(visualizer, "server", None)
-    if server is not None and getattr(visualizer, "debug_visualization_enabled", True):
-        offset = np.asarray(getattr(visualizer, "_scene_offset", np.zeros(3)))
-        server.scene.add_label(
-            f"/march_plan/{name}",
-            text,
-            position=tuple(float(v) for v in pos + offset),
-            font_screen_scale=1.2,
-            anchor="bottom-center",
-        )
+    if server is None or not getattr(visualizer, "debug_visualization_enabled", True):
+        return
+    frame = getattr(visualizer, "fixed_bodies_frame", None)
+    if frame is not None:
+        parent, at = frame.name, pos
+    else:
+        parent, at = "", pos + np.asarray(getattr(visualizer, "_scene_offset", np.zeros(3)))
+    server.scene.add_label(
+        f"{parent}/march_plan/{name}",
+        text,
+        position=tuple(float(v) for v in at),
+        font_screen_scale=1.2,
+        anchor="bottom-center",
+    )
 
 
 def draw_picture(pic: dict[str, np.ndarray], visualizer: Any) -> None:
