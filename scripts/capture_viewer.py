@@ -45,6 +45,14 @@ CLOSE_NOTICES = """(() => {
 
 NOTICES_LEFT = "document.querySelectorAll('.mantine-Notification-root').length"
 
+BUTTON = """((text) => {
+  const b = [...document.querySelectorAll('button')].find((e) => e.textContent.trim() === text);
+  if (!b) return null;
+  const r = b.getBoundingClientRect();
+  return r.width > 0 ? {x: r.x + r.width / 2, y: r.y + r.height / 2} : null;
+})"""
+"""Where a visible button of mjlab's panel is, by its text."""
+
 REWARDS_TAB = """(() => {
   const tab = [...document.querySelectorAll('[role=tab]')]
     .find((t) => t.textContent.trim() === 'Rewards');
@@ -123,7 +131,16 @@ def _page_ws(port: int) -> str:
     return str(_wait_for("Chromium's DevTools", pages, 60))
 
 
-async def _capture(ws_url: str, url: str, size: tuple[int, int], settle: float) -> bytes:
+async def _capture(
+    ws_url: str,
+    url: str,
+    size: tuple[int, int],
+    settle: float,
+    run: float,
+    turn: float,
+    tilt: float,
+    zoom: int,
+) -> bytes:
     import websockets
 
     async with websockets.connect(ws_url, max_size=2**28) as ws:
@@ -152,26 +169,63 @@ async def _capture(ws_url: str, url: str, size: tuple[int, int], settle: float) 
             mobile=False,
         )
         await call("Page.navigate", url=url)
-        for _ in range(120):  # the panel's tabs appear once the scene streams; click until open
+
+        async def click(x: float, y: float) -> None:  # a reader's mouse click
+            for kind in ("mousePressed", "mouseReleased"):
+                await call(
+                    "Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1
+                )
+
+        async def press(text: str) -> None:
+            at = await js(f"{BUTTON}({json.dumps(text)})")
+            if not at:
+                raise SystemExit(f"capture_viewer: no {text!r} button in the viewer's panel")
+            await click(at["x"], at["y"])
+
+        for _ in range(120):  # the panel appears once the scene streams
+            if await js(f"{BUTTON}('Reset Environment')"):
+                break
+            await asyncio.sleep(1.0)
+        else:
+            raise SystemExit("capture_viewer: the viewer's panel never appeared")
+        await asyncio.sleep(settle)  # the meshes load
+        await press("Reset Environment")  # a fresh episode: the robot on the start platform
+        await asyncio.sleep(run)
+        await press("Pause")  # the picture holds still while the panel is switched
+        if turn or tilt:  # orbit the camera (a drag in the scene, as a reader would)
+            x0, y0 = 0.35 * size[0], 0.45 * size[1]
+            await call("Input.dispatchMouseEvent", type="mousePressed", x=x0, y=y0, button="left")
+            for i in range(1, 21):
+                await call(
+                    "Input.dispatchMouseEvent",
+                    type="mouseMoved",
+                    x=x0 + turn * i / 20,
+                    y=y0 + tilt * i / 20,
+                    button="left",
+                    buttons=1,
+                )
+                await asyncio.sleep(0.03)
+            await call("Input.dispatchMouseEvent", type="mouseReleased", x=x0 + turn, y=y0 + tilt)
+        for _ in range(abs(int(zoom))):  # mouse-wheel notches: out (> 0) or in (< 0)
+            await call(
+                "Input.dispatchMouseEvent",
+                type="mouseWheel",
+                x=0.35 * size[0],
+                y=0.45 * size[1],
+                deltaX=0,
+                deltaY=100 if zoom > 0 else -100,
+            )
+            await asyncio.sleep(0.1)
+        for _ in range(30):  # the Rewards tab: click until it is open
             tab = await js(REWARDS_TAB)
             if tab and tab["selected"]:
                 break
             if tab:
-                for kind in ("mousePressed", "mouseReleased"):  # a reader's click on the tab
-                    await call(
-                        "Input.dispatchMouseEvent",
-                        type=kind,
-                        x=tab["x"],
-                        y=tab["y"],
-                        button="left",
-                        clickCount=1,
-                    )
+                await click(tab["x"], tab["y"])
             await asyncio.sleep(1.0)
         else:
             raise SystemExit("capture_viewer: the viewer's Rewards tab did not open")
-        await asyncio.sleep(settle)  # meshes loaded, the policy stepping, plots filled
-        if not (await js(REWARDS_TAB) or {}).get("selected"):
-            raise SystemExit("capture_viewer: the Rewards tab closed again")
+        await asyncio.sleep(3.0)  # the scene redrawn from the new camera
         closed = await js(CLOSE_NOTICES)
         await asyncio.sleep(1.5)  # the notification's exit transition
         left = await js(NOTICES_LEFT)
@@ -188,7 +242,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default=str(REPO / "docs" / "assets" / "viewer.png"))
     p.add_argument("--port", type=int, default=0, help="play's port (0: a free one)")
     p.add_argument("--size", default="1400x900", help="the browser window, WIDTHxHEIGHT pixels")
-    p.add_argument("--settle", type=float, default=25.0, help="seconds before the capture")
+    p.add_argument("--settle", type=float, default=10.0, help="seconds for the scene to load")
+    p.add_argument("--run", type=float, default=0.8, help="seconds played after the reset")
+    p.add_argument("--turn", type=float, default=110.0, help="camera drag rightwards [pixels]")
+    p.add_argument("--tilt", type=float, default=90.0, help="camera drag downwards [pixels]")
+    p.add_argument("--zoom", type=int, default=1, help="mouse-wheel notches out (< 0: in)")
     p.add_argument("--chromium", default=shutil.which("chromium") or "chromium")
     args, overrides = p.parse_known_args(argv)
     size = tuple(int(v) for v in args.size.lower().split("x"))
@@ -200,7 +258,16 @@ def main(argv: list[str] | None = None) -> int:
             browser, cdp_port = _start_chromium(args.chromium, size, profile)
             try:
                 png = asyncio.run(
-                    _capture(_page_ws(cdp_port), f"http://localhost:{port}", size, args.settle)
+                    _capture(
+                        _page_ws(cdp_port),
+                        f"http://localhost:{port}",
+                        size,
+                        args.settle,
+                        args.run,
+                        args.turn,
+                        args.tilt,
+                        args.zoom,
+                    )
                 )
             finally:
                 browser.terminate()

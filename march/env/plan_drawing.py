@@ -12,7 +12,7 @@ command term:
   with the reference CoM at the current ``tau`` as a larger aqua ball;
 - the stones the planner considered: the ``num_candidate_stones`` stones nearest each planned
   foothold (the planner searches the M stones nearest each step's nominal foothold), as thin
-  translucent pink slabs on the stones' tops.
+  translucent crimson slabs on the stones' tops.
 
 Numbers: mjlab's visualizers drop ``label``; the MuJoCo scene's decor geoms carry a text label
 MuJoCo renders, and viser gets a scene label per foothold. The drawing copies a few tensors of
@@ -28,16 +28,16 @@ from typing import Any
 import numpy as np
 import torch
 
-LEFT_RGBA = (0.95, 0.1, 0.85, 1.0)
+LEFT_RGBA = (0.9, 0.0, 0.75, 1.0)
 """Planned left-foot footholds: magenta."""
-RIGHT_RGBA = (0.1, 0.8, 0.1, 1.0)
+RIGHT_RGBA = (0.0, 0.8, 0.05, 1.0)
 """Planned right-foot footholds: green."""
-TARGET_RGBA = (0.95, 0.15, 0.05, 1.0)
-"""The current step's swing-foot target post and arrow: red."""
-COM_RGBA = (0.05, 1.0, 0.8, 1.0)
+TARGET_RGBA = (1.0, 0.05, 0.0, 1.0)
+"""The current step's swing-foot target post and arrow: red (viser shows it orange-red)."""
+COM_RGBA = (0.0, 1.0, 0.8, 1.0)
 """The CoM reference path and ball: aqua."""
-STONE_RGBA = (1.0, 0.45, 0.55, 0.45)
-"""The considered stones' slabs: translucent pink."""
+STONE_RGBA = (0.55, 0.05, 0.15, 0.6)
+"""The considered stones' slabs: translucent crimson (a rose tint on the stones' tops)."""
 MARKER_RGBAS = {
     "left foothold": LEFT_RGBA,
     "right foothold": RIGHT_RGBA,
@@ -46,9 +46,11 @@ MARKER_RGBAS = {
     "considered stone": STONE_RGBA,
 }
 """Every colour the drawing uses. The course's boxes run blue (low) - grey - yellow (high)
-(:mod:`march.env.stone_terrain`), so the markers take the hues off that axis (magenta, green,
-red, aqua, pink): each is at least 50 CIELAB units from every box colour and from every other
-marker (tests/test_plan_drawing_colours.py; docs/decisions.md)."""
+(:mod:`march.env.stone_terrain`), so the markers take hues off that axis (magenta, green, red,
+aqua, crimson): each is at least 50 CIELAB units from every box colour and from every other
+marker, whether a renderer shows the values as sRGB or as linear light (viser does), and a
+considered-stone slab tints every box by at least 25 (tests/test_plan_drawing_colours.py;
+docs/decisions.md)."""
 COM_SAMPLES = 12
 """Points on the drawn CoM reference path of the current step."""
 FOOT_RADIUS = 0.045
