@@ -36,7 +36,7 @@ TARGET_RGBA = (1.0, 0.05, 0.0, 1.0)
 """The current step's swing-foot target post and arrow: red (viser shows it orange-red)."""
 COM_RGBA = (0.0, 1.0, 0.8, 1.0)
 """The CoM reference path and ball: aqua."""
-STONE_RGBA = (0.55, 0.05, 0.15, 0.6)
+STONE_RGBA = (0.55, 0.05, 0.15, 0.55)
 """The considered stones' slabs: translucent crimson (a rose tint on the stones' tops)."""
 MARKER_RGBAS = {
     "left foothold": LEFT_RGBA,
