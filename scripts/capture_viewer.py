@@ -1,18 +1,23 @@
 """Re-take the docs' viewer picture (``docs/assets/viewer.png``): ``python -m march.play ...
 viewer=viser`` on a checkpoint, opened in headless Chromium and captured.
 
-    python scripts/capture_viewer.py STUDENT_CKPT [--out docs/assets/viewer.png] [--port 8093]
-        [--size 1400x900] [--settle 25] [--chromium chromium] [overrides ...]
+    python scripts/capture_viewer.py STUDENT_CKPT [--out docs/assets/viewer.png] [--port 0]
+        [--size 1400x900] [--settle 10] [--run 0.8] [--turn 110] [--tilt 90] [--zoom 1]
+        [--chromium chromium] [play overrides ...]
 
 Not part of march's install nor of CI: it needs a Chromium (Debian: ``apt-get install chromium``)
 and talks to it over the DevTools protocol (``--remote-debugging-port``, through the
-``websockets`` package viser already brings). Headless Chromium draws WebGL in software
-(SwiftShader, ``--use-angle=swiftshader --enable-unsafe-swiftshader``), so viser's client shows
-its "Software WebGL rendering detected" notice (viser ``BrowserWarning.tsx``: a Mantine
-notification that never closes by itself). The script closes it with the notice's own close
-button, as a reader would, and checks no notification is left before the capture; it opens the
-**Rewards** tab of mjlab's panel. Overrides after the checkpoint go to ``march.play`` (default
-``compute=smoke``). It prints the picture's path and size.
+``websockets`` package viser already brings). What a reader would do, in order: wait for the
+panel, ``settle`` seconds for the meshes, **Reset Environment**, ``run`` seconds of play,
+**Pause** (the picture holds still: an untrained smoke student falls within a second or two),
+a mouse drag of ``turn`` x ``tilt`` pixels and ``zoom`` wheel notches to orbit the camera onto
+the plan, the **Rewards** tab. Headless Chromium draws WebGL in software (SwiftShader,
+``--use-angle=swiftshader --enable-unsafe-swiftshader``), so viser's client shows its "Software
+WebGL rendering detected" notice (viser ``BrowserWarning.tsx``: a Mantine notification that never
+closes by itself); the script closes it with the notice's own close button and refuses to
+capture while any notification is left (nothing is hidden by CSS). Overrides after the
+checkpoint go to ``march.play`` (default ``compute=smoke``). It prints the picture's path and
+size. One capture takes about a minute on 2 cores.
 """
 
 from __future__ import annotations
@@ -249,10 +254,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--zoom", type=int, default=1, help="mouse-wheel notches out (< 0: in)")
     p.add_argument("--chromium", default=shutil.which("chromium") or "chromium")
     args, overrides = p.parse_known_args(argv)
-    size = tuple(int(v) for v in args.size.lower().split("x"))
+    if shutil.which(args.chromium) is None:
+        raise SystemExit(f"capture_viewer: no Chromium at {args.chromium!r} (--chromium PATH)")
+    try:
+        size = tuple(int(v) for v in args.size.lower().split("x"))
+        assert len(size) == 2 and min(size) > 0
+    except (ValueError, AssertionError):
+        raise SystemExit(f"capture_viewer: --size {args.size}: give WIDTHxHEIGHT") from None
     port = args.port or _free_port()
     play = _start_play(args.ckpt, port, overrides)
-    browser = None
     try:
         with tempfile.TemporaryDirectory(prefix="capture_viewer_") as profile:
             browser, cdp_port = _start_chromium(args.chromium, size, profile)
