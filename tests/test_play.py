@@ -336,6 +336,36 @@ def test_viser_labels_ride_the_scene_frame_over_their_balls():
                 assert np.allclose(at, ball + [0, 0, 0.06] + offset)
 
 
+@pytest.mark.skipif(sys.platform != "linux", reason="mjlab picks EGL on Linux only")
+def test_a_march_env_module_imported_first_leaves_mujoco_on_egl():
+    """mujoco reads ``MUJOCO_GL`` once, when it loads, and mjlab sets it to ``egl`` on import: a
+    ``march.env`` module that imports mujoco imports mjlab before it, or a process whose first
+    import is that module gets GLFW's context and, without a display, aborts when it renders
+    (it did: the colour test's import of ``stone_terrain`` killed this file's video test)."""
+    import ast
+    import os
+
+    env_dir = REPO / "march" / "env"
+    first = [
+        p.stem
+        for p in sorted(env_dir.glob("*.py"))
+        if any(
+            isinstance(node, ast.Import) and any(a.name == "mujoco" for a in node.names)
+            for node in ast.parse(p.read_text()).body
+        )
+    ]
+    assert {"stone_terrain", "g1"} <= set(first)
+    clean = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
+    for module in first:
+        out = subprocess.run(
+            [sys.executable, "-c",
+             f"import march.env.{module}, mujoco; print(mujoco.GLContext.__module__)"],
+            cwd=REPO, env=clean, capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert out.returncode == 0, out.stderr[-2000:]
+        assert out.stdout.split()[-1] == "mujoco.egl", (module, out.stdout)
+
+
 def test_viewer_argument_errors_are_one_line(capsys):
     for args, message in (
         (["viewer=vr"], "viewer=vr: choose one of video, viser"),
