@@ -282,6 +282,90 @@ def test_plan_drawn_through_the_debug_visualizer_matches_the_term():
         assert [x for x in video_labels if x] == [lab for _, lab in balls]
 
 
+def test_viser_labels_ride_the_scene_frame_over_their_balls():
+    """In viser each foothold label is a child of mjviser's ``/fixed_bodies`` frame at its ball's
+    world position + 6 cm (the frame carries the scene offset, in the same update as the balls);
+    without that frame (an older scene) the offset read now is added."""
+    import types
+
+    import numpy as np
+
+    from march.env.plan_drawing import FOOT_RADIUS, draw_picture
+
+    feet = np.array([[1.0, 0.2, 0.1], [1.3, -0.1, 0.15], [1.6, 0.2, 0.05]])
+    pic = {
+        "stone_center": np.zeros((0, 3)),
+        "stone_half": np.zeros((0, 3)),
+        "com_path": np.array([[0.0, 0.0, 0.7], [0.2, 0.0, 0.7]]),
+        "com_now": np.array([0.1, 0.0, 0.7]),
+        "target": feet[0],
+        "swing_foot": np.array([0.5, 0.2, 0.1]),
+        "footholds": feet,
+        "lands_left": np.array([True, False, True]),
+    }
+    offset = np.array([-4.0, 2.5, -0.3])  # the camera tracks the robot: the scene is shifted
+    for frame in (types.SimpleNamespace(name="/fixed_bodies"), None):
+        labels, balls = [], []
+
+        def add_label(name, text, position, _out=labels, **_):
+            _out.append((name, text, np.array(position)))
+
+        def add_sphere(center, *a, label=None, _out=balls, **k):
+            _out.append((label, center))
+
+        scene = types.SimpleNamespace(add_label=add_label)
+        vis = types.SimpleNamespace(
+            server=types.SimpleNamespace(scene=scene),
+            fixed_bodies_frame=frame,
+            _scene_offset=offset,
+            add_box=lambda *a, **k: None,
+            add_cylinder=lambda *a, **k: None,
+            add_arrow=lambda *a, **k: None,
+            add_sphere=add_sphere,
+        )
+        draw_picture(pic, vis)
+        feet_balls = [(lab, c) for lab, c in balls if lab != "CoM reference"]
+        assert [t for _, t, _ in labels] == [lab for lab, _ in feet_balls] == ["1L", "2R", "3L"]
+        for j, ((name, _, at), (_, ball)) in enumerate(zip(labels, feet_balls, strict=True)):
+            assert np.allclose(ball, feet[j] + [0, 0, 0.6 * FOOT_RADIUS])
+            if frame is not None:
+                assert name == f"/fixed_bodies/march_plan/foothold_{j}"
+                assert np.allclose(at, ball + [0, 0, 0.06])
+            else:
+                assert name == f"/march_plan/foothold_{j}"
+                assert np.allclose(at, ball + [0, 0, 0.06] + offset)
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="mjlab picks EGL on Linux only")
+def test_a_march_env_module_imported_first_leaves_mujoco_on_egl():
+    """mujoco reads ``MUJOCO_GL`` once, when it loads, and mjlab sets it to ``egl`` on import: a
+    ``march.env`` module that imports mujoco imports mjlab before it, or a process whose first
+    import is that module gets GLFW's context and, without a display, aborts when it renders
+    (it did: the colour test's import of ``stone_terrain`` killed this file's video test)."""
+    import ast
+    import os
+
+    env_dir = REPO / "march" / "env"
+    first = [
+        p.stem
+        for p in sorted(env_dir.glob("*.py"))
+        if any(
+            isinstance(node, ast.Import) and any(a.name == "mujoco" for a in node.names)
+            for node in ast.parse(p.read_text()).body
+        )
+    ]
+    assert {"stone_terrain", "g1"} <= set(first)
+    clean = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
+    for module in first:
+        out = subprocess.run(
+            [sys.executable, "-c",
+             f"import march.env.{module}, mujoco; print(mujoco.GLContext.__module__)"],
+            cwd=REPO, env=clean, capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert out.returncode == 0, out.stderr[-2000:]
+        assert out.stdout.split()[-1] == "mujoco.egl", (module, out.stdout)
+
+
 def test_viewer_argument_errors_are_one_line(capsys):
     for args, message in (
         (["viewer=vr"], "viewer=vr: choose one of video, viser"),

@@ -12,6 +12,7 @@ import re
 from dataclasses import replace
 from typing import Any
 
+import mjlab  # noqa: F401  (before mujoco: mjlab sets MUJOCO_GL=egl, which mujoco reads once)
 import mujoco
 from mjlab.asset_zoo.robots.unitree_g1 import g1_constants as g1
 from mjlab.scene import Scene

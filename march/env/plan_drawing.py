@@ -4,15 +4,15 @@ One drawing for both of play's outputs: mjlab's browser viewer (viser, ``viewer=
 offscreen MuJoCo frames of the MP4. It draws, for the visualised env, from the ``reference``
 command term:
 
-- the planned footholds (``plan_footholds``), numbered 1..N in plan order, blue for the left
-  foot and red for the right (the feet alternate; step 1 is the current swing foot's);
-- the swing-foot target of the current step (``step.target``): a yellow post on the stone, and
+- the planned footholds (``plan_footholds``), numbered 1..N in plan order, magenta for the
+  left foot and green for the right (the feet alternate; step 1 is the current swing foot's);
+- the swing-foot target of the current step (``step.target``): a red post on the stone, and
   an arrow from the swing foot to it;
-- the CoM reference of the current step (``reference(tau)`` over the step): an orange path,
-  with the reference CoM at the current ``tau`` as a larger orange ball;
+- the CoM reference of the current step (``reference(tau)`` over the step): an aqua path,
+  with the reference CoM at the current ``tau`` as a larger aqua ball;
 - the stones the planner considered: the ``num_candidate_stones`` stones nearest each planned
   foothold (the planner searches the M stones nearest each step's nominal foothold), as thin
-  translucent green slabs on the stones' tops.
+  translucent crimson slabs on the stones' tops.
 
 Numbers: mjlab's visualizers drop ``label``; the MuJoCo scene's decor geoms carry a text label
 MuJoCo renders, and viser gets a scene label per foothold. The drawing copies a few tensors of
@@ -28,11 +28,29 @@ from typing import Any
 import numpy as np
 import torch
 
-LEFT_RGBA = (0.12, 0.47, 0.90, 1.0)
-RIGHT_RGBA = (0.90, 0.15, 0.15, 1.0)
-TARGET_RGBA = (1.0, 0.85, 0.0, 1.0)
-COM_RGBA = (1.0, 0.55, 0.0, 1.0)
-STONE_RGBA = (0.2, 0.85, 0.35, 0.45)
+LEFT_RGBA = (0.9, 0.0, 0.75, 1.0)
+"""Planned left-foot footholds: magenta."""
+RIGHT_RGBA = (0.0, 0.8, 0.05, 1.0)
+"""Planned right-foot footholds: green."""
+TARGET_RGBA = (1.0, 0.05, 0.0, 1.0)
+"""The current step's swing-foot target post and arrow: red (viser shows it orange-red)."""
+COM_RGBA = (0.0, 1.0, 0.8, 1.0)
+"""The CoM reference path and ball: aqua."""
+STONE_RGBA = (0.55, 0.05, 0.15, 0.55)
+"""The considered stones' slabs: translucent crimson (a rose tint on the stones' tops)."""
+MARKER_RGBAS = {
+    "left foothold": LEFT_RGBA,
+    "right foothold": RIGHT_RGBA,
+    "swing target": TARGET_RGBA,
+    "CoM reference": COM_RGBA,
+    "considered stone": STONE_RGBA,
+}
+"""Every colour the drawing uses. The course's boxes run blue (low) - grey - yellow (high)
+(:mod:`march.env.stone_terrain`), so the markers take hues off that axis (magenta, green, red,
+aqua, crimson): each is at least 50 CIELAB units from every box colour and from every other
+marker, whether a renderer shows the values as sRGB or as linear light (viser does), and a
+considered-stone slab tints every box by at least 25 (tests/test_plan_drawing_colours.py;
+docs/decisions.md)."""
 COM_SAMPLES = 12
 """Points on the drawn CoM reference path of the current step."""
 FOOT_RADIUS = 0.045
@@ -85,21 +103,32 @@ def plan_picture(term: Any, env_idx: int) -> dict[str, np.ndarray]:
 
 
 def _label_last(visualizer: Any, name: str, text: str, pos: np.ndarray) -> None:
-    """Give the geom just added a text label (MuJoCo scene) or put a viser label at ``pos``."""
+    """Give the geom just added a text label (MuJoCo scene) or put a viser label at ``pos``.
+
+    In viser the label is a child of the scene's ``/fixed_bodies`` frame (mjviser moves that
+    frame by the scene offset, which follows the robot when the camera tracks it), at ``pos``
+    in world coordinates: it moves in the same update as mjlab's debug primitives. Placed at
+    ``pos`` plus the scene offset read now, it lagged one scene update behind them, and a label
+    could stand beside the next foothold's ball."""
     scn = getattr(visualizer, "_mjv_scene", None)
     if scn is not None and scn.ngeom > 0:
         scn.geoms[scn.ngeom - 1].label = text
         return
     server = getattr(visualizer, "server", None)
-    if server is not None and getattr(visualizer, "debug_visualization_enabled", True):
-        offset = np.asarray(getattr(visualizer, "_scene_offset", np.zeros(3)))
-        server.scene.add_label(
-            f"/march_plan/{name}",
-            text,
-            position=tuple(float(v) for v in pos + offset),
-            font_screen_scale=1.2,
-            anchor="bottom-center",
-        )
+    if server is None or not getattr(visualizer, "debug_visualization_enabled", True):
+        return
+    frame = getattr(visualizer, "fixed_bodies_frame", None)
+    if frame is not None:
+        parent, at = frame.name, pos
+    else:
+        parent, at = "", pos + np.asarray(getattr(visualizer, "_scene_offset", np.zeros(3)))
+    server.scene.add_label(
+        f"{parent}/march_plan/{name}",
+        text,
+        position=tuple(float(v) for v in at),
+        font_screen_scale=1.2,
+        anchor="bottom-center",
+    )
 
 
 def draw_picture(pic: dict[str, np.ndarray], visualizer: Any) -> None:

@@ -38,6 +38,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Literal
 
+import mjlab  # noqa: F401  (before mujoco: mjlab sets MUJOCO_GL=egl, which mujoco reads once)
 import mujoco
 import numpy as np
 import torch
