@@ -152,7 +152,7 @@ def test_a_sweep_waits_for_a_trial_whose_job_outlived_its_killed_sweep(tmp_path)
     sweep, cmd, env, job = _launch_and_kill_driver(tmp_path, "steps=30", "step_s=0.5")
     assert _states(sweep) == ["RUNNING"]
     os.kill(job, 0)  # the job is alive, its sweep is not
-    again = _run(cmd, env)
+    again = _run(cmd, env, "steps=2")  # trial 0 keeps its 30 steps; trial 1 needs no more
     assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
     assert "trial 0 is still running (its job (pid " in again.stdout
     assert "trial 0 ended while waited for: " in again.stdout
@@ -168,7 +168,7 @@ def test_a_sweep_gives_up_a_trial_whose_job_is_gone_and_asks_its_parameters_agai
     sweep, cmd, env, job = _launch_and_kill_driver(tmp_path, "steps=40", "step_s=0.5")
     os.kill(job, signal.SIGKILL)
     time.sleep(0.5)
-    again = _run(cmd, env)
+    again = _run(cmd, env, "steps=2")  # the long steps only kept trial 0 alive to be killed
     assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
     assert f"trial 0 was cut short (its job (pid {job} on " in again.stdout
     trials = _trials(sweep)

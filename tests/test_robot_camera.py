@@ -136,6 +136,9 @@ def test_through_librealsense_live_and_recorded_onto_the_depth_topic(bundle, tmp
     print(out)
     assert proc.returncode == 0 and "[camera] done: 8 frames" in out, out
     assert "1 images mostly invalid" in out
+    # the replay waited for this test's reader before its first frame (best-effort: a frame
+    # written before discovery is lost; frame 0 went missing on a loaded machine before)
+    assert "replay starts with 1 reader(s)" in out, out
     assert sorted(seen) == list(range(8)), sorted(seen)
     for k in range(8):
         assert seen[k].shape == (spec["depth"]["height"], spec["depth"]["width"])

@@ -158,8 +158,16 @@ class SensorFrames:
         self.pinhole = Pinhole.of_realsense(self.profile.get_intrinsics())
         self.queue = rs.frame_queue(64, keep_frames=True)
         self.pace, self.first = pace, None  # pace: a recording, read as fast as it is taken
-        sensor.open(self.profile)
-        sensor.start(self.queue)
+        self.started = False
+        if not pace:  # a live sensor streams at once; a recording waits for start()
+            self.start()
+
+    def start(self) -> None:
+        """Stream into the queue (a recording's playback begins here), once."""
+        if not self.started:
+            self.sensor.open(self.profile)
+            self.sensor.start(self.queue)
+            self.started = True
 
     def next(self, timeout_s: float) -> tuple[int, np.ndarray] | None:
         try:
@@ -208,14 +216,26 @@ def serve(
     interface: str,
     seconds: float = math.inf,
     idle_s: float = 2.0,
+    wait_for_reader_s: float = 5.0,
 ) -> dict[str, float]:
     """Publish every frame until ``seconds`` pass, SIGINT / SIGTERM, or ``idle_s`` without one
-    (a recording's end, an unplugged camera)."""
+    (a recording's end, an unplugged camera). A recording not yet started replays once a reader
+    of the topic is matched, or after ``wait_for_reader_s`` without one."""
     from march.robot import dds
     from march.robot.wire_checks import depth_invalid_flag
 
     dp = dds.participant(domain, interface)
     out = dds.writer(dp, dds.DEPTH_TOPIC, dds.DepthImage_)
+    if not frames.started:
+        # A recording's replay waits (up to wait_for_reader_s) for a reader of the topic to be
+        # discovered before its first frame: best-effort samples written before discovery are
+        # lost, so a consumer started with the replay missed its first frames on a busy machine.
+        end = time.monotonic() + wait_for_reader_s
+        while not out.get_matched_subscriptions() and time.monotonic() < end:
+            time.sleep(0.01)
+        readers = len(out.get_matched_subscriptions())
+        print(f"[camera] replay starts with {readers} reader(s) of {dds.DEPTH_TOPIC}", flush=True)
+        frames.start()
     stop = {"flag": False}
 
     def on_signal(signum, frame):  # noqa: ARG001
@@ -257,6 +277,7 @@ def main(args: dict[str, Any]) -> int:
             args.get("domain", 0),
             args.get("interface", "eth0"),
             args.get("seconds", math.inf),
+            wait_for_reader_s=float(args.get("wait_for_reader_s", 5.0)),
         )
     finally:
         frames.close()

@@ -21,7 +21,8 @@ the command re-sent at 200 Hz). ``sim``: the MuJoCo robot
 (:mod:`march.robot.supervisor`): damps when the policy's LowCmds stop (``timeout_s``) or go
 invalid (``policy_pid=``: kill that process first). ``camera`` (:mod:`march.robot.camera`):
 publishes the depth topic from a RealSense (``source=realsense``) or a recording
-(``source=file file=<.bag or .npz>``), preprocessed as in training. ``sim cmd_timeout=S``: the
+(``source=file file=<.bag or .npz>``; a replay starts once a reader of the topic is matched,
+``wait_for_reader_s``, default 5), preprocessed as in training. ``sim cmd_timeout=S``: the
 simulated motors damp after S s without a valid LowCmd.
 Bad input is one line on stderr and exit status 2, before anything starts.
 """
@@ -51,6 +52,7 @@ KEYS: dict[str, Any] = {
     "domain": int,
     "interface": str,
     "seconds": float,
+    "wait_for_reader_s": float,
     "start": str,
     "guard": str,
     "deadlines": str,
@@ -82,7 +84,7 @@ ALLOWED = {
             "cmd_timeout"},
     "selftest": {"bundle", "domain", "interface", "seconds", "guard", "deadlines", "course", "keep"},
     "supervisor": {"bundle", "domain", "interface", "seconds", "timeout_s", "policy_pid"},
-    "camera": {"bundle", "domain", "interface", "seconds", "source", "file", "fps"},
+    "camera": {"bundle", "domain", "interface", "seconds", "source", "file", "fps", "wait_for_reader_s"},
 }  # fmt: skip
 
 
@@ -110,6 +112,7 @@ def parse(argv: Sequence[str]) -> tuple[str, dict[str, Any]]:
     checks = {
         "domain": lambda v: 0 <= v <= 232,
         "seconds": lambda v: v > 0,
+        "wait_for_reader_s": lambda v: 0 <= v <= 600,
         "start": lambda v: v in ("enter", "auto"),
         "guard": lambda v: v in ("damp", "report"),
         "deadlines": lambda v: v in ("damp", "report"),
