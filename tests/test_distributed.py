@@ -636,7 +636,11 @@ def _hung_rank(rank: int, port: int, out: str) -> None:
     )
     distributed.init("cpu", timeout_s=3)
     if rank == 1:  # alive, but never joins the collective (a stuck or stopped process)
-        time.sleep(20)
+        done = Path(out, "rank0.txt")
+        for _ in range(1200):  # until rank 0 has given up on it (at most 60 s)
+            if done.exists():
+                break
+            time.sleep(0.05)
         os._exit(0)
     try:
         distributed.mean_over_ranks({"x": 1.0})
