@@ -292,10 +292,13 @@ def main(dcfg: DictConfig) -> float | None:
         dcfg = resolve_compute(dcfg, overrides)
         import_extra_modules(dcfg.get("extra_modules") or [])  # plug-ins before the checks
         cfg = to_march_config(dcfg)
-        check_terms(cfg)  # every reward term known, its params valid (one line)
         _check_inputs(cfg)
         if not cfg.resume:  # a resumed run continues with its saved (already applied) config
             cfg, notes = apply_policy_checkpoint(cfg, overrides)
+        # Every reward term known, its params valid (one line). After the files and the
+        # checkpoint: the term registry imports the simulator (~5 s), so a missing file or a
+        # refused checkpoint is told in ~2 s, and the terms checked are the ones that will run.
+        check_terms(cfg)
     except (ConfigError, CheckpointError) as err:
         job_dir = Path(hc.runtime.output_dir)
         if hc.mode == RunMode.MULTIRUN:
