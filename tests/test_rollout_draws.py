@@ -96,3 +96,23 @@ def test_samplers_are_restored_after_an_error_inside(env):
         _ = 1 / 0
     assert (torch.rand, torch.Tensor.uniform_) == before[:2]
     assert env._reset_idx == before[2] and not hasattr(env, "rollout_draws")
+
+
+def test_distribution_samples_are_keyed_by_rollout_too(env):
+    """torch.distributions' Normal (torch.normal) and torch.bernoulli, as a stochastic policy
+    would draw them: the same rollout's numbers in any row, another rollout's elsewhere."""
+    n = env.num_envs
+
+    def draw():
+        normal = torch.distributions.Normal(torch.zeros(n, 3), torch.ones(n, 3)).sample()
+        coins = torch.bernoulli(torch.full((n, 64), 0.5))
+        return normal, coins
+
+    with keyed_draws(env, SEED) as draws:
+        draws.streams.assign(SEED, 0)
+        a, coins = draw()
+        draws.streams.assign(SEED, 2)
+        b, coins2 = draw()
+    assert torch.equal(a[2:4], b[0:2]) and torch.equal(coins[2:4], coins2[0:2])
+    assert not torch.equal(a[0], a[1]) and set(coins.unique().tolist()) == {0.0, 1.0}
+    assert 0.3 < coins.mean().item() < 0.7  # 256 fair coins: 6 standard errors either side

@@ -40,11 +40,13 @@ from march.keyed_random import RowStreams
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv
 
-KEYED_SAMPLERS = ("rand", "randn", "randint", "rand_like", "randn_like", "randint_like")
+KEYED_SAMPLERS = (
+    "rand", "randn", "randint", "rand_like", "randn_like", "randint_like", "normal", "bernoulli"
+)  # fmt: skip
 """torch functions with a keyed form inside :func:`keyed_draws`."""
 KEYED_METHODS = ("uniform_", "normal_")
 """Tensor methods with a keyed form."""
-REFUSED_SAMPLERS = ("randperm", "bernoulli", "multinomial", "normal", "poisson")
+REFUSED_SAMPLERS = ("randperm", "multinomial", "poisson")
 REFUSED_METHODS = ("random_", "bernoulli_", "exponential_", "geometric_", "log_normal_", "cauchy_")
 """torch samplers without a keyed form: refused inside :func:`keyed_draws`."""
 
@@ -197,6 +199,22 @@ def _patched(draws: KeyedDraws) -> dict[tuple[Any, str], Callable]:
         )
         return on_device(out, device or x.device)
 
+    def normal(mean, std=1.0, *args, out=None, **_):
+        """torch.normal(mean, std) with a tensor mean or std (torch.distributions.Normal's
+        sample); the (float, float, size) form has no batch to key and is refused."""
+        if not isinstance(mean, torch.Tensor) and not isinstance(std, torch.Tensor):
+            refuse("torch.normal(float, float, size)")()
+        shape = torch.broadcast_shapes(
+            *(t.shape for t in (mean, std) if isinstance(t, torch.Tensor))
+        )
+        like = mean if isinstance(mean, torch.Tensor) else std
+        z = draws.normal(tuple(shape), like.dtype, "torch.normal").to(like.device)
+        return on_device(z * std + mean, None, out)
+
+    def bernoulli(p, *args, out=None, **_):
+        u = draws.uniform(tuple(p.shape), p.dtype, "torch.bernoulli").to(p.device)
+        return on_device((u < p).to(p.dtype), None, out)
+
     def uniform_(self, a=0.0, b=1.0, *, generator=None, **kw):
         a, b = kw.get("from", a), kw.get("to", b)
         u = draws.uniform(tuple(self.shape), self.dtype, "Tensor.uniform_")
@@ -222,6 +240,8 @@ def _patched(draws: KeyedDraws) -> dict[tuple[Any, str], Callable]:
         (torch, "rand_like"): rand_like,
         (torch, "randn_like"): randn_like,
         (torch, "randint_like"): randint_like,
+        (torch, "normal"): normal,
+        (torch, "bernoulli"): bernoulli,
         (torch.Tensor, "uniform_"): uniform_,
         (torch.Tensor, "normal_"): normal_,
     }
