@@ -150,6 +150,14 @@ def _robot(*words: str, **kw) -> subprocess.CompletedProcess:
     )
 
 
+# The self-tests run the policy loop against the simulated robot in real time (50 Hz, a 2 s
+# LowState watchdog): on 2 cores under the default suite's two xdist workers the loop can miss
+# 100 deadlines in a row and its watchdog damps first (seen in a random-order run). They run in
+# `make robot-check`, one process at a time, with the fault matrix.
+REAL_TIME = pytest.mark.slow
+
+
+@REAL_TIME
 def test_selftest_agrees_with_sim2sim(bundle, tmp_path):
     res = _robot(
         "selftest", f"bundle={bundle.parent}", "seconds=2", f"keep={tmp_path}", f"domain={DOMAIN}"
@@ -205,6 +213,7 @@ def test_selftest_agrees_with_sim2sim(bundle, tmp_path):
     assert motor_commands(b, log, raised, actions)["gain_diff"] > 0.3
 
 
+@REAL_TIME
 def test_selftest_with_the_guard_on_damps_the_smoke_student(bundle):
     res = _robot(
         "selftest", f"bundle={bundle.parent}", "seconds=2", "guard=damp", f"domain={DOMAIN + 1}"
