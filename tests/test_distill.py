@@ -35,6 +35,13 @@ def student_env():
 
 
 def _runner(env, variant: str, smoke_run: Path, run_dir: Path) -> DistillRunner:
+    """A runner on the module's env, from the same state whatever ran before in this process
+    (a random test order): the env's own random states reseeded, torch seeded, every env reset."""
+    from march.env.build import reseed_env
+
+    reseed_env(env, 0)
+    torch.manual_seed(0)
+    env.reset()
     teacher = smoke_run / "teacher" / "latest.pt"
     cfg = load([*OVERRIDES, f"student={variant}", f"teacher_ckpt={teacher}", "stage=student"])
     payload = load_checkpoint(teacher, "teacher")

@@ -307,10 +307,16 @@ def test_g1_stands_on_the_start_platform(clf_env):
 def _served_per_step(env, capacity: int, steps: int) -> dict[str, list[int]]:
     """Zero-action steps from a reset with the reference term's planner batch set to
     ``capacity``: per step, the touchdowns + timeouts served, the ones waiting, the resets."""
+    from march.env.build import reseed_env
+
     term = env.command_manager.get_term("reference")
     saved = term.queue.capacity
     term.queue.capacity = capacity
     try:
+        # The same start whatever ran before on this module's env (a random test order): the
+        # planner's generator and torch seeded, queued replans dropped, every env reset.
+        reseed_env(env, 0)
+        torch.manual_seed(0)
         env.reset()
         zeros = torch.zeros(env.num_envs, env.action_manager.total_action_dim)
         served, waiting, resets = [], [], []
