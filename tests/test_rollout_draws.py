@@ -48,6 +48,8 @@ def _wave_inputs(env, first: int) -> dict[str, torch.Tensor]:
         n_act = env.action_manager.total_action_dim
         obs, *_ = env.step(torch.zeros(env.num_envs, n_act))
         out.update({f"step/{g}": v.clone() for g, v in obs.items()})
+        # every reward term of that step (the CLF terms read the model's body masses)
+        out["step/reward_terms"] = env.reward_manager._step_reward.clone()
     return out
 
 

@@ -404,8 +404,8 @@ class ReferenceCommand(CommandTerm):
         )
 
     def _masses(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """(W|1, B) robot body masses and their (W|1, 1) sums, kept after the first call: domain
-        randomization changes masses at startup only (march.env.randomization)."""
+        """(W|1, B) robot body masses and their (W|1, 1) sums, kept after the first call: DR
+        changes masses at startup only (an evaluation's waves drop it: march.env.rollout_draws)."""
         if getattr(self, "_mass_cache", None) is None:
             self._mass_cache = body_masses(self._env, self._body_ids)
         return self._mass_cache
