@@ -194,3 +194,31 @@ def test_share_groups_cover_every_output_once(model):
     np.testing.assert_allclose(groups["CoM"].to_numpy(), shares[:, com].sum(1))
     sw = [names.index(k) for k in ("swing_roll", "swing_pitch", "swing_yaw")]
     np.testing.assert_allclose(groups["swing orientation"].to_numpy(), shares[:, sw].sum(1))
+
+
+def test_the_sums_of_two_processes_pool_to_the_columns_of_all_their_samples():
+    """An evaluation over 2 ranks: each rank's raw sums added give the columns of one meter fed
+    every sample (quantiles of the pooled histogram); the mean of the two ranks' quantiles,
+    what was logged before, is another number."""
+    from march.clf.diagnostics import ClfStats
+
+    names = ["a", "b", "c"]
+    gen = torch.Generator().manual_seed(0)
+    ranks = [ClfStats(names, 2.0, "cpu") for _ in range(2)]
+    whole = ClfStats(names, 2.0, "cpu")
+    for r, scale in enumerate((0.1, 10.0)):  # one rank's V small, the other's large
+        for _ in range(20):
+            terms = torch.rand(16, 3, generator=gen) * scale
+            v = terms.sum(-1)
+            valid = torch.rand(16, generator=gen) > 0.3
+            ranks[r].add(v, terms, valid)
+            whole.add(v, terms, valid)
+    parts = [s.pop_sums() for s in ranks]
+    pooled = ranks[0].row([sum(x) for x in zip(*parts, strict=True)])
+    direct = whole.pop()
+    assert pooled.keys() == direct.keys()
+    for key, value in direct.items():
+        assert pooled[key] == pytest.approx(value, rel=1e-12), key
+    alone = [ranks[0].row(p) for p in parts]
+    mean_p50 = (alone[0]["clf/v_p50"] + alone[1]["clf/v_p50"]) / 2
+    assert abs(mean_p50 - direct["clf/v_p50"]) > 0.1 * direct["clf/v_p50"]

@@ -135,8 +135,17 @@ class ClfStats:
 
     def pop(self) -> dict[str, float]:
         """This interval's columns (``clf/...``; NaN without samples), then start over."""
+        return self.row(self.pop_sums())
+
+    def pop_sums(self) -> list[float]:
+        """This interval's raw sums (histogram counts, counts, share sums), then start over: the
+        sums of several processes add up to the sums of their samples pooled (:meth:`row`)."""
         values = self._sums.tolist()  # the one host read
         self._sums.zero_()
+        return values
+
+    def row(self, values: Sequence[float]) -> dict[str, float]:
+        """The ``clf/...`` columns of raw sums (:meth:`pop_sums`, or several added up)."""
         b = self._n_bins
         counts = values[:b]
         saturated, valid, samples, positive = values[b : b + 4]

@@ -59,3 +59,15 @@ def pop_clf(env: Any) -> dict[str, float]:
     """The ``clf/...`` columns of ``env`` (unwrapped or rsl-rl-wrapped), or {} without a meter."""
     meter = getattr(getattr(env, "unwrapped", env), "clf_meter", None)
     return meter.pop() if meter is not None else {}
+
+
+def pop_clf_pooled(env: Any, gather: Any) -> dict[str, float]:
+    """:func:`pop_clf` of the samples of every process pooled: ``gather(obj)`` returns every
+    rank's ``obj`` (march.learn.distributed.gather_objects); the raw sums are added, then the
+    columns computed, so N ranks give the quantiles of all their samples (not a mean of
+    quantiles) and one rank gives :func:`pop_clf`'s."""
+    meter = getattr(getattr(env, "unwrapped", env), "clf_meter", None)
+    if meter is None:
+        return {}
+    parts = gather(meter.stats.pop_sums())
+    return meter.stats.row([sum(values) for values in zip(*parts, strict=True)])

@@ -52,7 +52,7 @@ import torch
 
 from march.config import MarchConfig
 from march.env.build import SUCCESS_TERMINATION, reseed_env
-from march.env.clf_meter import pop_clf
+from march.env.clf_meter import pop_clf, pop_clf_pooled
 from march.env.course import CourseRuler, assign_eval_cells, eval_cells
 from march.env.depth import camera_paused
 from march.env.rollout_draws import KeyedDraws, keyed_draws
@@ -390,7 +390,8 @@ def evaluate(
     pop_clf(env)  # the CLF diagnostics of this evaluation's rollouts only (clf_meter)
     with nullcontext() if sees_depth else camera_paused(env):
         per = sharded_rollouts(env, policy, num_rollouts, rollout_metrics)  # N ranks: waves
-    clf = distributed.mean_over_ranks(pop_clf(env))  # {} without the reference command
+    # {} without the reference command; every rank's samples pooled (quantiles of all of them)
+    clf = pop_clf_pooled(env, distributed.gather_objects)
     row = {
         "stage": stage,
         "iteration": iteration,
