@@ -24,6 +24,7 @@ import torch.multiprocessing as mp
 from march.evaluation.sharding import rank_waves, waves
 from march.learn import distributed
 from march.learn.distributed import Dist, rank_seed
+from march.store.checkpoint import state_differences
 
 ROOT = Path(__file__).resolve().parent.parent
 TORCHRUN = str(Path(sys.executable).with_name("torchrun"))
@@ -432,18 +433,6 @@ def test_kill_and_resume_of_a_two_rank_run(tmp_path):
     assert '"done"' in (run / "status.json").read_text()
 
 
-def _same(a, b, where: str = "state") -> list[str]:
-    """Where two nested checkpoint entries differ (tensors compared exactly)."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        if a.keys() != b.keys():
-            return [f"{where}: keys {sorted(a)} vs {sorted(b)}"]
-        return [d for k in a for d in _same(a[k], b[k], f"{where}.{k}")]
-    if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
-        ok = a.shape == b.shape and a.dtype == b.dtype and torch.equal(a, b)
-        return [] if ok else [where]
-    return [] if a == b else [where]
-
-
 @pytest.mark.sim
 @pytest.mark.slow
 def test_a_dead_rank_stops_the_other_and_each_rank_resumes_its_own_state(tmp_path):
@@ -508,8 +497,8 @@ def test_a_dead_rank_stops_the_other_and_each_rank_resumes_its_own_state(tmp_pat
     before = [torch.load(trace / f"first_teacher_save_{at}_rank{r}.pt") for r in (0, 1)]
     after = [torch.load(trace / f"resumed_teacher_restored_{at}_rank{r}.pt") for r in (0, 1)]
     for r in (0, 1):  # each rank's levels, clocks, commands and every stream, exactly
-        assert _same(before[r], after[r]) == [], f"rank {r}"
-    differ = _same(before[0], before[1])
+        assert state_differences(before[r], after[r]) == [], f"rank {r}"
+    differ = state_differences(before[0], before[1])
     assert "state.streams.torch" in differ and "state.streams.numpy.keys" in differ, differ
     assert "state.streams.planner" in differ and "state.episode.episode_length_buf" in differ
     for k in range(1, 4 - at):  # the ranks' rollouts after the resume still differ

@@ -50,14 +50,7 @@ def student_layout(obs: dict[str, Any], cfg: MarchConfig, num_actions: int) -> d
 
 
 def build_student(cfg: MarchConfig, layout: dict[str, Any], device: str) -> StudentPolicy:
-    return StudentPolicy(
-        cfg.student,
-        proprio_dim=layout["proprio_dim"],
-        history_len=layout["history_len"],
-        command_dim=3,
-        image_hw=tuple(layout["image_hw"]),
-        num_actions=layout["num_actions"],
-    ).to(device)
+    return StudentPolicy.from_layout(cfg.student, layout).to(device)
 
 
 def load_student(

@@ -31,6 +31,8 @@ nothing reads it: no CNN, no image tokens.
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 import torch.nn.functional as F
 from rsl_rl.modules.normalization import EmpiricalNormalization
@@ -58,6 +60,19 @@ def _part(kind: str, name: str) -> object:
 
 class StudentPolicy(nn.Module):
     """Depth-image + proprioception student; see the module docstring for the three variants."""
+
+    @classmethod
+    def from_layout(cls, cfg: StudentCfg, layout: dict[str, Any]) -> StudentPolicy:
+        """The student a checkpoint's ``layout`` describes (its sizes), on torch's default device
+        (the gate builds it under ``torch.device("meta")``: no weights allocated)."""
+        return cls(
+            cfg,
+            proprio_dim=layout["proprio_dim"],
+            history_len=layout["history_len"],
+            command_dim=3,
+            image_hw=tuple(layout["image_hw"]),
+            num_actions=layout["num_actions"],
+        )
 
     def __init__(
         self,

@@ -20,7 +20,6 @@ along the student camera's axis (``deploy.json`` ``depth.pose_meaning``); docs/d
 from __future__ import annotations
 
 import math
-import signal
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -222,6 +221,7 @@ def serve(
     (a recording's end, an unplugged camera). A recording not yet started replays once a reader
     of the topic is matched, or after ``wait_for_reader_s`` without one."""
     from march.robot import dds
+    from march.robot.signals import stop_on_signals
     from march.robot.wire_checks import depth_invalid_flag
 
     dp = dds.participant(domain, interface)
@@ -236,13 +236,7 @@ def serve(
         readers = len(out.get_matched_subscriptions())
         print(f"[camera] replay starts with {readers} reader(s) of {dds.DEPTH_TOPIC}", flush=True)
         frames.start()
-    stop = {"flag": False}
-
-    def on_signal(signum, frame):  # noqa: ARG001
-        stop["flag"] = True
-
-    for s in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(s, on_signal)
+    stop, _ = stop_on_signals()
     t0 = time.perf_counter()
     n, mostly, invalid = 0, 0, 0.0
     h, w = pre.student.height, pre.student.width

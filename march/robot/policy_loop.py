@@ -25,6 +25,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from march.robot import hg
+from march.robot.signals import stop_on_signals
 from march.robot.states import (
     DAMPING,
     DONE,
@@ -409,12 +410,7 @@ def run(
     cmd_writer = dds.writer(dp, dep["lowcmd_topic"], hg.LowCmd_)
     hw = (int(ctl.depth["height"]), int(ctl.depth["width"]))
     source = depth or DdsDepth(dds.Latest(dp, dds.DEPTH_TOPIC, dds.DepthImage_), *hw)
-    stop = {"flag": False}
-
-    def on_signal(signum, frame):  # noqa: ARG001
-        stop["flag"] = True
-
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    stop, old = stop_on_signals()
     enter = _stdin_lines() if start == "enter" else None
     period = float(dep["deadline"]["period_s"])
     t0 = time.perf_counter()

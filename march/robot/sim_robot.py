@@ -27,7 +27,6 @@ keeps the last command, as a motor driver without a timeout does.
 from __future__ import annotations
 
 import math
-import signal
 import time
 from pathlib import Path
 
@@ -35,6 +34,7 @@ import mujoco
 import numpy as np
 
 from march.robot import dds, hg
+from march.robot.signals import stop_on_signals
 from march.sim2sim.deploy_bundle import Bundle
 from march.sim2sim.runner import Sim2Sim
 
@@ -191,13 +191,7 @@ def serve(
     state_w = dds.writer(dp, dep["lowstate_topic"], hg.LowState_)
     depth_w = dds.writer(dp, dds.DEPTH_TOPIC, dds.DepthImage_)
     cmd_box = dds.Latest(dp, dep["lowcmd_topic"], hg.LowCmd_)
-    stop = {"flag": False}
-
-    def on_signal(signum, frame):  # noqa: ARG001
-        stop["flag"] = True
-
-    for s in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(s, on_signal)
+    stop, _ = stop_on_signals()
     dt = robot.model.opt.timestep
     t0 = time.perf_counter()
     seen = 0

@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from march.robot import dds, hg
+from march.robot.signals import stop_on_signals
 from march.robot.wire_checks import Limits, command_fault, damping_lowcmd
 from march.sim2sim.bundle_schema import SchemaError, check_spec
 from march.sim2sim.deploy_bundle import UsageError
@@ -117,13 +118,7 @@ def serve(
     cmds = dds.Latest(dp, dep["lowcmd_topic"], hg.LowCmd_, qos=dds.best_effort(64))
     states = dds.Latest(dp, dep["lowstate_topic"], hg.LowState_)
     out = dds.writer(dp, dep["lowcmd_topic"], hg.LowCmd_)
-    stop = {"flag": False}
-
-    def on_signal(signum, frame):  # noqa: ARG001
-        stop["flag"] = True
-
-    for s in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(s, on_signal)
+    stop, _ = stop_on_signals()
     period = float(dep["deadline"]["period_s"])
     t0 = time.perf_counter()
     print(

@@ -376,3 +376,17 @@ def check_layout(
             f"{what} checkpoint {path} does not fit this config ({'; '.join(diffs)}); "
             "use the config it was trained with (its 'config' entry) or train a new one"
         )
+
+
+def state_differences(a: Any, b: Any, where: str = "state") -> list[str]:
+    """Where two nested checkpoint entries (dicts, tensors, plain values) differ: each path, or
+    a path with both key lists where the keys differ; tensors are compared exactly (shape,
+    dtype, values). [] when they are the same (a resumed rank's state against the saved one)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        if a.keys() != b.keys():
+            return [f"{where}: keys {sorted(a)} vs {sorted(b)}"]
+        return [d for k in a for d in state_differences(a[k], b[k], f"{where}.{k}")]
+    if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
+        ok = a.shape == b.shape and a.dtype == b.dtype and torch.equal(a, b)
+        return [] if ok else [where]
+    return [] if a == b else [where]

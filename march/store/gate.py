@@ -152,14 +152,7 @@ def _expected_network(payload: dict[str, Any], kind: str, cfg: MarchConfig) -> t
     lay = payload["layout"]
     with torch.device("meta"):
         if kind == "student":
-            return StudentPolicy(
-                cfg.student,
-                proprio_dim=lay["proprio_dim"],
-                history_len=lay["history_len"],
-                command_dim=3,
-                image_hw=tuple(lay["image_hw"]),
-                num_actions=lay["num_actions"],
-            )
+            return StudentPolicy.from_layout(cfg.student, lay)
         actor_cfg = copy.deepcopy(payload["ppo"]["actor"])  # rsl-rl pops from nested dicts
         actor_cfg.pop("class_name", None)
         obs = TensorDict({"actor": torch.zeros(1, lay["actor_obs_dim"])}, batch_size=[1])

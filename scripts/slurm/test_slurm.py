@@ -44,9 +44,7 @@ import sys
 import time
 from collections import Counter
 from pathlib import Path
-from typing import Any
 
-import torch
 from omegaconf import OmegaConf
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -220,18 +218,6 @@ def wait_for(launcher: subprocess.Popen, deadline: float, timeout_min: float) ->
         launcher.wait(30)
 
 
-def _same(a: Any, b: Any, where: str = "state") -> list[str]:
-    """Where two nested per-rank states differ (tensors compared exactly)."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        if a.keys() != b.keys():
-            return [f"{where}: keys {sorted(a)} vs {sorted(b)}"]
-        return [d for k in a for d in _same(a[k], b[k], f"{where}.{k}")]
-    if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
-        ok = a.shape == b.shape and a.dtype == b.dtype and torch.equal(a, b)
-        return [] if ok else [where]
-    return [] if a == b else [where]
-
-
 def check_own_states(checks: Checks, name: str, trace: Path, text: str) -> None:
     """After the requeue each rank restored exactly what it saved at that iteration, and the two
     ranks' states differ (tests/ddp_trace.py wrote both)."""
@@ -239,7 +225,7 @@ def check_own_states(checks: Checks, name: str, trace: Path, text: str) -> None:
     if not checks.check(bool(found), f"{name}: the teacher resumed {found}"):
         return
     at = int(found[-1])
-    from march.store.checkpoint import CheckpointError, load_plain_file
+    from march.store.checkpoint import CheckpointError, load_plain_file, state_differences
 
     try:
         saved = [load_plain_file(trace / f"teacher_save_{at}_rank{r}.pt", "trace") for r in (0, 1)]
@@ -250,11 +236,11 @@ def check_own_states(checks: Checks, name: str, trace: Path, text: str) -> None:
         checks.check(False, f"{name}: rank traces of iteration {at} ({err})")
         return
     for r in (0, 1):
-        diff = _same(saved[r], restored[r])
+        diff = state_differences(saved[r], restored[r])
         checks.check(
             not diff, f"{name}: rank {r} restored its own state of iteration {at} {diff or ''}"
         )
-    differ = _same(saved[0], saved[1])
+    differ = state_differences(saved[0], saved[1])
     checks.check(
         "state.streams.torch" in differ and "state.episode.episode_length_buf" in differ,
         f"{name}: the two ranks' states differ ({len(differ)} entries, e.g. {differ[:2]})",
