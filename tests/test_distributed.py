@@ -521,11 +521,16 @@ def test_a_dead_rank_stops_the_other_and_each_rank_resumes_its_own_state(tmp_pat
 def _sbatch_script(launcher: str, *overrides: str) -> str:
     """The sbatch file Hydra's submitit launcher submits for ``hydra/launcher=<launcher>``: the
     composed launcher config turned into submitit's parameters as the launcher turns them
-    (``hydra_submitit_launcher.submitit_launcher.BaseSubmititLauncher.launch``)."""
+    (``hydra_submitit_launcher.submitit_launcher.BaseSubmititLauncher.launch``), rendered by
+    submitit itself. No Slurm needed: submitit's executor refuses to be built where ``srun`` is
+    not on the PATH (``SlurmExecutor.affinity``, its only look at the machine before a
+    submission), so that probe answers "Slurm here" while the script is rendered; sbatch is
+    never called."""
     from hydra import compose, initialize_config_dir
     from hydra_plugins.hydra_submitit_launcher.config import BaseQueueConf
     from omegaconf import OmegaConf
     from submitit import AutoExecutor
+    from submitit.slurm.slurm import SlurmExecutor
 
     import march.config  # noqa: F401 - registers the schema conf/config.yaml extends
 
@@ -538,11 +543,13 @@ def _sbatch_script(launcher: str, *overrides: str) -> str:
     cfg.hydra.job.name = "train"
     params = OmegaConf.to_container(cfg.hydra.launcher, resolve=True)
     del params["_target_"]
-    executor = AutoExecutor(
-        folder=params.pop("submitit_folder"),
-        cluster="slurm",
-        slurm_max_num_timeout=params.pop("max_num_timeout"),
-    )
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(SlurmExecutor, "affinity", classmethod(lambda cls: 2))
+        executor = AutoExecutor(
+            folder=params.pop("submitit_folder"),
+            cluster="slurm",
+            slurm_max_num_timeout=params.pop("max_num_timeout"),
+        )
     base = set(OmegaConf.structured(BaseQueueConf).keys())
     executor.update_parameters(**{k if k in base else f"slurm_{k}": v for k, v in params.items()})
     return executor._executor._make_submission_file_text("python -m march.train", "uid")

@@ -10,7 +10,10 @@ Allowed: a hang guard that compares a clock reading with a deadline read from th
 from __future__ import annotations
 
 import ast
+import os
 import re
+import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -245,3 +248,50 @@ def test_the_docs_build_fails_on_a_broken_anchor():
     build = next(ln for ln in recipe.splitlines() if ln.startswith("\t") and "mkdocs build" in ln)
     flags = build.split("mkdocs build", 1)[1].split()
     assert "--strict" in flags and not {"--quiet", "-q", "--verbose", "-v"} & set(flags), build
+
+
+# -- programs the project does not install (issue 60) -------------------------------------------
+
+
+def test_programs_the_project_does_not_install_are_hidden_from_every_test():
+    """In the suite neither shutil.which nor a process a test starts finds srun, sbatch, ffmpeg
+    or a browser, also on a machine where they are installed: a test that needs one fails
+    everywhere, not only on a newcomer's machine (conftest.NOT_INSTALLED)."""
+    from conftest import NOT_INSTALLED
+
+    assert {"srun", "sbatch", "ffmpeg", "chromium"} <= set(NOT_INSTALLED)
+    assert [p for p in NOT_INSTALLED if shutil.which(p)] == []
+    names = " ".join(NOT_INSTALLED)
+    out = subprocess.run(
+        ["bash", "-c", f"for p in {names}; do command -v $p; done; command -v sh"],
+        capture_output=True,
+        text=True,
+    )
+    assert out.stdout.split() == [shutil.which("sh")], out.stdout
+
+
+def test_a_planted_srun_is_hidden_and_the_rest_of_its_folder_kept(tmp_path):
+    """A Slurm machine's /usr/bin (srun beside sh), a venv's bin/ (python): srun goes, sh and the
+    venv's folder stay as they are."""
+    from conftest import NOT_INSTALLED, hidden_path
+
+    usr, venv = tmp_path / "usr_bin", tmp_path / "venv_bin"
+    for folder, names in ((usr, ("srun", "sbatch", "sh")), (venv, ("python",))):
+        folder.mkdir()
+        for name in names:
+            (folder / name).write_text("#!/bin/sh\n")
+            (folder / name).chmod(0o755)
+    path = os.pathsep.join([str(venv), str(usr)])
+    assert shutil.which("srun", path=path) == str(usr / "srun")  # the plant is found without
+    hidden = hidden_path(path, NOT_INSTALLED, tmp_path / "shadow")
+    assert shutil.which("srun", path=hidden) is None
+    assert shutil.which("sbatch", path=hidden) is None
+    assert Path(shutil.which("sh", path=hidden)).resolve() == usr / "sh"
+    assert hidden.split(os.pathsep)[0] == str(venv)
+
+
+@pytest.mark.needs_program("srun", "sbatch")
+def test_a_test_marked_needs_program_gets_the_real_path():
+    """Where Slurm is installed (``make test-slurm``) this runs and sees srun; elsewhere it is
+    skipped with one line naming the make target."""
+    assert shutil.which("srun") and shutil.which("sbatch")
