@@ -12,6 +12,12 @@ before any env is built. The modules that define terms are imported by name
 ``extra_modules``. That is the only way this room reaches the env: by a module name, as a
 plug-in, never by a static import.
 
+Checking a config needs only each term's name, parameter names and needs, not its function:
+:func:`check_terms` knows march's own terms from :data:`march.config.term_table.BUILTIN_TERMS`
+(generated from this registry, compared with it by a test) and imports only ``extra_modules``,
+so a tool that refuses its config does so without importing the simulator (~5 s a process).
+The env imports march's term modules for real; their registrations replace the table's entries.
+
 Pure data: no simulator import.
 """
 
@@ -20,6 +26,7 @@ from __future__ import annotations
 import importlib
 import inspect
 import math
+import sys
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -39,31 +46,75 @@ NEEDS = {
 """What a term may declare it needs, and what the env provides for it."""
 
 
+FUNCTION_DEFAULT = "(the function's default)"
+"""A table entry's value for a parameter the function gives a default (the value itself lives
+in the function, known once its module is imported)."""
+
+
 @dataclass(frozen=True)
 class TermSpec:
-    """One registered reward term."""
+    """One registered reward term (``func`` None: an entry of march's term table, its function
+    not imported yet; ``table`` then holds what its signature says)."""
 
     name: str
-    func: Callable[..., Any]
+    func: Callable[..., Any] | None
     params: dict[str, Any] = field(default_factory=dict)
     """Default keyword arguments (a YAML's ``params`` overrides them key by key)."""
     needs: frozenset[str] = frozenset()
     """What the term reads beyond mjlab's robot and scene (keys of :data:`NEEDS`)."""
     doc: str = ""
+    table: Mapping[str, Any] | None = None
+    """A table entry (:func:`table_entry`) standing for the function until it is imported."""
 
     @property
     def origin(self) -> str:
+        if self.table is not None:
+            return self.table["origin"]
         return f"{getattr(self.func, '__module__', '?')}.{getattr(self.func, '__qualname__', '?')}"
 
     def parameters(self) -> dict[str, Any]:
         """Every keyword the function takes (besides the env) -> its value: the registered
-        default, the function's own default, or ``inspect.Parameter.empty`` (required)."""
+        default, the function's own default (:data:`FUNCTION_DEFAULT` in a table entry), or
+        ``inspect.Parameter.empty`` (required)."""
+        if self.table is not None:
+            required = set(self.table["required"])
+            return {
+                p: self.params.get(
+                    p, inspect.Parameter.empty if p in required else FUNCTION_DEFAULT
+                )
+                for p in self.table["parameters"]
+            }
         out: dict[str, Any] = {}
         for i, p in enumerate(inspect.signature(self.func).parameters.values()):
             if i == 0 or p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD):
                 continue
             out[p.name] = self.params.get(p.name, p.default)
         return out
+
+    def takes_any(self) -> bool:
+        """The function takes ``**kwargs`` (any params)."""
+        return self.table["takes_any"] if self.table is not None else _takes_any(self.func)
+
+
+def table_entry(spec: TermSpec) -> dict[str, Any]:
+    """What checking a config needs of a term, as plain data (march.config.term_table)."""
+    params = spec.parameters()
+    return {
+        "origin": spec.origin,
+        "parameters": list(params),
+        "required": [k for k, v in params.items() if v is inspect.Parameter.empty],
+        "registered": sorted(spec.params),
+        "needs": sorted(spec.needs),
+        "takes_any": spec.takes_any(),
+        "doc": spec.doc,
+    }
+
+
+def from_table(name: str, entry: Mapping[str, Any]) -> TermSpec:
+    """A table entry as a spec: its registered params by name only (their values are the
+    function's module's, :data:`FUNCTION_DEFAULT` until it is imported)."""
+    params = dict.fromkeys(entry["registered"], FUNCTION_DEFAULT)
+    return TermSpec(name, None, params, frozenset(entry["needs"]), entry["doc"], entry)
 
 
 TERMS: dict[str, TermSpec] = {}
@@ -78,7 +129,7 @@ def register_term(
 ) -> TermSpec:
     """Register ``func`` as the reward term ``name``. A name taken by another function is an
     error (a term means one thing in every arm); the same function again (a module imported
-    twice) replaces itself."""
+    twice) replaces itself, as march's own function replaces its table entry."""
     needs = frozenset(needs)
     unknown = sorted(needs - set(NEEDS))
     if unknown:
@@ -93,7 +144,7 @@ def register_term(
         raise ConfigError(
             f"reward term {name!r} exists already ({old.origin}); choose another name"
         )
-    bad = sorted(set(spec.params) - set(spec.parameters())) if not _takes_any(func) else []
+    bad = sorted(set(spec.params) - set(spec.parameters())) if not spec.takes_any() else []
     if bad:
         raise ConfigError(f"reward term {name!r}: {bad} are not parameters of {spec.origin}")
     TERMS[name] = spec
@@ -127,10 +178,22 @@ def import_term_modules(extra_modules: Iterable[str] = ()) -> None:
     import_extra_modules(extra_modules)
 
 
+def known_terms(extra_modules: Iterable[str] = ()) -> None:
+    """Every term known for checking a config: march's own from the term table where their
+    modules are not imported (nothing of the simulator imported), then ``extra_modules``
+    imported (their registrations are real)."""
+    if not all(m in sys.modules for m in BUILTIN_TERM_MODULES):
+        from march.config.term_table import BUILTIN_TERMS
+
+        for name, entry in BUILTIN_TERMS.items():
+            TERMS.setdefault(name, from_table(name, entry))
+    import_extra_modules(extra_modules)
+
+
 def check_terms(cfg: Any) -> None:
-    """The run's terms registered (march's and ``cfg.extra_modules``) and ``cfg.reward`` valid
-    against them: one line, before any env is built."""
-    import_term_modules(cfg.extra_modules)
+    """The run's terms known (march's and ``cfg.extra_modules``) and ``cfg.reward`` valid
+    against them: one line, before any env is built, without importing the simulator."""
+    known_terms(cfg.extra_modules)
     check_reward(cfg.reward)
 
 
@@ -173,7 +236,7 @@ def resolve(name: str, value: Any) -> tuple[TermSpec, float, dict[str, Any]]:
     spec = TERMS[name]
     given = term_params(value)
     known = spec.parameters()
-    if not _takes_any(spec.func):
+    if not spec.takes_any():
         unknown = sorted(set(given) - set(known))
         if unknown:
             listed = ", ".join(known) or "none"
