@@ -90,8 +90,9 @@ def hidden_path(path: str, hide, shadow_root: Path) -> str:
     return os.pathsep.join(out)
 
 
-FULL_PATH = os.environ.get("PATH", "")
-"""The PATH as the suite found it (a ``needs_program`` test runs with it)."""
+FULL_PATH = os.environ.setdefault("MARCH_TESTS_FULL_PATH", os.environ.get("PATH", ""))
+"""The PATH as the suite found it (a ``needs_program`` test runs with it); pytest-xdist's
+workers inherit it from the controller, whose PATH they inherit already hidden."""
 if any(shutil.which(name) for name in NOT_INSTALLED):
     _shadow = Path(tempfile.mkdtemp(prefix="march-path-"))
     atexit.register(shutil.rmtree, _shadow, ignore_errors=True)
