@@ -170,9 +170,42 @@ def test_the_real_log_keeps_every_decision():
 
 # ----------------------------------------------------------------- the getting-started page
 
-SLOW_BLOCK = re.compile(r"make smoke|make train|march\.train|march\.play|make test|make docs")
-"""Blocks marked slow: those that train or roll out (over a minute on 2 cores), and the set-up
-block, whose ``make test`` and ``make docs`` CI runs itself (.ci/run)."""
+SESSION_JOB = re.compile(r"^make -C \S+ (smoke|train)\b|^\S*python -m march\.train\b")
+"""Commands that may be the session's smoke run (``make smoke``, ``make train`` and
+``march.train`` at smoke scale): the test composes each (Hydra's ``--cfg job``, through make where
+the page says make) and, where the job is the one the session's ``smoke_run`` fixture ran
+(``python -m march.train compute=smoke``, the same config.yaml), puts a copy of that run where the
+command would have written it instead of training it again; another job (reward=modelfree)
+trains for real. Every block runs in ``make test`` (issue 60)."""
+
+
+def job_probe(cmd: str) -> str:
+    """``cmd`` printing its composed job config instead of running it (make quiet: only the
+    YAML on stdout)."""
+    if not cmd.startswith("make -C "):
+        return f"{cmd} --cfg job"
+    _, _, repo, target, *rest = shlex.split(cmd)
+    args = [w.removeprefix("ARGS=") for w in rest if w.startswith("ARGS=")]
+    quiet = f"make -s --no-print-directory -C {repo} {target}"
+    return f"{quiet} {shlex.quote('ARGS=' + ' '.join([*args, '--cfg job']))}"
+
+
+def session_run_copy(cmd: str, probe_out: str, smoke_run: Path) -> str:
+    """Bash for ``cmd``: compose its job into ``probe_out``; the same job as the session's smoke
+    run -> a copy of that run under outputs/<date>/<time>_clf_full_smoke_seed0_<pid>-<tag>/ (the
+    name and place a run gets), newest in outputs/; another job -> ``cmd`` itself."""
+    import yaml
+
+    cfg = yaml.safe_load((smoke_run / "config.yaml").read_text())
+    name = f"{cfg['reward']['name']}_{cfg['student']['variant']}_smoke_seed{cfg['seed']}"
+    day, clock = "$(date +%Y-%m-%d)", "$(date +%H-%M-%S)"
+    dest = f"outputs/{day}/{clock}_{name}_$$-session"
+    same_job = REPO / "tests" / "same_job.py"
+    same = f"{shlex.quote(sys.executable)} {same_job} {probe_out} {smoke_run / 'config.yaml'}"
+    return (
+        f"{job_probe(cmd)} > {probe_out}\n"
+        f"if {same}; then mkdir -p outputs/{day} && cp -r {smoke_run} {dest}; else {cmd}; fi"
+    )
 
 
 def bash_blocks(page: Path) -> list[str]:
@@ -233,20 +266,19 @@ def test_getting_started_has_cpu_and_gpu_commands():
     )
 
 
-@pytest.mark.parametrize(
-    "block",
-    [
-        pytest.param(b, marks=[pytest.mark.slow] if SLOW_BLOCK.search(b) else [], id=f"block{i}")
-        for i, b in enumerate(BLOCKS)
-    ],
-)
-def test_getting_started_block_runs_at_smoke_scale(block, tmp_path):
+@pytest.mark.parametrize("block", [pytest.param(b, id=f"block{i}") for i, b in enumerate(BLOCKS)])
+def test_getting_started_block_runs_at_smoke_scale(block, tmp_path, request):
     work = _workdir(tmp_path)
-    script = ["set -euo pipefail"]
-    for line in block.splitlines():
+    script, commands = ["set -euo pipefail"], []
+    for i, line in enumerate(block.splitlines()):
         cmd = at_smoke_scale(line, TINY_TEST)
-        if cmd:
-            script.append(cmd)
+        if not cmd:
+            continue
+        commands.append(cmd)
+        if SESSION_JOB.match(cmd) and "--cfg" not in cmd:
+            smoke_run = request.getfixturevalue("smoke_run")
+            cmd = session_run_copy(cmd, str(tmp_path / f"job{i}.yaml"), smoke_run)
+        script.append(cmd)
     env = {
         **os.environ,
         "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}",
@@ -261,7 +293,7 @@ def test_getting_started_block_runs_at_smoke_scale(block, tmp_path):
         timeout=1800,
     )
     assert proc.returncode == 0, "\n".join(script) + "\n" + (proc.stdout + proc.stderr)[-3000:]
-    for cmd in script[1:]:  # the files the commands name were written
+    for cmd in commands:  # the files the commands name were written
         for word in shlex.split(cmd):
             if word.startswith("out=") and "$" not in word:
                 assert (work / word[4:]).stat().st_size > 0, cmd
