@@ -39,6 +39,7 @@ SLOW_FILES = (
     "test_config_values.py",
     "test_figures.py",
     "test_sweeps.py",
+    "test_docs.py",  # every getting-started block: the docs site, a play, a modelfree smoke run
     "test_evaluate.py",
     "test_eval_repeat.py",
     "test_env_teacher.py",
