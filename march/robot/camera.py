@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from march.sim2sim.deploy_bundle import UsageError
+from march.sim2sim.bundle_schema import UsageError
 
 MIN_VALID_SHARE = 0.5
 """A student pixel needs at least this share of valid camera pixels under it, else invalid."""

@@ -24,6 +24,12 @@ from dataclasses import dataclass
 from typing import Any
 
 
+class UsageError(ValueError):
+    """Bad arguments or an unusable bundle: one line for the user (also
+    ``march.sim2sim.deploy_bundle.UsageError``; here, where no MuJoCo is imported, so that the
+    robot's supervisor and camera raise and catch it without MuJoCo)."""
+
+
 class SchemaError(ValueError):
     """A deploy.json that does not match the schema: one line."""
 
