@@ -25,14 +25,16 @@ damping_kd: damping) and, 0.3 s into the state under test, plants one fault:
 - ``stall`` (policy state): one step hangs 0.5 s between reading its LowState and writing its
   command (a hung ONNX call); the command computed before the hang must never go out;
 - ``tick_back`` / ``dup_tick`` / ``frozen_tick``: the LowState tick jumps back 100, each LowState
-  comes twice with its tick, the tick stops advancing while LowStates keep coming;
+  comes twice with its tick (the second with other readings), the tick stops advancing while the
+  same LowState keeps coming;
 - ``second_pub``: a second writer publishes its own LowState stream (ticks from 1) beside the
   robot's;
 - ``dds_lost``: the loop's DDS participants are deleted under it (the write raises
   ``DDSException``): it must damp through a fresh participant and say so in one line.
 
 Each cell asserts: damping (kp 0, kd damping_kd on every joint) within ``LATENCY_S`` of the fault
-(of SIGCONT for ``sigstop``; of the watchdog for ``stale``), no command with a non-finite value
+(of SIGCONT for ``sigstop``; of the watchdog for ``stale`` and ``frozen_tick``; of the hang's
+end for ``stall``), no command with a non-finite value
 and none with kp > 0 after the first damping one (nor, for ``sigstop`` and ``stall``,
 after the stall: no command from a stale LowState), damping held for ``damping_s``, exit status 1
 and the cause named on stderr's last line. A cell whose loop damped on the watchdog or the
@@ -66,13 +68,13 @@ CAUSE = {
     "stale": "watchdog",
     "bad_depth": "malformed",
     "exception": "exception",
-    "sigstop": "skipped|stall",  # stopped in its sleep | between its read and its write
+    "sigstop": "skipped|old at the write",  # stopped in its sleep | between its read and its write
     "depth_stale": "depth: stale",
     "sighup": "SIGHUP",
-    "stall": "stall",
+    "stall": "old at the write",
     "tick_back": "went back",
     "dup_tick": "came twice",
-    "frozen_tick": "came twice",
+    "frozen_tick": "tick frozen",
     "second_pub": "LowState: tick",
     "dds_lost": "DDS",
 }
@@ -185,12 +187,12 @@ class FakeRobot:
             if self.on_plant is not None:
                 self.on_plant(self)
 
-    def lowstate(self, tick: int | None = None):
+    def lowstate(self, tick: int | None = None, shift: float = 0.0):
         hg = self.hg
         tick = self.tick if tick is None else tick
         ls = hg.LowState_(mode_machine=int(self.spec["deploy"]["mode_machine"]), tick=tick)
         for i, s in enumerate(self.slots):
-            ls.motor_state[int(s)].q = float(self.pose[i])
+            ls.motor_state[int(s)].q = float(self.pose[i] + shift)
             ls.motor_state[int(s)].mode = 1
         planted = self.planted_at is not None
         knee = ls.motor_state[int(self.slots[KNEE])]
@@ -219,8 +221,8 @@ class FakeRobot:
                 if not (planted and self.fault == "frozen_tick"):
                     self.tick += 1
                 self.state_w.write(self.lowstate())
-                if planted and self.fault == "dup_tick":
-                    self.state_w.write(self.lowstate())
+                if planted and self.fault == "dup_tick":  # its tick, other readings
+                    self.state_w.write(self.lowstate(shift=0.01))
                 if planted and self.fault == "second_pub":
                     self.other_tick += 1
                     self.other_w.write(self.lowstate(self.other_tick))
@@ -312,7 +314,7 @@ def judge(robot: FakeRobot, fault, state, rc, err, resumed) -> dict:
     t0 = resumed if fault == "sigstop" and resumed else robot.planted_at
     if fault == "stall":
         t0 += STALL_S
-    if fault == "stale":
+    if fault in ("stale", "frozen_tick"):
         t0 += float(robot.spec["deploy"]["watchdog_s"])
     if fault == "depth_stale":
         t0 += DEPTH_STALE_S

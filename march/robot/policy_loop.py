@@ -72,6 +72,18 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     )
 
 
+def readings_of(ls: hg.LowState_) -> tuple[float, ...]:
+    """What a LowState measured (joint q / dq, IMU quaternion and gyroscope): two LowStates
+    with one tick and other readings come from two publishers."""
+    motors = ls.motor_state
+    return (
+        *(m.q for m in motors),
+        *(m.dq for m in motors),
+        *ls.imu_state.quaternion,
+        *ls.imu_state.gyroscope,
+    )
+
+
 def yaw_of(rot: np.ndarray) -> float:
     """Heading: atan2 of the body x axis in the horizontal plane (as the sim2sim runner)."""
     return math.atan2(rot[1, 0], rot[0, 0])
@@ -133,7 +145,7 @@ class Controller:
         self.mode_pr = int(dep["mode_pr"])
         self.limits = Limits.from_spec(spec, self.motor_index)
         self.damping = damping_lowcmd(self.limits, self.timing.damping_kd, self.mode_pr)
-        self.last_tick, self.tick_since = -1, 0.0
+        self.last_tick, self.last_readings, self.tick_since = -1, None, 0.0
         check_deploy_fields(spec)
 
     def _warm_up(self, calls: int = 5) -> None:
@@ -216,14 +228,13 @@ class Controller:
         start: bool = False,
         stop: bool = False,
         skipped: int = 0,
-        ticks: list[int] | None = None,
+        ticks: list[tuple[int, Any]] | None = None,
     ) -> hg.LowCmd_:
         """This step's LowCmd from the newest LowState (``None`` before the first). Every
         reading is checked in every state (:func:`march.robot.wire_checks.lowstate_fault`): a fault
         damps at once, whatever ``guard`` says; the training-range guard acts per ``guard``.
-        ``ticks``: the ticks of every LowState that arrived since the previous step, oldest first
-        (the DDS loop's; each must be newer than the one before). ``None`` (an in-process caller
-        that hands each LowState once): ``ls``'s tick, new when it differs from the last one."""
+        ``ticks``: (tick, :func:`readings_of`) of every LowState that arrived since the previous
+        step, oldest first (the DDS loop's); ``None`` (an in-process caller): ``ls``'s own."""
         faults: list[str] = []
         x = None
         if ls is not None:
@@ -231,10 +242,8 @@ class Controller:
             if fault is None:
                 x = self.read(ls)
                 if self.profile.tick_advances:
-                    new = ticks if ticks is not None else [int(ls.tick)]
-                    if ticks is None and int(ls.tick) == self.last_tick:
-                        new = []
-                    faults += self._tick_order(new, now)
+                    seen = ticks if ticks is not None else [(int(ls.tick), readings_of(ls))]
+                    faults += self._tick_order(seen, now)
             else:
                 faults.append(fault)
         want = self.mode_machine if self.profile.mode_machine is None else self.profile.mode_machine
@@ -298,22 +307,27 @@ class Controller:
         )
         return msg
 
-    def _tick_order(self, ticks: list[int], now: float) -> list[str]:
-        """The LowState's tick counts up, one publisher's: a tick that goes back or comes twice
-        is a second publisher on the topic or a replay (or a robot whose tick froze), and a tick
-        that stops advancing for ``watchdog_s`` is a stale robot however often it re-sends."""
-        for tick in ticks:
+    def _tick_order(self, seen: list[tuple[int, Any]], now: float) -> list[str]:
+        """The LowState's tick counts up, one publisher's. ``seen``: (tick, readings) of each
+        LowState since the last step, oldest first. A tick that goes back, or comes again with
+        other readings, is a second publisher on the topic or a replay: a fault at once. The
+        same LowState re-sent (same tick, same readings: a lockstep robot feeding the watchdog)
+        is no news, and a tick that stops advancing for ``watchdog_s`` is a stale robot however
+        often it re-sends."""
+        for tick, readings in seen:
             if self.last_tick >= 0 and tick < self.last_tick:
                 return [
                     f"LowState: tick went back from {self.last_tick} to {tick} (a second "
                     "publisher or a replay on the LowState topic)"
                 ]
             if tick == self.last_tick:
-                return [
-                    f"LowState: tick {tick} came twice (a second publisher, a replay, or a "
-                    "robot whose tick froze)"
-                ]
-            self.last_tick, self.tick_since = tick, now
+                if readings != self.last_readings:
+                    return [
+                        f"LowState: tick {tick} came twice with different readings (a second "
+                        "publisher or a replay on the LowState topic)"
+                    ]
+                continue
+            self.last_tick, self.last_readings, self.tick_since = tick, readings, now
         if self.last_tick >= 0 and now - self.tick_since > self.timing.watchdog_s:
             age = (now - self.tick_since) * 1e3
             return [f"watchdog: LowState tick frozen at {self.last_tick} ({age:.0f} ms)"]
@@ -540,7 +554,7 @@ def run(
                         _newer(state_box, used_tick, lockstep_s)
                         now = time.perf_counter()
                     ls, arrived = state_box.take()
-                    ticks = [int(s.tick) for s in state_box.drain()]
+                    ticks = [(int(s.tick), readings_of(s)) for s in state_box.drain()]
                     used_tick = int(ls.tick) if ls is not None else used_tick
                     age = None if arrived is None else now - arrived
                     want_start = start == "auto" or (enter is not None and enter())
@@ -565,8 +579,8 @@ def run(
                     if late > watchdog:  # damping's time counts from now, not the step's start
                         ctl.machine.fault(
                             at - t0,
-                            f"stall: the command's LowState was {late * 1e3:.0f} ms old at the "
-                            "write (not sent)",
+                            f"watchdog: LowState {late * 1e3:.0f} ms old at the write (a stall "
+                            "or a robot gone since it was read; its command not sent)",
                         )
                         cmd = ctl.damping
                 out.write(cmd)
