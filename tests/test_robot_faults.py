@@ -239,6 +239,7 @@ class FakeRobot:
 def run_cell(robot: FakeRobot, bundle: Path, fault: str, state: str, tmp: Path) -> dict:
     robot.reset(fault, state)
     trigger = tmp / f"trigger_{fault}_{state}"
+    trigger.unlink(missing_ok=True)  # a retried cell plants afresh
     words = [
         "policy", f"bundle={bundle.parent}", f"domain={DOMAIN}", "interface=lo", "start=auto",
         "seconds=2", "guard=report", "supervisor=none",
