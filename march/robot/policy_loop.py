@@ -476,7 +476,10 @@ def _supervisor_check(box: Any, now: float, timeout: float) -> bool:
     if beat is None:
         return False
     if int(beat.took_over):
-        raise InputFault(f"supervisor: it took over (pid {int(beat.pid)}); damping")
+        raise InputFault(
+            f"supervisor: it took over (pid {int(beat.pid)}); damping (a supervisor that took "
+            "over stays so: start a new one for the next run)"
+        )
     if now - at > timeout:
         raise InputFault(f"supervisor gone: no heartbeat for {(now - at) * 1e3:.0f} ms")
     return True
