@@ -26,6 +26,7 @@ from robot_wire import until
 ROOT = Path(__file__).resolve().parent.parent
 pytestmark = pytest.mark.sim
 DOMAIN = 20 + (os.getpid() + 151) % 200
+"""A DDS domain of this session's own (cyclonedds takes 0-232)."""
 MUJOCO = os.environ.get("UNITREE_MUJOCO", "")
 SDK2 = os.environ.get("UNITREE_SDK2", "")
 
@@ -84,7 +85,7 @@ def test_unitree_bridge_holds_march_damping(bundle, rate_hz):
 
     spec = Bundle.load(bundle).spec
     kd = float(spec["deploy"]["shutdown"]["damping_kd"])
-    rc, out = run_damping(spec, rate_hz, DOMAIN + int(rate_hz), kd)
+    rc, out = run_damping(spec, rate_hz, DOMAIN + (rate_hz > 100), kd)
     print(out)
     last = [ln for ln in out.splitlines() if "done:" in ln]
     assert last and "done: stood" in last[-1] and rc == 0, out[-2000:]

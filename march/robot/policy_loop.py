@@ -477,8 +477,8 @@ def _supervisor_check(box: Any, now: float, timeout: float) -> bool:
         return False
     if int(beat.took_over):
         raise InputFault(
-            f"supervisor: it took over (pid {int(beat.pid)}); damping (a supervisor that took "
-            "over stays so: start a new one for the next run)"
+            f"supervisor: it took over or is stopping (pid {int(beat.pid)}); damping (start a "
+            "new supervisor for the next run)"
         )
     if now - at > timeout:
         raise InputFault(f"supervisor gone: no heartbeat for {(now - at) * 1e3:.0f} ms")

@@ -12,8 +12,9 @@ control rate until it is stopped - when, after the policy's first command:
   allowed: a non-finite value, kp / kd outside the motor's range, another ``mode_machine``, a
   used slot disabled or an unused one enabled, a bad CRC); with ``policy_pid=`` it first kills
   that process (SIGKILL): a live publisher of bad commands cannot be outvoted on a topic;
-- it is itself stopped (SIGINT, SIGTERM, SIGHUP: a closed terminal) while the policy runs: it
-  damps for ``damping_s`` before it exits, rather than leave a policy unwatched.
+- it is itself stopped (SIGINT, SIGTERM, SIGHUP: a closed terminal) while the policy runs: its
+  heartbeat says it is leaving (the policy damps on it), its own damping joins once the policy's
+  commands have turned gainless (or after ``timeout_s``), for ``damping_s``, before it exits.
 
 It publishes a heartbeat (:class:`march.robot.dds.Heartbeat_`, every control period, with
 ``took_over``): the policy loop (``supervisor=required``, its default) does not start the policy
@@ -124,12 +125,15 @@ class Supervisor:
         self.last_state: float | None = None
         self.seen = 0
         self.took_over: tuple[float, str] | None = None
+        self.policy_gainless = False  # the newest LowCmd has kp 0 on every joint (damping)
 
     def command(self, cmd: Any, now: float) -> None:
         if self.took_over is not None:
             return  # its own damping comes back on the topic: no longer judged
         self.seen += 1
         self.last_cmd = now
+        if isinstance(cmd, hg.LowCmd_):
+            self.policy_gainless = all(cmd.motor_cmd[int(s)].kp == 0 for s in self.limits.slots)
         why = command_fault(cmd, "policy", self.limits) if isinstance(cmd, hg.LowCmd_) else None
         if why is not None:
             self.take_over(now, f"invalid LowCmd ({why})")
@@ -181,6 +185,7 @@ def serve(
         f"(takeover after {timeout_s * 1e3:.0f} ms without a valid LowCmd)"
     )
     next_send, next_beat, sent, seq, leave_at = t0, t0, 0, 0, math.inf
+    handing: float | None = None
     while time.perf_counter() - t0 < seconds and time.perf_counter() < leave_at:
         now = time.perf_counter()
         for msg in cmds.reader.take(N=64):
@@ -188,13 +193,19 @@ def serve(
         if states.poll():
             sup.last_state = now
         sup.check_time(now)
-        if stop["flag"] and leave_at == math.inf:
+        if stop["flag"] and leave_at == math.inf and handing is None:
             # Stopped (a closed terminal included) while a policy runs: damp before leaving.
+            # The heartbeat says so first, and the supervisor's own damping joins once the
+            # policy's commands have turned to damping (or timeout_s passed): two publishers,
+            # and no policy command with gains lands after the first damping one.
             if sup.policy_live(now):
-                sup.take_over(now, f"{stop['signal']} while the policy ran")
-                leave_at = now + sup.damping_s
+                handing, next_beat = now, now
             else:
                 leave_at = now
+        if handing is not None and sup.took_over is None:
+            if sup.policy_gainless or now - handing > sup.timeout_s:
+                sup.take_over(now, f"{stop['signal']} while the policy ran")
+                leave_at = now + sup.damping_s
         if sup.took_over is not None:
             if sent == 0:
                 t, why = sup.took_over
@@ -205,7 +216,8 @@ def serve(
                 next_send = max(next_send + period, now)
         if now >= next_beat:
             seq += 1
-            beat_out.write(dds.Heartbeat_(os.getpid(), seq % 2**32, int(sup.took_over is not None)))
+            leaving = sup.took_over is not None or handing is not None
+            beat_out.write(dds.Heartbeat_(os.getpid(), seq % 2**32, int(leaving)))
             next_beat = max(next_beat + period, now)
         time.sleep(1e-3)
     sup.sent = sent
