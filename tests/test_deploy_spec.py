@@ -123,6 +123,7 @@ def test_every_gain_and_limit_matches_the_compiled_model_by_name(spec):
     from march.config.cli import load
     from march.env.g1 import course_scene
     from march.export.deploy_terms import G1_MOTOR_ORDER
+    from march.sim2sim.bundle_schema import G1_JOINT_RANGES
 
     model, _, _ = course_scene(load([]), "hardware")  # compiled afresh, not the bundle's file
     joints = spec["joints"]
@@ -153,6 +154,8 @@ def test_every_gain_and_limit_matches_the_compiled_model_by_name(spec):
         assert j["kd"] == pytest.approx(-float(model.actuator_biasprm[act, 2]), rel=1e-12)
         assert [-j["torque_limit"], j["torque_limit"]] == list(model.actuator_forcerange[act])
         assert j["pos_limits"] == list(model.jnt_range[jid])
+        # march's own G1 table (what a bundle's pos_limits are held to) is this model's ranges
+        assert list(G1_JOINT_RANGES[j["name"]]) == pytest.approx(list(model.jnt_range[jid]))
         assert j["pos_limits"][0] < j["default_pos"] < j["pos_limits"][1]
         assert j["action_scale"] > 0
     by_name = {j["name"]: j for j in joints}

@@ -165,3 +165,37 @@ def test_the_loop_flags_a_mostly_invalid_image(bundle):
         assert bool(flags) == (share > 0.5), (share, flags)
     _, flags = ctl.depth_input(np.full((h, w), np.nan))
     assert flags == ["depth: image all NaN / zero"]
+
+
+def test_a_recording_that_is_not_one_is_one_line(bundle, tmp_path, monkeypatch):
+    """``file=`` through the gate: junk with a .bag suffix (librealsense's own refusal), a
+    symbolic link, a missing file, a folder: each one line on stderr, exit 2; a recording over
+    the size bound is refused before librealsense opens it."""
+    from march.robot import camera
+    from march.sim2sim.bundle_schema import UsageError
+
+    junk = tmp_path / "junk.bag"
+    junk.write_bytes(bytes(range(256)) * 20)
+    (tmp_path / "link.bag").symlink_to(junk)
+    cases = {
+        junk: "not a librealsense recording",
+        tmp_path / "link.bag": "symbolic link",
+        tmp_path / "none.bag": "no such file",
+        tmp_path: "not a librealsense recording",
+    }
+    for path, words in cases.items():
+        if path == junk:
+            try:
+                camera.realsense()
+            except UsageError:
+                continue  # no pyrealsense2 here: the gate's cases still run
+        res = subprocess.run(
+            [sys.executable, "-m", "march.robot", "camera", f"bundle={bundle.parent}",
+             "source=file", f"file={path}", "domain=9", "interface=lo"],
+            cwd=ROOT, capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+        lines = res.stderr.strip().splitlines()
+        assert res.returncode == 2 and len(lines) == 1 and words in lines[0], res.stderr
+    monkeypatch.setattr(camera, "MAX_RECORDING_BYTES", 1000)
+    with pytest.raises(UsageError, match="more than the 1000"):
+        camera.check_recording(junk)

@@ -19,11 +19,24 @@ damping_kd: damping) and, 0.3 s into the state under test, plants one fault:
 - ``exception``: the loop's reading raises (a bug), through a wrapper that patches it;
 - ``sigstop``: the loop process stopped for 0.5 s (``deadlines=damp``: skipped periods are
   missed deadlines);
-- ``depth_stale`` (policy state only): the depth messages stop, the LowStates go on.
+- ``depth_stale`` (policy state only): the depth messages stop, the LowStates go on;
+- ``sighup``: SIGHUP to the loop with its stdout pipe closed (a terminal that went away: the
+  loop's prints fail, and Python's default for SIGHUP is to die at once);
+- ``stall`` (policy state): one step hangs 0.5 s between reading its LowState and writing its
+  command (a hung ONNX call); the command computed before the hang must never go out;
+- ``tick_back`` / ``dup_tick`` / ``frozen_tick``: the LowState tick jumps back 100, each LowState
+  comes twice with its tick (the second with other readings), the tick stops advancing while the
+  same LowState keeps coming;
+- ``second_pub``: a second writer publishes its own LowState stream (ticks from 1) beside the
+  robot's;
+- ``dds_lost``: the loop's DDS participants are deleted under it (the write raises
+  ``DDSException``): it must damp through a fresh participant and say so in one line.
 
 Each cell asserts: damping (kp 0, kd damping_kd on every joint) within ``LATENCY_S`` of the fault
-(of SIGCONT for ``sigstop``; of the watchdog for ``stale``), no command with a non-finite value
-and none with kp > 0 after the first damping one, damping held for ``damping_s``, exit status 1
+(of SIGCONT for ``sigstop``; of the watchdog for ``stale`` and ``frozen_tick``; of the hang's
+end for ``stall``), no command with a non-finite value
+and none with kp > 0 after the first damping one (nor, for ``sigstop`` and ``stall``,
+after the stall: no command from a stale LowState), damping held for ``damping_s``, exit status 1
 and the cause named on stderr's last line. A cell whose loop damped on the watchdog or the
 deadline budget before the plant (this machine's load; a real damping, but not the cell's test)
 runs again, twice at most, and says so. The printed matrix is in docs/deploying.md.
@@ -55,10 +68,19 @@ CAUSE = {
     "stale": "watchdog",
     "bad_depth": "malformed",
     "exception": "exception",
-    "sigstop": "skipped",
+    "sigstop": "skipped|old at the write",  # stopped in its sleep | between its read and its write
     "depth_stale": "depth: stale",
+    "sighup": "SIGHUP",
+    "stall": "old at the write",
+    "tick_back": "went back",
+    "dup_tick": "came twice",
+    "frozen_tick": "tick frozen",
+    "second_pub": "LowState: tick",
+    "dds_lost": "DDS",
 }
-ONLY_IN = {"depth_stale": ("policy",)}
+ONLY_IN = {"depth_stale": ("policy",), "stall": ("policy",)}
+STALL_S = 0.5
+"""Seconds a ``stall`` or ``sigstop`` cell holds the loop."""
 """The depth image is used in the policy state only: a camera that stops before it is no fault."""
 TIMES = {"zero_torque_s": 1.0, "ramp_s": 1.0, "hold_s": 1.0, "damping_s": 0.5}
 INTO_STATE_S = 0.3
@@ -69,18 +91,35 @@ KNEE = 3
 DEPTH_STALE_S = 0.25
 """docs/deploying.md: in the policy state a depth image older than this damps."""
 WRAPPER = """
-import os, sys
+import os, sys, time
+import march.robot.dds as dds
 import march.robot.policy_loop as pl
-trigger = sys.argv.pop(1)
-read = pl.Controller.read
+mode, trigger = sys.argv.pop(1), sys.argv.pop(1)
+read, step, made, done = pl.Controller.read, pl.Controller.step, [], []
+participant = dds.participant
+def recorded(*a, **k):
+    made.append(participant(*a, **k))
+    return made[-1]
+dds.participant = recorded
 def faulty(self, ls):
-    if os.path.exists(trigger):
+    if os.path.exists(trigger) and mode == "exception":
         raise RuntimeError("planted bug in the step")
+    if os.path.exists(trigger) and mode == "dds_lost" and not done:
+        done.append(1)
+        for dp in made:  # the participants deleted under the loop
+            dp._delete(dp._ref)
     return read(self, ls)
-pl.Controller.read = faulty
+def slow(self, *a, **k):
+    cmd = step(self, *a, **k)
+    if os.path.exists(trigger) and mode == "stall" and not done:
+        done.append(1)
+        time.sleep(__STALL__)  # a hung call between the LowState's read and the command's write
+    return cmd
+pl.Controller.read, pl.Controller.step = faulty, slow
 from march.robot.robot_command import main
 main(sys.argv[1:])
-"""
+""".replace("__STALL__", repr(STALL_S))
+WRAPPED = ("exception", "stall", "dds_lost")
 
 
 class FakeRobot:
@@ -94,6 +133,7 @@ class FakeRobot:
         dp = dds.participant(domain, "lo")
         dep = spec["deploy"]
         self.state_w = dds.writer(dp, dep["lowstate_topic"], hg.LowState_)
+        self.other_w = dds.writer(dp, dep["lowstate_topic"], hg.LowState_)  # second_pub
         self.depth_w = dds.writer(dp, dds.DEPTH_TOPIC, dds.DepthImage_)
         self.cmd_r = dds.Latest(dp, dep["lowcmd_topic"], hg.LowCmd_, qos=dds.best_effort(64))
         self.dds = dds
@@ -111,7 +151,9 @@ class FakeRobot:
         self.seen_hold = False
         self.current, self.current_since = "", 0.0
         self.planted_at: float | None = None
+        self.went_back = False
         self.tick = 0
+        self.other_tick = 0
         self.on_plant = None
 
     def classify(self, q, kp, kd) -> str:
@@ -145,11 +187,12 @@ class FakeRobot:
             if self.on_plant is not None:
                 self.on_plant(self)
 
-    def lowstate(self):
+    def lowstate(self, tick: int | None = None, shift: float = 0.0):
         hg = self.hg
-        ls = hg.LowState_(mode_machine=int(self.spec["deploy"]["mode_machine"]), tick=self.tick)
+        tick = self.tick if tick is None else tick
+        ls = hg.LowState_(mode_machine=int(self.spec["deploy"]["mode_machine"]), tick=tick)
         for i, s in enumerate(self.slots):
-            ls.motor_state[int(s)].q = float(self.pose[i])
+            ls.motor_state[int(s)].q = float(self.pose[i] + shift)
             ls.motor_state[int(s)].mode = 1
         planted = self.planted_at is not None
         knee = ls.motor_state[int(self.slots[KNEE])]
@@ -173,8 +216,16 @@ class FakeRobot:
             self.record(now)
             planted = self.planted_at is not None
             if not (planted and self.fault == "stale"):
-                self.tick += 1
+                if planted and self.fault == "tick_back" and not self.went_back:
+                    self.tick, self.went_back = self.tick - 100, True
+                if not (planted and self.fault == "frozen_tick"):
+                    self.tick += 1
                 self.state_w.write(self.lowstate())
+                if planted and self.fault == "dup_tick":  # its tick, other readings
+                    self.state_w.write(self.lowstate(shift=0.01))
+                if planted and self.fault == "second_pub":
+                    self.other_tick += 1
+                    self.other_w.write(self.lowstate(self.other_tick))
                 if k % 4 == 0 and not (planted and self.fault == "depth_stale"):
                     n = 10 if planted and self.fault == "bad_depth" else self.h * self.w
                     img = self.dds.DepthImage_(self.tick, self.h, self.w, [1.5] * n)
@@ -188,28 +239,41 @@ class FakeRobot:
 def run_cell(robot: FakeRobot, bundle: Path, fault: str, state: str, tmp: Path) -> dict:
     robot.reset(fault, state)
     trigger = tmp / f"trigger_{fault}_{state}"
+    trigger.unlink(missing_ok=True)  # a retried cell plants afresh
     words = [
         "policy", f"bundle={bundle.parent}", f"domain={DOMAIN}", "interface=lo", "start=auto",
-        "seconds=2", "guard=report", f"deadlines={'damp' if fault == 'sigstop' else 'report'}",
+        "seconds=2", "guard=report", "supervisor=none",
+        f"deadlines={'damp' if fault in ('sigstop', 'stall') else 'report'}",
         *[f"{k}={v}" for k, v in TIMES.items()],
     ]  # fmt: skip
-    if fault == "exception":
-        cmd = [sys.executable, "-c", WRAPPER, str(trigger), *words]
+    if fault in WRAPPED:
+        cmd = [sys.executable, "-c", WRAPPER, fault, str(trigger), *words]
     else:
         cmd = [sys.executable, "-m", "march.robot", *words]
+    # sighup: stdout is a pipe of the test's own, closed at the plant (the terminal gone)
+    tty_r, tty_w = os.pipe() if fault == "sighup" else (None, None)
     proc = subprocess.Popen(
-        cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        cmd,
+        cwd=ROOT,
+        stdout=subprocess.PIPE if tty_w is None else tty_w,
+        stderr=subprocess.PIPE,
+        text=True,
     )
+    if tty_w is not None:
+        os.close(tty_w)
     resumed: dict[str, float] = {}
 
     def plant(r: FakeRobot) -> None:
-        if fault == "exception":
+        if fault in WRAPPED:
             trigger.write_text("now")
+        if fault == "sighup":  # the terminal goes away: its pipe closed, then SIGHUP
+            os.close(tty_r)
+            proc.send_signal(signal.SIGHUP)
         if fault == "sigstop":  # in its own thread: the robot keeps publishing meanwhile
 
             def pause() -> None:
                 proc.send_signal(signal.SIGSTOP)
-                time.sleep(0.5)
+                time.sleep(STALL_S)
                 proc.send_signal(signal.SIGCONT)
                 resumed["t"] = time.perf_counter()
 
@@ -249,7 +313,9 @@ def judge(robot: FakeRobot, fault, state, rc, err, resumed) -> dict:
         res["problems"].append(f"never reached {state} (saw {sorted(set(kinds))})")
         return res
     t0 = resumed if fault == "sigstop" and resumed else robot.planted_at
-    if fault == "stale":
+    if fault == "stall":
+        t0 += STALL_S
+    if fault in ("stale", "frozen_tick"):
         t0 += float(robot.spec["deploy"]["watchdog_s"])
     if fault == "depth_stale":
         t0 += DEPTH_STALE_S
@@ -269,11 +335,16 @@ def judge(robot: FakeRobot, fault, state, rc, err, resumed) -> dict:
         held = t[first_damp + len(after) - 1] - t[first_damp]
         if held < 0.8 * TIMES["damping_s"] or any(k != "damping" for k in after):
             res["problems"].append(f"damping held {held:.2f} s / interrupted")
+    if fault in ("sigstop", "stall"):  # a command computed before the stall, sent after it
+        stale = sum(1 for tt, _, kp, _ in robot.cmds if tt > t0 - STALL_S / 2 and kp.any())
+        res["unsafe"] += stale
+        if stale:
+            res["problems"].append(f"{stale} commands with kp > 0 after the stall")
     if res["unsafe"]:
         res["problems"].append(f"{res['unsafe']} unsafe commands")
     if rc != 1:
         res["problems"].append(f"exit status {rc}")
-    if CAUSE[fault] not in line:
+    if not any(word in line for word in CAUSE[fault].split("|")):
         res["problems"].append(f"cause not named ({line[-80:]!r})")
     return res
 
@@ -283,7 +354,7 @@ def _damped_early(row: dict) -> bool:
     (or instead of) the planted fault: the cell's fault was not what it met."""
     load = any(w in row["line"] for w in ("watchdog", "deadline", "stale"))
     early = any("never reached" in p or "before the fault" in p for p in row["problems"])
-    other = CAUSE[row["fault"]] not in row["line"]
+    other = not any(word in row["line"] for word in CAUSE[row["fault"]].split("|"))
     return bool(row["problems"]) and load and (early or other)
 
 

@@ -2,7 +2,7 @@
 
 In-process (no DDS): :class:`Controller` drives :class:`SimRobot` in lockstep through the
 start-up - the commands of every state by hand (zero torque: kp = kd = 0; ramp to the default
-pose, which the robot on its band reaches; hold; the policy's targets; damping kd 8), each at
+pose, which the robot on its band reaches; hold; the policy's targets; damping kd 1), each at
 its motor slot (``motor_index``; a permuted table moves them), each with a valid CRC that the
 robot checks (a corrupted one is dropped), and a LowState of another hardware variant damps.
 
@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from robot_wire import until
 
 ROOT = Path(__file__).resolve().parent.parent
 pytestmark = pytest.mark.sim
@@ -87,7 +88,7 @@ def test_every_state_commands_what_it_should_at_the_right_slots(loaded):
             np.testing.assert_allclose(target, default, atol=1e-6)
             np.testing.assert_allclose(k, kp, rtol=1e-6)
         elif state in ("damping", "done"):
-            assert not k.any() and (d == 8.0).all()
+            assert not k.any() and (d == ctl.timing.damping_kd).all()
     last_hold = [q for st, _, q in out if st == "hold"][-1]
     # the ramp brought it there (within the PD's sag under the robot's weight on its feet)
     assert np.abs(last_hold[idx] - default).max() < 0.2
@@ -232,19 +233,6 @@ def _start(*words: str, stderr=subprocess.STDOUT) -> subprocess.Popen:
     )
 
 
-def _until(proc: subprocess.Popen, text: str, timeout: float = 60.0) -> str:
-    """Lines of ``proc`` up to the one holding ``text`` (the loop prints transitions live)."""
-    seen, end = [], time.monotonic() + timeout
-    while time.monotonic() < end:
-        line = proc.stdout.readline()
-        if not line:
-            break
-        seen.append(line)
-        if text in line:
-            return "".join(seen)
-    raise AssertionError(f"no {text!r} in: {''.join(seen)}")
-
-
 def test_watchdog_and_ctrl_c_over_dds(bundle):
     fast = [f"{k}={v}" for k, v in FAST.items()]
     common = [f"bundle={bundle.parent}", f"domain={DOMAIN + 2}", "interface=lo"]
@@ -259,9 +247,9 @@ def test_watchdog_and_ctrl_c_over_dds(bundle):
         sim = start("sim", *common, "band=100", "lockstep=true")
         assert "[sim] publishing" in sim.stdout.readline()
         loop = _start("policy", *common, "start=auto", "guard=report", "deadlines=report", *fast,
-                      stderr=subprocess.PIPE)  # fmt: skip
+                      "supervisor=none", stderr=subprocess.PIPE)  # fmt: skip
         procs.append(loop)
-        head = _until(loop, "hold -> policy")
+        head = until(loop, "hold -> policy")
         time.sleep(0.3)
         sim.kill()
         sim.wait()
@@ -274,8 +262,11 @@ def test_watchdog_and_ctrl_c_over_dds(bundle):
         # Ctrl-C
         sim = start("sim", *common, "band=100", "lockstep=true")
         assert "[sim] publishing" in sim.stdout.readline()
-        loop = start("policy", *common, "start=auto", "guard=report", "deadlines=report", *fast)
-        head = _until(loop, "hold -> policy")
+        loop = start(
+            "policy", *common, "start=auto", "guard=report", "deadlines=report", "supervisor=none",
+            *fast,
+        )  # fmt: skip
+        head = until(loop, "hold -> policy")
         time.sleep(0.3)
         loop.send_signal(signal.SIGINT)
         out, _ = loop.communicate(timeout=60)
@@ -380,3 +371,47 @@ def test_the_unitree_mujoco_profile_is_explicit_and_loopback_only(loaded):
         parse(["policy", "bundle=x", "robot=unitree_mujoco", "interface=eth0"])
     with pytest.raises(UsageError, match="loopback"):
         parse(["policy", "bundle=x", "resend_hz=200", "interface=eth0"])
+
+
+def test_lowstate_ticks_must_count_up(loaded):
+    """The LowState tick, one publisher's, counts up: back (a replay, a second publisher), or the
+    same tick again with other readings (two publishers) damp at once with the cause named; the
+    same LowState re-sent is no news, and a tick that stops advancing (re-sent or not) damps
+    after watchdog_s; ticks that count up never do. In-process, the loop's own step."""
+    from march.robot import hg
+    from march.robot.policy_loop import Controller
+    from march.robot.sim_robot import SimRobot
+    from march.robot.states import Timing
+
+    timing = Timing.from_spec(loaded.spec["deploy"], **FAST)
+    ls = SimRobot(loaded, band_s=100.0).lowstate()
+    a, b = "readings a", "readings b"
+    cases = {
+        "up": ([[(5, a)], [(6, a)], [(7, b), (8, a)], [(9, b)]], None),
+        "resent": ([[(5, a)], [(6, a)], [(6, a)], [(7, a)]], None),
+        "twice": ([[(5, a)], [(6, a)], [(6, b)]], "tick 6 came twice with different readings"),
+        "within": ([[(5, a)], [(6, a), (6, b)]], "tick 6 came twice with different readings"),
+        "back": ([[(5, a)], [(6, a)], [(7, a)], [(3, a)]], "went back from 7 to 3"),
+        "back_within": ([[(5, a)], [(9, a), (8, a)]], "went back from 9 to 8"),
+    }
+    for name, (steps, want) in cases.items():
+        ctl = Controller(loaded, timing, guard_action="report")
+        for k, ticks in enumerate(steps):
+            ls.tick = ticks[-1][0]
+            ls.crc = hg.lowstate_crc(ls)
+            ctl.step(ls, 0.0, (None, -1), k * 0.002, ticks=ticks)
+        reason = ctl.machine.fault_reason
+        if want is None:
+            assert reason is None and ctl.machine.state == "zero_torque", (name, reason)
+        else:
+            assert ctl.machine.state == "damping" and want in reason, (name, reason)
+    # frozen: re-sent (or nothing new) for longer than the watchdog
+    for resent in ([(5, a)], []):
+        ctl = Controller(loaded, timing, guard_action="report")
+        ls.tick = 5
+        ls.crc = hg.lowstate_crc(ls)
+        ctl.step(ls, 0.0, (None, -1), 0.0, ticks=[(5, a)])
+        ctl.step(ls, 0.0, (None, -1), timing.watchdog_s * 0.9, ticks=resent)
+        assert ctl.machine.state == "zero_torque"
+        ctl.step(ls, 0.0, (None, -1), timing.watchdog_s * 1.1, ticks=resent)
+        assert ctl.machine.state == "damping" and "tick frozen at 5" in ctl.machine.fault_reason

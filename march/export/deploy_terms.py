@@ -336,10 +336,12 @@ def robot_section(joint_names: list[str], control_dt: float) -> dict[str, Any]:
             "hold_s": 1.0,
         },
         "shutdown": {
-            "damping_kd": 8.0,
+            # kd 1: Unitree's G1 low-level example's kd; stable in Unitree's MuJoCo bridge at 50
+            # and 200 Hz, where kd 4 and 8 oscillate or diverge (docs/deploying.md, issue 58)
+            "damping_kd": 1.0,
             "damping_s": 3.0,
             "meaning": "kp 0, kd damping_kd, q/dq/tau 0 on every used slot, sent for damping_s "
-            "(then the loop exits; Unitree's own examples damp with kd 8)",
+            "(then the loop exits; kd 1 as Unitree's G1 low-level example)",
         },
         "joint_vel_limits": [joint_vel_limit(n) for n in joint_names],
         "joint_vel_limits_meaning": "rad/s per policy joint (mjlab's G1 motor velocity limits); "

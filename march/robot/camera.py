@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from march.sim2sim.deploy_bundle import UsageError
+from march.sim2sim.bundle_schema import UsageError
 
 MIN_VALID_SHARE = 0.5
 """A student pixel needs at least this share of valid camera pixels under it, else invalid."""
@@ -189,17 +189,40 @@ class SensorFrames:
         self.sensor.close()
 
 
+MAX_RECORDING_BYTES = 64 << 30
+"""A recording's size bound: an hour of 640 x 480 Z16 depth at 30 Hz is ~66 GB raw, ~20 GB in
+librealsense's compressed rosbag."""
+
+
+def check_recording(path: Path) -> None:
+    """``file=``: a regular file (not a symbolic link: what is checked is what is read) of a
+    recording's suffix and at most :data:`MAX_RECORDING_BYTES`, through the disk gate; one line."""
+    from march.store.bounded_read import FileRefused, open_regular
+
+    if path.suffix not in (".db3", ".bag"):
+        raise UsageError(f"file={path}: not a librealsense recording (.db3 / .bag)")
+    try:
+        open_regular(path, f"file={path}", MAX_RECORDING_BYTES, "a .db3 / .bag recording").close()
+    except FileRefused as err:
+        raise UsageError(str(err)) from None
+
+
 def open_source(args: dict[str, Any]) -> tuple[SensorFrames, Any]:
-    rs = realsense()
     kind = args.get("source", "realsense")
     if kind == "file":
         path = Path(args.get("file", ""))
-        if not path.is_file() or path.suffix not in (".db3", ".bag"):
-            raise UsageError(f"file={path}: not a librealsense recording (.db3 / .bag)")
-        device = rs.context().load_device(str(path))
-        playback = device.as_playback()
-        playback.set_real_time(False)
-        return SensorFrames(rs, device.first_depth_sensor(), None, pace=True), device
+        check_recording(path)
+        rs = realsense()
+        try:
+            device = rs.context().load_device(str(path))
+            playback = device.as_playback()
+            playback.set_real_time(False)
+            sensor = device.first_depth_sensor()
+        except RuntimeError as err:  # librealsense's refusal of a file it cannot play
+            first = str(err).splitlines()[0] if str(err) else type(err).__name__
+            raise UsageError(f"file={path}: not a librealsense recording ({first})") from None
+        return SensorFrames(rs, sensor, None, pace=True), device
+    rs = realsense()
     devices = list(rs.context().query_devices())
     if not devices:
         raise UsageError("no RealSense found (source=realsense); source=file file=<recording>")

@@ -10,6 +10,7 @@ never blocking it). Depth travels on a project topic
 """
 
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -23,6 +24,7 @@ from cyclonedds.topic import Topic
 
 DEPTH_TOPIC = "rt/march/depth"
 SIM_STATE_TOPIC = "rt/march/sim_state"
+SUPERVISOR_TOPIC = "rt/march/supervisor"
 
 
 @dataclass
@@ -33,6 +35,16 @@ class DepthImage_(IdlStruct, typename="march::msg::dds_::DepthImage_"):
     height: t.uint16 = 0
     width: t.uint16 = 0
     depth_m: t.sequence[t.float32] = field(default_factory=list)
+
+
+@dataclass
+class Heartbeat_(IdlStruct, typename="march::msg::dds_::Heartbeat_"):
+    """The supervisor's heartbeat (every control period): its pid, a counter, and whether it has
+    taken over (``took_over`` 1: it is damping the robot; the policy loop damps too)."""
+
+    pid: t.uint32 = 0
+    seq: t.uint32 = 0
+    took_over: t.uint8 = 0
 
 
 _DOMAINS: dict[int, Domain] = {}
@@ -68,6 +80,7 @@ class Latest:
         self.sample: Any = None
         self.arrived: float | None = None
         self.count = 0
+        self.pending: deque[Any] = deque(maxlen=256)  # taken since the last drain(), in order
         self.topic = Topic(dp, name, kind)
         self.reader = DataReader(dp, self.topic, qos=qos or best_effort())
 
@@ -78,7 +91,14 @@ class Latest:
             return False
         self.sample, self.arrived = samples[-1], time.perf_counter()
         self.count += len(samples)
+        self.pending.extend(samples)
         return True
+
+    def drain(self) -> list[Any]:
+        """Every sample taken since the last call, oldest first (at most the last 256)."""
+        out = list(self.pending)
+        self.pending.clear()
+        return out
 
     def take(self) -> tuple[Any, float | None]:
         """The newest sample so far and when it was taken (polls first)."""

@@ -25,10 +25,11 @@ from typing import Any, Protocol
 import numpy as np
 
 from march.robot import hg
-from march.robot.signals import stop_on_signals
+from march.robot.signals import ORDERLY_SIGNALS, say, stop_on_signals
 from march.robot.states import (
     DAMPING,
     DONE,
+    HOLD,
     POLICY,
     RAMP,
     MotorCommand,
@@ -68,6 +69,18 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
             [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
             [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
         ]
+    )
+
+
+def readings_of(ls: hg.LowState_) -> tuple[float, ...]:
+    """What a LowState measured (joint q / dq, IMU quaternion and gyroscope): two LowStates
+    with one tick and other readings come from two publishers."""
+    motors = ls.motor_state
+    return (
+        *(m.q for m in motors),
+        *(m.dq for m in motors),
+        *ls.imu_state.quaternion,
+        *ls.imu_state.gyroscope,
     )
 
 
@@ -132,7 +145,7 @@ class Controller:
         self.mode_pr = int(dep["mode_pr"])
         self.limits = Limits.from_spec(spec, self.motor_index)
         self.damping = damping_lowcmd(self.limits, self.timing.damping_kd, self.mode_pr)
-        self.last_tick, self.tick_since = -1, 0.0
+        self.last_tick, self.last_readings, self.tick_since = -1, None, 0.0
         check_deploy_fields(spec)
 
     def _warm_up(self, calls: int = 5) -> None:
@@ -215,17 +228,22 @@ class Controller:
         start: bool = False,
         stop: bool = False,
         skipped: int = 0,
+        ticks: list[tuple[int, Any]] | None = None,
     ) -> hg.LowCmd_:
         """This step's LowCmd from the newest LowState (``None`` before the first). Every
         reading is checked in every state (:func:`march.robot.wire_checks.lowstate_fault`): a fault
-        damps at once, whatever ``guard`` says; the training-range guard acts per ``guard``."""
+        damps at once, whatever ``guard`` says; the training-range guard acts per ``guard``.
+        ``ticks``: (tick, :func:`readings_of`) of every LowState that arrived since the previous
+        step, oldest first (the DDS loop's); ``None`` (an in-process caller): ``ls``'s own."""
         faults: list[str] = []
         x = None
         if ls is not None:
             fault = lowstate_fault(ls, self.limits, crc=self.profile.lowstate_crc)
             if fault is None:
                 x = self.read(ls)
-                faults += self._frozen(int(ls.tick), now) if self.profile.tick_advances else []
+                if self.profile.tick_advances:
+                    seen = ticks if ticks is not None else [(int(ls.tick), readings_of(ls))]
+                    faults += self._tick_order(seen, now)
             else:
                 faults.append(fault)
         want = self.mode_machine if self.profile.mode_machine is None else self.profile.mode_machine
@@ -289,15 +307,30 @@ class Controller:
         )
         return msg
 
-    def _frozen(self, tick: int, now: float) -> list[str]:
-        """A LowState whose tick stops advancing is stale, however often it is re-sent."""
-        if tick != self.last_tick:
-            self.last_tick, self.tick_since = tick, now
-            return []
-        if now - self.tick_since > self.timing.watchdog_s:
-            return [
-                f"watchdog: LowState tick frozen at {tick} ({(now - self.tick_since) * 1e3:.0f} ms)"
-            ]
+    def _tick_order(self, seen: list[tuple[int, Any]], now: float) -> list[str]:
+        """The LowState's tick counts up, one publisher's. ``seen``: (tick, readings) of each
+        LowState since the last step, oldest first. A tick that goes back, or comes again with
+        other readings, is a second publisher on the topic or a replay: a fault at once. The
+        same LowState re-sent (same tick, same readings: a lockstep robot feeding the watchdog)
+        is no news, and a tick that stops advancing for ``watchdog_s`` is a stale robot however
+        often it re-sends."""
+        for tick, readings in seen:
+            if self.last_tick >= 0 and tick < self.last_tick:
+                return [
+                    f"LowState: tick went back from {self.last_tick} to {tick} (a second "
+                    "publisher or a replay on the LowState topic)"
+                ]
+            if tick == self.last_tick:
+                if readings != self.last_readings:
+                    return [
+                        f"LowState: tick {tick} came twice with different readings (a second "
+                        "publisher or a replay on the LowState topic)"
+                    ]
+                continue
+            self.last_tick, self.last_readings, self.tick_since = tick, readings, now
+        if self.last_tick >= 0 and now - self.tick_since > self.timing.watchdog_s:
+            age = (now - self.tick_since) * 1e3
+            return [f"watchdog: LowState tick frozen at {self.last_tick} ({age:.0f} ms)"]
         return []
 
     def damping_step(self, now: float) -> hg.LowCmd_:
@@ -357,11 +390,60 @@ def fault_line(err: BaseException) -> str:
     if isinstance(err, InputFault):
         return str(err)
     text = str(err).splitlines()[0] if str(err) else ""
+    if type(err).__module__.startswith("cyclonedds"):
+        return f"DDS: {type(err).__name__}: {text}"[:300]
     return f"exception: {type(err).__name__}: {text}"[:300]
 
 
-def _wait_until(t: float, writer: Any, cmd: Any, resend_hz: float) -> None:
-    """Sleep until ``t``; with ``resend_hz``, re-publish ``cmd`` (already checked) meanwhile."""
+LOWSTATE_DEPTH = 2
+"""LowStates the loop's reader keeps between two steps (the newest ones)."""
+SUPERVISOR_TIMEOUT_S = 0.25
+"""Seconds: with ``supervisor=required``, no heartbeat for this long once one has come is a
+supervisor gone (12 of its 20 ms heartbeats missed: a crash, a kill, a lost terminal; not the
+scheduling jitter of a loaded computer)."""
+
+
+class CommandOut:
+    """``rt/lowcmd`` with a way back: a write that raises (the DDS participant lost, a library
+    fault) leaves the loop damping, and each damping command is tried on a fresh participant
+    and writer when the old one fails (:meth:`damp`)."""
+
+    def __init__(self, domain: int, interface: str, topic: str) -> None:
+        self.domain, self.interface, self.topic = domain, interface, topic
+        self.participant, self.writer = self._open()
+        self.reopened = 0
+        self.damping_sent = 0
+        self.damping_lost = 0
+
+    def _open(self) -> tuple[Any, Any]:
+        from march.robot import dds
+
+        dp = dds.participant(self.domain, self.interface)
+        return dp, dds.writer(dp, self.topic, hg.LowCmd_)
+
+    def write(self, cmd: hg.LowCmd_) -> None:
+        self.writer.write(cmd)
+
+    def damp(self, cmd: hg.LowCmd_) -> bool:
+        """Send the damping command, on a new participant if the old one fails; False when
+        neither could send it (counted: the exit line says so)."""
+        for fresh in (False, True):
+            try:
+                if fresh:
+                    self.participant, self.writer = self._open()
+                    self.reopened += 1
+                self.writer.write(cmd)
+                self.damping_sent += 1
+                return True
+            except Exception:  # noqa: BLE001 - the next try, or the count
+                continue
+        self.damping_lost += 1
+        return False
+
+
+def _wait_until(t: float, out: CommandOut, cmd: Any, resend_hz: float, fresh_until: float) -> None:
+    """Sleep until ``t``; with ``resend_hz``, re-publish ``cmd`` (already checked) meanwhile, but
+    never after ``fresh_until`` (its LowState would then be older than the watchdog allows)."""
     while True:
         wait = t - time.perf_counter()
         if wait <= 0:
@@ -370,8 +452,9 @@ def _wait_until(t: float, writer: Any, cmd: Any, resend_hz: float) -> None:
             time.sleep(wait)
             return
         time.sleep(min(wait, 1.0 / resend_hz))
-        if time.perf_counter() < t - 0.2 / resend_hz:
-            writer.write(cmd)
+        now = time.perf_counter()
+        if now < t - 0.2 / resend_hz and now < fresh_until:
+            out.write(cmd)
 
 
 def _newer(box: Any, tick: int, timeout: float) -> None:
@@ -386,6 +469,22 @@ def _newer(box: Any, tick: int, timeout: float) -> None:
         time.sleep(2e-4)
 
 
+def _supervisor_check(box: Any, now: float, timeout: float) -> bool:
+    """With ``supervisor=required``: True once a live heartbeat has come (the policy may start);
+    an :class:`InputFault` when the supervisor took over or its heartbeat stopped."""
+    beat, at = box.take()
+    if beat is None:
+        return False
+    if int(beat.took_over):
+        raise InputFault(
+            f"supervisor: it took over or is stopping (pid {int(beat.pid)}); damping (start a "
+            "new supervisor for the next run)"
+        )
+    if now - at > timeout:
+        raise InputFault(f"supervisor gone: no heartbeat for {(now - at) * 1e3:.0f} ms")
+    return True
+
+
 def run(
     ctl: Controller,
     domain: int,
@@ -395,55 +494,107 @@ def run(
     max_seconds: float = math.inf,
     depth: DepthSource | None = None,
     lockstep_s: float = 0.0,
+    supervisor_s: float = 0.0,
 ) -> list[StepLog]:
     """Drive ``ctl`` at the control rate until done. ``start``: ``enter`` (a line on stdin
-    starts the policy from hold) or ``auto``; the policy runs ``policy_seconds`` then stops
-    (damping); SIGINT / SIGTERM stop it too. Any exception in a step (a malformed message, a
-    bug) is a fault: damping from that step on, for its full time, sent by a path that reads
-    nothing. ``lockstep_s`` > 0 (the self-test against a lockstep robot only): each step first
-    waits up to that long for the LowState that answers the previous command."""
+    starts the policy from hold; stdin closed is a fault) or ``auto``; the policy runs
+    ``policy_seconds`` then stops (damping); SIGINT / SIGTERM stop it too, SIGHUP (the terminal
+    gone) damps as a fault. Any exception in a step (a malformed message, a bug, a DDS write
+    that fails) is a fault: damping from that step on, for its full time, sent by a path that
+    reads nothing (on a fresh DDS participant if the old one fails: :class:`CommandOut`). Just
+    before each write, a command whose LowState is older than ``watchdog_s`` (the process
+    stalled or was stopped between reading and writing) is replaced by damping: no command is
+    published from a stale LowState. ``lockstep_s`` > 0 (the self-test against a lockstep robot
+    only): each step first waits up to that long for the LowState that answers the previous
+    command. ``supervisor_s`` > 0 (``supervisor=required``): the policy does not start before
+    the supervisor's heartbeat has come, and damps when it stops for ``supervisor_s`` or says
+    the supervisor took over."""
     from march.robot import dds
 
     dp = dds.participant(domain, interface)
     dep = ctl.spec["deploy"]
-    state_box = dds.Latest(dp, dep["lowstate_topic"], hg.LowState_)
-    cmd_writer = dds.writer(dp, dep["lowcmd_topic"], hg.LowCmd_)
+    # The newest two LowStates of each poll, their ticks checked in order (a duplicate or a
+    # second publisher shows between them); not more: each costs ~1 ms to deserialize here.
+    state_box = dds.Latest(
+        dp, dep["lowstate_topic"], hg.LowState_, qos=dds.best_effort(LOWSTATE_DEPTH)
+    )
+    out = CommandOut(domain, interface, dep["lowcmd_topic"])
+    ctl.out = out
+    beats = dds.Latest(dp, dds.SUPERVISOR_TOPIC, dds.Heartbeat_) if supervisor_s > 0 else None
     hw = (int(ctl.depth["height"]), int(ctl.depth["width"]))
     source = depth or DdsDepth(dds.Latest(dp, dds.DEPTH_TOPIC, dds.DepthImage_), *hw)
     stop, old = stop_on_signals()
     enter = _stdin_lines() if start == "enter" else None
     period = float(dep["deadline"]["period_s"])
+    watchdog = ctl.timing.watchdog_s
     t0 = time.perf_counter()
     k, missed, skipped, policy_t0, shown, used_tick = 0, False, 0, None, 0, -1
-    last_cmd = None
+    last_cmd, fresh_until, waiting_said = None, 0.0, False
     ctl.skipped_total = 0
     try:
         while ctl.machine.state != DONE:
             tick_start = t0 + k * period
-            _wait_until(tick_start, cmd_writer, last_cmd, ctl.profile.resend_hz)
+            _wait_until(tick_start, out, last_cmd, ctl.profile.resend_hz, fresh_until)
             now = time.perf_counter()
+            if now - tick_start > period:  # stopped or starved before this step began
+                extra = int((now - tick_start) // period)
+                k, skipped, ctl.skipped_total = (
+                    k + extra,
+                    skipped + extra,
+                    ctl.skipped_total + extra,
+                )
+                tick_start += extra * period
+            arrived = None
             try:
                 if ctl.machine.state == DAMPING:
                     cmd = ctl.damping_step(now - t0)
                 else:
+                    if stop["flag"] and stop["signal"] not in ORDERLY_SIGNALS:
+                        raise InputFault(
+                            f"{stop['signal']}: the terminal closed or the session dropped"
+                        )
                     if lockstep_s > 0:
                         _newer(state_box, used_tick, lockstep_s)
                         now = time.perf_counter()
                     ls, arrived = state_box.take()
+                    ticks = [(int(s.tick), readings_of(s)) for s in state_box.drain()]
                     used_tick = int(ls.tick) if ls is not None else used_tick
                     age = None if arrived is None else now - arrived
                     want_start = start == "auto" or (enter is not None and enter())
+                    if beats is not None and not _supervisor_check(beats, now, supervisor_s):
+                        if want_start and ctl.machine.state == HOLD and not waiting_said:
+                            say("[policy] hold: waiting for the supervisor's heartbeat")
+                            waiting_said = True
+                        want_start = False
                     over = policy_t0 is not None and now - policy_t0 >= policy_seconds
                     quit_now = stop["flag"] or over or now - t0 >= max_seconds
                     if isinstance(source, DdsDepth):
                         source.in_policy = ctl.machine.state == POLICY
                     image = source.latest()
-                    cmd = ctl.step(ls, age, image, now - t0, missed, want_start, quit_now, skipped)
+                    cmd = ctl.step(
+                        ls, age, image, now - t0, missed, want_start, quit_now, skipped, ticks
+                    )
+                # The last look before the write: a command from a LowState older than the
+                # watchdog (a stall, SIGSTOP, a hung call since it was read) never goes out.
+                if arrived is not None and cmd is not ctl.damping:
+                    at = time.perf_counter()
+                    late = at - arrived
+                    if late > watchdog:  # damping's time counts from now, not the step's start
+                        ctl.machine.fault(
+                            at - t0,
+                            f"watchdog: LowState {late * 1e3:.0f} ms old at the write (a stall "
+                            "or a robot gone since it was read; its command not sent)",
+                        )
+                        cmd = ctl.damping
+                out.write(cmd)
             except Exception as err:  # noqa: BLE001 - every fault ends in damping
-                ctl.machine.fault(now - t0, fault_line(err))
+                ctl.machine.fault(time.perf_counter() - t0, fault_line(err))
                 cmd = ctl.damping
-            cmd_writer.write(cmd)
+                out.damp(cmd)
             last_cmd = cmd
+            fresh_until = (arrived if arrived is not None else 0.0) + watchdog
+            if cmd is ctl.damping:
+                fresh_until = math.inf  # damping reads nothing: always fit to re-send
             done = time.perf_counter()
             if ctl.machine.state == POLICY and policy_t0 is None:
                 policy_t0 = now
@@ -451,7 +602,7 @@ def run(
             if ctl.log:
                 ctl.log[-1].work_ms, ctl.log[-1].missed = (done - now) * 1e3, missed
             for t, a, b, why in ctl.machine.transitions[shown:]:  # as they happen
-                print(f"[policy] {t:7.3f} s  {a} -> {b}  ({why})", flush=True)
+                say(f"[policy] {t:7.3f} s  {a} -> {b}  ({why})")
             shown = len(ctl.machine.transitions)
             k += 1
             behind = time.perf_counter() - (t0 + k * period)
@@ -465,14 +616,16 @@ def run(
 
 
 def _stdin_lines():
-    """A non-blocking 'has a line arrived on stdin' check."""
+    """A non-blocking 'has a line arrived on stdin' check; stdin at its end (the terminal
+    closed, or none given) is an :class:`InputFault`, never a start."""
     import select
     import sys
 
     def ready() -> bool:
         r, _, _ = select.select([sys.stdin], [], [], 0)
         if r:
-            sys.stdin.readline()
+            if not sys.stdin.readline():
+                raise InputFault("stdin closed: start=enter has no terminal to read Enter from")
             return True
         return False
 

@@ -23,7 +23,9 @@ invalid (``policy_pid=``: kill that process first). ``camera`` (:mod:`march.robo
 publishes the depth topic from a RealSense (``source=realsense``) or a recording
 (``source=file file=<.bag or .npz>``; a replay starts once a reader of the topic is matched,
 ``wait_for_reader_s``, default 5), preprocessed as in training. ``sim cmd_timeout=S``: the
-simulated motors damp after S s without a valid LowCmd.
+simulated motors damp after S s without a valid LowCmd. ``policy supervisor=required`` (the
+default): the policy does not start before the supervisor's heartbeat has come and damps when
+it stops or says the supervisor took over; ``supervisor=none`` only on ``lo``.
 Bad input is one line on stderr and exit status 2, before anything starts.
 """
 
@@ -36,7 +38,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from march.sim2sim.deploy_bundle import UsageError
+from march.sim2sim.bundle_schema import UsageError
 
 LOCKSTEP_WAIT_S = 2.0
 """``lockstep=true`` (loopback only): how long a step waits for the lockstep robot's answer
@@ -76,10 +78,12 @@ KEYS: dict[str, Any] = {
     "source": str,
     "file": str,
     "fps": float,
+    "supervisor": str,
 }
 ALLOWED = {
     "policy": {"bundle", "domain", "interface", "seconds", "start", "guard", "deadlines", "vx", "vy", "log",
-               "zero_torque_s", "ramp_s", "hold_s", "damping_s", "max_seconds", "lockstep", "robot", "resend_hz"},
+               "zero_torque_s", "ramp_s", "hold_s", "damping_s", "max_seconds", "lockstep", "robot", "resend_hz",
+               "supervisor"},
     "sim": {"bundle", "domain", "interface", "seconds", "course", "band", "lockstep", "log",
             "cmd_timeout"},
     "selftest": {"bundle", "domain", "interface", "seconds", "guard", "deadlines", "course", "keep"},
@@ -126,6 +130,7 @@ def parse(argv: Sequence[str]) -> tuple[str, dict[str, Any]]:
         "source": lambda v: v in ("realsense", "file"),
         "fps": lambda v: 1 <= v <= 90,
         "course": lambda v: v in ("hardware", "stones"),
+        "supervisor": lambda v: v in ("required", "none"),
         "vx": math.isfinite,
         "vy": math.isfinite,
         **{k: (lambda v: 0 <= v < 600) for k in ("zero_torque_s", "ramp_s", "hold_s", "damping_s")},
@@ -135,7 +140,7 @@ def parse(argv: Sequence[str]) -> tuple[str, dict[str, Any]]:
             raise UsageError(f"{key}={args[key]}: not allowed ({USAGE})")
     loose_values = (
         ("guard", "report"), ("deadlines", "report"), ("lockstep", "true"),
-        ("robot", "unitree_mujoco"),
+        ("robot", "unitree_mujoco"), ("supervisor", "none"),
     )  # fmt: skip
     if job == "policy" and "resend_hz" in args and args.get("interface", "eth0") != "lo":
         raise UsageError("resend_hz= only on the loopback interface (a simulated robot)")
@@ -146,7 +151,8 @@ def parse(argv: Sequence[str]) -> tuple[str, dict[str, Any]]:
 
 
 def policy(args: dict[str, Any]) -> int:
-    from march.robot.policy_loop import Controller, load_bundle, run
+    from march.robot.policy_loop import SUPERVISOR_TIMEOUT_S, Controller, load_bundle, run
+    from march.robot.signals import say
     from march.robot.states import Timing
     from march.robot.wire_checks import BundleRefused
     from march.sim2sim.guard import CommandRefused, check_command
@@ -177,7 +183,8 @@ def policy(args: dict[str, Any]) -> int:
     except BundleRefused as err:
         raise UsageError(str(err)) from None
     domain, iface = args.get("domain", 0), args.get("interface", "eth0")
-    print(f"[policy] domain {domain}, interface {iface}; zero torque until LowState", flush=True)
+    say(f"[policy] domain {domain}, interface {iface}; zero torque until LowState")
+    sup_s = SUPERVISOR_TIMEOUT_S if args.get("supervisor", "required") == "required" else 0.0
     log = run(
         ctl,
         domain,
@@ -186,12 +193,12 @@ def policy(args: dict[str, Any]) -> int:
         args.get("seconds", math.inf),
         args.get("max_seconds", math.inf),
         lockstep_s=LOCKSTEP_WAIT_S if args.get("lockstep") == "true" else 0.0,
+        supervisor_s=sup_s,
     )
     missed = sum(s.missed for s in log) + ctl.skipped_total
-    print(
+    say(
         f"[policy] {len(log)} steps, {missed} missed deadlines "
-        f"({ctl.skipped_total} periods skipped)",
-        flush=True,
+        f"({ctl.skipped_total} periods skipped)"
     )
     if args.get("log"):
         out = {
@@ -218,8 +225,15 @@ def policy(args: dict[str, Any]) -> int:
         tmp.write_text(json.dumps(out))
         tmp.replace(args["log"])
     why = ctl.machine.fault_reason
+    lost = ctl.out.damping_lost
+    if lost:  # the robot may still hold the last command that reached it
+        sent = ctl.out.damping_sent
+        why = (
+            f"{why}; {lost} damping commands could not be sent ({sent} were, on a new DDS "
+            "participant): damp the robot with its remote"
+        )
     if why is not None:
-        print(f"error: the robot loop damped on a fault: {why}", file=sys.stderr, flush=True)
+        say(f"error: the robot loop damped on a fault: {why}", err=True)
         return 1
     return 0
 

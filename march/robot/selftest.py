@@ -183,7 +183,7 @@ def run_selftest(
         loop = subprocess.run(
             [*_python(), "policy", *common, "start=auto", f"seconds={seconds}",
              f"guard={guard}", f"deadlines={deadlines}", f"log={loop_log}", "lockstep=true",
-             *fast],
+             "supervisor=none", *fast],
             capture_output=True,
             text=True,
             env=env,

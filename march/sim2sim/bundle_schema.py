@@ -24,6 +24,12 @@ from dataclasses import dataclass
 from typing import Any
 
 
+class UsageError(ValueError):
+    """Bad arguments or an unusable bundle: one line for the user (also
+    ``march.sim2sim.deploy_bundle.UsageError``; here, where no MuJoCo is imported, so that the
+    robot's supervisor and camera raise and catch it without MuJoCo)."""
+
+
 class SchemaError(ValueError):
     """A deploy.json that does not match the schema: one line."""
 
@@ -350,6 +356,44 @@ POS_LIMIT_MARGIN_RAD = 0.1
 loop's reading check; the default pose must be inside the limits themselves)."""
 
 
+G1_JOINT_RANGES: dict[str, tuple[float, float]] = {
+    "left_hip_pitch_joint": (-2.5307, 2.8798),
+    "left_hip_roll_joint": (-0.5236, 2.9671),
+    "left_hip_yaw_joint": (-2.7576, 2.7576),
+    "left_knee_joint": (-0.087267, 2.8798),
+    "left_ankle_pitch_joint": (-0.87267, 0.5236),
+    "left_ankle_roll_joint": (-0.2618, 0.2618),
+    "right_hip_pitch_joint": (-2.5307, 2.8798),
+    "right_hip_roll_joint": (-2.9671, 0.5236),
+    "right_hip_yaw_joint": (-2.7576, 2.7576),
+    "right_knee_joint": (-0.087267, 2.8798),
+    "right_ankle_pitch_joint": (-0.87267, 0.5236),
+    "right_ankle_roll_joint": (-0.2618, 0.2618),
+    "waist_yaw_joint": (-2.618, 2.618),
+    "waist_roll_joint": (-0.52, 0.52),
+    "waist_pitch_joint": (-0.52, 0.52),
+    "left_shoulder_pitch_joint": (-3.0892, 2.6704),
+    "left_shoulder_roll_joint": (-1.5882, 2.2515),
+    "left_shoulder_yaw_joint": (-2.618, 2.618),
+    "left_elbow_joint": (-1.0472, 2.0944),
+    "left_wrist_roll_joint": (-1.97222, 1.97222),
+    "left_wrist_pitch_joint": (-1.61443, 1.61443),
+    "left_wrist_yaw_joint": (-1.61443, 1.61443),
+    "right_shoulder_pitch_joint": (-3.0892, 2.6704),
+    "right_shoulder_roll_joint": (-2.2515, 1.5882),
+    "right_shoulder_yaw_joint": (-2.618, 2.618),
+    "right_elbow_joint": (-1.0472, 2.0944),
+    "right_wrist_roll_joint": (-1.97222, 1.97222),
+    "right_wrist_pitch_joint": (-1.61443, 1.61443),
+    "right_wrist_yaw_joint": (-1.61443, 1.61443),
+}
+"""The G1's (29 DoF) joint ranges [rad], march's own table: mjlab's G1 model, equal to Unitree's
+``g1_29dof.xml`` (unitree_mujoco). A bundle's ``pos_limits`` must lie inside them and its default
+pose inside both: a bundle cannot widen the range it is checked against (issue 59)."""
+JOINT_RANGE_TOL_RAD = 1e-4
+"""Rounding a bundle may carry against the table's values."""
+
+
 def motor_of(joint: str) -> tuple[str, float]:
     """The G1 motor driving ``joint`` and its rated torque [N m]."""
     return next((motor, torque) for part, motor, torque in G1_MOTORS if part in joint)
@@ -382,6 +426,14 @@ def check_motor_ranges(spec: Any) -> None:
         lo, hi = j["pos_limits"]
         if not lo < hi:
             raise SchemaError(f"{where}.pos_limits = {[lo, hi]}: empty")
+        if name not in G1_JOINT_RANGES:
+            raise SchemaError(f"{where}.name = {name!r}: not a joint of the G1 (29 DoF)")
+        g_lo, g_hi = G1_JOINT_RANGES[name]
+        if lo < g_lo - JOINT_RANGE_TOL_RAD or hi > g_hi + JOINT_RANGE_TOL_RAD:
+            raise SchemaError(
+                f"{where}.pos_limits = {[lo, hi]} ({name}): wider than the G1's joint range "
+                f"{[g_lo, g_hi]}"
+            )
         for key, value in (("default_pos", j["default_pos"]),):
             if not lo <= value <= hi:
                 raise SchemaError(f"{where}.{key} = {value:g} ({name}): outside {[lo, hi]}")

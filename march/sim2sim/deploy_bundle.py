@@ -20,7 +20,7 @@ from typing import Any
 
 import mujoco
 
-from march.sim2sim.bundle_schema import SchemaError, check_spec
+from march.sim2sim.bundle_schema import SchemaError, UsageError, check_spec
 from march.sim2sim.motors import MotorTableError, motor_table
 from march.store.bounded_read import (
     MAX_INFLATION,
@@ -37,10 +37,6 @@ BUNDLE_FORMAT = 3
 """The ``deploy.json`` layout this loop reads (march.export.deploy_spec.BUNDLE_FORMAT)."""
 INPUTS = ("proprio_hist", "command", "depth")
 OUTPUT = "actions"
-
-
-class UsageError(ValueError):
-    """Bad arguments or an unusable bundle: one line for the user."""
 
 
 def _sha256(data: bytes) -> str:
