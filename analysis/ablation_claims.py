@@ -21,9 +21,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from analysis.claim_row import claim_row, scale_text
 from analysis.groups import GroupKey, foreign, series_names, shorten
 from analysis.rundirs import Run, stage_rows
-from analysis.stats import rel_estimate
+from march.stats import rel_estimate
 
 ABLATION_METRICS = (
     ("reward_per_step", "the paper's metric: teacher's reward per step on student rollouts"),
@@ -45,8 +46,6 @@ def final_values(runs: list[Run], column: str) -> np.ndarray:
 def ablation_rows(inp, notes: list[str]) -> list[dict]:
     """Rows for each variant group of the ablation teacher against the ``full`` group that
     differs from it in ``student.*`` only; refusals go to ``inp.refused``."""
-    from analysis.claims import _scale, claim_row
-
     rows = []
     teacher = [k for k in inp.groups if k.reward == inp.ablation_teacher]
     names = series_names(teacher, "variant", inp.conf_dir)
@@ -75,7 +74,7 @@ def ablation_rows(inp, notes: list[str]) -> list[dict]:
                     f"({kv.variant} - {inp.full}) / |{inp.full}|, final evaluation{stage}",
                     "< 0 (full ahead)",
                     est,
-                    _scale(v, f),
+                    scale_text(v, f),
                     0.0,
                     "le",
                 )

@@ -14,7 +14,7 @@ One row per claim (``claims.csv`` / ``claims.md``; columns :data:`CLAIM_COLUMNS`
   ``500 / 1500`` of the runs' distillation budget on, the LARGEST relative difference of seed
   means (clf - modelfree) / modelfree over those iterations (the weakest reduction: "at least X%
   at every iteration" <=> it is <= -X), with a simultaneous interval
-  (:func:`analysis.stats.worst_over_iterations`). Headline: over successful rollouts only
+  (:func:`march.stats.worst_over_iterations`). Headline: over successful rollouts only
   (``torque_success`` / ``jerk_success``: gait, not falls); the same over all rollouts follows
   as a secondary row; and, where both arms of a seed wrote ``eval_rollouts.csv``, the paired
   per-cell difference on the cells both arms completed in the final evaluation.
@@ -31,7 +31,7 @@ pair refused, and every group that is not the paper's arm, is listed with the re
 
 Every verdict counts the finite per-seed values it was computed from, per arm (and per iteration
 for the "every iteration" rows): ``n_seeds`` reports them; fewer than 3 on either side is
-``inconclusive`` with the reason in ``why`` (:func:`analysis.stats.judge`).
+``inconclusive`` with the reason in ``why`` (:func:`march.stats.judge`).
 """
 
 from __future__ import annotations
@@ -44,6 +44,7 @@ import numpy as np
 import pandas as pd
 
 from analysis.ablation_claims import ablation_rows
+from analysis.claim_row import CLAIM_COLUMNS, claim_row, scale_text
 from analysis.groups import (
     CONF_DIR,
     GroupKey,
@@ -54,26 +55,14 @@ from analysis.groups import (
     spec_mismatch,
 )
 from analysis.rundirs import Run, stage_rows
-from analysis.stats import (
+from march.stats import (
     MIN_SEEDS,
     Estimate,
-    judge,
-    mean_interval,
+    mean_ci,
     ratio_estimate,
     worst_over_iterations,
 )
 
-CLAIM_COLUMNS = [
-    "claim",
-    "paper",
-    "measured",
-    "ci_low",
-    "ci_high",
-    "n_seeds",
-    "scale",
-    "verdict",
-    "why",
-]
 PAPER_DISTILL_ITERATIONS = 1500
 PAPER_FROM_ITERATION = 500
 PAPER_STEP_RATIO = 0.5  # 10k vs 20k teacher iterations
@@ -108,27 +97,6 @@ def from_iteration(distill_budget) -> int:
     except (TypeError, ValueError):
         return PAPER_FROM_ITERATION
     return math.ceil(PAPER_FROM_ITERATION / PAPER_DISTILL_ITERATIONS * budget)
-
-
-def seeds_text(est: Estimate) -> str:
-    """``n_seeds``: the finite values per arm the statistic used (never the runs found)."""
-    text = f"{est.n_a} vs {est.n_b}"
-    return text if min(est.n_a, est.n_b) >= MIN_SEEDS else f"{text} (fewer than {MIN_SEEDS})"
-
-
-def claim_row(claim, paper, est: Estimate, scale, claimed, direction, seeds=None) -> dict:
-    verdict, why = judge(est, claimed, direction)
-    return {
-        "claim": claim,
-        "paper": paper,
-        "measured": est.point,
-        "ci_low": est.low,
-        "ci_high": est.high,
-        "n_seeds": seeds or seeds_text(est),
-        "scale": scale,
-        "verdict": verdict,
-        "why": why,
-    }
 
 
 def _student_matrix(runs: list[Run], column: str, grid: list[int]) -> np.ndarray:
@@ -202,18 +170,6 @@ def steps_to_target(a: list[Run], b: list[Run], fraction: float) -> tuple[Estima
     return est, target, "; ".join(why)
 
 
-def _scale(a: list[Run], b: list[Run], start: int | None = None) -> str:
-    runs = a + b
-    computes = sorted({str(r.compute) for r in runs})
-    ta = sorted({r.teacher_budget for r in a}, key=str)
-    tb = sorted({r.teacher_budget for r in b}, key=str)
-    db = sorted({r.distill_budget for r in runs}, key=str)
-    text = f"compute={','.join(computes)}; teacher {ta} vs {tb} it; distill {db} it"
-    if start is not None:
-        text += f"; rows from distill it {start} (500/1500 of the budget)"
-    return text
-
-
 def _paired_cells(a: list[Run], b: list[Run], metric: str) -> np.ndarray:
     """Per seed both arms ran: (mean over the cells both completed of a - b) / mean of b, from
     the final student evaluation's eval_rollouts.csv rows (the same cells and draws)."""
@@ -259,7 +215,7 @@ def _baseline_rows(name: str, a: list[Run], b: list[Run], inp: ClaimsInput) -> l
             f"distance{where}, mean over seeds, {inp.arm} / {inp.reference}",
             f"<= {PAPER_STEP_RATIO} (10k vs 20k it)",
             est,
-            _scale(a, b),
+            scale_text(a, b),
             PAPER_STEP_RATIO,
             "le",
         )
@@ -275,7 +231,7 @@ def _baseline_rows(name: str, a: list[Run], b: list[Run], inp: ClaimsInput) -> l
                 f"({len(grid)} evaluations, simultaneous)",
                 f"<= {paper:+.0%}",
                 worst_over_iterations(ma, mb, names=grid),
-                _scale(a, b, start),
+                scale_text(a, b, start),
                 paper,
                 "le",
             )
@@ -283,7 +239,7 @@ def _baseline_rows(name: str, a: list[Run], b: list[Run], inp: ClaimsInput) -> l
     for metric, label, paper in PAIRED:
         per_pair = _paired_cells(a, b, metric)
         n = int(np.isfinite(per_pair).sum())
-        point, lo, hi = mean_interval(per_pair) if n else (math.nan,) * 3
+        point, lo, hi = mean_ci(per_pair) if n else (math.nan,) * 3
         rows.append(
             claim_row(
                 f"{name}: {label}, paired cells both arms completed (final evaluation)",
@@ -291,7 +247,7 @@ def _baseline_rows(name: str, a: list[Run], b: list[Run], inp: ClaimsInput) -> l
                 Estimate(
                     point, lo, hi, n, n, "" if n else "no seed pair with a cell both arms completed"
                 ),
-                _scale(a, b) + "; per seed pair",
+                scale_text(a, b) + "; per seed pair",
                 paper,
                 "le",
                 f"{n} seed pairs" + ("" if n >= MIN_SEEDS else f" (fewer than {MIN_SEEDS})"),

@@ -25,7 +25,7 @@ from analysis.aggregate import (
 from analysis.arms import Comparisons
 from analysis.groups import GroupKey, primary, series_names
 from analysis.rundirs import Run
-from analysis.stats import fieller_rel
+from march.stats import fieller_rel
 
 # --------------------------------------------------------------------------- final metrics
 

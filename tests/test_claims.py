@@ -32,13 +32,16 @@ from analysis.groups import (  # noqa: E402
     series_names,
 )
 from analysis.rundirs import Run  # noqa: E402
-from analysis.stats import (  # noqa: E402
+from march.stats import (  # noqa: E402
     bootstrap,
     fieller_rel,
     judge,
+    mean_summary,
+    paired_ci,
     ratio_estimate,
     rel_of_means,
     verdict,
+    welch_summary,
     worst_over_iterations,
 )
 
@@ -272,6 +275,28 @@ def test_fieller_interval_by_hand_with_a_constant_reference():
     half = sps.t.ppf(0.975, 2) * (1 / math.sqrt(3)) / 10
     assert point == pytest.approx(-0.1)
     assert (lo, hi) == pytest.approx((-0.1 - half, -0.1 + half))
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_the_one_t_interval_matches_scipys_tests(seed):
+    """march.stats's mean, paired and Welch intervals (one t interval underneath) against
+    scipy's own one-sample and Welch tests' confidence intervals on generated data, NaN dropped."""
+    rng = np.random.default_rng(seed)
+    a = rng.normal(rng.uniform(-2, 2), rng.uniform(0.1, 3), rng.integers(2, 9))
+    b = rng.normal(rng.uniform(-2, 2), rng.uniform(0.1, 3), rng.integers(2, 9))
+    one = sps.ttest_1samp(a, 0.0).confidence_interval(0.95)
+    got = mean_summary(np.append(a, np.nan))
+    assert got["n"] == a.size and got["mean"] == pytest.approx(a.mean())
+    assert (got["low"], got["high"]) == pytest.approx((one.low, one.high), rel=1e-9)
+    welch = sps.ttest_ind(a, b, equal_var=False).confidence_interval(0.95)
+    got = welch_summary(a, np.append(b, np.inf))
+    assert got["n"] == f"{a.size} vs {b.size}"
+    assert (got["low"], got["high"]) == pytest.approx((welch.low, welch.high), rel=1e-9)
+    c = a + rng.normal(0.3, 0.5, a.size)
+    rel = sps.ttest_rel(c, a).confidence_interval(0.95)
+    assert paired_ci(c, a)[1:] == pytest.approx((rel.low, rel.high), rel=1e-9)
+    assert mean_summary([1.0]) == {"mean": 1.0, "low": None, "high": None, "n": 1}
+    assert welch_summary([1.0], b)["mean"] is None
 
 
 @pytest.mark.parametrize("seed", range(25))

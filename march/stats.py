@@ -1,7 +1,11 @@
-"""Uncertainty across seeds: intervals for the paper's comparisons and the claim verdict rule.
+"""Uncertainty across seeds: the one statistics module of the repository (intervals for the
+paper's comparisons, the reward audit and the learning-signal study, and the claim verdict rule).
 
 The seed is the unit of replication (SPEC §6); every interval is 95% and across seeds, and its
-coverage at 3-5 seeds is checked by simulation (tests/test_claims.py).
+coverage at 3-5 seeds is checked by simulation (tests/test_claims.py). ``march`` may not import
+``analysis``, so the package holds this module and ``analysis/``, ``march.audit`` and
+``analysis/signal.py`` all import it (issue 54): there is one t interval (:func:`t_interval`),
+every mean, paired or Welch interval is a use of it.
 
 * A relative difference of two arms' seed means, (m_a - m_b) / |m_b|: Fieller's interval for a
   ratio of means with Welch's degrees of freedom (:func:`fieller_rel`, :func:`rel_estimate`), a
@@ -12,7 +16,10 @@ coverage at 3-5 seeds is checked by simulation (tests/test_claims.py).
 * The worst relative difference over a range of iterations ("at least X% at every iteration"):
   a simultaneous interval, Fieller per iteration with a Bonferroni-corrected lower end
   (:func:`worst_over_iterations`).
-* A mean of per-seed paired differences: Student's t (:func:`mean_interval`).
+* A mean (:func:`mean_ci`), a mean of per-seed paired differences (:func:`paired_ci`) and a
+  difference of two independent means with Welch's degrees of freedom (:func:`welch_ci`): each
+  the one Student's t interval (:func:`t_interval`); :func:`mean_summary` and
+  :func:`welch_summary` give them as dicts (None where undefined) for JSON reports.
 * :func:`bootstrap` (percentile, each arm resampled independently, a fixed generator): kept for
   statistics without a closed form; no claim uses it (it under-covers at 3-5 seeds).
 
@@ -129,9 +136,23 @@ def fieller_rel(a, b, level: float = LEVEL) -> tuple[float, float, float]:
     return point, 1.0 - hi_r, 1.0 - lo_r  # rel = (m_a - m_b) / -m_b = 1 - r
 
 
-def mean_interval(x, level: float = LEVEL) -> tuple[float, float, float]:
-    """(mean, low, high): Student's t interval of the mean of ``x`` (e.g. per-seed paired
-    differences); NaN bounds with fewer than 2 values."""
+def t_interval(
+    point: float, se: float, dof: float, level: float = LEVEL
+) -> tuple[float, float, float]:
+    """(point, low, high) = point -/+ t_{dof, (1 + level)/2} x se: the repository's one t
+    interval (a mean, a paired difference, a Welch difference all come here). NaN bounds when
+    ``dof`` is not positive or ``se`` is not finite."""
+    if not (dof > 0) or not math.isfinite(se):
+        return point, math.nan, math.nan
+    from scipy.stats import t as student_t
+
+    half = float(student_t.ppf(0.5 + level / 2.0, dof)) * se
+    return point, point - half, point + half
+
+
+def mean_ci(x, level: float = LEVEL) -> tuple[float, float, float]:
+    """(mean, low, high): Student's t interval of the mean of the non-NaN values of ``x``; NaN
+    bounds with fewer than 2 values (NaN mean with none)."""
     x = np.asarray(x, dtype=float)
     x = x[~np.isnan(x)]
     if x.size == 0:
@@ -139,10 +160,57 @@ def mean_interval(x, level: float = LEVEL) -> tuple[float, float, float]:
     m = float(x.mean())
     if x.size < 2:
         return m, math.nan, math.nan
-    from scipy.stats import t as student_t
+    return t_interval(m, float(x.std(ddof=1)) / math.sqrt(x.size), x.size - 1, level)
 
-    half = float(student_t.ppf(0.5 + level / 2.0, x.size - 1)) * x.std(ddof=1) / math.sqrt(x.size)
-    return m, m - half, m + half
+
+def paired_ci(a, b, level: float = LEVEL) -> tuple[float, float, float]:
+    """(mean, low, high) of the per-pair differences ``a - b`` (same length: seed pairs, or the
+    same rollouts under two behaviours), by :func:`mean_ci`; a pair with a NaN side is dropped."""
+    return mean_ci(np.asarray(a, dtype=float) - np.asarray(b, dtype=float), level)
+
+
+def welch_ci(a, b, level: float = LEVEL) -> tuple[float, float, float]:
+    """(mean_a - mean_b, low, high) over the finite values of two independent arms: the t
+    interval with Welch's standard error and degrees of freedom (Welch-Satterthwaite; 1 when
+    both arms are constant, where the interval is the point). NaN bounds with fewer than 2
+    values in an arm."""
+    a, b = finite(a), finite(b)
+    if a.size == 0 or b.size == 0:
+        return math.nan, math.nan, math.nan
+    d = float(a.mean() - b.mean())
+    if a.size < 2 or b.size < 2:
+        return d, math.nan, math.nan
+    va, vb = a.var(ddof=1) / a.size, b.var(ddof=1) / b.size
+    se = math.sqrt(va + vb)
+    dof = (va + vb) ** 2 / (va**2 / (a.size - 1) + vb**2 / (b.size - 1)) if se > 0 else 1.0
+    return t_interval(d, se, dof, level)
+
+
+def _none_if_nan(x: float) -> float | None:
+    return None if math.isnan(x) else x
+
+
+def mean_summary(x, level: float = LEVEL) -> dict:
+    """``{"mean", "low", "high", "n"}`` of :func:`mean_ci` over the finite values of ``x`` (n:
+    their count), None where undefined: the dict a JSON report writes."""
+    x = finite(x)
+    m, lo, hi = mean_ci(x, level)
+    return {"mean": _none_if_nan(m), "low": _none_if_nan(lo), "high": _none_if_nan(hi), "n": len(x)}
+
+
+def welch_summary(a, b, level: float = LEVEL) -> dict:
+    """``{"mean", "low", "high", "n"}`` of :func:`welch_ci` (mean: the difference a - b; n:
+    ``"n_a vs n_b"`` finite values), None where undefined."""
+    na, nb = finite(a).size, finite(b).size
+    d, lo, hi = welch_ci(a, b, level)
+    if na < 2 or nb < 2:
+        d = math.nan
+    return {
+        "mean": _none_if_nan(d),
+        "low": _none_if_nan(lo),
+        "high": _none_if_nan(hi),
+        "n": f"{na} vs {nb}",
+    }
 
 
 @dataclass(frozen=True)
