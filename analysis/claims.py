@@ -5,10 +5,12 @@ One row per claim (``claims.csv`` / ``claims.md``; columns :data:`CLAIM_COLUMNS`
 * **sample efficiency** -- the clf teacher reaches the model-free distance with half the
   training: per seed, the teacher env steps until its evaluation distance (eval.csv teacher rows)
   first reaches ``threshold_fraction`` (default 0.9) of the better arm's final seed-mean
-  distance; the ratio of the arms' mean step counts, clf / modelfree, with Fieller's interval.
-  A seed that never reaches the target counts with its last evaluated step count, a lower
-  bound: then only the verdict that bound cannot flatter is given. Paper: 10k vs 20k
-  iterations, a ratio of 0.5; claimed "<= 0.5".
+  distance; the ratio of the arms' mean step counts, clf / modelfree. Each crossing is known
+  only to the evaluation grid (between the last evaluation below the target and the first at
+  it; before the first evaluation for a seed already past it; after the last for one that never
+  reaches it), and the interval covers every value inside those bounds
+  (:func:`march.stats.censored_ratio_estimate`): the data give the verdict, never the grid,
+  which the claim names. Paper: 10k vs 20k iterations, a ratio of 0.5; claimed "<= 0.5".
 * **torque** and **angular jerk** after distillation -- "at least 12% / 39% less after 500
   distillation iterations": over the student evaluation rows from distillation iteration
   ``500 / 1500`` of the runs' distillation budget on, the LARGEST relative difference of seed
@@ -25,9 +27,11 @@ One row per claim (``claims.csv`` / ``claims.md``; columns :data:`CLAIM_COLUMNS`
   observation) in place of the paper's modelfree, so the CLF reward's own effect can be read.
 
 Which groups are compared (:mod:`analysis.groups`): two groups only when they differ in the
-compared arms' own fields (what ``conf/experiment/<arm>.yaml`` chooses) and nothing else; every
-pair refused, and every group that is not the paper's arm, is listed with the reason in
-``claims.md`` ("Not compared").
+compared arms' own fields (what ``conf/experiment/<arm>.yaml`` chooses) and nothing else
+(:func:`analysis.groups.unlike`, the rule every output shares); the paper's arm is the arm's
+config as a whole (:func:`analysis.groups.variant_of_arm`: a reward term beyond it makes a
+variant); every pair refused, and every group that is not the paper's arm, is listed once with
+the reason in ``claims.md`` ("Not compared").
 
 Every verdict counts the finite per-seed values it was computed from, per arm (and per iteration
 for the "every iteration" rows): ``n_seeds`` reports them; fewer than 3 on either side is
@@ -389,12 +393,14 @@ def claims_markdown(table: pd.DataFrame, refused: list[str] = ()) -> str:
         "iteration 500 on' rows, a simultaneous interval for the largest difference over the "
         "evaluations (upper end: the largest per-iteration upper end; lower end: the largest "
         "Bonferroni-corrected lower end); the sample-efficiency ratio, Fieller's interval for "
-        "the ratio of the arms' mean step counts; paired rows, Student's t over seed pairs. "
+        "the ratio of the arms' mean step counts over every value the evaluation grid leaves "
+        "each seed's crossing (a seed past the target at its first evaluation is only bounded "
+        "above: the grid is named beside the ratio); paired rows, Student's t over seed pairs. "
         "Verdict: `reproduced` when the whole interval satisfies the claim, `not reproduced` "
         "when the whole interval violates it, `inconclusive` otherwise, with fewer than "
-        f"{MIN_SEEDS} seeds with a value per arm, or when a censored seed forbids it (column "
-        "'why'); a smoke-scale run measures plumbing, not the paper. Two groups are compared "
-        "only when they differ in the compared arms' own fields and nothing else.",
+        f"{MIN_SEEDS} seeds with a value per arm, or with no interval (column 'why'); a "
+        "smoke-scale run measures plumbing, not the paper. Two groups are compared only when "
+        "they differ in the compared arms' own fields and nothing else, in every output.",
         "",
         "| claim | paper | measured | 95% CI | n seeds | scale | verdict | why |",
         "|---|---|---|---|---|---|---|---|",

@@ -7,12 +7,13 @@ Hessian accumulation, whose summation order follows ``solver._jtdaj_groups_per_w
 njmax)``: 6 / 3 / 1 / 1 slots per world for 1 / 2 / 4 / 8 worlds on the CPU. Evaluation envs pin
 it (march.env.solver_order); ``--unpinned`` shows the rows without the pin. The policy is a fixed
 random linear map of the actor observation (seeded), so the actions depend on every observed
-number; the smoke eval env, one process.
+number, computed row by row (no matmul, whose BLAS kernel depends on the row count); the smoke
+eval env, one process.
 
     python scripts/eval_wave_sizes.py [--rollouts 8] [--sizes 8 2] [--seconds 2.0] [--dr]
                                       [--unpinned]
     python scripts/eval_wave_sizes.py --slots [--sizes 8 4 2 1]   # one state in every slot
-    python scripts/eval_wave_sizes.py --price [--sizes 2 8]        # the pin's cost, march.bench
+    python scripts/eval_wave_sizes.py --price [--sizes 2 8] [--compute gpu]  # the pin's cost
 
 Default: domain randomisation and pushes off (``--dr``: on, as the evaluation protocol runs);
 every column of the rollout rows is compared, wave size by wave size.
@@ -76,7 +77,10 @@ def rows(args: argparse.Namespace) -> None:
             )
 
             def policy(obs, w=weights * 0.05):
-                return torch.tanh(obs["actor"] @ w)
+                # row by row (a broadcast product summed per row), not a matmul: BLAS picks its
+                # kernel and summation order by the batch's row count, which would make the
+                # actions, not the env, depend on the wave size
+                return torch.tanh((obs["actor"][:, :, None] * w[None]).sum(dim=1))
 
             out[size] = rollout_metrics(env, policy, args.rollouts)
             env.close()
@@ -96,6 +100,53 @@ def rows(args: argparse.Namespace) -> None:
                 f"  waves of {size:>3}: {name:<16} identical {same}/{len(a)}, "
                 f"|diff| max {diff.nan_to_num(float('inf')).max():.2e} (rollout {worst})"
             )
+
+
+def trace(args: argparse.Namespace) -> None:
+    """Where two wave sizes first part: rollouts 0 and 1 in a wave of ``sizes[0]`` and of
+    ``sizes[1]``, step by step, the first step whose physics state (qpos, qvel) or actor
+    observation differs, and which observation terms differ there."""
+    from march.env.build import make_env
+    from march.evaluation.protocol import rollout_metrics
+
+    seen = {}
+    for size in args.sizes[:2]:
+        env = make_env(load_eval(size, args.seconds, args.dr), "eval")
+        weights = torch.randn(
+            env.observation_manager.group_obs_dim["actor"][0],
+            env.action_manager.total_action_dim,
+            generator=torch.Generator().manual_seed(0),
+        )
+        names = env.observation_manager.active_terms["actor"]
+        dims = [
+            int(torch.tensor(d).prod()) for d in env.observation_manager.group_obs_term_dim["actor"]
+        ]
+        rec = []
+        data = env.sim.data
+
+        def policy(obs, w=weights * 0.05, rec=rec, data=data):
+            rec.append((data.qpos[:2].clone(), data.qvel[:2].clone(), obs["actor"][:2].clone()))
+            return torch.tanh(obs["actor"] @ w)
+
+        rollout_metrics(env, policy, 2)
+        seen[size] = rec
+        env.close()
+    a, b = seen[args.sizes[0]], seen[args.sizes[1]]
+    bounds = torch.tensor([0, *dims]).cumsum(0).tolist()
+    for t, ((qa, va, oa), (qb, vb, ob)) in enumerate(zip(a, b, strict=False)):
+        dq, dv, do = (float((x - y).abs().max()) for x, y in ((qa, qb), (va, vb), (oa, ob)))
+        if dq or dv or do:
+            terms = [
+                f"{n} {float((oa[:, lo:hi] - ob[:, lo:hi]).abs().max()):.1e}"
+                for n, lo, hi in zip(names, bounds[:-1], bounds[1:], strict=True)
+                if not torch.equal(oa[:, lo:hi], ob[:, lo:hi])
+            ]
+            print(
+                f"first difference at control step {t}: |qpos| {dq:.1e}, |qvel| {dv:.1e}, "
+                f"|actor obs| {do:.1e}; observation terms differing: {', '.join(terms) or 'none'}"
+            )
+            return
+    print(f"rollouts 0-1 identical over {min(len(a), len(b))} control steps")
 
 
 class unpinned:
@@ -185,7 +236,7 @@ def price(args: argparse.Namespace) -> None:
 
     result = {}
     for n in args.sizes:
-        cfg = load(["compute=smoke", "reward=clf", f"compute.num_envs={n}"])
+        cfg = load([f"compute={args.compute}", "reward=clf", f"compute.num_envs={n}"])
         envs = {"unpinned": make_env(cfg, "teacher"), "pinned": Pinned(make_env(cfg, "teacher"))}
         opts = {"steps": args.steps, "rounds": 8, "threads": [1], "warmup_random": 10}
         opts |= {"op_steps": 0, "profile_steps": 0}
@@ -227,7 +278,9 @@ def main() -> None:
     parser.add_argument("--unpinned", action="store_true", help="mujoco_warp's own slot count")
     parser.add_argument("--slots", action="store_true", help="identical worlds, by slot")
     parser.add_argument("--price", action="store_true", help="the pin's cost (march.bench)")
+    parser.add_argument("--trace", action="store_true", help="the first step two sizes part")
     parser.add_argument("--steps", type=int, default=80, help="--price: timed steps per env")
+    parser.add_argument("--compute", default="smoke", help="--price: the compute preset (gpu)")
     args = parser.parse_args()
     if args.sizes is None:
         args.sizes = [8, 4, 2, 1] if args.slots else [2, 8] if args.price else [8, 2]
@@ -237,6 +290,8 @@ def main() -> None:
         slots(args)
     elif args.price:
         price(args)
+    elif args.trace:
+        trace(args)
     else:
         rows(args)
 
