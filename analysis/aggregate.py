@@ -184,8 +184,7 @@ def _namer(runs: list[Run], by: str, teacher: bool = False):
 
 
 def arm_anchor(keys: list[GroupKey], comp: Comparisons) -> GroupKey | None:
-    """The group every other arm group is drawn beside: the paper's group of the first compared
-    arm that has one (then of its reference), else the first group in the arms' order."""
+    """The group others are drawn beside: the first compared arm's paper group, else the first."""
     for arm in [a for pair in comp.pairs for a in pair]:
         k = primary(keys, arm)
         if k is not None:
@@ -195,7 +194,7 @@ def arm_anchor(keys: list[GroupKey], comp: Comparisons) -> GroupKey | None:
 
 
 def variant_anchor(keys: list[GroupKey], comp: Comparisons) -> GroupKey | None:
-    """The ablation's anchor: the reference variant's (full) group, else the first group."""
+    """The ablation's anchor: the reference variant's (full) group, else the first."""
     fulls = [k for k in keys if k.variant == comp.reference_variant]
     return (fulls or keys or [None])[0]
 
@@ -203,9 +202,8 @@ def variant_anchor(keys: list[GroupKey], comp: Comparisons) -> GroupKey | None:
 def like_for_like_runs(
     runs: list[Run], key, by: str, comp: Comparisons, notes: list[str], what: str
 ) -> tuple[list[Run], dict[str, str]]:
-    """The runs whose groups may be drawn beside the anchor's (:func:`analysis.groups.unlike`,
-    the one like-for-like rule) and {refused series name: "not compared (differ in ...) from
-    <anchor>"}; every refusal is also a note. ``key``: run -> its group key."""
+    """The runs whose groups (``key``: run -> group key) may be drawn beside the anchor's
+    (:func:`analysis.groups.unlike`) and {refused series: "not compared (...) from <anchor>"}."""
     keys = list(dict.fromkeys(key(r) for r in runs))
     if not keys:
         return runs, {}
@@ -218,8 +216,7 @@ def like_for_like_runs(
     return [r for r in runs if key(r) in kept], out
 
 
-def _set_refused(out: Curves, refused: dict[str, str]) -> Curves:
-    """A refused series is named as such, never as a series without rows."""
+def _set_refused(out: Curves, refused: dict[str, str]) -> Curves:  # named, not "missing"
     out.refused = refused
     bases = {name.split(" [")[0] for name in refused}
     for name in list(out.missing):
@@ -492,8 +489,7 @@ def teacher_training_data(
 def teacher_refused(
     runs: list[Run], comp: Comparisons, notes: list[str] | None = None
 ) -> tuple[list[Run], dict[str, str]]:
-    """The training diagnostic's runs drawn beside the anchor arm's teacher, and the refused
-    teacher groups (:func:`like_for_like_runs` on the teacher part of the key)."""
+    """:func:`like_for_like_runs` of the training diagnostic (teacher part of the key)."""
     return like_for_like_runs(
         runs,
         lambda r: GroupKey.of(r).teacher_part(),
