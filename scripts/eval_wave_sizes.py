@@ -237,12 +237,21 @@ def price(args: argparse.Namespace) -> None:
     result = {}
     for n in args.sizes:
         cfg = load([f"compute={args.compute}", "reward=clf", f"compute.num_envs={n}"])
-        envs = {"unpinned": make_env(cfg, "teacher"), "pinned": Pinned(make_env(cfg, "teacher"))}
+        # run_workload's two slots: "march_teacher" (here: pinned) and "bare_rough" (unpinned),
+        # so its ratio_march_vs_rough is pinned / unpinned steps per second, same rounds
+        envs = {
+            "march_teacher": Pinned(make_env(cfg, "teacher")),
+            "bare_rough": make_env(cfg, "teacher"),
+        }
         opts = {"steps": args.steps, "rounds": 8, "threads": [1], "warmup_random": 10}
         opts |= {"op_steps": 0, "profile_steps": 0}
         run = run_workload(envs, "random", opts, 0, cfg.compute.device)
         sps = run["steps_per_s"]
-        result[n] = {**sps, "pinned_over_unpinned": sps["pinned"] / sps["unpinned"]}
+        result[n] = {
+            "pinned_steps_per_s": sps["march_teacher"],
+            "unpinned_steps_per_s": sps["bare_rough"],
+            "pinned_over_unpinned": run["ratio_march_vs_rough"],
+        }
         for env in envs.values():
             env.close()
     print(json.dumps(result, indent=1))
