@@ -14,23 +14,24 @@ Per variant: ``(variant - full) / |full|`` of the seed means of the final studen
 (the last eval.csv student row), Fieller's interval across seeds, claimed "< 0" for the reward
 and "> 0" reversed for none: every metric here is better when larger, so each row is
 ``(variant - full) / |full| <= 0``. Groups are compared only when they differ in ``student.*``
-and nothing else (:func:`analysis.groups.foreign`); the others are listed as not compared.
+and nothing else (:func:`analysis.groups.unlike`, the one like-for-like rule); the others are
+listed once as not compared.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from analysis.groups import GroupKey, foreign, series_names, shorten
+from analysis.claim_row import claim_row, scale_text
+from analysis.groups import GroupKey, not_compared, series_names, unlike
 from analysis.rundirs import Run, stage_rows
-from analysis.stats import rel_estimate
+from march.stats import rel_estimate
 
 ABLATION_METRICS = (
     ("reward_per_step", "the paper's metric: teacher's reward per step on student rollouts"),
     ("distance_m", "task metric: distance traveled"),
     ("success_rate", "task metric: success rate"),
 )
-VARIANT_FIELDS = ("student.",)
 
 
 def final_values(runs: list[Run], column: str) -> np.ndarray:
@@ -45,8 +46,6 @@ def final_values(runs: list[Run], column: str) -> np.ndarray:
 def ablation_rows(inp, notes: list[str]) -> list[dict]:
     """Rows for each variant group of the ablation teacher against the ``full`` group that
     differs from it in ``student.*`` only; refusals go to ``inp.refused``."""
-    from analysis.claims import _scale, claim_row
-
     rows = []
     teacher = [k for k in inp.groups if k.reward == inp.ablation_teacher]
     names = series_names(teacher, "variant", inp.conf_dir)
@@ -54,14 +53,17 @@ def ablation_rows(inp, notes: list[str]) -> list[dict]:
     for kv in teacher:
         if kv.variant == inp.full:
             continue
-        kf = _reference(kv, fulls)
+        kf = _reference(kv, fulls, inp)
         if kf is None:
-            near = min((foreign(k, kv, VARIANT_FIELDS) for k in fulls), key=len, default=None)
-            why = f"nearest differs in {shorten(near)}" if near else f"no {inp.full} group"
-            inp.refused.append(
-                f"ablation {names[kv]}: not compared: no {inp.full} student of the same teacher "
-                f"differing in student.* only ({why})"
+            near = min(
+                (unlike(k, kv, "variant", inp.conf_dir) for k in fulls), key=len, default=None
             )
+            why = not_compared(near) if near else f"not compared: no {inp.full} group"
+            inp.refused.append(
+                f"ablation {names[kv]}: {why}; only student.* may differ from the {inp.full} "
+                "student of the same teacher"
+            )
+            inp.listed.add(kv)
             notes.append(f"claims: ablation {names[kv]} has no {inp.full} group to compare with")
             continue
         v, f = inp.groups[kv], inp.groups[kf]
@@ -75,7 +77,7 @@ def ablation_rows(inp, notes: list[str]) -> list[dict]:
                     f"({kv.variant} - {inp.full}) / |{inp.full}|, final evaluation{stage}",
                     "< 0 (full ahead)",
                     est,
-                    _scale(v, f),
+                    scale_text(v, f),
                     0.0,
                     "le",
                 )
@@ -83,6 +85,6 @@ def ablation_rows(inp, notes: list[str]) -> list[dict]:
     return rows
 
 
-def _reference(kv: GroupKey, fulls: list[GroupKey]) -> GroupKey | None:
-    same = [k for k in fulls if not foreign(k, kv, VARIANT_FIELDS)]
+def _reference(kv: GroupKey, fulls: list[GroupKey], inp) -> GroupKey | None:
+    same = [k for k in fulls if not unlike(k, kv, "variant", inp.conf_dir)]
     return same[0] if same else None

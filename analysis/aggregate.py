@@ -29,7 +29,14 @@ import numpy as np
 import pandas as pd
 
 from analysis.arms import Comparisons
-from analysis.groups import GroupKey, primary, series_names
+from analysis.groups import (
+    GroupKey,
+    like_for_like,
+    not_compared,
+    primary,
+    series_names,
+    unlike,
+)
 from analysis.rundirs import Run, eval_rows, stage_rows
 
 # metric key in eval.csv / summary.json (mean_<key>, se_<key>) -> short name, axis label
@@ -61,6 +68,7 @@ class Curves:
 
     series: dict[str, pd.DataFrame] = field(default_factory=dict)
     missing: dict[str, str] = field(default_factory=dict)  # series -> why it has no curve
+    refused: dict[str, str] = field(default_factory=dict)  # series -> "not compared (...)"
 
     def __bool__(self) -> bool:
         return bool(self.series)
@@ -175,11 +183,55 @@ def _namer(runs: list[Run], by: str, teacher: bool = False):
     return lambda r: names[key(r)]
 
 
+def arm_anchor(keys: list[GroupKey], comp: Comparisons) -> GroupKey | None:
+    """The group others are drawn beside: the first compared arm's paper group, else the first."""
+    for arm in [a for pair in comp.pairs for a in pair]:
+        k = primary(keys, arm)
+        if k is not None:
+            return k
+    order = {n: i for i, n in enumerate(comp.arm_order)}
+    return min(keys, key=lambda k: (order.get(k.reward, 999), str(k.reward)), default=None)
+
+
+def variant_anchor(keys: list[GroupKey], comp: Comparisons) -> GroupKey | None:
+    """The ablation's anchor: the reference variant's (full) group, else the first."""
+    fulls = [k for k in keys if k.variant == comp.reference_variant]
+    return (fulls or keys or [None])[0]
+
+
+def like_for_like_runs(
+    runs: list[Run], key, by: str, comp: Comparisons, notes: list[str], what: str
+) -> tuple[list[Run], dict[str, str]]:
+    """The runs whose groups (``key``: run -> group key) may be drawn beside the anchor's
+    (:func:`analysis.groups.unlike`) and {refused series: "not compared (...) from <anchor>"}."""
+    keys = list(dict.fromkeys(key(r) for r in runs))
+    if not keys:
+        return runs, {}
+    anchor = (arm_anchor if by == "reward" else variant_anchor)(keys, comp)
+    kept, refused = like_for_like(keys, anchor, by)
+    names = series_names(keys, by)
+    out = {names[k]: f"{not_compared(bad)} from {names[anchor]}" for k, bad in refused.items()}
+    for name, why in out.items():
+        notes.append(f"{what}: {name} {why}; not drawn beside it")
+    return [r for r in runs if key(r) in kept], out
+
+
+def _set_refused(out: Curves, refused: dict[str, str]) -> Curves:  # named, not "missing"
+    out.refused = refused
+    bases = {name.split(" [")[0] for name in refused}
+    for name in list(out.missing):
+        if name in refused or (name in bases and name not in out.series):
+            out.missing.pop(name)
+    return out
+
+
 def baseline_data(runs: list[Run], mode: str, notes: list[str], comp: Comparisons) -> Curves:
     """group -> eval.csv student rows of the runs with the reference student variant that
-    trained their own teacher (stage all), one series per group (analysis.groups)."""
+    trained their own teacher (stage all), one series per group (analysis.groups); groups the
+    like-for-like rule refuses beside the anchor arm's are named, not drawn."""
     ref = comp.reference_variant
     chosen = [r for r in runs if r.variant == ref and r.stage in ("all", "?")]
+    chosen, refused = like_for_like_runs(chosen, GroupKey.of, "reward", comp, notes, "baseline")
     out = _eval_curves(
         runs=chosen,
         stage="student",
@@ -189,6 +241,7 @@ def baseline_data(runs: list[Run], mode: str, notes: list[str], comp: Comparison
         mode=mode,
         what=f"{ref}-student ",
     )
+    _set_refused(out, refused)
     for name, why in out.missing.items():
         notes.append(f"baseline: {name}/{ref} has {why}")
     return out
@@ -217,6 +270,9 @@ def sample_efficiency_data(
     """teacher group -> eval.csv teacher rows (every teacher.eval_interval teacher iterations).
     Runs that share a teacher group and seed (students of one teacher) count once."""
     chosen = teacher_runs(runs, notes)
+    chosen, refused = like_for_like_runs(
+        chosen, lambda r: GroupKey.of(r).teacher_part(), "reward", comp, notes, "sample_efficiency"
+    )
     out = _eval_curves(
         runs=chosen,
         stage="teacher",
@@ -226,6 +282,7 @@ def sample_efficiency_data(
         mode=mode,
         what="",
     )
+    _set_refused(out, refused)
     for name, why in out.missing.items():
         notes.append(f"sample_efficiency: {name} has {why}")
     return out
@@ -253,6 +310,7 @@ def ablation_data(runs: list[Run], mode: str, notes: list[str], comp: Comparison
             "left out: another teacher)"
         )
         cand = [r for r in cand if r.stage == chosen]
+    cand, refused = like_for_like_runs(cand, GroupKey.of, "variant", comp, notes, "ablation")
     out = _eval_curves(
         runs=cand,
         stage="student",
@@ -262,6 +320,7 @@ def ablation_data(runs: list[Run], mode: str, notes: list[str], comp: Comparison
         mode=mode,
         what=f"{teacher} ",
     )
+    _set_refused(out, refused)
     for name, why in out.missing.items():
         notes.append(f"ablation: variant {name} has {why}")
     return out
@@ -359,9 +418,12 @@ def sample_efficiency(
         if ka is None or kb is None:
             continue
         arm, ref = by.get(names[ka]), by.get(names[kb])
-        if arm is None or ref is None:
+        bad = unlike(ka, kb, "reward")
+        if arm is None or (ref is None and not bad):
             continue
-        if arm["result"] == ref["result"] == "reached":
+        if bad:  # the one like-for-like rule: no relative difference of a refused pair
+            text = not_compared(bad)
+        elif arm["result"] == ref["result"] == "reached":
             rel_it = rel_diff(arm["iteration"], ref["iteration"])
             rel_steps = rel_diff(arm["env_steps"], ref["env_steps"])
             text = f"iterations {format_rel(rel_it)}, env steps {format_rel(rel_steps)}"
@@ -398,6 +460,7 @@ def teacher_training_data(
 ) -> dict[str, dict]:
     """reward -> {metrics.csv column: smoothed curve, mean and SE across runs} (diagnostic)."""
     out: dict[str, dict] = {}
+    runs, _ = teacher_refused(runs, comp, notes)
     name_of = _namer(runs, "reward", teacher=True) if runs else None
     for reward in _ordered({name_of(r) for r in runs}, comp.arm_order):
         curves = {}
@@ -421,3 +484,17 @@ def teacher_training_data(
                 "episode length or distance: no training episode ended?)"
             )
     return out
+
+
+def teacher_refused(
+    runs: list[Run], comp: Comparisons, notes: list[str] | None = None
+) -> tuple[list[Run], dict[str, str]]:
+    """:func:`like_for_like_runs` of the training diagnostic (teacher part of the key)."""
+    return like_for_like_runs(
+        runs,
+        lambda r: GroupKey.of(r).teacher_part(),
+        "reward",
+        comp,
+        [] if notes is None else notes,
+        "teacher_curves",
+    )

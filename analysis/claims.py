@@ -5,16 +5,18 @@ One row per claim (``claims.csv`` / ``claims.md``; columns :data:`CLAIM_COLUMNS`
 * **sample efficiency** -- the clf teacher reaches the model-free distance with half the
   training: per seed, the teacher env steps until its evaluation distance (eval.csv teacher rows)
   first reaches ``threshold_fraction`` (default 0.9) of the better arm's final seed-mean
-  distance; the ratio of the arms' mean step counts, clf / modelfree, with Fieller's interval.
-  A seed that never reaches the target counts with its last evaluated step count, a lower
-  bound: then only the verdict that bound cannot flatter is given. Paper: 10k vs 20k
-  iterations, a ratio of 0.5; claimed "<= 0.5".
+  distance; the ratio of the arms' mean step counts, clf / modelfree. Each crossing is known
+  only to the evaluation grid (between the last evaluation below the target and the first at
+  it; before the first evaluation for a seed already past it; after the last for one that never
+  reaches it), and the interval covers every value inside those bounds
+  (:func:`march.stats.censored_ratio_estimate`): the data give the verdict, never the grid,
+  which the claim names. Paper: 10k vs 20k iterations, a ratio of 0.5; claimed "<= 0.5".
 * **torque** and **angular jerk** after distillation -- "at least 12% / 39% less after 500
   distillation iterations": over the student evaluation rows from distillation iteration
   ``500 / 1500`` of the runs' distillation budget on, the LARGEST relative difference of seed
   means (clf - modelfree) / modelfree over those iterations (the weakest reduction: "at least X%
   at every iteration" <=> it is <= -X), with a simultaneous interval
-  (:func:`analysis.stats.worst_over_iterations`). Headline: over successful rollouts only
+  (:func:`march.stats.worst_over_iterations`). Headline: over successful rollouts only
   (``torque_success`` / ``jerk_success``: gait, not falls); the same over all rollouts follows
   as a secondary row; and, where both arms of a seed wrote ``eval_rollouts.csv``, the paired
   per-cell difference on the cells both arms completed in the final evaluation.
@@ -25,13 +27,15 @@ One row per claim (``claims.csv`` / ``claims.md``; columns :data:`CLAIM_COLUMNS`
   observation) in place of the paper's modelfree, so the CLF reward's own effect can be read.
 
 Which groups are compared (:mod:`analysis.groups`): two groups only when they differ in the
-compared arms' own fields (what ``conf/experiment/<arm>.yaml`` chooses) and nothing else; every
-pair refused, and every group that is not the paper's arm, is listed with the reason in
-``claims.md`` ("Not compared").
+compared arms' own fields (what ``conf/experiment/<arm>.yaml`` chooses) and nothing else
+(:func:`analysis.groups.unlike`, the rule every output shares); the paper's arm is the arm's
+config as a whole (:func:`analysis.groups.variant_of_arm`: a reward term beyond it makes a
+variant); every pair refused, and every group that is not the paper's arm, is listed once with
+the reason in ``claims.md`` ("Not compared").
 
 Every verdict counts the finite per-seed values it was computed from, per arm (and per iteration
 for the "every iteration" rows): ``n_seeds`` reports them; fewer than 3 on either side is
-``inconclusive`` with the reason in ``why`` (:func:`analysis.stats.judge`).
+``inconclusive`` with the reason in ``why`` (:func:`march.stats.judge`).
 """
 
 from __future__ import annotations
@@ -44,36 +48,25 @@ import numpy as np
 import pandas as pd
 
 from analysis.ablation_claims import ablation_rows
+from analysis.claim_row import CLAIM_COLUMNS, claim_row, scale_text
 from analysis.groups import (
     CONF_DIR,
     GroupKey,
-    arm_fields,
-    foreign,
+    not_compared,
     series_names,
     shorten,
-    spec_mismatch,
+    unlike,
+    variant_of_arm,
 )
 from analysis.rundirs import Run, stage_rows
-from analysis.stats import (
+from march.stats import (
     MIN_SEEDS,
     Estimate,
-    judge,
-    mean_interval,
-    ratio_estimate,
+    censored_ratio_estimate,
+    mean_ci,
     worst_over_iterations,
 )
 
-CLAIM_COLUMNS = [
-    "claim",
-    "paper",
-    "measured",
-    "ci_low",
-    "ci_high",
-    "n_seeds",
-    "scale",
-    "verdict",
-    "why",
-]
 PAPER_DISTILL_ITERATIONS = 1500
 PAPER_FROM_ITERATION = 500
 PAPER_STEP_RATIO = 0.5  # 10k vs 20k teacher iterations
@@ -99,6 +92,7 @@ class ClaimsInput:
     conf_dir: Path = CONF_DIR
     refused: list[str] = field(default_factory=list)  # what was not compared, and why
     used: set = field(default_factory=set)  # the groups some claim row compared
+    listed: set = field(default_factory=set)  # the groups a line of ``refused`` names
 
 
 def from_iteration(distill_budget) -> int:
@@ -108,27 +102,6 @@ def from_iteration(distill_budget) -> int:
     except (TypeError, ValueError):
         return PAPER_FROM_ITERATION
     return math.ceil(PAPER_FROM_ITERATION / PAPER_DISTILL_ITERATIONS * budget)
-
-
-def seeds_text(est: Estimate) -> str:
-    """``n_seeds``: the finite values per arm the statistic used (never the runs found)."""
-    text = f"{est.n_a} vs {est.n_b}"
-    return text if min(est.n_a, est.n_b) >= MIN_SEEDS else f"{text} (fewer than {MIN_SEEDS})"
-
-
-def claim_row(claim, paper, est: Estimate, scale, claimed, direction, seeds=None) -> dict:
-    verdict, why = judge(est, claimed, direction)
-    return {
-        "claim": claim,
-        "paper": paper,
-        "measured": est.point,
-        "ci_low": est.low,
-        "ci_high": est.high,
-        "n_seeds": seeds or seeds_text(est),
-        "scale": scale,
-        "verdict": verdict,
-        "why": why,
-    }
 
 
 def _student_matrix(runs: list[Run], column: str, grid: list[int]) -> np.ndarray:
@@ -164,12 +137,17 @@ def teacher_curve(run: Run) -> tuple[np.ndarray, np.ndarray] | None:
 
 def steps_to_target(a: list[Run], b: list[Run], fraction: float) -> tuple[Estimate, float, str]:
     """The sample-efficiency statistic: per seed, the env steps at which its teacher's
-    evaluation distance first reaches ``fraction`` x the better arm's final seed-mean distance;
-    the ratio of the arms' means with Fieller's interval (``ratio_estimate``). Returns the
-    estimate, the target [m] and a note on censored seeds. A seed that never reaches the target
-    gives its last evaluated step count, a lower bound on its true count: in arm ``a`` it can
-    only flatter the ratio downwards (no ``reproduced``), in ``b`` upwards (no ``not
-    reproduced``); ``Estimate.allowed`` says which verdicts remain."""
+    evaluation distance first reaches ``fraction`` x the better arm's final seed-mean distance,
+    and the ratio of the arms' mean step counts (a / b). Returns the estimate, the target [m]
+    and a note naming the evaluation grid and the censored seeds.
+
+    The evaluations see a crossing only on their grid: a seed first at or above the target at
+    the evaluation at step s_k (the one before it, s_{k-1}, below) crossed it somewhere in
+    (s_{k-1}, s_k]; one already past it at its first evaluation, in (0, s_0] (an upper bound,
+    not a point); one that never reaches it, after its last evaluated step (a lower bound).
+    The interval is :func:`march.stats.censored_ratio_estimate` over those intervals, so a
+    verdict comes only when the data decide wherever in its interval each crossing lies, never
+    from the grid (every seed past the target at its first evaluation: no verdict)."""
     ca = [c for c in (teacher_curve(r) for r in a) if c is not None]
     cb = [c for c in (teacher_curve(r) for r in b) if c is not None]
     finals = [
@@ -181,37 +159,54 @@ def steps_to_target(a: list[Run], b: list[Run], fraction: float) -> tuple[Estima
         return Estimate.none("no eval.csv teacher rows", len(ca), len(cb)), math.nan, ""
     target = fraction * max(finals)
 
-    def reach(curves) -> tuple[np.ndarray, int]:
-        out, censored = [], 0
+    def reach(curves) -> tuple[np.ndarray, np.ndarray, int, int]:
+        low, high, first, never = [], [], 0, 0
         for steps, dist in curves:
             hit = np.nonzero(dist >= target)[0]
-            censored += hit.size == 0
-            out.append(steps[hit[0]] if hit.size else steps[-1])
-        return np.asarray(out, dtype=float), censored
+            if hit.size == 0:
+                never += 1
+                low.append(steps[-1])
+                high.append(math.inf)
+            elif hit[0] == 0:
+                first += 1
+                low.append(0.0)
+                high.append(steps[0])
+            else:
+                low.append(steps[hit[0] - 1])
+                high.append(steps[hit[0]])
+        return np.asarray(low, float), np.asarray(high, float), first, never
 
-    (sa, na), (sb, nb) = reach(ca), reach(cb)
-    est = ratio_estimate(sa, sb)
-    allowed, why = {"reproduced", "not reproduced"}, []
-    if na:
-        allowed.discard("reproduced")
-        why.append(f"{na} seed(s) of the arm never reach the target (last step count used)")
-    if nb:
-        allowed.discard("not reproduced")
-        why.append(f"{nb} seed(s) of the reference never reach it (last step count used)")
-    est = replace(est, allowed=tuple(sorted(allowed)), why="; ".join(why) or est.why)
-    return est, target, "; ".join(why)
+    (la, ha, fa, na), (lb, hb, fb, nb) = reach(ca), reach(cb)
+    est = censored_ratio_estimate(la, ha, lb, hb)
+    why = []
+    for n, arm in ((fa, "arm"), (fb, "reference")):
+        if n:
+            why.append(f"{n} seed(s) of the {arm} past the target at the first evaluation")
+    for n, arm in ((na, "arm"), (nb, "reference")):
+        if n:
+            why.append(f"{n} seed(s) of the {arm} never reach it (a lower bound)")
+    note = f"crossings known to the evaluation grid: {grid_text(ca)} vs {grid_text(cb)}"
+    note += "".join(f"; {w}" for w in why)
+    return replace(est, why="; ".join(filter(None, [est.why, *why]))), target, note
 
 
-def _scale(a: list[Run], b: list[Run], start: int | None = None) -> str:
-    runs = a + b
-    computes = sorted({str(r.compute) for r in runs})
-    ta = sorted({r.teacher_budget for r in a}, key=str)
-    tb = sorted({r.teacher_budget for r in b}, key=str)
-    db = sorted({r.distill_budget for r in runs}, key=str)
-    text = f"compute={','.join(computes)}; teacher {ta} vs {tb} it; distill {db} it"
-    if start is not None:
-        text += f"; rows from distill it {start} (500/1500 of the budget)"
-    return text
+def grid_text(curves) -> str:
+    """The teacher evaluation grid of one arm's seeds: where the first evaluation is and how
+    far apart they are, in env steps (e.g. ``first at 98.3k, every 983k env steps``)."""
+    firsts = sorted({float(s[0]) for s, _ in curves})
+    gaps = sorted({float(g) for s, _ in curves for g in np.diff(s)})
+    first = "/".join(_steps(x) for x in firsts) or "none"
+    if not gaps:
+        return f"one evaluation at {first} env steps"
+    every = _steps(gaps[0]) if len(gaps) == 1 else f"{_steps(gaps[0])}-{_steps(gaps[-1])}"
+    return f"first at {first}, every {every} env steps"
+
+
+def _steps(x: float) -> str:
+    for div, unit in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
+        if abs(x) >= div:
+            return f"{x / div:.3g}{unit}"
+    return f"{x:.0f}"
 
 
 def _paired_cells(a: list[Run], b: list[Run], metric: str) -> np.ndarray:
@@ -251,15 +246,16 @@ def stage_rows_last(rows: pd.DataFrame) -> pd.DataFrame | None:
 def _baseline_rows(name: str, a: list[Run], b: list[Run], inp: ClaimsInput) -> list[dict]:
     """The sample-efficiency, gait and paired rows of arm runs ``a`` vs reference runs ``b``
     (stage=all runs: each trained its own teacher, whose eval.csv teacher rows it holds)."""
-    est, target, _ = steps_to_target(a, b, inp.threshold_fraction)
+    est, target, grid = steps_to_target(a, b, inp.threshold_fraction)
     where = f" ({target:.3g} m)" if np.isfinite(target) else ""
+    grid = grid.split("; ")[0] if grid else "no evaluation grid"
     rows = [
         claim_row(
             f"{name}: teacher env steps to {inp.threshold_fraction:.0%} of the better final "
-            f"distance{where}, mean over seeds, {inp.arm} / {inp.reference}",
+            f"distance{where}, mean over seeds, {inp.arm} / {inp.reference} ({grid})",
             f"<= {PAPER_STEP_RATIO} (10k vs 20k it)",
             est,
-            _scale(a, b),
+            scale_text(a, b),
             PAPER_STEP_RATIO,
             "le",
         )
@@ -275,7 +271,7 @@ def _baseline_rows(name: str, a: list[Run], b: list[Run], inp: ClaimsInput) -> l
                 f"({len(grid)} evaluations, simultaneous)",
                 f"<= {paper:+.0%}",
                 worst_over_iterations(ma, mb, names=grid),
-                _scale(a, b, start),
+                scale_text(a, b, start),
                 paper,
                 "le",
             )
@@ -283,7 +279,7 @@ def _baseline_rows(name: str, a: list[Run], b: list[Run], inp: ClaimsInput) -> l
     for metric, label, paper in PAIRED:
         per_pair = _paired_cells(a, b, metric)
         n = int(np.isfinite(per_pair).sum())
-        point, lo, hi = mean_interval(per_pair) if n else (math.nan,) * 3
+        point, lo, hi = mean_ci(per_pair) if n else (math.nan,) * 3
         rows.append(
             claim_row(
                 f"{name}: {label}, paired cells both arms completed (final evaluation)",
@@ -291,7 +287,7 @@ def _baseline_rows(name: str, a: list[Run], b: list[Run], inp: ClaimsInput) -> l
                 Estimate(
                     point, lo, hi, n, n, "" if n else "no seed pair with a cell both arms completed"
                 ),
-                _scale(a, b) + "; per seed pair",
+                scale_text(a, b) + "; per seed pair",
                 paper,
                 "le",
                 f"{n} seed pairs" + ("" if n >= MIN_SEEDS else f" (fewer than {MIN_SEEDS})"),
@@ -300,44 +296,33 @@ def _baseline_rows(name: str, a: list[Run], b: list[Run], inp: ClaimsInput) -> l
     return rows
 
 
-def _paper_arm(key: GroupKey, arm: str, conf_dir: Path) -> list[str]:
-    """Why ``key`` is not the paper's ``arm`` (empty: it is)."""
-    why = spec_mismatch(key, arm, conf_dir)
-    if key.observe_reference and not any(w.startswith("reward.observe_reference") for w in why):
-        why.append("reward.observe_reference=true")
-    return why
-
-
 def claims(inp: ClaimsInput, notes: list[str]) -> pd.DataFrame:
     """Every claim row the groups allow (module docstring); what is missing goes to ``notes``,
-    what was not compared and why to ``inp.refused``."""
+    what was not compared and why to ``inp.refused`` (each group listed once: ``inp.listed``)."""
     keys = [k for k in inp.groups if k.variant == inp.full and k.stage == "all"]
     names = series_names(keys, "reward", inp.conf_dir)
-    own = tuple(
-        sorted(
-            set(arm_fields(inp.arm, inp.conf_dir)) | set(arm_fields(inp.reference, inp.conf_dir))
-        )
-    )
     arm_keys = [k for k in keys if k.reward == inp.arm]
     ref_keys = [k for k in keys if k.reward == inp.reference]
-    paper_arm = [k for k in arm_keys if not _paper_arm(k, inp.arm, inp.conf_dir)]
-    paper_ref = [k for k in ref_keys if not _paper_arm(k, inp.reference, inp.conf_dir)]
+    paper_arm = [k for k in arm_keys if not variant_of_arm(k, inp.conf_dir)]
+    paper_ref = [k for k in ref_keys if not variant_of_arm(k, inp.conf_dir)]
     for k in arm_keys:
         if k not in paper_arm:
             inp.refused.append(
-                f"{names[k]} ({len(inp.groups[k])} seeds): not the paper's {inp.arm} arm "
-                f"({shorten(_paper_arm(k, inp.arm, inp.conf_dir))}); a separate series"
+                f"{names[k]} ({len(inp.groups[k])} seeds): not the paper's {inp.arm} arm, a "
+                f"variant ({shorten(variant_of_arm(k, inp.conf_dir))}); a separate series"
             )
+            inp.listed.add(k)
     rows: list[dict] = []
     pairs = []
     for ka in paper_arm:
         for kb in paper_ref:
-            bad = foreign(ka, kb, own)
+            bad = unlike(ka, kb, "reward", inp.conf_dir)
             if bad:
                 inp.refused.append(
-                    f"{names[ka]} vs {names[kb]}: not compared: they differ in {shorten(bad)} "
-                    f"(only the arms' own fields {', '.join(own)} may differ)"
+                    f"{names[ka]} vs {names[kb]}: {not_compared(bad)}; only the arms' own "
+                    "fields (conf/experiment/<arm>.yaml) may differ"
                 )
+                inp.listed |= {ka, kb}
             else:
                 pairs.append((ka, kb))
     if not pairs:
@@ -353,12 +338,10 @@ def claims(inp: ClaimsInput, notes: list[str]) -> pd.DataFrame:
         for kc in ref_keys:
             if kc in paper_ref:
                 continue
-            bad = foreign(ka, kc, own)
+            bad = unlike(ka, kc, "reward", inp.conf_dir)
             if bad:
-                inp.refused.append(
-                    f"control {names[ka]} vs {names[kc]}: not compared: they differ in "
-                    f"{shorten(bad)}"
-                )
+                inp.refused.append(f"control {names[ka]} vs {names[kc]}: {not_compared(bad)}")
+                inp.listed.add(kc)
                 continue
             control = _baseline_rows(
                 f"control {names[ka]} vs {names[kc]}", inp.groups[ka], inp.groups[kc], inp
@@ -368,25 +351,25 @@ def claims(inp: ClaimsInput, notes: list[str]) -> pd.DataFrame:
             rows += [r for r in control if "paired" not in r["claim"]]
             inp.used.add(kc)
     rows += ablation_rows(inp, notes)
-    _unused(inp, names, arm_keys)
+    _unused(inp)
     return pd.DataFrame(rows, columns=CLAIM_COLUMNS)
 
 
-def _unused(inp: ClaimsInput, named: dict, listed: list[GroupKey]) -> None:
-    """Name every group no claim compared and no line above mentions, with why."""
-    rest = [k for k in inp.groups if k not in inp.used and k not in listed]
+def _unused(inp: ClaimsInput) -> None:
+    """Name every group no claim compared and no line above lists, with why (once each)."""
+    rest = [k for k in inp.groups if k not in inp.used and k not in inp.listed]
     names = series_names(rest, "reward", inp.conf_dir) if rest else {}
     for k in rest:
         if k.reward not in (inp.arm, inp.reference, inp.ablation_teacher):
             why = f"reward {k.reward} is neither {inp.arm}, {inp.reference} nor the ablation's"
         elif k.variant != inp.full and k.reward != inp.ablation_teacher:
             why = f"student {k.variant} of reward {k.reward}: no claim compares it"
-        elif k in named or k.stage == "all":
+        elif k.stage == "all":
             why = "no comparable group to pair it with"
         else:
             why = f"stage {k.stage} {k.variant} student: no comparable group"
-        if not any(line.startswith(names[k]) for line in inp.refused):
-            inp.refused.append(f"{names[k]} ({len(inp.groups[k])} seeds): not compared: {why}")
+        inp.refused.append(f"{names[k]} ({len(inp.groups[k])} seeds): not compared: {why}")
+        inp.listed.add(k)
 
 
 def _pct(x) -> str:
@@ -410,12 +393,14 @@ def claims_markdown(table: pd.DataFrame, refused: list[str] = ()) -> str:
         "iteration 500 on' rows, a simultaneous interval for the largest difference over the "
         "evaluations (upper end: the largest per-iteration upper end; lower end: the largest "
         "Bonferroni-corrected lower end); the sample-efficiency ratio, Fieller's interval for "
-        "the ratio of the arms' mean step counts; paired rows, Student's t over seed pairs. "
+        "the ratio of the arms' mean step counts over every value the evaluation grid leaves "
+        "each seed's crossing (a seed past the target at its first evaluation is only bounded "
+        "above: the grid is named beside the ratio); paired rows, Student's t over seed pairs. "
         "Verdict: `reproduced` when the whole interval satisfies the claim, `not reproduced` "
         "when the whole interval violates it, `inconclusive` otherwise, with fewer than "
-        f"{MIN_SEEDS} seeds with a value per arm, or when a censored seed forbids it (column "
-        "'why'); a smoke-scale run measures plumbing, not the paper. Two groups are compared "
-        "only when they differ in the compared arms' own fields and nothing else.",
+        f"{MIN_SEEDS} seeds with a value per arm, or with no interval (column 'why'); a "
+        "smoke-scale run measures plumbing, not the paper. Two groups are compared only when "
+        "they differ in the compared arms' own fields and nothing else, in every output.",
         "",
         "| claim | paper | measured | 95% CI | n seeds | scale | verdict | why |",
         "|---|---|---|---|---|---|---|---|",

@@ -71,6 +71,7 @@ from analysis.aggregate import (  # noqa: E402
     baseline_data,
     sample_efficiency,
     sample_efficiency_data,
+    teacher_refused,
     teacher_training_data,
 )
 from analysis.arms import choose, parse_pair  # noqa: E402
@@ -161,7 +162,8 @@ def analyze(
     teach = teacher_training_data(runs, window, notes, comp)
     if teach:
         pts = teacher_points(teach)
-        plot_teacher_training(teach, pts, window, out, written, notes, comp)
+        refused = teacher_refused(runs, comp)[1]
+        plot_teacher_training(teach, pts, window, out, written, notes, comp, refused)
         all_points.append(pts)
     else:
         notes.append("skip teacher_curves: no metrics.csv teacher rows with values in any run")

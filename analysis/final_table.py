@@ -23,9 +23,16 @@ from analysis.aggregate import (
     rel_diff,
 )
 from analysis.arms import Comparisons
-from analysis.groups import GroupKey, primary, series_names
+from analysis.groups import (
+    GroupKey,
+    not_compared,
+    primary,
+    series_names,
+    unlike,
+    variant_of_arm,
+)
 from analysis.rundirs import Run
-from analysis.stats import fieller_rel
+from march.stats import fieller_rel
 
 # --------------------------------------------------------------------------- final metrics
 
@@ -61,7 +68,10 @@ def final_table(runs: list[Run], mode: str, notes: list[str], comp: Comparisons)
     """Per (reward, variant): the final evaluation (summary.json of complete runs) combined over
     seeds, and the relative differences of the chosen pairs: A/full vs B/full for each arm pair
     A:B, and every other variant of the ablation teacher vs its reference variant (columns
-    ``compared_to``, ``rel_<metric>``, ``relative``)."""
+    ``compared_to``, ``rel_<metric>``, ``relative``). A pair the like-for-like rule refuses
+    (:func:`analysis.groups.unlike`) gets no relative difference: ``relative`` says "not
+    compared (differ in ...)", and a baseline row that differs from the first compared arm's
+    group so says in ``not_compared``."""
     done = _final_runs(runs, notes)
     arm_rank = {n: i for i, n in enumerate(comp.arm_order)}
     var_rank = {n: i for i, n in enumerate(comp.variant_order)}
@@ -69,12 +79,20 @@ def final_table(runs: list[Run], mode: str, notes: list[str], comp: Comparisons)
     # from the other groups of that reward, the variant in its own column.
     arm_keys = {r.path: GroupKey.of(r).arm_part() for r in done}
     arm_name = series_names(list(dict.fromkeys(arm_keys.values())), "reward")
+    key_of = {name: k for k, name in arm_name.items()}
     name_of = {p: arm_name[k] for p, k in arm_keys.items()}
     primary_name = {}
     for rw in {k.reward for k in arm_keys.values()}:
         pk = primary(list(dict.fromkeys(arm_keys.values())), rw)
         if pk is not None:
             primary_name[rw] = arm_name[pk]
+    for rw in sorted({a for pair in comp.pairs for a in pair} - set(primary_name)):
+        variants = [n for k, n in arm_name.items() if k.reward == rw and variant_of_arm(k)]
+        if variants:
+            notes.append(
+                f"final_metrics: no group of {rw} is the paper's {rw} arm ({', '.join(variants)}: "
+                "variants); it is compared with nothing"
+            )
     groups = sorted(
         {(name_of[r.path], r.variant) for r in done},
         key=lambda g: (arm_rank.get(g[0], 999), var_rank.get(g[1], 999), g),
@@ -104,10 +122,26 @@ def final_table(runs: list[Run], mode: str, notes: list[str], comp: Comparisons)
         return table
     table["compared_to"] = ""
     table["relative"] = ""
+    table["not_compared"] = ""
+    full, teacher = comp.reference_variant, comp.ablation_teacher
+    # The one like-for-like rule (analysis.groups.unlike): the baseline rows are drawn up beside
+    # the first compared arm's group; a row that differs from it outside the arms' own fields
+    # is "not compared", its numbers kept apart (issue 57).
+    anchor = next(
+        (key_of[primary_name[a]] for pair in comp.pairs for a in pair if a in primary_name), None
+    )
+    for i, row in enumerate(table.itertuples()):
+        if row.variant == full and anchor is not None:
+            bad = unlike(anchor, key_of[row.reward], "reward")
+            if bad:
+                table.at[i, "not_compared"] = f"{not_compared(bad)} from {arm_name[anchor]}"
+                notes.append(
+                    f"final_metrics: {row.reward}/{full} vs {arm_name[anchor]}/{full}: "
+                    + not_compared(bad)
+                )
     for key in METRICS:
         table[f"rel_{key}"] = math.nan
     index = {(row.reward, row.variant): i for i, row in enumerate(table.itertuples())}
-    full, teacher = comp.reference_variant, comp.ablation_teacher
     pairs = [
         ((primary_name[a], full), (primary_name[b], full))
         for a, b in comp.pairs
@@ -135,6 +169,16 @@ def final_table(runs: list[Run], mode: str, notes: list[str], comp: Comparisons)
             continue
         i, j = index[group], index[ref]
         parts = []
+        bad = unlike(key_of[group[0]], key_of[ref[0]], "reward")
+        if bad:  # never side by side: no relative difference of a refused pair
+            text = not_compared(bad)
+            if table.at[i, "compared_to"]:
+                table.at[i, "compared_to"] += ";" + "/".join(ref)
+                table.at[i, "relative"] += f"; vs {'/'.join(ref)}: {text}"
+            else:
+                table.at[i, "compared_to"] = "/".join(ref)
+                table.at[i, "relative"] = text
+            continue
         for key, (short, _) in METRICS.items():
             if key in OWN_REWARD_METRICS and group[0].split(" [")[0] != ref[0].split(" [")[0]:
                 # Each arm's return is under its own teacher's reward set: clf and modelfree

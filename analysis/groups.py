@@ -21,7 +21,15 @@ ablation, ``student.*``. The paper's arm is the group whose values agree with th
 
 Series names: a group is named by its reward arm, followed in brackets by what tells it apart
 from the other groups of the same arm in the same figure (``modelfree [stones, 2 it]``,
-``clf [eval.pushes=false]``). Reads files only; never imports march.
+``clf [eval.pushes=false]``); a group that is not the paper's arm of its reward, a plugin term in
+its reward for instance, is named a variant with what differs (``clf [variant:
+reward.terms.swing_clearance.weight=0.5]``), even when it is the only group of that reward.
+Reads files, and the typed config's defaults (march.config) for what an option file leaves
+unset.
+
+:func:`unlike` is the one like-for-like rule: every output that compares or draws groups side by
+side (claims, final metrics, sample efficiency, stdout, figures) asks it, and writes a refused
+pair as :func:`not_compared`.
 """
 
 from __future__ import annotations
@@ -238,30 +246,87 @@ def arm_fields(arm: str, conf_dir: Path = CONF_DIR) -> tuple[str, ...]:
     return tuple(sorted(out))
 
 
+def _schema_defaults() -> dict:
+    """Every section's defaults as the typed config declares them (march.config), before any
+    option file: what an option file leaves unset is these values."""
+    global _DEFAULTS
+    if _DEFAULTS is None:
+        from march.config.schema import MarchConfig
+
+        _DEFAULTS = OmegaConf.to_container(OmegaConf.structured(MarchConfig), resolve=False)
+    return _DEFAULTS
+
+
+_DEFAULTS: dict | None = None
+
+
+def _terms_canonical(spec: dict[str, str]) -> dict[str, str]:
+    """A reward term written as a weight (``reward.terms.clf: 10``) and as a mapping
+    (``{weight: 10, params: {}}``) are the same term: both become ``reward.terms.clf.weight``
+    (an empty ``params`` dropped)."""
+    out = {}
+    for k, v in spec.items():
+        parts = k.split(".")
+        if k.startswith("reward.terms.") and len(parts) == 3:
+            k = f"{k}.weight"
+        if k.startswith("reward.terms.") and k.endswith(".params") and v == "{}":
+            continue
+        out[k] = v
+    return out
+
+
 def arm_spec(arm: str, conf_dir: Path = CONF_DIR) -> dict[str, str]:
-    """What the paper's ``arm`` is: every value its experiment file and the options it chooses
-    set (``conf/reward/clf.yaml``'s weights included; names, labels and colours left out), by
-    config key. Without an experiment file, ``conf/reward/<arm>.yaml``."""
+    """What the paper's ``arm`` is, as a whole: every value of the sections its experiment file
+    chooses (the typed config's defaults with ``conf/<group>/<option>.yaml`` over them:
+    ``conf/reward/clf.yaml``'s terms and weights and every other reward and curriculum
+    setting) and the keys the experiment file sets itself, by config key (names, labels and
+    colours left out). Without an experiment file, ``conf/reward/<arm>.yaml``; nothing for an
+    arm without either (a name no file defines)."""
     groups, own = _experiment(arm, conf_dir)
     if not groups and not own:
         groups = {"reward": arm}
     spec: dict[str, str] = {}
     for group, option in groups.items():
         data = _yaml(conf_dir / group / f"{option}.yaml")
+        if not data:
+            continue
+        base = _schema_defaults().get(group)
+        if isinstance(base, dict):
+            data = OmegaConf.to_container(OmegaConf.merge(base, data), resolve=False)
         spec.update({f"{group}.{k}": v for k, v in flatten(data).items()})
     spec.update(flatten(own))
-    return {k: v for k, v in spec.items() if not may_vary(k)}
+    return _terms_canonical({k: v for k, v in spec.items() if not may_vary(k)})
 
 
 def spec_mismatch(key: GroupKey, arm: str, conf_dir: Path = CONF_DIR) -> list[str]:
-    """``key=value`` where a group disagrees with the paper's ``arm`` (:func:`arm_spec`); a key
+    """Why a group is not the paper's ``arm`` (empty: it is): ``key=value`` where it disagrees
+    with :func:`arm_spec`, and every key of the arm's own sections (:func:`arm_fields`: the
+    reward, the curriculum, ...) that the arm's config does not have at all, e.g. a plugin
+    reward term and its parameters (``reward.terms.swing_clearance.weight=0.5 (beyond the
+    arm's config)``): the arm is its config as a whole, not only the keys its YAML names. A key
     the group's config lacks (an older run) is not held against it."""
-    view = key.view()
-    return [
+    spec = arm_spec(arm, conf_dir)
+    if not spec:
+        return []
+    view = _terms_canonical(key.view())
+    why = [
         f"{k}={view[k]} (conf: {v})"
-        for k, v in arm_spec(arm, conf_dir).items()
+        for k, v in spec.items()
         if k in view and view[k] != v and not (k == "reward.name" and view[k] == arm)
     ]
+    own = arm_fields(arm, conf_dir)
+    named = set(NAMED.values())
+    why += [
+        f"{k}={view[k]} (beyond the arm's config)"
+        for k in sorted(view)
+        if k not in spec and k not in named and owned(k, own) and not may_vary(k)
+    ]
+    return why
+
+
+def mismatch_keys(why: list[str]) -> list[str]:
+    """The ``key=value`` parts of :func:`spec_mismatch`'s lines (what a series name shows)."""
+    return [w.split(" (")[0] for w in why]
 
 
 # What a differing named field already says: the config keys it explains in a series name.
@@ -333,26 +398,78 @@ def series_names(keys: list[GroupKey], by: str, conf_dir: Path = CONF_DIR) -> di
             if len(extra) > MAX_NAMED_KEYS:
                 shown.append(f"+{len(extra) - MAX_NAMED_KEYS} more")
             text = ", ".join(shown)
+            variant = variant_of_arm(k, conf_dir) if by == "reward" else []
+            if variant and not text:  # alone, it would carry the arm's plain name
+                text = shorten(mismatch_keys(variant), MAX_NAMED_KEYS)
+            if variant:  # never the paper's arm, in any output (issue 57)
+                text = f"variant: {text}"
             out[k] = f"{name} [{text}]" if text and k != plain else name
     return out
+
+
+def variant_of_arm(key: GroupKey, conf_dir: Path = CONF_DIR) -> list[str]:
+    """Why the group is not the paper's arm of its reward (empty: it is, or its reward has no
+    arm in ``conf/``): :func:`spec_mismatch` against the experiment of that name, and the
+    reference observation where the arm has none."""
+    why = spec_mismatch(key, key.reward, conf_dir)
+    if key.observe_reference and not any(w.startswith("reward.observe_reference") for w in why):
+        if arm_spec(key.reward, conf_dir):
+            why.append("reward.observe_reference=true")
+    return why
+
+
+VARIANT_FIELDS = ("student.",)
+"""What the ablation's groups may differ in: the student alone."""
+
+
+def unlike(a: GroupKey, b: GroupKey, by: str = "reward", conf_dir: Path = CONF_DIR) -> list[str]:
+    """The one like-for-like rule every output that compares groups applies (claims.md,
+    final_metrics, sample_efficiency, stdout and every figure; issue 57): the config keys where
+    ``a`` and ``b`` differ outside what the comparison is about, empty when they may be
+    compared. Arms (``by="reward"``): their own fields (:func:`arm_fields` of both rewards);
+    student variants of one teacher (``by="variant"``): ``student.*`` only."""
+    if by == "variant":
+        own = VARIANT_FIELDS
+    else:
+        own = tuple(
+            sorted(set(arm_fields(a.reward, conf_dir)) | set(arm_fields(b.reward, conf_dir)))
+        )
+    return foreign(a, b, own)
+
+
+def not_compared(bad: list[str]) -> str:
+    """How a refused pair is written everywhere: ``not compared (differ in compute.name)``."""
+    return f"not compared (differ in {shorten(bad)})"
+
+
+def like_for_like(
+    keys: list[GroupKey], anchor: GroupKey | None, by: str = "reward", conf_dir: Path = CONF_DIR
+) -> tuple[list[GroupKey], dict[GroupKey, list[str]]]:
+    """Which of ``keys`` may be drawn or listed beside ``anchor`` (the group every other is
+    compared with): (kept, {refused key: the keys it differs in}). No anchor: all kept."""
+    if anchor is None:
+        return list(keys), {}
+    refused = {k: bad for k in keys if k != anchor and (bad := unlike(anchor, k, by, conf_dir))}
+    return [k for k in keys if k not in refused], refused
 
 
 def primary(keys: list[GroupKey], reward: str, conf_dir: Path = CONF_DIR) -> GroupKey | None:
     """The group that stands for ``reward`` in the paper's comparison: among the groups of that
     reward (students of their own teacher first), the one whose values agree with
     ``conf/experiment/<reward>.yaml`` and the options it chooses (:func:`spec_mismatch`; no
-    extra observation); the only group of that reward if there is one; else None (ambiguous:
-    the caller says so)."""
+    extra observation); the only group of that reward if there is one and it is the arm
+    (:func:`variant_of_arm` empty); else None (ambiguous, or only variants: the caller says
+    so)."""
     mine = [k for k in keys if k.reward == reward]
     if len({k.stage for k in mine}) > 1:  # a student of its own teacher over a fixed one's
         mine = [k for k in mine if k.stage == "all"] or mine
-    if len(mine) <= 1:
-        return mine[0] if mine else None
+    if len(mine) <= 1:  # a lone group stands for the arm only if it is the arm (issue 57)
+        return mine[0] if mine and not variant_of_arm(mine[0], conf_dir) else None
     budgets = sorted({k.teacher_budget for k in mine if isinstance(k.teacher_budget, int)})
     scale = _experiment(reward, conf_dir)[1].get("teacher", {}) or {}
     match = []
     for k in mine:
-        if k.observe_reference or spec_mismatch(k, reward, conf_dir):
+        if variant_of_arm(k, conf_dir):
             continue
         # Runs without teacher.budget_scale in their config: the larger budget is the 2x arm.
         if float(scale.get("budget_scale", 1.0)) > 1.0 and "teacher.budget_scale" not in dict(

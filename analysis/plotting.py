@@ -196,6 +196,7 @@ def plot_eval_figure(
     legend: dict[str, object] = {}
     for ax, (key, xcol) in zip(axes.flat, spec.panels, strict=False):
         notes = [f"no data: {m} ({why})" for m, why in curves.missing.items()]
+        notes += [f"{m}: {why}; not drawn" for m, why in curves.refused.items()]
         sel = points[(points["panel"] == key) & (points["x_name"] == xcol)]
         xs = np.unique(sel["x"].to_numpy(dtype=float))
         if xs.size > 1:
@@ -333,6 +334,7 @@ def plot_teacher_training(
     written: list[Path],
     notes: list[str],
     comp: Comparisons,
+    refused: dict[str, str] | None = None,
 ) -> None:
     """Training diagnostic from metrics.csv teacher rows; says on its face it is no comparison."""
     fig, axes = plt.subplots(1, len(TEACHER_PANELS), figsize=(13, 3.8))
@@ -365,10 +367,11 @@ def plot_teacher_training(
             top.xaxis.set_major_locator(MaxNLocator(integer=True))  # no iteration 1.5
             top.tick_params(labelsize=7)
     _legend_below(fig, legend)
+    apart = "".join(f"\n{name}: {why}; not drawn" for name, why in (refused or {}).items())
     fig.suptitle(
         f"DIAGNOSTIC, not a comparison: teacher TRAINING rollouts (metrics.csv; each arm on its "
-        f"own curriculum), moving avg {window}, band = SE across seeds",
-        y=1.04,
+        f"own curriculum), moving avg {window}, band = SE across seeds" + apart,
+        y=1.04 + 0.03 * apart.count("\n"),
         fontsize=10,
     )
     fig.tight_layout()

@@ -55,10 +55,13 @@ def comparisons(table: pd.DataFrame, comp: Comparisons) -> list[str]:
 def _final_md(table: pd.DataFrame, mode: str, comp: Comparisons) -> str:
     header = ["reward", "variant", "n runs", "iteration"] + [METRICS[k][0] for k in METRICS]
     header += ["compared to", "relative difference"]
-    rows = []
+    rows, apart = [], []
     for _, row in table.iterrows():
         cells = [row["reward"], row["variant"], str(row["n_runs"]), str(row["iteration"])]
         cells += [f"{fmt(row[f'mean_{k}'])} ± {fmt(row[f'se_{k}'])}" for k in METRICS]
+        if _refused(row):  # its own table: never beside the groups it may not be compared with
+            apart.append(cells + [row["not_compared"]])
+            continue
         cells += [row["compared_to"] or "-", row["relative"] or "-"]
         rows.append(cells)
     se_txt = (
@@ -81,7 +84,18 @@ def _final_md(table: pd.DataFrame, mode: str, comp: Comparisons) -> str:
         + "\n## Relative differences\n\n"
         + rel
         + "\n"
+        + (
+            "\n## Not compared\n\nGroups that differ from the compared arms' group in more "
+            "than the arms' own fields (the like-for-like rule of claims.md): their final "
+            "evaluation, kept apart.\n\n" + md_table(header[:-2] + ["why"], apart)
+            if apart
+            else ""
+        )
     )
+
+
+def _refused(row) -> bool:
+    return bool(row.get("not_compared", "")) if hasattr(row, "get") else False
 
 
 def write_tables(
@@ -149,6 +163,9 @@ def report(res: dict, out: Path) -> str:
                 file=buf,
             )
             for _, row in base.iterrows():
+                if _refused(row):  # named, its numbers not printed beside the others
+                    print(f"  {row['reward']}: {row['not_compared']}", file=buf)
+                    continue
                 print(
                     f"  {row['reward']} (n={row['n_runs']}, it {row['iteration']}): "
                     + _values(row, ["distance_m", "success_rate", "abs_torque_nm", "abs_ang_jerk"]),

@@ -46,7 +46,8 @@ if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from analysis.rundirs import discover  # noqa: E402
-from analysis.stats import finite, mean_interval  # noqa: E402
+from march.stats import mean_summary as t_interval  # noqa: E402
+from march.stats import welch_summary as welch_interval  # noqa: E402
 from march.strict_json import dumps  # noqa: E402
 
 WINDOW = 5
@@ -67,33 +68,6 @@ CURVES = (
     ("learning_rate", "learning rate (adaptive schedule)"),
 )
 ARM_COLOURS = {"clf": "tab:blue", "modelfree_ref": "tab:orange", "modelfree": "tab:red"}
-
-
-def t_interval(x) -> dict:
-    """Mean and 95 % t interval of the finite values (analysis.stats), None where undefined."""
-    x = finite(x)
-    m, lo, hi = mean_interval(x)
-    return {
-        "mean": None if math.isnan(m) else m,
-        "low": None if math.isnan(lo) else lo,
-        "high": None if math.isnan(hi) else hi,
-        "n": len(x),
-    }
-
-
-def welch_interval(a: np.ndarray, b: np.ndarray) -> dict:
-    from scipy import stats
-
-    a = np.asarray([v for v in a if np.isfinite(v)], float)
-    b = np.asarray([v for v in b if np.isfinite(v)], float)
-    if len(a) < 2 or len(b) < 2:
-        return {"mean": None, "low": None, "high": None, "n": f"{len(a)} vs {len(b)}"}
-    va, vb = a.var(ddof=1) / len(a), b.var(ddof=1) / len(b)
-    se = math.sqrt(va + vb)
-    dof = (va + vb) ** 2 / (va**2 / (len(a) - 1) + vb**2 / (len(b) - 1)) if se > 0 else 1.0
-    d = float(a.mean() - b.mean())
-    h = float(stats.t.ppf(0.975, dof) * se)
-    return {"mean": d, "low": d - h, "high": d + h, "n": f"{len(a)} vs {len(b)}"}
 
 
 def arm_of(run) -> str:

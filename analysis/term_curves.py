@@ -4,8 +4,10 @@ From a run's ``metrics.csv`` (march.env.term_meter, march.learn.metrics): the te
 ``reward/<term>`` (each term's mean contribution per env step, weighted as it enters the
 reward), ``termination/<term>`` (the fraction of ended episodes each termination ended), the
 curriculum level (mean +- its spread over the envs) and the distillation's ``loss/<part>``,
-against env steps. One figure per run: ``<out>/terms_<run>.png`` (and ``.pdf``). A run without
-per-term columns (written before they existed) is named, not drawn.
+against env steps. One figure per run: ``<out>/terms_<run>.png`` (and ``.pdf``), titled with the
+run's arm as every output names it (a variant of the paper's arm says so). No figure draws two
+runs side by side. A run without per-term columns (written before they existed) is named, not
+drawn.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from analysis.groups import GroupKey, mismatch_keys, shorten, variant_of_arm  # noqa: E402
 from analysis.rundirs import Run  # noqa: E402
 
 PANELS = (
@@ -161,9 +164,17 @@ def term_figure(run: Run, smooth: int = 1) -> plt.Figure | None:
         ax.legend(fontsize=7)
         ax.grid(alpha=0.3)
     axes[-1, 0].set_xlabel("env steps")
-    fig.suptitle(f"{run.path.name}: {run.reward} / {run.variant}", fontsize=10)
+    fig.suptitle(f"{run.path.name}: {arm_label(run)} / {run.variant}", fontsize=10)
     fig.tight_layout()
     return fig
+
+
+def arm_label(run: Run) -> str:
+    """The run's arm as every output names it: ``clf``, or ``clf [variant: <what differs>]``
+    when its config is not the paper's arm as a whole (analysis.groups.variant_of_arm)."""
+    key = GroupKey.of(run)
+    why = variant_of_arm(key)
+    return f"{run.reward} [variant: {shorten(mismatch_keys(why), 3)}]" if why else str(run.reward)
 
 
 def draw(runs: list[Run], out: Path, smooth: int = 1) -> list[str]:
@@ -174,5 +185,5 @@ def draw(runs: list[Run], out: Path, smooth: int = 1) -> list[str]:
         if path is None:
             lines.append(f"{run.path}: no per-term columns in metrics.csv (an older run)")
         else:
-            lines.append(f"wrote {path}")
+            lines.append(f"wrote {path} ({arm_label(run)} / {run.variant})")
     return lines

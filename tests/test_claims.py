@@ -32,13 +32,17 @@ from analysis.groups import (  # noqa: E402
     series_names,
 )
 from analysis.rundirs import Run  # noqa: E402
-from analysis.stats import (  # noqa: E402
+from march.stats import (  # noqa: E402
     bootstrap,
     fieller_rel,
     judge,
+    mean_summary,
+    paired_ci,
     ratio_estimate,
+    rel_estimate,
     rel_of_means,
     verdict,
+    welch_summary,
     worst_over_iterations,
 )
 
@@ -81,10 +85,13 @@ def test_verdict_rule(lo, hi, direction, n, want):
     assert verdict(lo, hi, claimed, direction, n, 4) == want
 
 
-def _teacher_run(label: str, reach_at: float | None, last: float = 2000.0) -> Run:
+def _teacher_run(
+    label: str, reach_at: float | None, last: float = 2000.0, every: float = 100.0
+) -> Run:
     """A run whose teacher evaluation distance is 0 until ``reach_at`` env steps, then 4 m (its
-    final distance); never reaching: 3 m at the end. Evaluations every 100 steps."""
-    steps = np.arange(0.0, last + 1, 100.0)
+    final distance); never reaching: 3 m at the end. Evaluations every ``every`` steps from
+    ``every`` on."""
+    steps = np.arange(every, last + 1, every)
     dist = np.where(steps >= (reach_at if reach_at is not None else np.inf), 4.0, 0.0)
     if reach_at is None:
         dist[-1] = 3.0
@@ -101,39 +108,99 @@ def _teacher_run(label: str, reach_at: float | None, last: float = 2000.0) -> Ru
 
 def test_sample_efficiency_is_fieller_on_the_ratio_of_mean_step_counts():
     """Arm a reaches 90% of 4 m at 400, 500, 600 steps, arm b at 800, 1000, 1200: the ratio of
-    means is 500 / 1000 = 0.5 with Fieller's interval of those values."""
-    a = [_teacher_run(f"a{i}", s) for i, s in enumerate((400, 500, 600))]
-    b = [_teacher_run(f"b{i}", s) for i, s in enumerate((800, 1000, 1200))]
-    est, target, censored = steps_to_target(a, b, 0.9)
-    assert target == pytest.approx(3.6) and censored == ""
-    assert est.point == pytest.approx(0.5)
+    means is 500 / 1000 = 0.5. Each crossing is known to one evaluation interval (s_{k-1}, s_k],
+    so the interval holds Fieller's interval of the grid values and is wider by the grid: at
+    evaluations every step it is Fieller's (to the step), every 100 steps much wider."""
     _, lo, hi = fieller_rel([400, 500, 600], [800, 1000, 1200])
-    assert (est.low, est.high) == pytest.approx((lo + 1.0, hi + 1.0))
-    assert (est.n_a, est.n_b) == (3, 3)
+    widths = {}
+    for every in (1.0, 100.0):
+        a = [_teacher_run(f"a{i}", s, every=every) for i, s in enumerate((400, 500, 600))]
+        b = [_teacher_run(f"b{i}", s, every=every) for i, s in enumerate((800, 1000, 1200))]
+        est, target, note = steps_to_target(a, b, 0.9)
+        assert target == pytest.approx(3.6) and est.point == pytest.approx(0.5)
+        assert (est.n_a, est.n_b) == (3, 3) and est.why == ""
+        assert est.low <= lo + 1.0 and est.high >= hi + 1.0
+        assert f"every {every:.0f} env steps" in note
+        widths[every] = est.high - est.low
+    assert widths[1.0] == pytest.approx(hi - lo, abs=0.02)
+    assert widths[100.0] > 1.5 * widths[1.0]
 
 
 def test_a_seed_that_never_reaches_counts_as_a_lower_bound_and_limits_the_verdict():
-    """A reference seed that never reaches the target enters with its last step count (2000, a
-    lower bound): the ratio can only be overstated, so 'reproduced' stays possible and 'not
-    reproduced' does not; in the arm, the reverse."""
-    a = [_teacher_run(f"a{i}", s) for i, s in enumerate((100, 200, 300))]
-    b = [_teacher_run("b0", 1000), _teacher_run("b1", 1100), _teacher_run("b2", None)]
-    est, _, censored = steps_to_target(a, b, 0.9)
+    """A reference seed that never reaches the target is only known to need more than its last
+    step count: the ratio's low end is 0 (no 'not reproduced'), 'reproduced' stays possible;
+    in the arm, the high end is infinite (no 'reproduced')."""
+    a = [_teacher_run(f"a{i}", s, every=10) for i, s in enumerate((100, 200, 300))]
+    b = [_teacher_run(f"b{i}", s, every=10) for i, s in enumerate((1000, 1100, None))]
+    est, _, note = steps_to_target(a, b, 0.9)
     assert est.point == pytest.approx(200 / ((1000 + 1100 + 2000) / 3))
-    assert "1 seed(s) of the reference never reach" in censored
-    assert est.allowed == ("reproduced",)
-    assert judge(est, 0.5, "le")[0] == "reproduced"
-    slow = [_teacher_run(f"s{i}", s) for i, s in enumerate((1800, 1900, None))]
-    ref = [_teacher_run(f"r{i}", s) for i, s in enumerate((1000, 1100, 1200))]
+    assert "1 seed(s) of the reference never reach it" in note and est.low == 0.0
+    assert judge(est, 0.6, "le")[0] == "reproduced"
+    assert judge(est, 0.0, "ge")[0] != "not reproduced"
+    slow = [_teacher_run(f"s{i}", s, every=10) for i, s in enumerate((1800, 1900, None))]
+    ref = [_teacher_run(f"r{i}", s, every=10) for i, s in enumerate((1000, 1100, 1200))]
     est, _, _ = steps_to_target(slow, ref, 0.9)
     assert est.point == pytest.approx((1800 + 1900 + 2000) / 3 / 1100)
-    verdict_, why = judge(est, 0.5, "le")
-    assert est.low > 0.5 and verdict_ == "not reproduced"  # a lower bound cannot flatter it
+    assert est.high == math.inf and est.low > 0.5
+    assert judge(est, 0.5, "le")[0] == "not reproduced"  # a lower bound cannot flatter it
     est, _, _ = steps_to_target([_teacher_run(f"n{i}", None) for i in range(3)], ref, 0.9)
-    assert judge(est, 10.0, "le") == (
-        "inconclusive",
-        f"would be 'reproduced', but {est.why}",
-    )
+    assert judge(est, 10.0, "le")[0] == "inconclusive"
+
+
+def test_a_reference_past_the_target_at_its_first_evaluation_gives_no_reproduced():
+    """The reference's seeds are already past the target at their first evaluations (2000,
+    2200, 1800 steps): each crossed somewhere in (0, s_0], an upper bound, so the ratio's high
+    end is unbounded and no 'reproduced' can follow, although the grid values (400-600 vs
+    1800-2200: ratio 0.25) would give one as points. The arm's seeds, past the target at their
+    first evaluation while the reference crossed late, do bound the ratio from above: there
+    the data decide."""
+    a = [_teacher_run(f"a{i}", s, every=10) for i, s in enumerate((400, 500, 600))]
+    b = [_teacher_run(f"b{i}", 0, last=5000, every=e) for i, e in enumerate((2000, 2200, 1800))]
+    est, _, note = steps_to_target(a, b, 0.9)
+    assert est.point == pytest.approx(500 / 2000)
+    assert "3 seed(s) of the reference past the target at the first evaluation" in note
+    assert judge(est, 0.5, "le")[0] == "inconclusive"
+    a = [_teacher_run(f"a{i}", 0, last=5000, every=e) for i, e in enumerate((100, 150, 200))]
+    b = [_teacher_run(f"b{i}", s, 3000, every=10) for i, s in enumerate((1800, 2000, 2200))]
+    est, _, note = steps_to_target(a, b, 0.9)
+    assert "3 seed(s) of the arm past the target" in note and "never" not in note
+    assert judge(est, 0.5, "le")[0] == "reproduced"
+
+
+@pytest.mark.parametrize("grids", [((100, 100, 100), (200, 200, 200)), ((2,) * 3, (4,) * 3)])
+def test_every_seed_past_the_target_at_its_first_evaluation_gives_no_verdict(grids):
+    """Every seed of both arms past the target at its first evaluation (one final evaluation
+    per arm, as at smoke scale, where the arms' budgets are 1x and 2x): the grid values tie at
+    a ratio of exactly 0.5, which as points gave 'ratio 0.500 [0.500, 0.500] reproduced'
+    (issue 57); the data say nothing, so no verdict."""
+    a = [_teacher_run(f"a{i}", 0, last=e, every=e) for i, e in enumerate(grids[0])]
+    b = [_teacher_run(f"b{i}", 0, last=e, every=e) for i, e in enumerate(grids[1])]
+    est, _, note = steps_to_target(a, b, 0.9)
+    assert est.point == pytest.approx(0.5)
+    for claimed, direction in ((0.5, "le"), (0.5, "ge"), (10.0, "le"), (0.0, "ge")):
+        assert judge(est, claimed, direction)[0] == "inconclusive"
+    assert "past the target at the first evaluation" in est.why
+
+
+def test_tied_values_give_no_zero_width_interval():
+    """Fieller on arms whose every seed ties (no spread) gives no interval rather than
+    [r, r] (which claimed certainty from three tied grid values); one arm tied is fine."""
+    point, lo, hi = fieller_rel([5.0, 5.0, 5.0], [10.0, 10.0, 10.0])
+    assert point == pytest.approx(-0.5) and math.isnan(lo) and math.isnan(hi)
+    est = ratio_estimate([5.0, 5.0, 5.0], [10.0, 10.0, 10.0])
+    assert judge(est, 0.5, "le")[0] == "inconclusive" and "same value" in est.why
+    assert not math.isnan(fieller_rel([4.0, 5.0, 6.0], [10.0, 10.0, 10.0])[1])
+
+
+def test_rel_estimate_counts_finite_seeds_only():
+    """A NaN (or infinite) seed value is not a seed with a value: 2 vs 3, inconclusive, even
+    though the two finite values show a clear -50%; the same with a third finite value is
+    3 vs 3 and reproduced."""
+    est = rel_estimate([5.0, 5.1, math.nan], [10.0, 10.2, 9.9])
+    assert (est.n_a, est.n_b) == (2, 3)
+    assert judge(est, -0.12, "le")[0] == "inconclusive"
+    est = rel_estimate([5.0, 5.1, 4.9, math.inf], [10.0, 10.2, 9.9])
+    assert (est.n_a, est.n_b) == (3, 3) and judge(est, -0.12, "le")[0] == "reproduced"
 
 
 def test_from_iteration_scales_the_papers_500_of_1500():
@@ -272,6 +339,28 @@ def test_fieller_interval_by_hand_with_a_constant_reference():
     half = sps.t.ppf(0.975, 2) * (1 / math.sqrt(3)) / 10
     assert point == pytest.approx(-0.1)
     assert (lo, hi) == pytest.approx((-0.1 - half, -0.1 + half))
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_the_one_t_interval_matches_scipys_tests(seed):
+    """march.stats's mean, paired and Welch intervals (one t interval underneath) against
+    scipy's own one-sample and Welch tests' confidence intervals on generated data, NaN dropped."""
+    rng = np.random.default_rng(seed)
+    a = rng.normal(rng.uniform(-2, 2), rng.uniform(0.1, 3), rng.integers(2, 9))
+    b = rng.normal(rng.uniform(-2, 2), rng.uniform(0.1, 3), rng.integers(2, 9))
+    one = sps.ttest_1samp(a, 0.0).confidence_interval(0.95)
+    got = mean_summary(np.append(a, np.nan))
+    assert got["n"] == a.size and got["mean"] == pytest.approx(a.mean())
+    assert (got["low"], got["high"]) == pytest.approx((one.low, one.high), rel=1e-9)
+    welch = sps.ttest_ind(a, b, equal_var=False).confidence_interval(0.95)
+    got = welch_summary(a, np.append(b, np.inf))
+    assert got["n"] == f"{a.size} vs {b.size}"
+    assert (got["low"], got["high"]) == pytest.approx((welch.low, welch.high), rel=1e-9)
+    c = a + rng.normal(0.3, 0.5, a.size)
+    rel = sps.ttest_rel(c, a).confidence_interval(0.95)
+    assert paired_ci(c, a)[1:] == pytest.approx((rel.low, rel.high), rel=1e-9)
+    assert mean_summary([1.0]) == {"mean": 1.0, "low": None, "high": None, "n": 1}
+    assert welch_summary([1.0], b)["mean"] is None
 
 
 @pytest.mark.parametrize("seed", range(25))

@@ -16,6 +16,7 @@ import pandas as pd
 import pytest
 import synthetic_runs as syn
 import torch
+from omegaconf import OmegaConf
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -112,8 +113,14 @@ def test_smoke_run_and_figures_compare_it_with_clf(tree, capsys):
     assert summary["n_rollouts"] == 2
     metrics = pd.read_csv(run / "metrics.csv")
     assert (metrics["stage"] == "teacher").sum() == 2
-    # the reference arm: a synthetic clf run (tests/synthetic_runs.py)
+    # the reference arm: a synthetic clf run (tests/synthetic_runs.py) whose config is this
+    # run's with the clf reward, so that the two differ in the arms' own field (reward.*)
+    # only: every output compares like for like (issue 57)
     ref = syn.make_run(tree["root"] / "clf_run", "clf", "full", 0, student=True)
+    cfg = OmegaConf.load(next(run.glob("**/config.yaml")))
+    cfg.reward.name = "clf"
+    cfg.reward.terms = OmegaConf.load(ROOT / "conf" / "reward" / "clf.yaml").terms
+    OmegaConf.save(cfg, ref / "config.yaml")
     out = tree["root"] / "figures"
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):

@@ -374,7 +374,7 @@ def test_imports_no_simulator():
             elif isinstance(node, ast.ImportFrom) and node.module:
                 mods.add(node.module.split(".")[0])
     third_party = mods - set(sys.stdlib_module_names) - {"__future__", "analysis"}
-    # scipy: t quantiles of the intervals (analysis.stats); a dependency of march already;
+    # scipy: t quantiles of the intervals (march.stats); a dependency of march already;
     # march: only its standard-library modules (strict JSON, a run's status), checked below
     assert third_party == {"matplotlib", "numpy", "pandas", "omegaconf", "scipy", "march"}
     assert len(mods & {"mjlab", "mujoco", "torch", "warp"}) == 0

@@ -30,6 +30,8 @@ LAYERS: dict[str, int] = {
     "strict_json": 0,
     # random numbers keyed by (seed, rollout, draw) (an evaluation's streams): torch only
     "keyed_random": 0,
+    # the one statistics module (t interval, Fieller, verdicts): numpy / scipy only
+    "stats": 0,
     # stage 0-2 mathematics: plain numpy / torch
     "world": 1,
     "reference": 2,

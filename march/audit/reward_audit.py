@@ -28,13 +28,14 @@ its upper end under 0; otherwise "cannot tell at n".
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import torch
+
+from march.stats import mean_ci
 
 HORIZON_STEPS = 150
 """Control steps per rollout (3 s at 50 Hz): long enough that a robot which never steps falls
@@ -93,16 +94,16 @@ class BehaviourResult:
 
 
 def _mean_ci(x: np.ndarray) -> dict[str, float | None]:
-    """Mean and 95 % t interval over rollouts (None where undefined: n < 2)."""
-    from scipy import stats
-
-    x = np.asarray(x, dtype=float)
-    n = len(x)
-    mean = float(x.mean()) if n else math.nan
-    if n < 2:
-        return {"mean": mean, "ci_low": None, "ci_high": None, "n": n}
-    half = float(stats.t.ppf(0.975, n - 1) * x.std(ddof=1) / math.sqrt(n))
-    return {"mean": mean, "ci_low": mean - half, "ci_high": mean + half, "n": n}
+    """Mean and 95 % t interval over rollouts (:func:`march.stats.mean_ci`; None where
+    undefined: n < 2)."""
+    mean, lo, hi = mean_ci(x)
+    n = len(np.asarray(x))
+    return {
+        "mean": mean,
+        "ci_low": lo if n >= 2 else None,
+        "ci_high": hi if n >= 2 else None,
+        "n": n,
+    }
 
 
 def paired_verdict(candidate: np.ndarray, standing: np.ndarray, name: str) -> dict[str, Any]:

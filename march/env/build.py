@@ -50,6 +50,7 @@ from march.env.randomization import T_PUSH, apply_dr
 from march.env.reference_command import ReferenceCommandCfg
 from march.env.reset_extras import keep_termination_counts_on_device
 from march.env.rewards import REFERENCE_COMMAND, needs_reference, reward_terms
+from march.env.solver_order import pinned as pinned_solver_order
 from march.env.stone_terrain import terrain_entity_cfg
 from march.env.term_meter import attach as attach_term_meter
 from march.env.terminations import foot_too_low, goal_reached, planner_infeasible
@@ -435,7 +436,7 @@ def make_env(
     env_cfg = build_env_cfg(cfg, purpose, num_envs)
     set_compile_mode(cfg.compute.compile_mode)  # the env's compiled maths (compute.compile_math)
     t0 = time.time()
-    with _output_to(log):
+    with _output_to(log), pinned_solver_order(purpose == "eval"):  # batch-free order (issue 57)
         env = ManagerBasedRlEnv(cfg=env_cfg, device=cfg.compute.device)
     keep_termination_counts_on_device(env)  # no .item() per term and reset (reset_extras)
     # per-term reward / termination sums (not for evaluation) and CLF diagnostics, on the device

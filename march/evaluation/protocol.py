@@ -56,6 +56,7 @@ from march.env.clf_meter import pop_clf, pop_clf_pooled
 from march.env.course import CourseRuler, assign_eval_cells, eval_cells
 from march.env.depth import camera_paused
 from march.env.rollout_draws import KeyedDraws, keyed_draws
+from march.env.solver_order import pinned as pinned_solver_order
 from march.evaluation.sharding import sharded_rollouts
 from march.learn import distributed
 from march.learn.metrics import (
@@ -357,7 +358,7 @@ def rollout_metrics(
     collected: dict[str, list[torch.Tensor]] = {}
     total = 0
     seed = int(env.cfg.seed or 0) if seed is None else int(seed)
-    with _eval_rng(env), keyed_draws(env, seed) as draws:
+    with _eval_rng(env), keyed_draws(env, seed) as draws, pinned_solver_order():
         while total < num_rollouts:
             start_wave(env, draws, first + total)
             per = _wave(env, policy, ruler)

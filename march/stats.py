@@ -1,7 +1,11 @@
-"""Uncertainty across seeds: intervals for the paper's comparisons and the claim verdict rule.
+"""Uncertainty across seeds: the one statistics module of the repository (intervals for the
+paper's comparisons, the reward audit and the learning-signal study, and the claim verdict rule).
 
 The seed is the unit of replication (SPEC §6); every interval is 95% and across seeds, and its
-coverage at 3-5 seeds is checked by simulation (tests/test_claims.py).
+coverage at 3-5 seeds is checked by simulation (tests/test_claims.py). ``march`` may not import
+``analysis``, so the package holds this module and ``analysis/``, ``march.audit`` and
+``analysis/signal.py`` all import it (issue 54): there is one t interval (:func:`t_interval`),
+every mean, paired or Welch interval is a use of it.
 
 * A relative difference of two arms' seed means, (m_a - m_b) / |m_b|: Fieller's interval for a
   ratio of means with Welch's degrees of freedom (:func:`fieller_rel`, :func:`rel_estimate`), a
@@ -12,7 +16,10 @@ coverage at 3-5 seeds is checked by simulation (tests/test_claims.py).
 * The worst relative difference over a range of iterations ("at least X% at every iteration"):
   a simultaneous interval, Fieller per iteration with a Bonferroni-corrected lower end
   (:func:`worst_over_iterations`).
-* A mean of per-seed paired differences: Student's t (:func:`mean_interval`).
+* A mean (:func:`mean_ci`), a mean of per-seed paired differences (:func:`paired_ci`) and a
+  difference of two independent means with Welch's degrees of freedom (:func:`welch_ci`): each
+  the one Student's t interval (:func:`t_interval`); :func:`mean_summary` and
+  :func:`welch_summary` give them as dicts (None where undefined) for JSON reports.
 * :func:`bootstrap` (percentile, each arm resampled independently, a fixed generator): kept for
   statistics without a closed form; no claim uses it (it under-covers at 3-5 seeds).
 
@@ -99,8 +106,9 @@ def fieller_rel(a, b, level: float = LEVEL) -> tuple[float, float, float]:
     ``b`` (independent arms), by Fieller's interval for the ratio of two means with Welch's
     degrees of freedom: the set of ratios r with |m_a - r m_b| <= t sqrt(v_a + r^2 v_b)
     (v = s^2 / n), which, unlike a percentile bootstrap, widens properly at 3-5 seeds. NaN
-    bounds when an arm has fewer than 2 seeds or the reference mean is not clearly nonzero
-    (the interval is unbounded)."""
+    bounds when an arm has fewer than 2 seeds, when every seed of both arms has the same value
+    (no spread: ties such as crossings read off one evaluation grid), or when the reference
+    mean is not clearly nonzero (the interval is unbounded)."""
     a = np.asarray(a, dtype=float)
     b = np.asarray(b, dtype=float)
     a, b = a[~np.isnan(a)], b[~np.isnan(b)]
@@ -114,8 +122,8 @@ def fieller_rel(a, b, level: float = LEVEL) -> tuple[float, float, float]:
     r0 = ma / mb
     num = (va + r0**2 * vb) ** 2
     den = (va**2 / (a.size - 1) if va else 0.0) + ((r0**2 * vb) ** 2 / (b.size - 1) if vb else 0.0)
-    if den == 0:  # both arms constant: no uncertainty
-        return point, point, point
+    if den == 0:  # every seed of both arms ties: no spread to estimate an interval from (a
+        return point, math.nan, math.nan  # zero-width interval would claim certainty; issue 57)
     from scipy.stats import t as student_t
 
     t = float(student_t.ppf(0.5 + level / 2.0, num / den))
@@ -129,9 +137,23 @@ def fieller_rel(a, b, level: float = LEVEL) -> tuple[float, float, float]:
     return point, 1.0 - hi_r, 1.0 - lo_r  # rel = (m_a - m_b) / -m_b = 1 - r
 
 
-def mean_interval(x, level: float = LEVEL) -> tuple[float, float, float]:
-    """(mean, low, high): Student's t interval of the mean of ``x`` (e.g. per-seed paired
-    differences); NaN bounds with fewer than 2 values."""
+def t_interval(
+    point: float, se: float, dof: float, level: float = LEVEL
+) -> tuple[float, float, float]:
+    """(point, low, high) = point -/+ t_{dof, (1 + level)/2} x se: the repository's one t
+    interval (a mean, a paired difference, a Welch difference all come here). NaN bounds when
+    ``dof`` is not positive or ``se`` is not finite."""
+    if not (dof > 0) or not math.isfinite(se):
+        return point, math.nan, math.nan
+    from scipy.stats import t as student_t
+
+    half = float(student_t.ppf(0.5 + level / 2.0, dof)) * se
+    return point, point - half, point + half
+
+
+def mean_ci(x, level: float = LEVEL) -> tuple[float, float, float]:
+    """(mean, low, high): Student's t interval of the mean of the non-NaN values of ``x``; NaN
+    bounds with fewer than 2 values (NaN mean with none)."""
     x = np.asarray(x, dtype=float)
     x = x[~np.isnan(x)]
     if x.size == 0:
@@ -139,10 +161,57 @@ def mean_interval(x, level: float = LEVEL) -> tuple[float, float, float]:
     m = float(x.mean())
     if x.size < 2:
         return m, math.nan, math.nan
-    from scipy.stats import t as student_t
+    return t_interval(m, float(x.std(ddof=1)) / math.sqrt(x.size), x.size - 1, level)
 
-    half = float(student_t.ppf(0.5 + level / 2.0, x.size - 1)) * x.std(ddof=1) / math.sqrt(x.size)
-    return m, m - half, m + half
+
+def paired_ci(a, b, level: float = LEVEL) -> tuple[float, float, float]:
+    """(mean, low, high) of the per-pair differences ``a - b`` (same length: seed pairs, or the
+    same rollouts under two behaviours), by :func:`mean_ci`; a pair with a NaN side is dropped."""
+    return mean_ci(np.asarray(a, dtype=float) - np.asarray(b, dtype=float), level)
+
+
+def welch_ci(a, b, level: float = LEVEL) -> tuple[float, float, float]:
+    """(mean_a - mean_b, low, high) over the finite values of two independent arms: the t
+    interval with Welch's standard error and degrees of freedom (Welch-Satterthwaite; 1 when
+    both arms are constant, where the interval is the point). NaN bounds with fewer than 2
+    values in an arm."""
+    a, b = finite(a), finite(b)
+    if a.size == 0 or b.size == 0:
+        return math.nan, math.nan, math.nan
+    d = float(a.mean() - b.mean())
+    if a.size < 2 or b.size < 2:
+        return d, math.nan, math.nan
+    va, vb = a.var(ddof=1) / a.size, b.var(ddof=1) / b.size
+    se = math.sqrt(va + vb)
+    dof = (va + vb) ** 2 / (va**2 / (a.size - 1) + vb**2 / (b.size - 1)) if se > 0 else 1.0
+    return t_interval(d, se, dof, level)
+
+
+def _none_if_nan(x: float) -> float | None:
+    return None if math.isnan(x) else x
+
+
+def mean_summary(x, level: float = LEVEL) -> dict:
+    """``{"mean", "low", "high", "n"}`` of :func:`mean_ci` over the finite values of ``x`` (n:
+    their count), None where undefined: the dict a JSON report writes."""
+    x = finite(x)
+    m, lo, hi = mean_ci(x, level)
+    return {"mean": _none_if_nan(m), "low": _none_if_nan(lo), "high": _none_if_nan(hi), "n": len(x)}
+
+
+def welch_summary(a, b, level: float = LEVEL) -> dict:
+    """``{"mean", "low", "high", "n"}`` of :func:`welch_ci` (mean: the difference a - b; n:
+    ``"n_a vs n_b"`` finite values), None where undefined."""
+    na, nb = finite(a).size, finite(b).size
+    d, lo, hi = welch_ci(a, b, level)
+    if na < 2 or nb < 2:
+        d = math.nan
+    return {
+        "mean": _none_if_nan(d),
+        "low": _none_if_nan(lo),
+        "high": _none_if_nan(hi),
+        "n": f"{na} vs {nb}",
+    }
 
 
 @dataclass(frozen=True)
@@ -175,7 +244,10 @@ def rel_estimate(a, b, level: float = LEVEL) -> Estimate:
     point, lo, hi = fieller_rel(fa, fb, level)
     why = ""
     if math.isnan(lo) and fa.size >= 2 and fb.size >= 2:
-        why = "the reference mean is not clearly nonzero (Fieller's interval is unbounded)"
+        if np.ptp(fa) == 0 and np.ptp(fb) == 0:
+            why = "every seed of both arms has the same value (no spread, no interval)"
+        else:
+            why = "the reference mean is not clearly nonzero (Fieller's interval is unbounded)"
     return Estimate(point, lo, hi, int(fa.size), int(fb.size), why)
 
 
@@ -184,6 +256,60 @@ def ratio_estimate(a, b, level: float = LEVEL) -> Estimate:
     per-seed values: the ratio of two positive means, e.g. env steps to a target."""
     est = rel_estimate(a, b, level)
     return replace(est, point=est.point + 1.0, low=est.low + 1.0, high=est.high + 1.0)
+
+
+CORNERS_MAX = 4096
+"""At most this many corners of the seeds' intervals are searched (2^12: 6 interval-censored
+seeds per arm); beyond it only the two extreme corners are."""
+
+
+def censored_ratio_estimate(a_low, a_high, b_low, b_high, level: float = LEVEL) -> Estimate:
+    """mean(a) / mean(b) when each seed's value is known only to lie in ``(low, high]``
+    (interval-censored: e.g. the env steps at which a teacher first reaches a distance, read off
+    an evaluation grid; ``high = inf``: never reached by ``low``, right-censored). The point is
+    the ratio of the means of what the grid shows (the high ends; ``low`` where never reached). The interval is the union of Fieller's intervals
+    (:func:`ratio_estimate`) over the corners of the seeds' intervals (each seed at either end):
+    its low end the smallest low, its high end the largest high, so a verdict drawn from it
+    holds wherever in their intervals the seeds' true values lie (the data decide, not the
+    grid). A right-censored seed makes the high end infinite (in ``a``) or the low end 0 (in
+    ``b``); a corner without spread (every seed tied in both arms) or with an unbounded interval
+    makes the interval NaN, with the reason in ``why``."""
+    a_low, a_high, b_low, b_high = (
+        np.asarray(x, dtype=float) for x in (a_low, a_high, b_low, b_high)
+    )
+    n_a, n_b = int(a_high.size), int(b_high.size)
+    seen_a, seen_b = (np.where(np.isinf(h), lo, h) for lo, h in ((a_low, a_high), (b_low, b_high)))
+    point = float(np.mean(seen_a) / np.mean(seen_b)) if n_a and n_b and seen_b.any() else math.nan
+    if min(n_a, n_b) < 2:
+        return Estimate(point, math.nan, math.nan, n_a, n_b, "fewer than 2 seeds in an arm")
+    ends = [(a_low, seen_a), (b_low, seen_b)]
+    free = [(arm, i) for arm, (lo, hi) in enumerate(ends) for i in range(lo.size) if lo[i] != hi[i]]
+    if 2 ** len(free) <= CORNERS_MAX:
+        corners = range(2 ** len(free))
+        masks = [[(c >> j) & 1 for j in range(len(free))] for c in corners]
+    else:
+        masks = [[arm == 0 for arm, _ in free], [arm == 1 for arm, _ in free]]
+    low, high = math.inf, -math.inf
+    for mask in masks:
+        vals = [ends[0][0].copy(), ends[1][0].copy()]
+        for (arm, i), up in zip(free, mask, strict=True):
+            if up:
+                vals[arm][i] = ends[arm][1][i]
+        if not vals[0].any() and vals[1].mean() > 0:  # every a at 0 (all crossed by step 0):
+            low, high = min(low, 0.0), max(high, 0.0)  # the ratio is 0 there, exactly
+            continue
+        est = ratio_estimate(vals[0], vals[1], level)
+        if math.isnan(est.low) or math.isnan(est.high):
+            why = est.why or "a corner of the seeds' intervals has no interval"
+            return Estimate(
+                point, math.nan, math.nan, n_a, n_b, f"at a corner of the seeds' intervals: {why}"
+            )
+        low, high = min(low, est.low), max(high, est.high)
+    if np.isinf(a_high).any():
+        high = math.inf
+    if np.isinf(b_high).any():
+        low = min(low, 0.0)
+    return Estimate(point, low, high, n_a, n_b)
 
 
 def worst_over_iterations(
