@@ -281,7 +281,7 @@ class TeacherRunner(StageRunner):
         obs = self.obs
         with torch.inference_mode():
             for _ in range(self.cfg.teacher.num_steps_per_env):
-                before = self.ruler.progress()
+                before = self.ruler.foothold_progress()  # both feet's (docs/evaluation.md)
                 actions = self.alg.act(obs)
                 bad_actions = self.faults.actions(actions)  # the stored copy too
                 obs, rewards, dones, extras = self.env.step(actions.to(self.env.device))
