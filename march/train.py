@@ -150,13 +150,8 @@ def run_pipeline(
     import torch
 
     from march.env.build import PLACEHOLDERS, make_env
-    from march.evaluation.protocol import (
-        eval_line,
-        evaluate,
-        format_summary,
-        policy_from_checkpoint,
-        write_summary,
-    )
+    from march.evaluation.protocol import evaluate, policy_from_checkpoint
+    from march.evaluation.summary import eval_line, format_summary, write_summary
     from march.learn.distill import DistillRunner, student_policy
     from march.learn.metrics import truncate_rows
     from march.learn.teacher import TeacherRunner, teacher_policy

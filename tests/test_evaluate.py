@@ -594,7 +594,8 @@ def test_real_env_rollouts_on_stratified_cells_leave_training_rng_alone(tmp_path
     a couple of seconds): 6 rollouts on 4 envs take two waves on the next course cells, every
     rollout ends by a fall inside the episode, and the caller's random state is untouched."""
     from march.env.build import make_env
-    from march.evaluation.protocol import eval_line, evaluate, format_summary, rollout_metrics
+    from march.evaluation.protocol import evaluate, rollout_metrics
+    from march.evaluation.summary import eval_line, format_summary
 
     cfg = load(["compute=smoke"])
     env = make_env(cfg, "eval")
@@ -660,7 +661,7 @@ def test_summary_json_is_strict_with_the_count_beside_each_null(tmp_path):
     """No successful rollout and a single rollout: the undefined means and SEs are null and
     ``null_because`` names the count; the file loads with a parser that refuses NaN."""
     from march import strict_json
-    from march.evaluation.protocol import write_summary
+    from march.evaluation.summary import write_summary
 
     per = {name: torch.tensor([1.5]) for name in EVAL_METRICS}
     per["torque_success"] = per["jerk_success"] = torch.tensor([float("nan")])
