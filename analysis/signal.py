@@ -3,8 +3,9 @@ learning-signal study (``+sweep=signal``, issue 50): does the CLF reward teach t
 scale?
 
 The criteria are fixed here, before the runs are read (the unit of replication is the seed; every
-interval is a 95 % t interval across seeds, n stated; "signal" needs the interval to exclude 0 in
-the claimed direction, otherwise "no signal at this scale"):
+interval is a 95 % t interval across seeds, n stated). Three verdicts (issue 56): "signal" when
+the interval lies wholly on the claimed side of the threshold, "adverse" when it lies wholly on
+the other side (the change goes the wrong way), otherwise "no signal at this scale":
 
 * **C1 clf: V falls.** Per clf seed, the median V/Vmax of the training steps (``clf/v_p50``)
   averaged over the last ``WINDOW`` iterations minus the first ``WINDOW``. Signal: upper < 0.
@@ -13,11 +14,14 @@ the claimed direction, otherwise "no signal at this scale"):
 * **C3 clf tracks better than its control.** Last-window ``clf/v_p50`` of clf minus that of
   modelfree_ref (same stones, budget and reference observation; only the reward differs),
   Welch interval. Signal: upper < 0.
-* **C4 clf tracks better than standing.** Last-window ``clf/v_p50`` of clf against the zero-action
-  behaviour's median V/Vmax in the same training env (``--standing``: the JSON of
-  ``python -m march.audit rewards`` at the same preset). Signal: upper < standing's value. The
-  training steps are the stochastic policy's (exploration noise adds to V), so this is the
-  harder test.
+* **C4 clf tracks better than standing.** Like with like (issue 56): the deterministic policy's
+  median V/Vmax on its last evaluation's rollouts (eval.csv ``clf/v_p50``) minus the zero
+  action's on the same rollouts (``floor_clf/v_p50``, the standing floor of that row), per seed.
+  Signal: upper < 0. Rows written before the floor existed fall back to standing's value from
+  ``--standing`` (the JSON of ``python -m march.audit rewards`` at the same preset; signal:
+  upper < that value). (Until issue 56 C4 compared the *training* steps' V - the stochastic
+  policy's, std ~1 - with deterministic standing: it could not pass while the std is ~1: the
+  same teacher rolled with its mean action had V/Vmax p50 0.97, with its training noise 3.9.)
 * **C5 both arms: they survive and move.** Per arm, last-window minus first-window episode length
   and training distance (``mean_episode_length``, ``mean_distance_m``), and the evaluation
   distance at the last evaluation minus the first. Signal: lower > 0.
@@ -27,8 +31,12 @@ the same changes with the first window after the start-up transient (:data:`TRAN
 C1e, the median V/Vmax of the deterministic policy's evaluation rollouts, last evaluation minus
 first (eval.csv).
 
-PPO's health is reported beside them (no criterion): the learning rate the adaptive schedule ends
-at, the action std, and ``kl_normaliser`` (the KL the schedule sees before any gradient step).
+PPO's health is reported beside them (no criterion), means of the last window: the learning rate
+over each iteration's mini-batches (``lr_mean``, ``lr_min``, ``lr_max``; older runs: the last
+mini-batch's ``learning_rate``), the KL the update moved the policy by (``kl_update``) and its
+normaliser's part (``kl_normaliser``), the clip fraction, and the action std by joint group
+(march.learn.update_readout). Every evaluation distance is printed and drawn beside the standing
+floor (the zero action on the same rollouts, ``floor_distance_m``).
 """
 
 from __future__ import annotations
@@ -38,6 +46,7 @@ import json
 import math
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -64,9 +73,15 @@ CURVES = (
     ("clf/v_p50", "median V/Vmax (training steps)"),
     ("clf/saturated", "share of steps with V >= Vmax"),
     ("mean_episode_length", "episode length [steps]"),
-    ("mean_distance_m", "distance per episode [m] (training)"),
-    ("learning_rate", "learning rate (adaptive schedule)"),
+    ("mean_distance_m", "distance per episode [m] (training; feet)"),
+    ("eval:mean_distance_m", "evaluation distance [m] (deterministic; feet)"),
+    ("lr_mean", "learning rate: mean over mini-batches (band: min-max)"),
+    ("kl_update", "KL of the update (dashed: normaliser's part)"),
+    ("action_std_groups", "action std by joint group"),
 )
+"""The figure's panels: a metrics.csv column, ``eval:<column>`` of eval.csv (teacher rows), or a
+composite panel drawn by :func:`figure`."""
+GROUP_STYLES = {"legs": "-", "waist": "--", "arms": ":"}
 ARM_COLOURS = {"clf": "tab:blue", "modelfree_ref": "tab:orange", "modelfree": "tab:red"}
 
 
@@ -129,12 +144,22 @@ def last_eval(run, col: str = "mean_distance_m") -> float:
 
 
 def verdict(ci: dict, direction: str, threshold: float = 0.0) -> str:
+    """signal: the interval wholly on the claimed side of ``threshold`` (below it for "down",
+    above for "up"); adverse: wholly on the other side; else no signal at this scale."""
     lo, hi = ci["low"], ci["high"]
     if lo is None:
         return f"inconclusive (n={ci['n']})"
-    if direction == "down":
-        return "signal" if hi < threshold else "no signal at this scale"
-    return "signal" if lo > threshold else "no signal at this scale"
+    good, bad = (
+        (hi < threshold, lo > threshold)
+        if direction == "down"
+        else (
+            lo > threshold,
+            hi < threshold,
+        )
+    )
+    if good:
+        return "signal"
+    return "adverse" if bad else "no signal at this scale"
 
 
 def study(runs: list, standing: float | None) -> dict:
@@ -186,9 +211,24 @@ def study(runs: list, standing: float | None) -> dict:
             ),
             "down",
         )
-    if clf and standing is not None:
-        ci = t_interval([last_window(d, "clf/v_p50") for _, d in clf])
-        add(f"C4 median V/Vmax (last) vs standing's {standing:.3g}", "clf", ci, "down", standing)
+    if clf:
+        paired = [last_eval(r, "clf/v_p50") - last_eval(r, "floor_clf/v_p50") for r, _ in clf]
+        if any(math.isfinite(v) for v in paired):
+            add(
+                "C4 median V/Vmax of evaluation rollouts (last), policy - standing on them",
+                "clf",
+                t_interval(paired),
+                "down",
+            )
+        elif standing is not None:
+            ci = t_interval([last_eval(r, "clf/v_p50") for r, _ in clf])
+            add(
+                f"C4 median V/Vmax of evaluation rollouts (last) vs standing's {standing:.3g}",
+                "clf",
+                ci,
+                "down",
+                standing,
+            )
     for arm, items in sorted(by_arm.items()):
         add(
             "C5 episode length, last - first",
@@ -210,14 +250,25 @@ def study(runs: list, standing: float | None) -> dict:
             t_interval([eval_change(r) for r, _ in items]),
             "up",
         )
+
+    def lasts(items: list, col: str) -> dict:
+        return t_interval([last_window(d, col) for _, d in items])
+
     health = {
         arm: {
             "seeds": [r.seed for r, _ in items],
             "env_steps": int(pd.to_numeric(items[0][1]["env_steps"]).max()),
             "final_eval_distance_m": t_interval([last_eval(r) for r, _ in items]),
-            "final_learning_rate": t_interval([last_window(d, "learning_rate") for _, d in items]),
-            "final_action_std": t_interval([last_window(d, "action_std") for _, d in items]),
-            "kl_normaliser": t_interval([last_window(d, "kl_normaliser") for _, d in items]),
+            "standing_floor_m": t_interval([last_eval(r, "floor_distance_m") for r, _ in items]),
+            "final_learning_rate": lasts(items, "learning_rate"),
+            "lr_mean": lasts(items, "lr_mean"),
+            "lr_min": lasts(items, "lr_min"),
+            "lr_max": lasts(items, "lr_max"),
+            "kl_update": lasts(items, "kl_update"),
+            "kl_normaliser": lasts(items, "kl_normaliser"),
+            "clip_fraction": lasts(items, "clip_fraction"),
+            "final_action_std": lasts(items, "action_std"),
+            **{f"action_std_{g}": lasts(items, f"action_std_{g}") for g in GROUP_STYLES},
         }
         for arm, items in sorted(by_arm.items())
     }
@@ -240,61 +291,125 @@ def markdown(result: dict) -> str:
         )
     lines.append("")
     lines.append(
-        "| arm | seeds | env steps | final eval distance [m] | final lr | action std | kl_normaliser |"
+        "| arm | seeds | env steps | final eval distance [m] | standing floor [m] | "
+        "lr mean (min-max) | KL update (normaliser) | clip | std legs / waist / arms |"
     )
-    lines.append("|---|---|---|---|---|---|---|")
+    lines.append("|---|---|---|---|---|---|---|---|---|")
     for arm, h in result["arms"].items():
-        d = h["final_eval_distance_m"]
+        d, f = h["final_eval_distance_m"], h["standing_floor_m"]
+        m = {k: (v["mean"] if isinstance(v, dict) else None) for k, v in h.items()}
+        lr = (
+            f"{_fmt(m['lr_mean'])} ({_fmt(m['lr_min'])}-{_fmt(m['lr_max'])})"
+            if m["lr_mean"] is not None
+            else f"{_fmt(m['final_learning_rate'])} (last mini-batch)"
+        )
+        std = " / ".join(_fmt(m[f"action_std_{g}"]) for g in GROUP_STYLES)
+        if m["action_std_legs"] is None:
+            std = f"{_fmt(m['final_action_std'])} (all joints)"
         lines.append(
             f"| {arm} | {len(h['seeds'])} | {h['env_steps']} | {_fmt(d['mean'])} "
-            f"[{_fmt(d['low'])}, {_fmt(d['high'])}] | {_fmt(h['final_learning_rate']['mean'])} | "
-            f"{_fmt(h['final_action_std']['mean'])} | {_fmt(h['kl_normaliser']['mean'])} |"
+            f"[{_fmt(d['low'])}, {_fmt(d['high'])}] | {_fmt(f['mean'])} | {lr} | "
+            f"{_fmt(m['kl_update'])} ({_fmt(m['kl_normaliser'])}) | {_fmt(m['clip_fraction'])} | "
+            f"{std} |"
         )
     return "\n".join(lines)
 
 
+def _series(frames: list[pd.DataFrame], col: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """(x env steps, y (seeds, n)) of ``col`` over the common length of ``frames``."""
+    frames = [d for d in frames if col in d and len(d)]
+    if not frames:
+        return None
+    n = min(len(d) for d in frames)
+    x = pd.to_numeric(frames[0]["env_steps"]).to_numpy()[:n]
+    y = np.stack([pd.to_numeric(d[col], errors="coerce").to_numpy()[:n] for d in frames])
+    return x, y
+
+
+def _band(ax, x: np.ndarray, y: np.ndarray, colour: str, label: str, style: str = "-") -> None:
+    """Each seed thin, the mean thick, the 95 % t band across seeds."""
+    m = np.nanmean(y, 0)
+    for row in y:
+        ax.plot(x, row, color=colour, alpha=0.25, lw=0.8, ls=style)
+    ax.plot(x, m, color=colour, lw=2, ls=style, label=label)
+    if len(y) >= 2:
+        from scipy import stats
+
+        h = stats.t.ppf(0.975, len(y) - 1) * np.nanstd(y, 0, ddof=1) / math.sqrt(len(y))
+        ax.fill_between(x, m - h, m + h, color=colour, alpha=0.15)
+
+
+def _teacher_evals(run) -> pd.DataFrame | None:
+    ev = run.evals
+    if ev is None or "stage" not in ev:
+        return None
+    return ev[ev["stage"] == "teacher"].sort_values("iteration")
+
+
 def figure(runs: list, out: Path, title: str) -> Path:
+    """The study's curves per arm (:data:`CURVES`); every evaluation-distance panel draws the
+    standing floor (the zero action on the same rollouts, eval.csv ``floor_distance_m``)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, 3, figsize=(15, 8))
-    by_arm: dict[str, list[pd.DataFrame]] = {}
+    fig, axes = plt.subplots(3, 3, figsize=(16, 12))
+    by_arm: dict[str, list[tuple[Any, pd.DataFrame]]] = {}
     for run in runs:
         df = teacher_metrics(run)
         if df is not None:
-            by_arm.setdefault(arm_of(run), []).append(df)
+            by_arm.setdefault(arm_of(run), []).append((run, df))
     for ax, (col, label) in zip(axes.ravel(), CURVES, strict=True):
-        for arm, dfs in sorted(by_arm.items()):
-            dfs = [d for d in dfs if col in d]
-            if not dfs:
-                continue
-            n = min(len(d) for d in dfs)
-            x = pd.to_numeric(dfs[0]["env_steps"]).to_numpy()[:n]
-            y = np.stack([pd.to_numeric(d[col], errors="coerce").to_numpy()[:n] for d in dfs])
-            m = np.nanmean(y, 0)
+        for arm, items in sorted(by_arm.items()):
             c = ARM_COLOURS.get(arm, "tab:gray")
-            for row in y:
-                ax.plot(x, row, color=c, alpha=0.25, lw=0.8)
-            ax.plot(x, m, color=c, lw=2, label=f"{arm} (mean of {len(dfs)} seeds; thin: each seed)")
-            if len(dfs) >= 2:
-                from scipy import stats
-
-                h = stats.t.ppf(0.975, len(dfs) - 1) * np.nanstd(y, 0, ddof=1) / math.sqrt(len(dfs))
-                ax.fill_between(x, m - h, m + h, color=c, alpha=0.15)
+            frames = [d for _, d in items]
+            what = f"{arm} ({len(items)} seeds)"
+            if col.startswith("eval:"):
+                evals = [e for e in (_teacher_evals(r) for r, _ in items) if e is not None]
+                got = _series(evals, col[5:])
+                if got is not None:
+                    _band(ax, *got, c, what)
+                floor = _series(evals, "floor_distance_m")
+                if floor is not None and np.isfinite(floor[1]).any():
+                    ax.plot(floor[0], np.nanmean(floor[1], 0), color=c, lw=1.2, ls=":",
+                            label=f"{arm}: standing floor (zero action, same rollouts)")  # fmt: skip
+            elif col == "lr_mean":
+                got = _series(frames, "lr_mean") or _series(frames, "learning_rate")
+                if got is not None:
+                    _band(ax, *got, c, what)
+                lo, hi = _series(frames, "lr_min"), _series(frames, "lr_max")
+                if lo is not None and hi is not None:
+                    ax.fill_between(lo[0], np.nanmean(lo[1], 0), np.nanmean(hi[1], 0),
+                                    color=c, alpha=0.1, hatch="//")  # fmt: skip
+                ax.set_yscale("log")
+            elif col == "kl_update":
+                for name, style in (("kl_update", "-"), ("kl_normaliser", "--")):
+                    got = _series(frames, name)
+                    if got is not None:
+                        _band(ax, *got, c, f"{what}: {name}", style)
+                ax.set_yscale("log")
+            elif col == "action_std_groups":
+                for g, style in GROUP_STYLES.items():
+                    got = _series(frames, f"action_std_{g}")
+                    if got is not None:
+                        _band(ax, *got, c, f"{arm}: {g}", style)
+            else:
+                got = _series(frames, col)
+                if got is not None:
+                    _band(ax, *got, c, f"{what}; thin: each seed")
         if col == "clf/v_p50":
             ax.axhline(1.0, color="tab:red", ls="--", lw=1)
-            ax.text(x[0], 1.0, " V = Vmax: r_clf flat", color="tab:red", fontsize=8, va="bottom")
-        if col == "learning_rate":
-            ax.set_yscale("log")
+            ax.text(0.01, 1.0, " V = Vmax: r_clf flat", color="tab:red", fontsize=8,
+                    va="bottom", transform=ax.get_yaxis_transform())  # fmt: skip
         ax.set_title(label, fontsize=10)
         ax.set_xlabel("env steps")
-    axes[0, 0].legend(fontsize=7)
+        if ax.lines:
+            ax.legend(fontsize=6)
     fig.suptitle(title + " (bands: 95 % t interval across seeds)", fontsize=11)
-    fig.tight_layout(rect=(0, 0, 1, 0.95))
+    fig.tight_layout(rect=(0, 0, 1, 0.96))
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
+    fig.savefig(out, dpi=100)
     plt.close(fig)
     return out
 

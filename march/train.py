@@ -150,12 +150,8 @@ def run_pipeline(
     import torch
 
     from march.env.build import PLACEHOLDERS, make_env
-    from march.evaluation.protocol import (
-        evaluate,
-        format_summary,
-        policy_from_checkpoint,
-        write_summary,
-    )
+    from march.evaluation.protocol import evaluate, policy_from_checkpoint
+    from march.evaluation.summary import eval_line, format_summary, write_summary
     from march.learn.distill import DistillRunner, student_policy
     from march.learn.metrics import truncate_rows
     from march.learn.teacher import TeacherRunner, teacher_policy
@@ -206,11 +202,7 @@ def run_pipeline(
                 env_steps,
                 sees_depth=stage == "student",
             )
-            print(
-                f"[eval] {stage} it {iteration}: distance {row['mean_distance_m']:.3g} m, success "
-                f"{100 * row['mean_success_rate']:.0f}%, reward {row['mean_reward']:.3g}",
-                flush=True,
-            )
+            print(eval_line(row), flush=True)  # the distance beside the standing floor
             # An Optuna trial (hydra/sweeper=march_optuna): report, maybe stop here (pruned).
             # The run's last evaluation is the trial's value, never the pruner's to cut.
             step = iteration + (cfg.teacher.max_iterations if stage == "student" else 0)

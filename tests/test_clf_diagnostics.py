@@ -222,3 +222,65 @@ def test_the_sums_of_two_processes_pool_to_the_columns_of_all_their_samples():
     alone = [ranks[0].row(p) for p in parts]
     mean_p50 = (alone[0]["clf/v_p50"] + alone[1]["clf/v_p50"]) / 2
     assert abs(mean_p50 - direct["clf/v_p50"]) > 0.1 * direct["clf/v_p50"]
+
+
+@pytest.mark.sim
+def test_the_live_meter_reads_what_the_reward_sees(blocks):
+    """The meter as wired into a real env (march.env.clf_meter on the smoke clf teacher env,
+    random actions): its columns against a hand computation from the env's own state at each
+    step, taken right after the reward manager (where the meter reads): eta = y_sim - y_ref at
+    tau + dt (angles wrapped), each output's term 1/2 x_i^T P_i x_i with the closed-form P,
+    Vmax = lambda_max(P) eta_max^2 by hand. A wrong Vmax or a scaled share in the meter's
+    wiring fails here (planted: Vmax x2, shares x0.9)."""
+    from march.config.cli import load as load_cfg
+    from march.env.build import make_env
+    from march.env.clf_meter import pop_clf
+    from march.env.reference_command import reference_term
+    from march.reference.trajectory import tracking_error
+
+    cfg = load_cfg(["compute=smoke", "compute.num_envs=8", "+experiment=clf"])
+    env = make_env(cfg, "teacher")
+    try:
+        assert getattr(env, "clf_meter", None) is not None
+        term = reference_term(env)
+        eta_max = term.clf.cfg.eta_max
+        vmax = hand_vmax(blocks, eta_max)
+        seen: list[tuple[np.ndarray, np.ndarray]] = []  # (V the reward used, hand terms)
+        rm = env.reward_manager
+        inner = rm.compute  # mjlab's compute, wrapped by the meter
+
+        def watched(dt: float) -> torch.Tensor:
+            out = inner(dt)
+            sim_pos, sim_vel = term.measured()
+            ref_pos, ref_vel = term.reference(term.tau + env.step_dt)
+            eta = tracking_error(sim_pos, ref_pos, term.mask).double().numpy()
+            etadot = (sim_vel - ref_vel).double().numpy()
+            seen.append((term.v.double().numpy().copy(), hand_terms(blocks, eta, etadot)))
+            return out
+
+        rm.compute = watched
+        env.reset()
+        pop_clf(env)  # the reset's samples, if any, are not this test's
+        seen.clear()
+        g = torch.Generator().manual_seed(0)
+        n_act = env.action_manager.total_action_dim
+        for _ in range(30):
+            env.step(0.3 * torch.randn(env.num_envs, n_act, generator=g))
+        row = pop_clf(env)
+    finally:
+        env.close()
+    v = np.concatenate([s[0] for s in seen])
+    terms = np.concatenate([s[1] for s in seen])
+    np.testing.assert_allclose(terms.sum(-1), v, rtol=1e-3, atol=1e-6)  # the V the reward used
+    ratio = np.sort(v / vmax)
+    n = len(ratio)
+    assert row["clf/samples"] == n == 30 * 8
+    assert row["clf/saturated"] == pytest.approx((v >= vmax).mean(), abs=0.5 / n)
+    for name, q in (("clf/v_p10", 0.1), ("clf/v_p50", 0.5), ("clf/v_p90", 0.9)):
+        k = q * n  # the histogram's quantile lies between the order statistics around rank qn
+        lo, hi = ratio[max(math.floor(k) - 1, 0)], ratio[min(math.ceil(k), n - 1)]
+        assert lo / (1 + RELATIVE_BIN) <= row[name] <= hi * (1 + RELATIVE_BIN), (name, lo, hi)
+    positive = v > 0
+    share = (terms[positive] / v[positive, None]).mean(0)
+    for i, out_name in enumerate(term.clf.cfg.output_names):
+        assert row[f"clf/share/{out_name}"] == pytest.approx(share[i], rel=2e-3, abs=1e-6)

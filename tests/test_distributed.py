@@ -155,6 +155,36 @@ def test_rank_config_changes_seed_and_device_only():
     assert r3.compute.device == "cuda:0"  # Slurm bound one GPU to the task
 
 
+def test_leaving_the_group_runs_what_registered_once_and_distributed_imports_none_of_it():
+    """Issue 54: distributed <-> rank_normalizers was a circle (shutdown / abort imported
+    rank_normalizers.reset). Now the normalisers register their reset with ``on_leave``."""
+    import ast
+    from pathlib import Path
+
+    calls: list[str] = []
+
+    def forget() -> None:
+        calls.append("forget")
+
+    distributed.on_leave(forget)
+    distributed.on_leave(forget)  # twice: still run once
+    try:
+        distributed.shutdown()
+        assert calls == ["forget"]
+        distributed.abort()
+        assert calls == ["forget", "forget"]
+    finally:
+        distributed._ON_LEAVE.remove(forget)
+    tree = ast.parse(Path(distributed.__file__).read_text())
+    imported = {
+        alias.name
+        for node in ast.walk(tree)
+        if isinstance(node, (ast.Import, ast.ImportFrom))
+        for alias in node.names
+    } | {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
+    assert not any("rank_normalizers" in str(name) for name in imported)
+
+
 # -- collectives on two real gloo ranks ---------------------------------------------------------
 
 

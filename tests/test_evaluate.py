@@ -215,7 +215,7 @@ def test_standard_errors_against_hand_values():
 def _naive(tr) -> dict[str, list[float]]:
     """The metric definitions of march/evaluation/protocol.py written as a plain per-env loop."""
     t_len, e = tr["reward"].shape
-    out: dict[str, list[float]] = {k: [] for k in EVAL_METRICS}
+    out: dict[str, list[float]] = {k: [] for k in (*EVAL_METRICS, "pelvis_distance_m")}
     for i in range(e):
         done = [
             bool(tr["terminated"][t, i] or tr["truncated"][t, i] or tr["reached"][t, i])
@@ -231,8 +231,11 @@ def _naive(tr) -> dict[str, list[float]]:
             for t in range(2, end)
         ]
         goal = float(tr["goal_distance"][i])
-        dist = goal if won else min(float(tr["progress"][end, i]), goal)
-        out["distance_m"].append(dist)
+        feet = tr.get("foothold")
+        feet = tr["progress"] if feet is None else feet
+        far = max(float(feet[t, i]) for t in range(end + 1))
+        out["distance_m"].append(goal if won else min(far, goal))
+        out["pelvis_distance_m"].append(goal if won else min(float(tr["progress"][end, i]), goal))
         out["success_rate"].append(float(won))
         out["abs_torque_nm"].append(sum(tq) / len(tq) if tq else math.nan)
         out["abs_ang_jerk"].append(sum(jk) / len(jk) if jk else math.nan)
@@ -256,11 +259,45 @@ def test_matches_a_plain_loop_on_random_trajectories(seed):
     tr["truncated"] = torch.rand(t_len, e, generator=g) < 0.05
     tr["reached"] = torch.rand(t_len, e, generator=g) < 0.05
     tr["progress"] = torch.rand(t_len, e, generator=g) * 6
+    tr["foothold"] = torch.rand(t_len, e, generator=g) * 6
     tr["goal_distance"] = torch.rand(e, generator=g) * 6
     got = episode_metrics(**tr)
     want = _naive(tr)
-    for k in EVAL_METRICS:
+    for k in (*EVAL_METRICS, "pelvis_distance_m"):
         np.testing.assert_allclose(got[k].numpy(), np.array(want[k]), rtol=1e-9, atol=1e-9)
+
+
+def test_a_fall_forward_is_not_paid_as_distance():
+    """Zero action's topple, as measured in the cpu eval env (docs/evaluation.md): the pelvis
+    moves 0.56 m along the course in the last 40 steps while the feet stay within 3 cm; the
+    tilt termination ends it. The distance is where the feet got, the pelvis's is kept apart."""
+    tr = _traj(70)
+    tr["goal_distance"][:] = 3.0
+    t = torch.arange(70.0)
+    tr["progress"][:, 0] = (0.56 * ((t - 25) / 35).clamp(min=0) ** 2).clamp(max=0.56)
+    tr["foothold"] = (0.03 * (t / 60).clamp(max=1))[:, None]
+    tr["terminated"][60, 0] = True  # tilt
+    m = episode_metrics(**tr)
+    assert m["distance_m"].item() == pytest.approx(0.03)
+    assert m["pelvis_distance_m"].item() == pytest.approx(0.56)
+
+
+def test_distance_is_the_farthest_point_both_feet_reached():
+    """A walker whose feet reached 1.2 m and then stepped back to 1.0 m before falling keeps
+    1.2 m; a success is scored at the goal wherever its feet are."""
+    tr = _traj(6, e=2)
+    tr["goal_distance"][:] = 2.0
+    feet = torch.tensor([0.0, 0.5, 1.2, 1.0, 1.0, 9.0])  # step 5: after the end, never read
+    tr["foothold"] = torch.stack([feet, 0.5 * feet], -1)
+    tr["progress"][:, :] = 1.7
+    tr["terminated"][4, 0] = True
+    tr["reached"][4, 1] = True
+    m = episode_metrics(**tr)
+    assert m["distance_m"].tolist() == pytest.approx([1.2, 2.0])
+    assert m["pelvis_distance_m"].tolist() == pytest.approx([1.7, 2.0])
+    tr["foothold"] = torch.zeros(5, 2)
+    with pytest.raises(ValueError, match="foothold"):
+        episode_metrics(**tr)
 
 
 def test_shape_mismatch_is_one_clear_error():
@@ -552,12 +589,13 @@ def test_teacher_rows_during_training_and_resume_without_duplicates(tmp_path):
 
 
 @pytest.mark.sim
-def test_real_env_rollouts_on_stratified_cells_leave_training_rng_alone():
+def test_real_env_rollouts_on_stratified_cells_leave_training_rng_alone(tmp_path):
     """The smoke eval env with zero actions (the G1 holds its default pose and tips over within
     a couple of seconds): 6 rollouts on 4 envs take two waves on the next course cells, every
     rollout ends by a fall inside the episode, and the caller's random state is untouched."""
     from march.env.build import make_env
-    from march.evaluation.protocol import rollout_metrics
+    from march.evaluation.protocol import evaluate, rollout_metrics
+    from march.evaluation.summary import eval_line, format_summary
 
     cfg = load(["compute=smoke"])
     env = make_env(cfg, "eval")
@@ -576,8 +614,25 @@ def test_real_env_rollouts_on_stratified_cells_leave_training_rng_alone():
         assert terrain.terrain_levels.tolist() == lv.tolist()
         assert terrain.terrain_types.tolist() == col.tolist()
         horizon = int(env.max_episode_length)
+        # march's evaluation of the zero action: it scores ~0 (its feet stay put while the
+        # pelvis topples forward), and the row carries the standing floor: the same numbers
+        row = evaluate(env, still, 6, tmp_path, "teacher", 0, 0, sees_depth=False)
+        again = evaluate(env, still, 6, tmp_path, "teacher", 1, 0, sees_depth=False)
     finally:
         env.close()
+    assert row["floor_distance_m"] == row["mean_distance_m"] == again["floor_distance_m"]
+    assert row["floor_se_distance_m"] == row["se_distance_m"]
+    assert row["floor_reward"] == row["mean_reward"]
+    assert ("floor_clf/v_p50" in row) == ("clf/v_p50" in row)
+    if "clf/v_p50" in row:  # the floor's CLF samples are its own, not added to the policy's
+        assert row["floor_clf/v_p50"] == row["clf/v_p50"]
+    assert f"standing floor {row['floor_distance_m']:.3g} m" in eval_line(row)
+    assert "standing floor" in format_summary(row)
+    assert [r["floor_distance_m"] for r in _rows(tmp_path / "eval.csv")] == [
+        f"{row['floor_distance_m']:.6g}"
+    ] * 2
+    assert per["distance_m"].max() < 0.1, per["distance_m"]  # the feet barely move
+    assert per["pelvis_distance_m"].mean() > 0.3, per["pelvis_distance_m"]  # the topple
     for k in (*EVAL_METRICS, "episode_steps"):
         assert per[k].shape == (6,), k
     steps = per["episode_steps"]
@@ -606,7 +661,7 @@ def test_summary_json_is_strict_with_the_count_beside_each_null(tmp_path):
     """No successful rollout and a single rollout: the undefined means and SEs are null and
     ``null_because`` names the count; the file loads with a parser that refuses NaN."""
     from march import strict_json
-    from march.evaluation.protocol import write_summary
+    from march.evaluation.summary import write_summary
 
     per = {name: torch.tensor([1.5]) for name in EVAL_METRICS}
     per["torque_success"] = per["jerk_success"] = torch.tensor([float("nan")])

@@ -7,6 +7,10 @@ is the pelvis displacement along the course's own direction (``FootholdTable.dir
 spawn origin on the start platform, clipped to [0, course length]; the goal is reached when
 progress passes the start of the goal platform. The ruler, the level curriculum and the
 evaluation's success termination all measure with :func:`course_progress`.
+
+The evaluation's distance is measured at the feet (:meth:`CourseRuler.foothold_progress`: the
+point both feet have reached), not at the pelvis: a robot that topples forward moves its pelvis
+half a metre along the course without a step (issue 56, docs/evaluation.md).
 """
 
 from __future__ import annotations
@@ -14,10 +18,15 @@ from __future__ import annotations
 import torch
 from mjlab.envs import ManagerBasedRlEnv
 
+from march.env.step_cache import site_pos
 from march.env.stone_terrain import terrain_foothold_table
 from march.world.footholds import Footholds, FootholdTable
 
 _TABLE_ATTR = "_march_foothold_table"
+
+FOOT_SITES = ("left_foot", "right_foot")
+"""mjlab's G1 foot sites (under each ankle roll link, on the sole): where the ruler measures the
+footholds reached."""
 
 
 def foothold_table(env: ManagerBasedRlEnv) -> FootholdTable:
@@ -72,6 +81,18 @@ class CourseRuler:
         levels, types = self._cell()
         pos = self.robot.data.root_link_pos_w
         return course_progress(self.table, levels, types, self.env.scene.env_origins, pos)
+
+    def foothold_progress(self) -> torch.Tensor:
+        """(E,) progress both feet have reached along the course [m]: the lesser of the two
+        foot sites' progress (the rear foot's), each clipped to [0, length]. Standing still it
+        stays at ~0 however far the pelvis leans or topples; walking it is the last stance
+        foot's progress."""
+        levels, types = self._cell()
+        origins = self.env.scene.env_origins
+        feet = site_pos(self.env, FOOT_SITES)  # (E, 2, 3)
+        left = course_progress(self.table, levels, types, origins, feet[:, 0])
+        right = course_progress(self.table, levels, types, origins, feet[:, 1])
+        return torch.minimum(left, right)
 
     def reached_goal(self, progress: torch.Tensor) -> torch.Tensor:
         return progress >= self.goal_distance

@@ -26,8 +26,13 @@ Per rollout (its env's first episode, up to its end: success, fall or time-out),
 per-step tensors by :func:`episode_metrics`:
 - ``success_rate``: 1 if the episode ended by the success termination and not by a fall in the
   same step (a fall and the goal in one step count as a fall).
-- ``distance_m``: pelvis progress along the course from the start: the goal distance for a
-  success, else the progress at the last control step before the episode ended.
+- ``distance_m``: the farthest progress along the course that both feet reached during the
+  rollout (the rear foot's progress, :meth:`march.env.course.CourseRuler.foothold_progress`),
+  the goal distance for a success. Measured at the feet, not the pelvis: toppling forward
+  moves the pelvis ~0.56 m along the course (zero action, cpu preset) and the feet ~0.03 m,
+  so a fall is not paid as progress (issue 56). ``pelvis_distance_m`` (eval_rollouts.csv) is
+  the former measure, the pelvis progress at the last control step before the end, for
+  comparison.
 - ``abs_torque_nm``: mean over the episode's live control steps (those whose post-step state
   still belongs to it) and joints of |actuator force| [N m]; undefined with no live step.
 - ``abs_ang_jerk``: mean over live control steps and the three body axes of |d^2 omega / dt^2|,
@@ -38,6 +43,11 @@ per-step tensors by :func:`episode_metrics`:
 Summary: mean and standard error (sample std / sqrt(n)) over the rollouts where the metric is
 defined; ``n_torque`` / ``n_jerk`` count those for torque and jerk (a rollout too short for them
 is left out, not counted as 0).
+
+The standing floor: every evaluation row also carries the zero action's distance, success and
+return on the same rollouts (same courses, same keyed draws; ``floor_*`` columns,
+:func:`standing_floor`), computed once per eval env and printed beside the policy's: a distance
+is read against what doing nothing scores there.
 """
 
 from __future__ import annotations
@@ -68,8 +78,6 @@ from march.learn.metrics import (
     append_rows,
     truncate_rows,
 )
-from march.store.checkpoint import write_json_atomic
-from march.strict_json import null_because, strict
 
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv
@@ -104,6 +112,7 @@ def episode_metrics(
     dt: float,
     reached: torch.Tensor | None = None,
     deferred: torch.Tensor | None = None,
+    foothold: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
     """Per-rollout metrics of E rollouts from T recorded control steps (pure tensor arithmetic).
 
@@ -118,13 +127,17 @@ def episode_metrics(
     Rollout e is its env's first episode: steps 0..end_e, end_e the first step with terminated,
     truncated or reached (a rollout still running at step T-1 counts as timed out there). Its
     live steps are t < end_e. Success: reached at end_e and not terminated (a fall) there.
-    Distance: the goal distance for a success, else ``progress[end_e]`` (never past the goal).
+    ``foothold[t]`` (E,): the progress both feet had reached, read before the step as
+    ``progress`` (None: ``progress`` is the measure, e.g. a hand-made trajectory). Distance:
+    the goal distance for a success, else the largest ``foothold[t]`` over t <= end_e (never past
+    the goal); ``pelvis_distance_m`` the goal distance for a success, else ``progress[end_e]``.
     ``deferred[t]`` (E,): env-steps a due replan waited for the planner in step t (the replan
     queue's counter increments; None: no planner), summed over the episode's steps.
     Returns (E,) tensors keyed by ``EVAL_METRICS`` (torque NaN with no live step, jerk with
     fewer than 3; ``torque_success`` / ``jerk_success`` the same values for successful rollouts,
     NaN for the others; ``reward_per_step`` the return / ``episode_steps``), ``episode_steps``
-    (end_e + 1, the control steps of the episode) and ``deferred_replans``.
+    (end_e + 1, the control steps of the episode), ``pelvis_distance_m`` and
+    ``deferred_replans``.
     """
     t_len, e = reward.shape
     if torque.shape != (t_len, e) or ang_vel.shape != (t_len, e, 3):
@@ -165,7 +178,11 @@ def episode_metrics(
     fell = terminated.bool().gather(0, idx).squeeze(0) & ended
     success = reached.bool().gather(0, idx).squeeze(0) & ended & ~fell
     last_progress = torch.minimum(progress.double().gather(0, idx).squeeze(0), goal)
-    distance = torch.where(success, goal, last_progress)
+    feet = progress if foothold is None else foothold
+    if feet.shape != (t_len, e):
+        raise ValueError(f"foothold {tuple(feet.shape)} does not match reward {(t_len, e)}")
+    reached_far = torch.where(in_episode, feet.double(), -math.inf).amax(0)
+    distance = torch.where(success, goal, torch.minimum(reached_far, goal))
     ret = torch.where(in_episode, reward.double(), 0.0).sum(0)
     steps = (end + 1).double()
     if deferred is None:
@@ -174,6 +191,7 @@ def episode_metrics(
         deferred_sum = torch.where(in_episode, deferred.double(), 0.0).sum(0)
     return {
         "distance_m": distance,
+        "pelvis_distance_m": torch.where(success, goal, last_progress),
         "success_rate": success.double(),
         "abs_torque_nm": abs_torque,
         "abs_ang_jerk": abs_jerk,
@@ -249,6 +267,7 @@ def rollout_rows(per_rollout: dict[str, torch.Tensor], stage: str, iteration: in
         "column": "column",
         "success": "success_rate",
         "distance": "distance_m",
+        "pelvis_distance": "pelvis_distance_m",
         "torque": "abs_torque_nm",
         "jerk": "abs_ang_jerk",
         "reward": "reward",
@@ -256,6 +275,7 @@ def rollout_rows(per_rollout: dict[str, torch.Tensor], stage: str, iteration: in
         "episode_steps": "episode_steps",
         "deferred_replans": "deferred_replans",
     }
+    cols = {k: v for k, v in cols.items() if v in per_rollout}  # a hand-made set may lack some
     values = {k: per_rollout[v].double().tolist() for k, v in cols.items()}
     ints = ("level", "column", "success", "episode_steps", "deferred_replans")
     rows = []
@@ -275,6 +295,7 @@ def _wave(env: ManagerBasedRlEnv, policy: Policy, ruler: CourseRuler) -> dict[st
     obs, _ = env.reset()
     goal = ruler.goal_distance.clone()
     keys = ("torque", "ang_vel", "reward", "terminated", "truncated", "progress", "reached")
+    keys += ("foothold",)
     rec: dict[str, list[torch.Tensor]] = {k: [] for k in keys}
     queue = replan_queue(env)
     deferred: list[torch.Tensor] = []
@@ -284,6 +305,7 @@ def _wave(env: ManagerBasedRlEnv, policy: Policy, ruler: CourseRuler) -> dict[st
         if clf_meter is not None:
             clf_meter.active = ~finished
         rec["progress"].append(ruler.progress())
+        rec["foothold"].append(ruler.foothold_progress())
         before = None if queue is None else queue.deferred_count.clone()
         obs, reward, terminated, truncated, _ = env.step(policy(obs))
         if queue is not None:
@@ -314,6 +336,7 @@ def _wave(env: ManagerBasedRlEnv, policy: Policy, ruler: CourseRuler) -> dict[st
         env.step_dt,
         s["reached"],
         torch.stack(deferred) if deferred else None,
+        s["foothold"],
     )
 
 
@@ -373,6 +396,47 @@ def rollout_metrics(
     return {k: torch.cat(v).cpu() for k, v in collected.items()}
 
 
+FLOOR_COLUMNS = (
+    "floor_distance_m",
+    "floor_se_distance_m",
+    "floor_success_rate",
+    "floor_reward",
+)
+"""eval.csv / summary.json: the standing floor of the row's evaluation (:func:`standing_floor`):
+the zero action's mean distance [m] and its standard error, success rate and mean return."""
+FLOOR_CLF = "floor_clf/v_p50"
+"""Arms with the reference: the zero action's median V/Vmax on the same rollouts (the signal
+study's criterion C4 compares the deterministic policy's ``clf/v_p50`` with it)."""
+
+
+def standing_floor(env: ManagerBasedRlEnv, num_rollouts: int) -> dict[str, float]:
+    """The zero action (PD targets at the default pose) rolled out on the evaluation's own
+    rollouts: the same courses and keyed draws as any policy's evaluation with this env and
+    ``num_rollouts`` (the evaluation is seeded per rollout, so running it first changes no
+    other row). Computed once per env and rollout count, then cached on the env. Returns the
+    :data:`FLOOR_COLUMNS`."""
+    cache = env.__dict__.setdefault("_march_standing_floor", {})
+    key = (int(env.cfg.seed or 0), int(num_rollouts))
+    if key not in cache:
+        zeros = torch.zeros(env.num_envs, env.action_manager.total_action_dim, device=env.device)
+
+        def stand(obs: dict[str, Any]) -> torch.Tensor:
+            return zeros
+
+        pop_clf(env)  # the CLF diagnostics of the standing rollouts only
+        with camera_paused(env):  # standing looks at nothing
+            s = summarise(sharded_rollouts(env, stand, num_rollouts, rollout_metrics))
+        clf = pop_clf_pooled(env, distributed.gather_objects)  # {} without the reference
+        cache[key] = {
+            "floor_distance_m": s["mean_distance_m"],
+            "floor_se_distance_m": s["se_distance_m"],
+            "floor_success_rate": s["mean_success_rate"],
+            "floor_reward": s["mean_reward"],
+            **({FLOOR_CLF: clf["clf/v_p50"]} if "clf/v_p50" in clf else {}),
+        }
+    return dict(cache[key])
+
+
 def evaluate(
     env: ManagerBasedRlEnv,
     policy: Policy,
@@ -385,9 +449,10 @@ def evaluate(
 ) -> dict[str, Any]:
     """Roll out, append a row to ``eval.csv`` and return the summary row. Over N processes each
     rank runs its waves of the rollouts (march.evaluation.sharding) and every rank gets the
-    summary of all of them.
+    summary of all of them. The row carries the standing floor (:func:`standing_floor`).
     ``sees_depth=False`` (a teacher): the env's depth camera is not rendered meanwhile
     (:func:`march.env.depth.camera_paused`; the same numbers, a cheaper step)."""
+    floor = standing_floor(env, num_rollouts)  # before pop_clf: its CLF samples are not kept
     pop_clf(env)  # the CLF diagnostics of this evaluation's rollouts only (clf_meter)
     with nullcontext() if sees_depth else camera_paused(env):
         per = sharded_rollouts(env, policy, num_rollouts, rollout_metrics)  # N ranks: waves
@@ -399,9 +464,11 @@ def evaluate(
         "env_steps": env_steps,
         "n_rollouts": num_rollouts,
         **summarise(per),
+        **floor,
         **clf,
     }
-    append_row(run_dir / "eval.csv", EVAL_COLUMNS + tuple(clf), row)
+    floor_cols = FLOOR_COLUMNS + ((FLOOR_CLF,) if FLOOR_CLF in floor else ())
+    append_row(run_dir / "eval.csv", EVAL_COLUMNS + floor_cols + tuple(clf), row)
     # The side files follow eval.csv: rows of a resumed run's re-done evaluations replace the
     # ones written before the kill (eval.csv itself is truncated by the runners on resume).
     for side in ("eval_levels.csv", "eval_rollouts.csv"):
@@ -411,49 +478,3 @@ def evaluate(
         run_dir / "eval_rollouts.csv", EVAL_ROLLOUT_COLUMNS, rollout_rows(per, stage, iteration)
     )
     return row
-
-
-def write_summary(row: dict[str, Any], run_dir: Path, extra: dict[str, Any]) -> Path:
-    """summary.json, strict JSON: an undefined mean or SE (no successful rollout, one rollout)
-    is null, and ``null_because`` names the count that says why (march.strict_json)."""
-    path = run_dir / "summary.json"
-    counts = {metric: count for count, metric in COUNTED.items()}
-    why = null_because(row, counts, "n_rollouts")
-    write_json_atomic(strict({**row, **extra, **({"null_because": why} if why else {})}), path)
-    return path
-
-
-def format_summary(row: dict[str, Any]) -> str:
-    def pm(name: str, unit: str = "", scale: float = 1.0) -> str:
-        return f"{row[f'mean_{name}'] * scale:.3g} ± {row[f'se_{name}'] * scale:.2g}{unit}"
-
-    n = row["n_rollouts"]
-    left_out = ""
-    if row.get("n_torque", n) < n or row.get("n_jerk", n) < n:
-        left_out = (
-            f" ({n - row.get('n_torque', n)} too short for torque, "
-            f"{n - row.get('n_jerk', n)} for jerk: left out of those means)"
-        )
-    return (
-        f"  rollouts          {n}{left_out}\n"
-        f"  distance          {pm('distance_m', ' m')}\n"
-        f"  success           {pm('success_rate', ' %', 100.0)}\n"
-        f"  |joint torque|    {pm('abs_torque_nm', ' N m')}\n"
-        f"  |angular jerk|    {pm('abs_ang_jerk', ' rad/s^3')}\n"
-        f"  teacher reward    {pm('reward')} (episode return)" + clf_summary(row)
-    )
-
-
-def clf_summary(row: dict[str, Any]) -> str:
-    """The CLF diagnostics' summary lines (a clf-arm row; "" without them): V/Vmax quantiles,
-    saturation (V >= Vmax: r_clf flat at e^-1) and the outputs with the largest share of V."""
-    if "clf/v_p50" not in row:
-        return ""
-    shares = {k.split("/", 2)[2]: v for k, v in row.items() if k.startswith("clf/share/")}
-    top = sorted(((v, k) for k, v in shares.items() if v == v), reverse=True)[:4]
-    return (
-        f"\n  CLF V/Vmax        p10 {row['clf/v_p10']:.3g}, p50 {row['clf/v_p50']:.3g}, "
-        f"p90 {row['clf/v_p90']:.3g}; saturated {100 * row['clf/saturated']:.0f} % of steps "
-        f"(r_clf flat at e^-1 there); dV/dt defined {100 * row['clf/dvdt_valid']:.0f} %"
-        f"\n  share of V        " + ", ".join(f"{k} {100 * v:.0f} %" for v, k in top)
-    )

@@ -211,7 +211,7 @@ class DistillRunner(StageRunner):
             teacher_std = self.teacher.output_std.expand_as(teacher_mean).clone()
             actions = self.student.act_inference(*inputs)
             steps.append(tuple(x.clone() for x in inputs) + (teacher_mean, teacher_std))
-            before = self.ruler.progress()
+            before = self.ruler.foothold_progress()  # both feet's (docs/evaluation.md)
             bad_actions = self.faults.actions(actions)
             obs, reward, terminated, truncated, _ = self.env.step(actions)
             done = terminated | truncated

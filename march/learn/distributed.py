@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -181,12 +181,28 @@ def lost_rank(err: BaseException) -> str | None:
     )
 
 
+_ON_LEAVE: list[Callable[[], None]] = []
+"""What runs when this process leaves its process group (:func:`on_leave`)."""
+
+
+def on_leave(forget: Callable[[], None]) -> None:
+    """Run ``forget`` when this process leaves its process group (:func:`abort`,
+    :func:`shutdown`): a module that holds state of the group registers how to drop it
+    (:mod:`march.learn.rank_normalizers` forgets the normalisers it took over). Registering
+    the same callable twice runs it once. This module imports none of its users."""
+    if forget not in _ON_LEAVE:
+        _ON_LEAVE.append(forget)
+
+
+def _leave_group() -> None:
+    for forget in _ON_LEAVE:
+        forget()
+
+
 def abort() -> None:
     """Leave the process group after a lost rank without waiting for the others."""
     global _DIST
-    from march.learn import rank_normalizers
-
-    rank_normalizers.reset()
+    _leave_group()
     _DIST = Dist()
 
 
@@ -208,9 +224,7 @@ def rank_log(run_dir: Any) -> Any:
 
 def shutdown() -> None:
     global _DIST
-    from march.learn import rank_normalizers
-
-    rank_normalizers.reset()
+    _leave_group()
     if _DIST.active:
         import torch.distributed as td
 

@@ -88,6 +88,7 @@ EVAL_ROLLOUT_COLUMNS = (
     "reward_per_step",
     "episode_steps",
     "deferred_replans",
+    "pelvis_distance",  # the pelvis's progress (the distance before issue 56; it pays a fall)
 )
 
 

@@ -21,7 +21,7 @@ from typing import Any
 
 import torch
 
-from march.learn.distributed import collective_device, current
+from march.learn.distributed import collective_device, current, on_leave
 
 _NORMALIZERS: list[Any] = []
 """The normalisers :func:`sync_normalizers` took over, in the same order on every rank."""
@@ -114,6 +114,7 @@ def sync_normalizers(*modules: torch.nn.Module) -> int:
         return 0
     from rsl_rl.modules.normalization import EmpiricalNormalization
 
+    on_leave(reset)  # the process group gone, the normalisers taken over are forgotten
     found = 0
     for module in modules:
         for sub in module.modules():

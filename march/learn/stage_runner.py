@@ -59,6 +59,10 @@ EvaluateFn = Callable[[Any, int, int], dict[str, Any]]
 class EpisodeStats:
     """Return, length [control steps] and course progress of finished episodes.
 
+    The progress the runners pass each step is :meth:`CourseRuler.foothold_progress` (the point
+    both feet have reached, read before the step): an episode's distance is where its feet
+    were at its last step, so a fall is not paid as progress (docs/evaluation.md).
+
     Reported as means over the last ``window`` finished episodes (rsl-rl's convention), so an
     iteration in which no episode ended still has a value once any episode has ended. The
     per-step bookkeeping never synchronises with the device (no ``nonzero()`` / ``len()`` of
