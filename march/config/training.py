@@ -150,7 +150,18 @@ class TeacherCfg:
     activation: str = "elu"
     """Activation function."""
     init_std: float = 1.0
-    """Initial action std."""
+    """Initial action std of every joint (the paper's 1.0), before the per-group factors below:
+    joint j starts at init_std x init_std_<group of j> (march.env.joint_groups)."""
+    init_std_legs: float = 1.0
+    """Initial action std of the 12 leg joints (hip, knee, ankle) as a multiple of init_std;
+    1.0 = the paper's (the same std on every joint)."""
+    init_std_waist: float = 1.0
+    """Initial action std of the 3 waist joints as a multiple of init_std; 1.0 = the paper's.
+    Below 1 explores the upper body less at the start (docs/signal.md: at std 1 the 17 waist
+    and arm joints carry 52-62 % of the CLF's V and saturate r_clf for the whole robot)."""
+    init_std_arms: float = 1.0
+    """Initial action std of the 14 arm joints (shoulder, elbow, wrist) as a multiple of
+    init_std; 1.0 = the paper's."""
     learning_rate: float = 5e-5
     """Adam learning rate (adaptive schedule)."""
     schedule: str = "adaptive"
@@ -187,6 +198,15 @@ class TeacherCfg:
     def iterations(self) -> int:
         return max(1, round(self.max_iterations * self.budget_scale))
 
+    @property
+    def group_init_std(self) -> dict[str, float]:
+        """Joint group (legs, waist, arms) -> its initial action std (init_std x its factor)."""
+        return {
+            "legs": self.init_std * self.init_std_legs,
+            "waist": self.init_std * self.init_std_waist,
+            "arms": self.init_std * self.init_std_arms,
+        }
+
     def __post_init__(self) -> None:
         _check_shapes("teacher", self)
         _positive("teacher", "max_iterations", self.max_iterations)
@@ -195,6 +215,8 @@ class TeacherCfg:
         _each("teacher", "hidden_dims", self.hidden_dims, 1, nonempty=True)
         _one_of("teacher", "activation", self.activation, RSL_ACTIVATIONS)
         _positive("teacher", "init_std", self.init_std)
+        for group in ("legs", "waist", "arms"):
+            _positive("teacher", f"init_std_{group}", getattr(self, f"init_std_{group}"))
         _positive("teacher", "learning_rate", self.learning_rate)
         _positive("teacher", "save_interval", self.save_interval)
         _at_least("teacher", "max_nonfinite_updates", self.max_nonfinite_updates, 1)

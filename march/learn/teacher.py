@@ -22,13 +22,29 @@ from tensordict import TensorDict
 
 from march.config import MarchConfig, TeacherCfg
 from march.env.build import rsl_rl_env
+from march.env.joint_groups import action_joint_names, per_joint
 from march.learn import distributed, rank_normalizers
 from march.learn.metrics import MetricsLog
 from march.learn.stage_runner import EpisodeStats, StageRunner
+from march.learn.update_readout import UpdateReadout, set_initial_std
 from march.store.checkpoint import check_layout
 
 if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv
+
+UPDATE_COLUMNS = (
+    "lr_mean",
+    "lr_min",
+    "lr_max",
+    "kl_update",
+    "kl_normaliser",
+    "clip_fraction",
+    "action_std",
+    "action_std_legs",
+    "action_std_waist",
+    "action_std_arms",
+)
+"""The update's metrics.csv columns (march.learn.update_readout.UpdateReadout.pop)."""
 
 TeacherEval = Callable[[MLPModel, int, int], dict[str, Any]]
 """(deterministic actor, teacher iteration, teacher env steps) -> the eval.csv row it appended."""
@@ -176,6 +192,17 @@ class TeacherRunner(StageRunner):
         "value_loss": "value_loss",
         "V/Vmax_p50": "clf/v_p50",  # arms with the reference (march.env.clf_meter)
         "saturated": "clf/saturated",
+        # the update (march.learn.update_readout): lr over its mini-batches, the KL it moved
+        # the policy by (its normaliser's part), clip fraction, std per joint group
+        "lr": "lr_mean",
+        "lr_min": "lr_min",
+        "lr_max": "lr_max",
+        "kl": "kl_update",
+        "kl_norm": "kl_normaliser",
+        "clip": "clip_fraction",
+        "std_legs": "action_std_legs",
+        "std_waist": "action_std_waist",
+        "std_arms": "action_std_arms",
     }
 
     def __init__(
@@ -198,6 +225,11 @@ class TeacherRunner(StageRunner):
             self.alg = PPO.construct_algorithm(
                 obs, self.env, copy.deepcopy(self.train_cfg), self.device
             )
+        # The initial action std per joint group (teacher.init_std x init_std_<group>; the
+        # paper's 1.0 on every joint by default): rsl-rl builds one scalar for every action.
+        joints = action_joint_names(env)
+        set_initial_std(self.alg.actor, per_joint(joints, cfg.teacher.group_init_std))
+        self.readout = UpdateReadout(self.alg, joints)
         if self.alg.is_multi_gpu:  # N ranks: rank 0's networks everywhere, shared normalisers
             self.alg.broadcast_parameters()
             rank_normalizers.sync_normalizers(self.alg.actor, self.alg.critic)
@@ -279,31 +311,17 @@ class TeacherRunner(StageRunner):
         self.obs = obs
 
     def update(self, batch: None) -> dict[str, float]:
-        drift = float(self.normaliser_kl())  # one host read per iteration, as rsl-rl's losses
-        return distributed.mean_over_ranks({**self.alg.update(), "kl_normaliser": drift})
-
-    def normaliser_kl(self) -> torch.Tensor:
-        """Mean KL between the policy that acted (the rollout's stored distributions) and the same
-        weights after the rollout's observation-normaliser updates, before any gradient step:
-        the KL the adaptive schedule sees at its first mini-batch that no learning caused
-        (issue 50: above 2 x desired_kl it cuts the learning rate with nothing learned). One
-        forward pass over the batch; no sampling (the random stream is untouched)."""
-        st, actor = self.alg.storage, self.alg.actor
-        with torch.inference_mode():
-            obs = st.observations.flatten(0, 1)
-            actor.distribution.update(actor.mlp(actor.get_latent(obs)))
-            new = actor.output_distribution_params
-            old = tuple(p.flatten(0, 1) for p in st.distribution_params)
-            return actor.get_kl_divergence(old, new).mean()
+        # rsl-rl's update, watched: lr per mini-batch, KL, clip fraction, std per group (one
+        # host read per iteration, as rsl-rl's losses; march.learn.update_readout)
+        return distributed.mean_over_ranks(self.readout.update())
 
     def row_columns(self, batch: None, losses: dict[str, float]) -> dict[str, Any]:
         return {
             "value_loss": losses.get("value", losses.get("value_function", float("nan"))),
             "surrogate_loss": losses.get("surrogate", float("nan")),
             "entropy": losses.get("entropy", float("nan")),
-            "learning_rate": self.alg.learning_rate,
-            "kl_normaliser": losses.get("kl_normaliser", float("nan")),
-            "action_std": self.alg.get_policy().output_std.mean().item(),
+            "learning_rate": self.alg.learning_rate,  # after the update: the next one's start
+            **{k: losses.get(k, float("nan")) for k in UPDATE_COLUMNS},
             **self.replans.pop(),
         }
 
