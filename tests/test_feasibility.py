@@ -392,3 +392,32 @@ def test_a_soft_stance_foot_that_slides_does_not_count_as_reached():
     assert soft["reach"]["whole_step"] == 0.0
     hard = walk_one_step(KinematicG1(), 0.5)
     assert hard["stance_slide_m"]["max"] < 1e-4
+
+
+def test_the_reach_envelope_finds_the_longest_step_and_lowers_with_height(kin):
+    """At the author's CoM height 0.67 m a 0.9 m step's touchdown pose misses on com_z (the
+    hips are ~0.8 m from the feet, the leg ~0.7 m: the CoM stays below its reference), and so
+    does a 0.6 m step; with the CoM at 0.62 m the 0.6 m step is reached. The envelope's
+    longest step is the longest reached length of the grid."""
+    from march.audit.reach_envelope import (
+        EnvelopeCfg,
+        longest_reached,
+        pose_reached,
+        touchdown_reference,
+    )
+
+    cfg, judge = EnvelopeCfg(), FeasibilityCfg()
+    y = touchdown_reference(0.9, 0.67, cfg)
+    assert y[0] == pytest.approx(0.45, abs=0.02)  # the HLIP orbit: l / 2 ahead at touchdown
+    assert y[2] == pytest.approx(0.67) and y[6] == pytest.approx(0.9)
+    high = pose_reached(kin, y, cfg, judge)
+    assert not high["reached"] and high["worst_output"] == "com_z"
+    assert high["com_z_error_m"] < -0.05 and high["slide_m"] < 1e-4
+    mid = pose_reached(kin, touchdown_reference(0.6, 0.67, cfg), cfg, judge)
+    assert not mid["reached"] and mid["worst_output"] == "com_z" and mid["com_z_error_m"] < 0
+    low = pose_reached(kin, touchdown_reference(0.6, 0.62, cfg), cfg, judge)
+    assert low["reached"]
+    lengths = np.array([0.4, 0.5, 0.6, 0.7])
+    assert longest_reached(lengths, [True, True, False, False]) == 0.5
+    assert longest_reached(lengths, [False, True, False, True]) == 0.7
+    assert longest_reached(lengths, [False] * 4) is None
