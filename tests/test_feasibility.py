@@ -421,3 +421,33 @@ def test_the_reach_envelope_finds_the_longest_step_and_lowers_with_height(kin):
     assert longest_reached(lengths, [True, True, False, False]) == 0.5
     assert longest_reached(lengths, [False, True, False, True]) == 0.7
     assert longest_reached(lengths, [False] * 4) is None
+
+
+def test_a_step_is_judged_over_every_tick_rates_slide_and_touchdown_by_hand():
+    """judge_steps on hand-built steps, each with one fault: within every tolerance (reached);
+    CoM x 3.1 cm off at some tick but within tolerance at touchdown (missed, although the old
+    touchdown-tick criterion passes it); the swing-z rate at 0.21 m/s against 0.2 (missed on
+    the rate); the stance foot slid 1.5 cm (missed: slide); no real touchdown (missed). A
+    slide of 0.9 cm alone is reached."""
+    from march.audit.feasibility import CAUSES, judge_steps
+
+    opts = FeasibilityCfg()
+    tol, rate_tol = opts.tolerances(), opts.rate_tolerances()
+    n = 6
+    arrays = {
+        "step_max_eta": np.tile(0.5 * tol, (n, 1)),
+        "step_max_etadot": np.tile(0.5 * rate_tol, (n, 1)),
+        "touchdown_eta": np.tile(0.5 * tol, (n, 1)),
+        "slide": np.zeros(n),
+        "real_touchdown": np.ones(n),
+    }
+    arrays["step_max_eta"][1, 0] = 0.031
+    arrays["step_max_etadot"][2, CLF_OUTPUT_NAMES.index("swing_z")] = 0.21
+    arrays["slide"][3] = 0.015
+    arrays["real_touchdown"][4] = 0.0
+    arrays["slide"][5] = 0.009
+    judged = judge_steps(arrays, opts)
+    assert judged["reached"].tolist() == [True, False, False, False, False, True]
+    assert judged["at_touchdown"].tolist() == [True] * n
+    causes = [CAUSES[c] for c in judged["cause"][1:5]]
+    assert causes == ["com_x", "swing_z rate", "slide", "no_touchdown"]
