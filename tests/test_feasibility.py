@@ -204,11 +204,14 @@ def test_the_report_covers_every_curriculum_level(tmp_path, capsys, curriculum):
     assert [s["kind"] for s in levels] == ["flat"] * flat + ["stones"] * (len(levels) - flat)
     assert levels[-1]["difficulty"] == 1.0
     for s in levels:
-        assert s["steps"] == 2 and s["ticks"] > 40
+        # two steps, or one that ended the walk without a real touchdown (a step down the
+        # kinematic G1's swing foot cannot reach with the CoM z0 above the higher stone)
+        assert s["steps"] == 2 or s["walk_ends"] == {"no_touchdown": 1}, s["walk_ends"]
+        assert s["ticks"] > 20 * s["steps"]
         assert set(s["eta_abs"]["outputs"]) == set(CLF_OUTPUT_NAMES)
         assert 0.0 <= s["reach"]["whole_step"] <= s["reach"]["touchdown_tick_positions"] <= 1
-        assert s["jump_at_touchdown"]["touchdowns"] == 1  # two steps: one touchdown between
-        assert sum(b["steps"] for b in s["reach"]["by_step_length"]) == 2
+        assert s["jump_at_touchdown"]["touchdowns"] == s["steps"] - 1  # one between two steps
+        assert sum(b["steps"] for b in s["reach"]["by_step_length"]) == s["steps"]
     assert out.with_suffix(".png").stat().st_size > 10_000
     table = capsys.readouterr().out
     # three tables (floors and reach, jumps, step lengths), one row per level each

@@ -50,6 +50,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from march.audit.feasibility_tables import jump_table, length_table, table  # noqa: E402
 from march.audit.ik_walk import TouchdownRule, WalkTrace, ik_walks  # noqa: E402
 from march.audit.kinematic_g1 import ANGLES, GROUPS, IkCfg, KinematicG1, wrap  # noqa: E402
 from march.clf.lyapunov import CLF_OUTPUT_NAMES  # noqa: E402
@@ -64,15 +65,6 @@ DEFAULT_OUT = "audit_reference.json"
 STEP_BINS = (0.0, 0.45, 0.55, 0.60, 0.65, 0.70, 0.85, math.inf)
 """Edges of the step-length histogram [m]: the G1 reaches steps up to ~0.575 m at the
 default CoM height (issue 55's envelope); the planner's bound is 0.85 m."""
-JUMP_GROUPS = (
-    ("com", "CoM pos mm", 1000.0, "position"),
-    ("com", "CoM vel m/s", 1.0, "rate"),
-    ("pelvis", "pelvis mrad", 1000.0, "position"),
-    ("pelvis", "pelvis rate rad/s", 1.0, "rate"),
-    ("swing_pos", "swing mm", 1000.0, "position"),
-    ("upper", "upper mrad", 1000.0, "position"),
-)
-"""The jump table's columns: output group, heading, unit scale, positions or rates."""
 
 
 @dataclass
@@ -313,6 +305,8 @@ def level_summary(
         for k in ("step_max_eta", "step_max_etadot", "touchdown_eta", "slide", "real_touchdown")
     }
     lengths, rises = cat("step_length"), cat("step_rise")
+    gaps, lifted = cat("landing_gap"), cat("lifted")
+    fake = ~steps_arrays["real_touchdown"].astype(bool)
     kin_v = 0.5 * (eta**2 * p11).sum(1) / v_max  # V of the position errors alone
     groups = {g: quantiles(eta[:, lo:hi].ravel()) for g, (lo, hi) in GROUPS.items()}
     outputs = {n: quantiles(eta[:, j]) for j, n in enumerate(CLF_OUTPUT_NAMES)}
@@ -340,7 +334,12 @@ def level_summary(
         "command_vx": walks.commands,
         "ticks": int(v_ratio.size),
         "steps": steps,
-        "no_touchdown_steps": int((~steps_arrays["real_touchdown"].astype(bool)).sum()),
+        "no_touchdown_steps": int(fake.sum()),
+        "no_touchdown": {
+            "landing_gap_m": quantiles(gaps[fake], top=True),
+            "lifted_m": quantiles(lifted[fake]),
+            "step_rise_m": quantiles(rises[fake]),
+        },
         "walk_ends": ends,
         "eta_abs": {"groups": groups, "outputs": outputs},
         "etadot_abs": {"groups": rates},
@@ -369,90 +368,6 @@ def level_summary(
             "by_step_length": length_histogram(lengths, reached),
         },
     }
-
-
-def _num(x: float | None, scale: float = 1.0, width: int = 6, digits: int = 3) -> str:
-    return f"{'-':>{width}}" if x is None else f"{scale * x:{width}.{digits}f}"
-
-
-def _pct(x: float | None) -> str:
-    return "  -  " if x is None else f"{100 * x:5.1f}"
-
-
-def table(levels: list[dict[str, Any]]) -> str:
-    """The per-level reach and floor table printed on stdout."""
-    head = (
-        "level diff kind   steps reach%  td% | slide mm p50   p90   max | V/Vmax p50   p90  "
-        "sat%  Vpos p90 | p90 |eta|: com mm pelvis mrad swing mm swing-ori mrad upper mrad | "
-        "missed most"
-    )
-    rows = [head, "-" * len(head)]
-    for s in levels:
-        g = s["eta_abs"]["groups"]
-        v, vp, sl = s["v_over_vmax"], s["v_position_over_vmax"], s["stance_slide_m"]
-        misses = s["reach"]["misses_by_cause"]
-        miss = ", ".join(f"{k} {n}" for k, n in list(misses.items())[:3]) or "-"
-        rows.append(
-            f"{s['level']:5d} {s['difficulty']:4.2f} {s['kind']:6s} {s['steps']:5d}  "
-            f"{_pct(s['reach']['whole_step'])} {_pct(s['reach']['touchdown_tick_positions'])} |"
-            f"     {_num(sl['median'], 1e3, 5, 1)} {_num(sl['p90'], 1e3, 5, 1)} "
-            f"{_num(sl['max'], 1e3, 5, 1)} |"
-            f"     {_num(v['median'])} {_num(v['p90'])} {_pct(v['saturated'])}   "
-            f"{_num(vp['p90'])} |"
-            f"          {_num(g['com']['p90'], 1e3, 5, 1)}      {_num(g['pelvis']['p90'], 1e3, 5, 1)}"
-            f"    {_num(g['swing_pos']['p90'], 1e3, 5, 1)}          "
-            f"{_num(g['swing_ori']['p90'], 1e3, 5, 1)}      {_num(g['upper']['p90'], 1e3, 5, 1)} | "
-            f"{miss}"
-        )
-    return "\n".join(rows)
-
-
-def jump_table(levels: list[dict[str, Any]]) -> str:
-    """The reference's jump at touchdown per level: p50 / p90 / max over the touchdowns of
-    each group's norm (:data:`JUMP_GROUPS`)."""
-    cols = [f"{name} p50/p90/max" for _, name, _, _ in JUMP_GROUPS]
-    width = 31
-    head = "level touchdowns | " + "".join(f"{c:>{width}}" for c in cols)
-    rows = [
-        "jump of the reference at touchdown: |y_ref(new step, tau=0) - y_ref(old step, same "
-        "instant)|, norm over each group (swing: the output changes feet, so its jump is the step)",
-        head,
-        "-" * len(head),
-    ]
-    for s in levels:
-        j = s["jump_at_touchdown"]
-        cells = []
-        for group, _, scale, part in JUMP_GROUPS:
-            q = j[f"{part}_group_norm"][group]
-            digits = 1 if scale > 1 else 3
-            cells.append(
-                "/".join(_num(q[k], scale, 1, digits).strip() for k in ("median", "p90", "max"))
-            )
-        rows.append(
-            f"{s['level']:5d} {j['touchdowns']:10d} | " + "".join(f"{c:>{width}}" for c in cells)
-        )
-    return "\n".join(rows)
-
-
-def length_table(levels: list[dict[str, Any]]) -> str:
-    """Steps per length bin and the share reached in each, per level."""
-    bins = levels[0]["reach"]["by_step_length"] if levels else []
-    labels = [
-        f"{b['from_m']:.2f}-{b['to_m']:.2f}" if b["to_m"] is not None else f">={b['from_m']:.2f}"
-        for b in bins
-    ]
-    head = "level reach% | " + "".join(f"{lab + ' m':>16}" for lab in labels)
-    rows = ["planned step lengths: steps (reach %) per bin", head, "-" * len(head)]
-    for s in levels:
-        cells = []
-        for b in s["reach"]["by_step_length"]:
-            r = "  -" if b["reached"] is None else f"{100 * b['reached']:3.0f}"
-            cells.append(f"{b['steps']:4d} ({r}%)")
-        rows.append(
-            f"{s['level']:5d}  {_pct(s['reach']['whole_step'])} | "
-            + "".join(f"{c:>16}" for c in cells)
-        )
-    return "\n".join(rows)
 
 
 def output_paths(out: str | None) -> tuple[Path, Path, Path]:
