@@ -98,7 +98,7 @@ class FeasibilityCfg:
     lift_min: float = 0.02
     """A real touchdown's swing foot rose at least this above its lift-off height [m]."""
     land_tol: float = 0.02
-    """... and ends within this of the planned stone top's height [m]."""
+    """... and ends at most this above the planned stone top's height [m]."""
 
     def __post_init__(self) -> None:
         for key, value in asdict(self).items():

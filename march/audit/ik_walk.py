@@ -13,8 +13,9 @@ landing off the stones ends the walk as an infeasible plan.
 
 Only a real touchdown ends a step and replans (issue 55): the swing foot must have left the
 ground (risen ``lift_min`` above its lift-off height) and come down onto the planned stone top
-(within ``land_tol`` of its height at the touchdown tick). A step without one ends the walk
-(``no_touchdown``): the env would see no contact there and restart the step at its timeout.
+(at most ``land_tol`` above its height at the touchdown tick; a foot below the top would have
+hit the stone). A step without one ends the walk (``no_touchdown``): the env would see no
+contact there and restart the step at its timeout.
 
 Each step also records the reference at its two ends (positions and rates at tau = 0 and at
 its last tick), so the report can measure how far the reference jumps at a touchdown:
@@ -127,8 +128,8 @@ class TouchdownRule:
     lift_min: float = 0.02
     """The swing-foot site must rise this far above its lift-off height [m]."""
     land_tol: float = 0.02
-    """... and end within this of the planned stone top's height [m] (the swing-foot reach
-    tolerance: farther, no contact)."""
+    """... and end at most this above the planned stone top's height [m] (the swing-foot reach
+    tolerance: higher, no contact)."""
 
 
 def track_step(
@@ -190,7 +191,9 @@ def track_step(
     old_stance, _ = site_pose(kin, is_left)
     landed = site_pose(kin, not is_left)
     gap = float(landed[0][2] - (float(target[2]) + reference.foot_height_offset))
-    real = top - lift_z >= rule.lift_min and abs(gap) <= rule.land_tol
+    # A foot at or below the stone top touches it (the IK ignores collisions: below the top it
+    # would have hit the stone); only a foot left above it has no contact.
+    real = top - lift_z >= rule.lift_min and gap <= rule.land_tol
     trace.lifted.append(float(top - lift_z))
     trace.landing_gap.append(gap)
     trace.real_touchdown.append(bool(real))
