@@ -456,3 +456,18 @@ def test_a_step_is_judged_over_every_tick_rates_slide_and_touchdown_by_hand():
     assert judged["at_touchdown"].tolist() == [True] * n
     causes = [CAUSES[c] for c in judged["cause"][1:5]]
     assert causes == ["com_x", "swing_z rate", "slide", "no_touchdown"]
+
+
+def test_the_audit_reads_the_reference_config_the_env_is_built_from():
+    """reference_command_cfg is build_env_cfg's ``reference`` command for the run's overrides
+    (its planner seed is the run's seed), also for an arm whose reward does not need the
+    reference (modelfree): so every reference option a run can take reaches the audit."""
+    from march.audit.feasibility import reference_command_cfg
+    from march.env.build import build_env_cfg
+
+    cfg = load(["compute=smoke", "seed=5"])
+    audited = reference_command_cfg(cfg)
+    assert audited == build_env_cfg(cfg, "teacher", num_envs=1).commands["reference"]
+    assert audited.planner_seed == 5
+    modelfree = reference_command_cfg(load(["compute=smoke", "reward=modelfree"]))
+    assert modelfree.planner == audited.planner and modelfree.hlip == audited.hlip
