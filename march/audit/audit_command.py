@@ -2,6 +2,7 @@
 
     python -m march.audit rewards [reward=clf|modelfree] [teacher_ckpt=<file>] [out=<file>.json]
     python -m march.audit reference [out=<file>.json]
+    python -m march.audit envelope [out=<file>.json]
 
 Every job composes the same config as ``march.train`` and takes its ``key=value`` overrides
 (``compute.num_envs``, ``seed``, ``+experiment=...``); it prints a table and writes strict JSON
@@ -13,6 +14,8 @@ plus a PNG beside it (``out=``, default ``outputs/audit/<job>_<reward>.json``).
 - ``reference`` (:mod:`march.audit.feasibility`): the G1's whole-body IK along planned
   references at every curriculum level: the error floor per output and of V/Vmax under perfect
   kinematic tracking, and where the plan is out of the G1's reach.
+- ``envelope`` (:mod:`march.audit.reach_envelope`): the longest step whose touchdown pose the
+  G1 can take, against the CoM height.
 """
 
 from __future__ import annotations
@@ -25,7 +28,8 @@ from march.config import MarchConfig
 from march.config.cli import fail, run_tool
 
 USAGE = (
-    "usage: python -m march.audit rewards|reference [out=<file>.json] [teacher_ckpt=<file>] "
+    "usage: python -m march.audit rewards|reference|envelope [out=<file>.json] "
+    "[teacher_ckpt=<file>] "
     "[key=value ...]"
 )
 
@@ -86,7 +90,13 @@ def reference(cfg: MarchConfig) -> dict:
     return reference_report(cfg, str(_out(cfg, "reference")))
 
 
-JOBS = {"rewards": rewards, "reference": reference}
+def envelope(cfg: MarchConfig) -> dict:
+    from march.audit.reach_envelope import envelope_report
+
+    return envelope_report(cfg, str(_out(cfg, "envelope")))
+
+
+JOBS = {"rewards": rewards, "reference": reference, "envelope": envelope}
 
 
 def main(argv: Sequence[str] | None = None) -> None:

@@ -2,7 +2,8 @@
 
 :func:`reference_report` walks planned references (the planner's receding-horizon loop, ideal
 touchdown timing) on generated courses at every curriculum level with the kinematic G1
-(:mod:`march.audit.ik_walk`, :mod:`march.audit.kinematic_g1`) and reports, per level:
+(:mod:`march.audit.ik_walk`, :mod:`march.audit.kinematic_g1`; the stance foot held as a hard
+constraint) and reports, per level:
 
 - the **error floor** of each output: median and 90th percentile over the control ticks of
   |eta| = |y - y_ref| of the IK's best pose, per output and per group (CoM, pelvis, swing-foot
@@ -10,14 +11,25 @@ touchdown timing) on generated courses at every curriculum level with the kinema
 - the **V / Vmax floor**: median, 90th percentile and saturated fraction (V >= Vmax, where
   r_clf is flat at e^-1) of V along the kinematic trajectory (etadot by finite difference), and
   of its position part alone (etadot = 0: what no timing can remove);
-- **reach**: the fraction of planned steps whose touchdown tick has every output within its
-  tolerance (:class:`FeasibilityCfg`), the fraction whose every tick does, and for the steps
-  that miss, which output misses worst (|eta| / tolerance) and how long those steps were;
-- how the walks ended (goal platform, an infeasible plan after a landing off the plan, the
-  step cap).
+- **reach**, judged so that it cannot flatter (issue 55): a planned step is reached when at
+  EVERY tick of it every output is within its tolerance and every output's rate within its
+  rate tolerance (tolerance / ``rate_time``), the stance foot slid at most ``max_slide``, and
+  the step ended in a real touchdown; beside it the old criterion (positions at the touchdown
+  tick only) for comparison; for the steps that miss, what missed worst;
+- the **stance-foot slide** (p50 / p90 / max over steps);
+- the **jump of the reference at touchdowns**: |y_ref(new step, tau = 0) - y_ref(old step,
+  same instant)| per output, positions and rates, p50 / p90 / max over the touchdowns (a
+  continuous reference has 0 on the CoM and pelvis; the swing-foot outputs change feet at a
+  touchdown, so theirs is the step itself);
+- the **step lengths** walked, as a histogram with the reach share in each bin;
+- how the walks ended (goal platform, an infeasible plan after a landing off the plan, a step
+  without a real touchdown, the step cap).
 
-It writes the JSON (strict: no NaN or inf; absent values are null), prints a table, draws the
-PNG and films the hardest level's first course (:mod:`march.audit.feasibility_media`).
+The planner, HLIP and reference parameters are the env's own: read from the env config the
+run's overrides build (:func:`reference_command_cfg`), so every ``reference.*`` option a run
+can take is audited as the env would use it. It writes the JSON (strict: no NaN or inf; absent
+values are null), prints the tables, draws the PNG and films the hardest level's first course
+(:mod:`march.audit.feasibility_media`).
 """
 
 from __future__ import annotations
@@ -27,7 +39,7 @@ import math
 import os
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -38,8 +50,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from march.audit.ik_walk import WalkTrace, ik_walks  # noqa: E402
-from march.audit.kinematic_g1 import GROUPS, IkCfg, KinematicG1  # noqa: E402
+from march.audit.feasibility_tables import jump_table, length_table, table  # noqa: E402
+from march.audit.ik_walk import TouchdownRule, WalkTrace, ik_walks  # noqa: E402
+from march.audit.kinematic_g1 import ANGLES, GROUPS, IkCfg, KinematicG1, wrap  # noqa: E402
 from march.clf.lyapunov import CLF_OUTPUT_NAMES  # noqa: E402
 from march.config import MarchConfig  # noqa: E402
 from march.env.reference_cfg import ReferenceCommandCfg  # noqa: E402
@@ -49,6 +62,9 @@ from march.world.courses import flat_course, generate_course  # noqa: E402
 from march.world.footholds import footholds_from_layouts  # noqa: E402
 
 DEFAULT_OUT = "audit_reference.json"
+STEP_BINS = (0.0, 0.45, 0.55, 0.60, 0.65, 0.70, 0.85, math.inf)
+"""Edges of the step-length histogram [m]: the G1 reaches steps up to ~0.575 m at the
+default CoM height (issue 55's envelope); the planner's bound is 0.85 m."""
 
 
 @dataclass
@@ -73,6 +89,16 @@ class FeasibilityCfg:
     """Reach tolerance on each swing-foot angle [rad]."""
     tol_upper: float = 0.05
     """Reach tolerance on each upper-body joint [rad]."""
+    rate_time: float = 0.1
+    """Each output's rate tolerance is its position tolerance over this [s]: an error of one
+    tolerance built up or removed within 5 control ticks (CoM 0.3 m/s, pelvis 0.5 rad/s,
+    swing foot 0.2 m/s, swing-foot angles 1 rad/s, upper body 0.5 rad/s)."""
+    max_slide: float = 0.01
+    """A reached step's stance foot stays within this of its held position [m]."""
+    lift_min: float = 0.02
+    """A real touchdown's swing foot rose at least this above its lift-off height [m]."""
+    land_tol: float = 0.02
+    """... and ends at most this above the planned stone top's height [m]."""
 
     def __post_init__(self) -> None:
         for key, value in asdict(self).items():
@@ -97,6 +123,13 @@ class FeasibilityCfg:
             tol[lo:hi] = value
         return tol
 
+    def rate_tolerances(self) -> np.ndarray:
+        """(29,) the reach tolerance of each output's rate."""
+        return self.tolerances() / self.rate_time
+
+    def touchdown_rule(self) -> TouchdownRule:
+        return TouchdownRule(lift_min=self.lift_min, land_tol=self.land_tol)
+
 
 @dataclass
 class LevelWalks:
@@ -110,6 +143,18 @@ class LevelWalks:
     """Forward speed of each course's walk [m/s]."""
     traces: list[WalkTrace]
     layouts: list[Any]
+
+
+def reference_command_cfg(cfg: MarchConfig) -> ReferenceCommandCfg:
+    """The ``reference`` command's config as the env builds it from ``cfg`` (its planner,
+    reference, HLIP and CLF sections, with every override of the run): taken from
+    :func:`march.env.build.build_env_cfg` (no simulator is built); an arm without the
+    reference is audited with it (``reward.observe_reference``)."""
+    from march.env.build import build_env_cfg
+    from march.env.rewards import REFERENCE_COMMAND
+
+    with_reference = replace(cfg, reward=replace(cfg.reward, observe_reference=True))
+    return build_env_cfg(with_reference, "teacher", num_envs=1).commands[REFERENCE_COMMAND]
 
 
 def level_courses(cfg: MarchConfig, level: int, n: int, rng: np.random.Generator) -> tuple:
@@ -126,11 +171,17 @@ def level_courses(cfg: MarchConfig, level: int, n: int, rng: np.random.Generator
     return difficulty, "stones", [generate_course(difficulty, cfg.terrain, rng) for _ in range(n)]
 
 
-def walk_levels(cfg: MarchConfig, options: FeasibilityCfg, kin: KinematicG1) -> list[LevelWalks]:
+def walk_levels(
+    cfg: MarchConfig,
+    options: FeasibilityCfg,
+    kin: KinematicG1,
+    command: ReferenceCommandCfg | None = None,
+) -> list[LevelWalks]:
     """Every curriculum level's courses walked by the kinematic G1 (commands: the training
-    range ``env.command_vx``, drawn per course)."""
+    range ``env.command_vx``, drawn per course; ``command``: the reference command's config,
+    default :func:`reference_command_cfg`)."""
     rng = np.random.default_rng(cfg.seed)
-    command = ReferenceCommandCfg()
+    command = command or reference_command_cfg(cfg)
     levels = []
     for level in range(cfg.curriculum.num_levels):
         difficulty, kind, layouts = level_courses(cfg, level, options.courses_per_level, rng)
@@ -149,22 +200,97 @@ def walk_levels(cfg: MarchConfig, options: FeasibilityCfg, kin: KinematicG1) -> 
             hlip=command.hlip,
             reference=command.reference,
             keep_qpos=options.film,
+            rule=options.touchdown_rule(),
         )
         levels.append(LevelWalks(level, difficulty, kind, vx.tolist(), traces, layouts))
     return levels
 
 
-def _quantiles(x: np.ndarray) -> dict[str, float | None]:
-    if x.size == 0:
-        return {"median": None, "p90": None}
-    return {"median": float(np.median(x)), "p90": float(np.quantile(x, 0.9))}
+def quantiles(x: np.ndarray, top: bool = False) -> dict[str, float | None]:
+    """Median and 90th percentile of ``x`` (None when empty); ``top`` adds the maximum."""
+    out: dict[str, float | None] = {"median": None, "p90": None}
+    if x.size:
+        out = {"median": float(np.median(x)), "p90": float(np.quantile(x, 0.9))}
+    if top:
+        out["max"] = float(x.max()) if x.size else None
+    return out
+
+
+def touchdown_jumps(traces: list[WalkTrace]) -> np.ndarray:
+    """(touchdowns, 58) |y_ref(new step, tau = 0) - y_ref(old step, last tick)|: positions
+    (angle columns wrapped) then rates, over every pair of consecutive steps of each walk."""
+    parts = []
+    for t in traces:
+        a = t.arrays()
+        if len(a["ref_start"]) < 2:
+            continue
+        d = a["ref_start"][1:] - a["ref_end"][:-1]
+        d[:, :29] = np.where(ANGLES, wrap(d[:, :29]), d[:, :29])
+        parts.append(np.abs(d))
+    return np.concatenate(parts) if parts else np.zeros((0, 58))
+
+
+def jump_summary(jumps: np.ndarray) -> dict[str, Any]:
+    """The jump column's JSON: p50 / p90 / max per output (positions, rates) and per group
+    of the Euclidean norm over the group's coordinates."""
+    out: dict[str, Any] = {"touchdowns": int(len(jumps))}
+    for part, lo in (("position", 0), ("rate", 29)):
+        out[part] = {
+            n: quantiles(jumps[:, lo + j], top=True) for j, n in enumerate(CLF_OUTPUT_NAMES)
+        }
+        out[f"{part}_group_norm"] = {
+            g: quantiles(np.linalg.norm(jumps[:, lo + a : lo + b], axis=1), top=True)
+            for g, (a, b) in GROUPS.items()
+        }
+    return out
+
+
+def length_histogram(lengths: np.ndarray, reached: np.ndarray) -> list[dict[str, Any]]:
+    """Steps per length bin (:data:`STEP_BINS`) and the share reached in each."""
+    rows = []
+    for lo, hi in zip(STEP_BINS[:-1], STEP_BINS[1:], strict=True):
+        inside = (lengths >= lo) & (lengths < hi)
+        n = int(inside.sum())
+        rows.append(
+            {
+                "from_m": lo,
+                "to_m": None if math.isinf(hi) else hi,
+                "steps": n,
+                "reached": float(reached[inside].mean()) if n else None,
+            }
+        )
+    return rows
+
+
+def judge_steps(arrays: dict[str, np.ndarray], options: FeasibilityCfg) -> dict[str, np.ndarray]:
+    """Per step of the concatenated ``arrays``: ``reached`` (every tick, rates, slide, real
+    touchdown: module docstring), ``at_touchdown`` (positions at the touchdown tick only: the
+    old criterion) and ``cause``, the index of what missed worst (0-28 an output's position,
+    29-57 its rate, 58 the slide, 59 no real touchdown)."""
+    tol, rate_tol = options.tolerances(), options.rate_tolerances()
+    pos = arrays["step_max_eta"] / tol
+    rate = arrays["step_max_etadot"] / rate_tol
+    slide = arrays["slide"][:, None] / options.max_slide
+    real = arrays["real_touchdown"].astype(bool)
+    ratios = np.concatenate([pos, rate, slide, np.where(real, 0.0, 1.5)[:, None]], axis=1)
+    reached = (ratios <= 1.0).all(1)
+    return {
+        "reached": reached,
+        "at_touchdown": (np.abs(arrays["touchdown_eta"]) <= tol).all(1),
+        "cause": np.argmax(ratios, axis=1),
+    }
+
+
+CAUSES = [*CLF_OUTPUT_NAMES, *(f"{n} rate" for n in CLF_OUTPUT_NAMES), "slide", "no_touchdown"]
+"""What :func:`judge_steps`' cause index names."""
 
 
 def level_summary(
-    walks: LevelWalks, tol: np.ndarray, p11: np.ndarray, v_max: float
+    walks: LevelWalks, options: FeasibilityCfg, p11: np.ndarray, v_max: float
 ) -> dict[str, Any]:
-    """One level's floors, reach and misses (module docstring) as plain JSON values; ``p11``
-    (29,) the P_11 entries and ``v_max`` the Vmax of the position-only V."""
+    """One level's floors, reach, misses, slide, jumps and step lengths (module docstring) as
+    plain JSON values; ``p11`` (29,) the P_11 entries and ``v_max`` the Vmax of the
+    position-only V."""
     arrays = [t.arrays() for t in walks.traces]
 
     def cat(key: str, width: int | None = None) -> np.ndarray:
@@ -174,23 +300,32 @@ def level_summary(
         return np.concatenate(parts)
 
     eta, etadot, v_ratio = np.abs(cat("eta", 29)), cat("etadot", 29), cat("v_ratio")
-    touchdown, step_max = np.abs(cat("touchdown_eta", 29)), cat("step_max_eta", 29)
-    lengths, rises, jumps = cat("step_length"), cat("step_rise"), cat("com_jump")
+    steps_arrays = {
+        k: cat(k, 29 if k != "slide" and k != "real_touchdown" else None)
+        for k in ("step_max_eta", "step_max_etadot", "touchdown_eta", "slide", "real_touchdown")
+    }
+    lengths, rises = cat("step_length"), cat("step_rise")
+    gaps, lifted = cat("landing_gap"), cat("lifted")
+    fake = ~steps_arrays["real_touchdown"].astype(bool)
     kin_v = 0.5 * (eta**2 * p11).sum(1) / v_max  # V of the position errors alone
-    groups = {g: _quantiles(eta[:, lo:hi].ravel()) for g, (lo, hi) in GROUPS.items()}
-    outputs = {n: _quantiles(eta[:, j]) for j, n in enumerate(CLF_OUTPUT_NAMES)}
-    rates = {g: _quantiles(np.abs(etadot[:, lo:hi]).ravel()) for g, (lo, hi) in GROUPS.items()}
-    reached = (touchdown <= tol).all(1)
-    whole = (step_max <= tol).all(1)
-    worst = np.argmax(touchdown / tol, axis=1)
+    groups = {g: quantiles(eta[:, lo:hi].ravel()) for g, (lo, hi) in GROUPS.items()}
+    outputs = {n: quantiles(eta[:, j]) for j, n in enumerate(CLF_OUTPUT_NAMES)}
+    rates = {g: quantiles(np.abs(etadot[:, lo:hi]).ravel()) for g, (lo, hi) in GROUPS.items()}
+    judged = judge_steps(steps_arrays, options)
+    reached = judged["reached"]
     misses: dict[str, int] = {}
-    for j in worst[~reached]:
-        misses[CLF_OUTPUT_NAMES[j]] = misses.get(CLF_OUTPUT_NAMES[j], 0) + 1
+    for j in judged["cause"][~reached]:
+        misses[CAUSES[j]] = misses.get(CAUSES[j], 0) + 1
     misses = dict(sorted(misses.items(), key=lambda kv: -kv[1]))
     steps = int(reached.size)
     ends: dict[str, int] = {}
     for t in walks.traces:
         ends[t.end] = ends.get(t.end, 0) + 1
+    slide = steps_arrays["slide"]
+
+    def share(x: np.ndarray) -> float | None:
+        return float(x.mean()) if steps else None
+
     return {
         "level": walks.level,
         "difficulty": walks.difficulty,
@@ -199,71 +334,40 @@ def level_summary(
         "command_vx": walks.commands,
         "ticks": int(v_ratio.size),
         "steps": steps,
+        "no_touchdown_steps": int(fake.sum()),
+        "no_touchdown": {
+            "landing_gap_m": quantiles(gaps[fake], top=True),
+            "lifted_m": quantiles(lifted[fake]),
+            "step_rise_m": quantiles(rises[fake]),
+        },
         "walk_ends": ends,
         "eta_abs": {"groups": groups, "outputs": outputs},
         "etadot_abs": {"groups": rates},
         "v_over_vmax": {
-            **_quantiles(v_ratio),
+            **quantiles(v_ratio),
             "saturated": float((v_ratio >= 1.0).mean()) if v_ratio.size else None,
         },
         "v_position_over_vmax": {
-            **_quantiles(kin_v),
+            **quantiles(kin_v),
             "saturated": float((kin_v >= 1.0).mean()) if kin_v.size else None,
         },
-        "com_reference_jump_m": {
-            **_quantiles(jumps),
-            "max": float(jumps.max()) if jumps.size else None,
-        },
+        "stance_slide_m": quantiles(slide, top=True),
+        "jump_at_touchdown": jump_summary(touchdown_jumps(walks.traces)),
         "reach": {
-            "touchdown": float(reached.mean()) if steps else None,
-            "whole_step": float(whole.mean()) if steps else None,
-            "misses_by_output": misses,
+            "whole_step": share(reached),
+            "touchdown_tick_positions": share(judged["at_touchdown"]),
+            "misses_by_cause": misses,
             "step_length_m": {
-                "reached": _quantiles(lengths[reached]),
-                "missed": _quantiles(lengths[~reached]),
+                "reached": quantiles(lengths[reached]),
+                "missed": quantiles(lengths[~reached]),
             },
             "step_rise_m": {
-                "reached": _quantiles(np.abs(rises[reached])),
-                "missed": _quantiles(np.abs(rises[~reached])),
+                "reached": quantiles(np.abs(rises[reached])),
+                "missed": quantiles(np.abs(rises[~reached])),
             },
+            "by_step_length": length_histogram(lengths, reached),
         },
     }
-
-
-def table(levels: list[dict[str, Any]]) -> str:
-    """The per-level table printed on stdout."""
-
-    def pct(x: float | None) -> str:
-        return "  -  " if x is None else f"{100 * x:5.1f}"
-
-    def mm(x: float | None, scale: float = 1000.0) -> str:
-        return "   -" if x is None else f"{scale * x:5.1f}"
-
-    head = (
-        "level diff kind   steps reach% whole% | V/Vmax p50   p90  sat%  Vpos p90 | "
-        "p90 |eta|: com mm pelvis mrad swing mm swing-ori mrad upper mrad | "
-        "CoM ref jump p90 mm | missed most"
-    )
-    rows = [head, "-" * len(head)]
-    for s in levels:
-        g = s["eta_abs"]["groups"]
-        v, vp = s["v_over_vmax"], s["v_position_over_vmax"]
-        misses = s["reach"]["misses_by_output"]
-        miss = ", ".join(f"{k} {n}" for k, n in list(misses.items())[:2]) or "-"
-        rows.append(
-            f"{s['level']:5d} {s['difficulty']:4.2f} {s['kind']:6s} {s['steps']:5d}  "
-            f"{pct(s['reach']['touchdown'])}  {pct(s['reach']['whole_step'])} | "
-            f"    {_num(v['median'])} {_num(v['p90'])} {pct(v['saturated'])}   {_num(vp['p90'])} | "
-            f"          {mm(g['com']['p90'])}      {mm(g['pelvis']['p90'])}    "
-            f"{mm(g['swing_pos']['p90'])}          {mm(g['swing_ori']['p90'])}      "
-            f"{mm(g['upper']['p90'])} |               "
-            f"{mm(s['com_reference_jump_m']['p90'])} | {miss}"
-        )
-    return "\n".join(rows)
-
-
-def _num(x: float | None) -> str:
-    return "    -" if x is None else f"{x:6.3f}"
 
 
 def output_paths(out: str | None) -> tuple[Path, Path, Path]:
@@ -278,25 +382,33 @@ def output_paths(out: str | None) -> tuple[Path, Path, Path]:
 def reference_report(
     cfg: MarchConfig, out: str | None, options: FeasibilityCfg | None = None
 ) -> dict[str, Any]:
-    """Walk, measure, write the JSON / PNG / MP4, print the table; returns the JSON's dict
+    """Walk, measure, write the JSON / PNG / MP4, print the tables; returns the JSON's dict
     (module docstring). ``options`` sets the course count and tolerances (defaults:
     :class:`FeasibilityCfg`)."""
     options = options or FeasibilityCfg()
     json_path, png_path, mp4_path = output_paths(out)
     started = time.perf_counter()
     torch.manual_seed(cfg.seed)
-    kin = KinematicG1(IkCfg())
-    walks = walk_levels(cfg, options, kin)
-    tol = options.tolerances()
+    command = reference_command_cfg(cfg)
+    kin = KinematicG1(IkCfg(), clf=command.clf, command=command)
+    walks = walk_levels(cfg, options, kin, command)
     p11 = kin.clf.P_blocks_np[:, 0, 0]
-    levels = [level_summary(w, tol, p11, kin.v_max) for w in walks]
+    levels = [level_summary(w, options, p11, kin.v_max) for w in walks]
     report = {
         "what": "kinematic feasibility of the planned reference (march.audit reference)",
         "seed": cfg.seed,
         "curriculum": cfg.curriculum.name,
         "options": asdict(options),
         "ik": asdict(kin.cfg),
-        "tolerances": dict(zip(CLF_OUTPUT_NAMES, tol.tolist(), strict=True)),
+        "reference": {
+            "hlip": asdict(command.hlip),
+            "reference": asdict(command.reference),
+            "planner_max_step": command.planner.max_step,
+        },
+        "tolerances": dict(zip(CLF_OUTPUT_NAMES, options.tolerances().tolist(), strict=True)),
+        "rate_tolerances": dict(
+            zip(CLF_OUTPUT_NAMES, options.rate_tolerances().tolist(), strict=True)
+        ),
         "v_max": kin.v_max,
         "levels": levels,
         "seconds": None,
@@ -305,7 +417,7 @@ def reference_report(
     from march.audit.feasibility_media import draw_floors, film_walk
 
     json_path.parent.mkdir(parents=True, exist_ok=True)
-    draw_floors(levels, png_path, options)
+    draw_floors(levels, png_path, options.tol_com, options.tol_swing_pos)
     if options.film:
         hardest = walks[-1]
         problem = film_walk(hardest.traces[0], hardest.layouts[0], mp4_path, kin)
@@ -318,6 +430,10 @@ def reference_report(
     report = strict(report)
     json_path.write_text(json.dumps(report, indent=1, allow_nan=False))
     print(table(levels))
+    print()
+    print(jump_table(levels))
+    print()
+    print(length_table(levels))
     films = f", {mp4_path}" if report["files"]["mp4"] else ""
     print(f"wrote {json_path}, {png_path}{films}")
     sys.stdout.flush()

@@ -10,6 +10,16 @@ with tau >= T: ideal timing), the next plan starts from where the IK's swing foo
 landed, the new stance foot is held at its landing pose, and the new swing foot lifts off from
 where it stands; so a step the G1 cannot reach moves the walk where the robot really is, and a
 landing off the stones ends the walk as an infeasible plan.
+
+Only a real touchdown ends a step and replans (issue 55): the swing foot must have left the
+ground (risen ``lift_min`` above its lift-off height) and come down onto the planned stone top
+(at most ``land_tol`` above its height at the touchdown tick; a foot below the top would have
+hit the stone). A step without one ends the walk (``no_touchdown``): the env would see no
+contact there and restart the step at its timeout.
+
+Each step also records the reference at its two ends (positions and rates at tau = 0 and at
+its last tick), so the report can measure how far the reference jumps at a touchdown:
+y_ref of the new step at tau = 0 minus y_ref of the old step at the same instant.
 """
 
 from __future__ import annotations
@@ -54,6 +64,21 @@ class WalkTrace:
     """Per step (29,) eta at its touchdown tick."""
     step_max_eta: list[np.ndarray] = field(default_factory=list)
     """Per step (29,) max |eta| over its ticks."""
+    step_max_etadot: list[np.ndarray] = field(default_factory=list)
+    """Per step (29,) max |etadot| over its ticks."""
+    slide: list[float] = field(default_factory=list)
+    """Per step the largest distance of the stance-foot site from its held position [m]."""
+    lifted: list[float] = field(default_factory=list)
+    """Per step the swing-foot site's highest rise above its lift-off height [m]."""
+    landing_gap: list[float] = field(default_factory=list)
+    """Per step the swing-foot site's height above the planned stone top (plus the reference's
+    foot height offset) at the touchdown tick [m]."""
+    real_touchdown: list[bool] = field(default_factory=list)
+    """Per step: the swing foot left the ground and landed (module docstring)."""
+    ref_start: list[np.ndarray] = field(default_factory=list)
+    """Per step (58,) the reference's positions then rates (29 each) at tau = 0."""
+    ref_end: list[np.ndarray] = field(default_factory=list)
+    """Per step (58,) the reference's positions then rates at its last tick."""
     step_length: list[float] = field(default_factory=list)
     """Per step the planned step length: horizontal distance from the stance foot to the
     target (the planner's ``max_step`` bounds it) [m]."""
@@ -61,13 +86,8 @@ class WalkTrace:
     """Per step the planned height change from the stance foot to the target [m]."""
     duration: list[float] = field(default_factory=list)
     """Per step the planned duration [s]."""
-    com_jump: list[float] = field(default_factory=list)
-    """Per step after the first: how far the CoM reference jumps in xy at its touchdown,
-    |y_ref,com(new step, tau = 0) - y_ref,com(old step, last tick)| [m] (the HLIP orbit of
-    the new step, anchored at the new stance foot, need not start where the old one ended
-    when consecutive steps differ in length or duration)."""
     end: str = "max_steps"
-    """Why the walk ended: goal, plan_infeasible or max_steps."""
+    """Why the walk ended: goal, plan_infeasible, no_touchdown or max_steps."""
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The per-tick and per-step lists as arrays (empty walks give (0, 29) arrays)."""
@@ -76,7 +96,8 @@ class WalkTrace:
             value = getattr(self, f.name)
             if isinstance(value, list):
                 wide = ("eta", "etadot", "y_ref", "touchdown_eta", "step_max_eta")
-                width = 29 if f.name in wide else None
+                wide += ("step_max_etadot",)
+                width = 29 if f.name in wide else 58 if f.name.startswith("ref_") else None
                 arr = np.asarray(value, dtype=np.float64)
                 if arr.size == 0 and width is not None:
                     arr = arr.reshape(0, width)
@@ -100,6 +121,17 @@ def site_pose(kin: KinematicG1, left: bool) -> tuple[np.ndarray, np.ndarray]:
     return kin.data.site_xpos[sid].copy(), kin.data.site_xmat[sid].reshape(3, 3).copy()
 
 
+@dataclass
+class TouchdownRule:
+    """When a step's end is a real touchdown (module docstring)."""
+
+    lift_min: float = 0.02
+    """The swing-foot site must rise this far above its lift-off height [m]."""
+    land_tol: float = 0.02
+    """... and end at most this above the planned stone top's height [m] (the swing-foot reach
+    tolerance: higher, no contact)."""
+
+
 def track_step(
     kin: KinematicG1,
     trace: WalkTrace,
@@ -110,13 +142,16 @@ def track_step(
     reference: ReferenceCfg,
     hlip: HlipCfg,
     keep_qpos: bool = False,
-) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
+    rule: TouchdownRule | None = None,
+) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray, bool]:
     """Track one step (``step``: a one-env ``StepState``, step index ``k``) from the kinematic
     G1's current pose with the stance foot ``held`` (position, rotation), one tick per
     ``IkCfg.dt`` until the planned duration (the touchdown tick: the first with tau >= T);
     ``first``: the walk starts here, standing (:meth:`KinematicG1.stand` at tau = 0).
     Appends the ticks and the step's summary to ``trace``; returns the new stance foot's pose
-    (the swing foot where it landed) and the new swing foot's lift-off position."""
+    (the swing foot where it landed), the new swing foot's lift-off position and whether the
+    step ended in a real touchdown (``rule``)."""
+    rule = rule or TouchdownRule()
     dt = kin.cfg.dt
     is_left = bool(step.stance_is_left[0])
     duration = float(step.duration[0])
@@ -126,8 +161,10 @@ def track_step(
     ref_pos, ref_vel = (x.double().numpy() for x in ref.flatten())
     if first:
         kin.stand(ref_pos[0], is_left, *held)
-    elif trace.y_ref:
-        trace.com_jump.append(float(np.linalg.norm(ref_pos[0, 0:2] - trace.y_ref[-1][0:2])))
+    kin.measure(kin.qpos, None, is_left)  # kin.data may hold another walk's last tick
+    lift_z = site_pose(kin, not is_left)[0][2]
+    top = lift_z
+    slide = 0.0
     for j in range(1, n + 1):
         tick = kin.track(ref_pos[j], ref_vel[j], is_left, *held)
         trace.eta.append(tick.eta)
@@ -137,8 +174,14 @@ def track_step(
         trace.y_ref.append(ref_pos[j])
         if keep_qpos:
             trace.qpos.append(tick.qpos)
+        slide = max(slide, tick.slide)
+        top = max(top, float(site_pose(kin, not is_left)[0][2]))
     trace.touchdown_eta.append(trace.eta[-1])
     trace.step_max_eta.append(np.abs(np.asarray(trace.eta[-n:])).max(0))
+    trace.step_max_etadot.append(np.abs(np.asarray(trace.etadot[-n:])).max(0))
+    trace.ref_start.append(np.concatenate([ref_pos[0], ref_vel[0]]))
+    trace.ref_end.append(np.concatenate([ref_pos[n], ref_vel[n]]))
+    trace.slide.append(slide)
     anchor, target = step.stance_pos[0], step.target[0]
     trace.step_length.append(float(torch.linalg.norm(target[:2] - anchor[:2])))
     trace.step_rise.append(float(target[2] - anchor[2]))
@@ -146,7 +189,15 @@ def track_step(
     # Touchdown: the swing foot is the new stance foot where it landed; the old stance foot
     # lifts off from where it stood.
     old_stance, _ = site_pose(kin, is_left)
-    return site_pose(kin, not is_left), old_stance
+    landed = site_pose(kin, not is_left)
+    gap = float(landed[0][2] - (float(target[2]) + reference.foot_height_offset))
+    # A foot at or below the stone top touches it (the IK ignores collisions: below the top it
+    # would have hit the stone); only a foot left above it has no contact.
+    real = top - lift_z >= rule.lift_min and gap <= rule.land_tol
+    trace.lifted.append(float(top - lift_z))
+    trace.landing_gap.append(gap)
+    trace.real_touchdown.append(bool(real))
+    return landed, old_stance, bool(real)
 
 
 def ik_walks(
@@ -159,10 +210,11 @@ def ik_walks(
     hlip: HlipCfg | None = None,
     reference: ReferenceCfg | None = None,
     keep_qpos: bool = False,
+    rule: TouchdownRule | None = None,
 ) -> list[WalkTrace]:
     """Walk every course of ``footholds`` (E envs) at ``command`` (E, 2|3) [m/s] with the
     kinematic G1 (module docstring); one :class:`WalkTrace` per env. ``keep_qpos`` keeps each
-    tick's configuration (the film needs it)."""
+    tick's configuration (the film needs it); ``rule`` says what a real touchdown is."""
     planner = planner or PlannerCfg()
     hlip = hlip or HlipCfg()
     reference = reference or ReferenceCfg()
@@ -201,9 +253,21 @@ def ik_walks(
             else:
                 kin.reset(qpos[i])
             first = k == 0
-            held[i], old_stance = track_step(
-                kin, traces[i], step_row(step, i, 1), k, held[i], first, reference, hlip, keep_qpos
+            held[i], old_stance, real = track_step(
+                kin,
+                traces[i],
+                step_row(step, i, 1),
+                k,
+                held[i],
+                first,
+                reference,
+                hlip,
+                keep_qpos,
+                rule,
             )
+            if not real:  # no contact: the env would not replan here (module docstring)
+                traces[i].end = "no_touchdown"
+                active[i] = False
             qpos[i] = kin.qpos
             stance[i] = torch.as_tensor(held[i][0][:2], dtype=stance.dtype)
             next_swing[i] = torch.as_tensor(old_stance, dtype=swing.dtype)

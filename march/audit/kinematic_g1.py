@@ -5,8 +5,14 @@ outputs the solved pose achieves, measured as the env measures them.
 ``mink.Configuration`` and, once per control tick (``IkCfg.dt`` = 0.02 s, the env's step),
 poses the robot for the reference y_ref of that instant, warm-started from the previous tick:
 
-- **tasks**: the stance-foot site held at its touchdown pose (flat, the course heading) with a
-  cost far above every output's (``IkCfg.stance_cost``: in effect a constraint); the whole-body
+- **the stance foot**: its site held at its touchdown pose (flat, the course heading) as a
+  HARD equality constraint of every QP step (``IkCfg.stance_hard``, mink's ``constraints``: the
+  floating base's six free coordinates always satisfy it, so the QP stays feasible under the
+  joint limits); the foot's remaining slide, the linearisation's residual, is measured every
+  tick (:attr:`Tick.slide`) and a step whose stance foot slid more than 1 cm is not reached
+  (:mod:`march.audit.feasibility`). ``stance_hard=False`` restores the soft task of cost
+  ``IkCfg.stance_cost``, which slid up to 16 cm at the hardest level (issue 55).
+- **tasks**: the whole-body
   CoM (mink's ``ComTask`` reads ``subtree_com`` of the root body, the point the env's y_sim
   reads); the pelvis orientation (a ``FrameTask`` on the pelvis body, orientation only); the
   swing-foot site pose; the 17 upper-body joints (a ``PostureTask``, target default + y_ref); a
@@ -71,9 +77,19 @@ class IkCfg:
     """qpsolvers backend."""
     damping: float = 1e-4
     """Levenberg-Marquardt damping on every task (keeps steps bounded near singularities)."""
+    stance_hard: bool = True
+    """Hold the stance-foot site as an equality constraint of every QP step (module
+    docstring); False: a soft task of cost ``stance_cost``."""
+    stance_tol: float = 1e-5
+    """With ``stance_hard``, the stance-foot error (position [m], orientation [rad]) each
+    tick's solve ends below, by up to ``stance_iterations`` Gauss-Newton steps on the
+    constraint alone (:meth:`KinematicG1.solve`)."""
+    stance_iterations: int = 10
+    """At most this many of those steps per tick."""
     stance_cost: float = 300.0
-    """Cost of the stance-foot pose (position [1/m] and orientation [1/rad]): > 10x every
-    output's sqrt(P_11) (the largest, swing_z, is 25.8), so the stance foot stays put."""
+    """Cost of the stance-foot pose when soft (position [1/m] and orientation [1/rad]): > 10x
+    every output's sqrt(P_11) (the largest, swing_z, is 25.8); it still let the foot slide up
+    to 16 cm where the CoM could not be reached otherwise (issue 55)."""
     leg_posture_cost: float = 0.3
     """Cost pulling the 12 leg joints toward the default pose [1/rad]: a regulariser of the
     IK's null space, small against the outputs' costs. It keeps the knees bent away from the
@@ -136,6 +152,9 @@ class Tick:
     """V = 1/2 x^T P x of (eta, etadot)."""
     v_ratio: float
     """V / Vmax."""
+    slide: float = 0.0
+    """How far the stance-foot site is from its held position [m] (0 up to the constraint's
+    linearisation residual when ``IkCfg.stance_hard``)."""
 
 
 class KinematicG1:
@@ -147,9 +166,10 @@ class KinematicG1:
         cfg: IkCfg | None = None,
         clf: ClfCfg | None = None,
         model: mujoco.MjModel | None = None,
+        command: ReferenceCommandCfg | None = None,
     ) -> None:
         self.cfg = cfg or IkCfg()
-        command = ReferenceCommandCfg()
+        command = command or ReferenceCommandCfg()
         self.model = model if model is not None else g1_mjcf_spec().compile()
         m = self.model
         self.configuration = mink.Configuration(m)
@@ -209,7 +229,7 @@ class KinematicG1:
         """The tasks' targets for reference outputs ``y_ref`` (29,), with the stance-foot site
         held at ``stance_pos`` (3,) with rotation ``stance_rot`` (3, 3)."""
         c, stance_cost = self.output_cost, self.cfg.stance_cost
-        stance, swing = (self.feet[0], self.feet[1]) if stance_is_left else self.feet[::-1]
+        stance, swing = self._feet(stance_is_left)
         stance.set_position_cost(stance_cost)
         stance.set_orientation_cost(stance_cost)
         stance.set_target(pose(np.asarray(stance_rot), np.asarray(stance_pos)))
@@ -235,9 +255,13 @@ class KinematicG1:
         self.set_targets(
             np.asarray(y_ref, dtype=np.float64), stance_is_left, stance_pos, stance_rot
         )
-        tasks = [*self.feet, self.pelvis, self.com, self.posture]
         cfg = self.cfg
-        self._iterate(tasks, cfg.iterations if iterations is None else iterations)
+        stance, swing = self._feet(stance_is_left)
+        if cfg.stance_hard:
+            tasks, constraints = [swing, self.pelvis, self.com, self.posture], [stance]
+        else:
+            tasks, constraints = [*self.feet, self.pelvis, self.com, self.posture], []
+        self._iterate(tasks, constraints, cfg.iterations if iterations is None else iterations)
         if cfg.polish:
             # Bias-free finish: the legs' posture target becomes the pose just found, so the
             # regulariser only damps the step and no longer pulls the outputs off their
@@ -246,10 +270,36 @@ class KinematicG1:
             legs = self.leg_qpos
             target[legs] = self.configuration.q[legs]
             self.posture.set_target(target)
-            self._iterate(tasks, cfg.polish)
+            self._iterate(tasks, constraints, cfg.polish)
+        if cfg.stance_hard:
+            self._restore_stance(stance)
         return self.qpos
 
-    def _iterate(self, tasks: list, iterations: int) -> None:
+    def _restore_stance(self, stance: mink.FrameTask) -> None:
+        """Gauss-Newton steps on the stance-foot constraint alone (the least joint motion
+        that satisfies its linearisation) until its error is below ``IkCfg.stance_tol``: the
+        last QP step's linearisation leaves a residual of up to 2 cm where a leg is nearly
+        stretched (measured on a 0.5 m step), which a hard constraint must not keep."""
+        cfg = self.cfg
+        for _ in range(cfg.stance_iterations):
+            if np.abs(stance.compute_error(self.configuration)).max() < cfg.stance_tol:
+                return
+            vel = mink.solve_ik(
+                self.configuration,
+                [],
+                cfg.dt,
+                cfg.solver,
+                damping=cfg.damping,
+                limits=self.limits,
+                constraints=[stance],
+            )
+            self.configuration.integrate_inplace(vel, cfg.dt)
+
+    def _feet(self, stance_is_left: bool) -> tuple[mink.FrameTask, mink.FrameTask]:
+        """The (stance, swing) foot tasks."""
+        return (self.feet[0], self.feet[1]) if stance_is_left else (self.feet[1], self.feet[0])
+
+    def _iterate(self, tasks: list, constraints: list, iterations: int) -> None:
         cfg = self.cfg
         for _ in range(iterations):
             vel = mink.solve_ik(
@@ -259,6 +309,7 @@ class KinematicG1:
                 cfg.solver,
                 damping=cfg.damping,
                 limits=self.limits,
+                constraints=constraints or None,
             )
             self.configuration.integrate_inplace(vel, cfg.dt)
             if np.abs(vel).max() * cfg.dt < cfg.step_tol:
@@ -333,7 +384,14 @@ class KinematicG1:
         eta = tracking_error(y, np.asarray(y_ref))
         etadot = ydot - np.asarray(ydot_ref)
         v = float(self.value(eta, etadot))
-        return Tick(q, y, ydot, eta, etadot, v, v / self.v_max)
+        slide = self.slide(stance_is_left, stance_pos)
+        return Tick(q, y, ydot, eta, etadot, v, v / self.v_max, slide)
+
+    def slide(self, stance_is_left: bool, stance_pos: np.ndarray) -> float:
+        """Distance [m] of the stance-foot site in the last measured state (``self.data``)
+        from its held position ``stance_pos``."""
+        sid = self.site_ids[0 if stance_is_left else 1]
+        return float(np.linalg.norm(self.data.site_xpos[sid] - np.asarray(stance_pos)))
 
     def stand(
         self,

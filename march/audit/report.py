@@ -32,27 +32,47 @@ def table(arm: dict[str, Any]) -> str:
         f"seed {arm['seed']}; means with 95 % t intervals over rollouts"
     )
     lines = [head]
-    fmt = "{:<11}{:>27}{:>28}{:>22}{:>7}{:>22}{:>7}"
+    fmt = "{:<19}{:>27}{:>28}{:>22}{:>7}{:>7}{:>22}{:>6}{:>22}{:>11}{:>6}"
     lines.append(
         fmt.format(
-            "behaviour", "return", "return/step", "progress m", "ended", "V/Vmax p10/50/90", "sat"
+            "behaviour",
+            "return",
+            "return/step",
+            "progress m",
+            "steps",
+            "ended",
+            "V/Vmax p10/50/90",
+            "sat",
+            "no-upper p10/50/90",
+            "sat no-up",
+            "TDs",
         )
     )
     for r in rows:
-        v = r.get("v_over_vmax")
+        v, vn = r.get("v_over_vmax"), r.get("v_over_vmax_no_upper")
         vq = f"{v['p10']:.2f}/{v['p50']:.2f}/{v['p90']:.2f}" if v else "n/a"
+        vnq = f"{vn['p10']:.2f}/{vn['p50']:.2f}/{vn['p90']:.2f}" if vn else "n/a"
         sat = f"{100 * r['saturated']:.0f}%" if "saturated" in r else "n/a"
+        sat_n = f"{100 * r['saturated_no_upper']:.0f}%" if "saturated_no_upper" in r else "n/a"
         lines.append(
             fmt.format(
                 r["behaviour"],
                 _ci(r["return"]),
                 _ci(r["return_per_step"]),
                 _ci(r["distance_m"], "{:.2f}"),
+                f"{r['steps']:.0f}",
                 f"{100 * r['ended_early']:.0f}%",
                 vq,
                 sat,
+                vnq,
+                sat_n,
+                str(r.get("touchdowns", "n/a")),
             )
         )
+    lines.append(
+        "  (no-upper: V without the 17 upper-body outputs' terms; TDs: touchdowns the reference "
+        "command counted over the rollouts, while alive; standing must have 0)"
+    )
     for r in rows:
         by = ", ".join(f"{k} {100 * v:.0f}%" for k, v in r["ended_by"].items() if v > 0)
         if by:
@@ -60,17 +80,30 @@ def table(arm: dict[str, Any]) -> str:
     names = list(rows[0]["terms"])
     lines.append("per-term return over the horizon (weighted, as it enters the reward):")
     width = max(len(n) for n in names) + 2
-    lines.append(" " * width + "".join(f"{r['behaviour']:>12}" for r in rows))
+    col = max(12, *(len(r["behaviour"]) + 2 for r in rows))
+    lines.append(" " * width + "".join(f"{r['behaviour']:>{col}}" for r in rows))
     for n in names:
-        lines.append(f"{n:<{width}}" + "".join(f"{r['terms'][n]:>12.4g}" for r in rows))
+        lines.append(f"{n:<{width}}" + "".join(f"{r['terms'][n]:>{col}.4g}" for r in rows))
     for v in arm["verdicts"]:
+        d, c = v["difference"], v["common_steps"]
+        lines.append(
+            f"verdict: {v['verdict']} per step at equal time since reset (reward per step over "
+            f"the first min(survivals) steps, {c['min']}-{c['max']}, mean {c['mean']:.0f}: "
+            f"{v['candidate']} {_ci(v['candidate_per_step'])} vs zero "
+            f"{_ci(v['standing_per_step'])}, paired difference {_ci(d)}, "
+            f"{100 * v['relative']:+.0f} % of standing's, n={d['n']})"
+        )
+    for v in arm.get("total_return_differences", []):
         d = v["difference"]
         lines.append(
-            f"verdict: {v['verdict']} (return {v['candidate']} - zero = {_ci(d)}, "
-            f"{100 * v['relative']:+.0f} % of standing's, n={d['n']})"
+            f"  not the verdict: total return {v['candidate']} - zero = {_ci(d)} "
+            f"({100 * v['relative']:+.0f} %): it pays survival, a behaviour that lives longer "
+            "collects more steps"
         )
     if not arm["verdicts"]:
         lines.append("verdict: none (no reference for this arm and no teacher_ckpt= given)")
+    for note in arm.get("notes", []):
+        lines.append(f"note: {note}")
     return "\n".join(lines)
 
 
@@ -163,6 +196,8 @@ def figure(arm: dict[str, Any], path: Path) -> Path:
     ax.set_xlabel("progress along the course over the rollout [m] (mean, 95 % CI)")
     ax.set_title("what each behaviour achieved", fontsize=10)
     verdict = "; ".join(v["verdict"] for v in arm["verdicts"]) or "no tracking behaviour to judge"
+    if arm["verdicts"]:
+        verdict += " (per step, equal time since reset)"
     fig.suptitle(
         f"reward={arm['reward']}: {verdict}  (n={arm['num_envs']} rollouts x "
         f"{arm['horizon_steps'] * arm['step_dt']:.1f} s, same seeds)",
