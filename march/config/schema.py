@@ -33,6 +33,7 @@ from march.config.simulation import (
     DepthCfg,
     DrCfg,
     EnvCfg,
+    ReferenceSectionCfg,
     RewardCfg,
     TerminationCfg,
 )
@@ -89,6 +90,7 @@ class MarchConfig:
     compute: ComputeCfg = field(default_factory=ComputeCfg)
     env: EnvCfg = field(default_factory=EnvCfg)
     reward: RewardCfg = field(default_factory=RewardCfg)
+    reference: ReferenceSectionCfg = field(default_factory=ReferenceSectionCfg)
     termination: TerminationCfg = field(default_factory=TerminationCfg)
     curriculum: CurriculumCfg = field(default_factory=CurriculumCfg)
     student: StudentCfg = field(default_factory=StudentCfg)

@@ -1,5 +1,5 @@
 """Config sections of the simulated world: compute, environment, depth camera, reward,
-terrain curriculum and domain randomization (``conf/`` groups of the same names).
+the reference trajectory, terrain curriculum and domain randomization (``conf/`` groups of the same names).
 
 Each ``__post_init__`` checks its values with :mod:`march.config.checks`. Pure data: no simulator
 import.
@@ -225,6 +225,44 @@ class RewardCfg:
         _identifier("reward", "name", self.name)
         for name, value in self.terms.items():
             check_entry(name, value)
+
+
+COM_ANCHORINGS = ("continuous", "stance")
+"""``reference.com_anchoring`` values (march.reference.com_carry.COM_ANCHORINGS)."""
+COM_HEIGHTS = ("fixed", "step")
+"""``reference.com_height`` values (march.reference.com_carry.COM_HEIGHTS)."""
+
+
+@dataclass
+class ReferenceSectionCfg:
+    """The CLF teacher's reference trajectory (``reference``; SPEC section 2, "References";
+    march.reference.com_carry, docs/method.md). Used by the env's ``reference`` command, the
+    audits and every tool that builds the env."""
+
+    com_anchoring: str = "continuous"
+    """``continuous`` (default): the CoM reference carries the previous reference's CoM state
+    across a touchdown (continuous in position and velocity; each step ends on its planned HLIP
+    orbit). ``stance``: each step's HLIP orbit is anchored at the new stance foot (the earlier
+    reference; it jumps by about (l_old - l_new)/2 at every touchdown), kept for comparison."""
+    com_height: str = "fixed"
+    """``fixed`` (default): CoM height z0 = 0.67 m (author) for every step. ``step``: the CoM
+    is lowered with the step's length along the course, z = clamp(0.67 - com_height_slope
+    (|l| - com_height_free_step), com_height_min, 0.67), so long steps are within the G1's
+    reach; the HLIP's lambda uses that height."""
+    com_height_free_step: float = 0.5
+    """``com_height=step``: steps up to this long [m] keep z0."""
+    com_height_slope: float = 0.35
+    """``com_height=step``: CoM lowered per metre of step beyond the free length [m/m]."""
+    com_height_min: float = 0.57
+    """``com_height=step``: the lowest CoM height [m]."""
+
+    def __post_init__(self) -> None:
+        _check_shapes("reference", self)
+        _one_of("reference", "com_anchoring", self.com_anchoring, COM_ANCHORINGS)
+        _one_of("reference", "com_height", self.com_height, COM_HEIGHTS)
+        _at_least("reference", "com_height_free_step", self.com_height_free_step, 0)
+        _at_least("reference", "com_height_slope", self.com_height_slope, 0)
+        _interval("reference", "com_height_min", self.com_height_min, 0.3, 0.67)
 
 
 MOVED_TO_TERMINATION = ("tilt_limit_deg", "min_base_height_m", "max_foot_drop_m")
