@@ -135,6 +135,26 @@ def plan_tables(footholds: Footholds, cfg: PlannerCfg) -> PlanTables:
     return PlanTables(stones, course)
 
 
+def pad_stones(tables: PlanTables, count: int) -> PlanTables:
+    """``tables`` with at least ``count`` stones per env: padding entries (half sizes -inf, as a
+    padded ``Footholds`` entry's: never nearest, never under a foot, every point on them off the
+    stones) appended where it has fewer. The planner searches a fixed number of stones, so its
+    draws have one shape whatever the batch's stone count (issue 55)."""
+    s = tables.stones.shape[2]
+    if s >= count:
+        return tables
+    pad = torch.zeros(
+        tables.stones.shape[0],
+        tables.stones.shape[1],
+        count - s,
+        device=tables.stones.device,
+        dtype=tables.stones.dtype,
+    )
+    pad[_HALF] = float("-inf")
+    pad[_HALVES] = float("-inf")
+    return PlanTables(torch.cat([tables.stones, pad], dim=2), tables.course)
+
+
 def _stance_z(tables: PlanTables, xy: torch.Tensor) -> torch.Tensor:
     """(E,) top height of the stone under the points ``xy`` (E, 2): the valid stone with the
     largest clearance min(half - |xy - c|) (:func:`locate_on_stones`'s choice)."""

@@ -91,6 +91,7 @@ from march.reference.plan_tables import (
     _stance_z,
     course_frame,
     locate_on_stones,
+    pad_stones,
     plan_tables,
 )
 from march.reference.search_inputs import RowUniform, planner_draws, score_layout
@@ -298,7 +299,10 @@ def _plan(
 ) -> Plan:
     """:func:`plan_footsteps` on the current thread count (``source``: generator or per env)."""
     tables = footholds if isinstance(footholds, PlanTables) else plan_tables(footholds, cfg)
-    m = min(cfg.num_candidate_stones, tables.stones.shape[2])
+    # Every plan searches M stones (padding entries where a batch has fewer): the draws' shape,
+    # and so each env's numbers, never depend on the stone count its batch was padded to.
+    tables = pad_stones(tables, cfg.num_candidate_stones)
+    m = cfg.num_candidate_stones
     unit, noise = planner_draws(cfg, m, source, stance_xy.device, stance_xy.dtype)
     search = fused(_search) if compiled else _search
     return search(stance_xy, stance_is_left, command, tables, unit, noise, cfg)
