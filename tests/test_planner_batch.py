@@ -46,9 +46,13 @@ def test_a_course_walks_the_same_alone_and_in_a_batch_of_30():
         alone, com_alone = walk_course(
             alone_fh, _command(1), max_steps=12, seed=SEED, keys=keys[i : i + 1]
         )
-        same = torch.equal(alone.footholds[0].nan_to_num(9.0), together.footholds[i].nan_to_num(9.0))
+        same = torch.equal(
+            alone.footholds[0].nan_to_num(9.0), together.footholds[i].nan_to_num(9.0)
+        )
         assert same, i
-        assert torch.equal(alone.durations[0].nan_to_num(9.0), together.durations[i].nan_to_num(9.0))
+        assert torch.equal(
+            alone.durations[0].nan_to_num(9.0), together.durations[i].nan_to_num(9.0)
+        )
         assert torch.equal(com_alone[0].nan_to_num(9.0), com_together[i].nan_to_num(9.0))
     assert torch.isfinite(together.footholds[:, :3]).all()  # every course walked some steps
 

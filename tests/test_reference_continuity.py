@@ -12,7 +12,7 @@ import torch
 from march.reference.com_carry import step_com_height
 from march.reference.fused_reference import reference_outputs
 from march.reference.hlip import HlipCfg, hlip_com_state
-from march.reference.trajectory import ReferenceCfg, StepState, com_state, reference_at
+from march.reference.trajectory import ReferenceCfg, StepState, com_state
 
 torch.set_num_threads(1)
 F64 = torch.float64
