@@ -86,7 +86,8 @@ from march.keyed_random import RowStreams
 from march.reference.fused_reference import reference_outputs, reference_tables
 from march.reference.hlip import HlipCfg
 from march.reference.plan_tables import course_frame, plan_tables
-from march.reference.planner import Plan, PlannerCfg, plan_footsteps
+from march.reference.planner import Plan, plan_footsteps
+from march.reference.planner_cfg import PlannerCfg
 from march.reference.trajectory import ReferenceCfg, StepState, angle_mask, step_state_from_plan
 from march.world.footholds import Footholds
 

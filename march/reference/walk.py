@@ -12,7 +12,8 @@ import torch
 
 from march.keyed_random import RowStreams, row_keys
 from march.reference.hlip import HlipCfg
-from march.reference.planner import Plan, PlannerCfg, plan_footsteps
+from march.reference.planner import Plan, plan_footsteps
+from march.reference.planner_cfg import PlannerCfg
 from march.reference.trajectory import (
     ReferenceCfg,
     StepState,
