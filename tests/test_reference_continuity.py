@@ -68,7 +68,7 @@ def _step(stance, left, axis, g, zero, com_from=None, cfg=None):
     return st
 
 
-def _walk(cfg: ReferenceCfg, e: int = 64, steps: int = 40, seed: int = 0):
+def _walk(cfg: ReferenceCfg, e: int = 32, steps: int = 30, seed: int = 0):
     """Chain ``steps`` steps: touchdown at a random tau in [0.6 T, 1.5 T] (the command's window)
     at the planned foothold plus up to 4 cm of landing offset; yields per touchdown the old
     step, the touchdown time, the new step."""
@@ -87,7 +87,7 @@ def _walk(cfg: ReferenceCfg, e: int = 64, steps: int = 40, seed: int = 0):
 
 @pytest.mark.parametrize("height", ["fixed", "step"])
 def test_no_jump_at_touchdown_and_every_step_ends_on_its_orbit(height):
-    """Over 64 x 40 generated touchdowns (random lengths, heights, headings, timings, landing
+    """Over 32 x 30 generated touchdowns (random lengths, heights, headings, timings, landing
     offsets): the reference right after a touchdown equals the one right before in position and
     velocity (x, y, z), the fused reference agrees, and at tau = T the position is the planned
     step's orbit pre-impact position (hlip_com_state at T: stance + l/2 along the course) at the
