@@ -18,7 +18,7 @@ Decisions (documented here once; the README repeats them)
   references are the course heading (yaw rate 0); why: README, "Velocity command".
 - **Start from standing.** The first step of an episode ramps its CoM reference from rest at the
   measured CoM into the HLIP orbit (``march.reference.trajectory``, ``StepState.ramp``); later
-  steps (and timeout restarts) start on the orbit as before.
+  steps carry the previous reference's CoM state (below, "Touchdown").
 - **Initial stance (episode reset).** The foot that is further behind along the course direction
   is the stance foot; when the feet are level within ``stance_tie_m`` (the usual spawn) the left
   foot is the stance foot, so the right foot swings first. The first plan starts from that foot
@@ -26,7 +26,9 @@ Decisions (documented here once; the README repeats them)
   reset marks the env pending and the plan is made in the command update that follows it.
 - **Touchdown** (issue 55: only a real one). The swing foot's contact (``found`` of the
   ``feet_ground_contact`` sensor, per foot) counts as a touchdown once the foot has been off the
-  ground at some update since the step began (``swing_lifted``) and ``tau >=
+  ground at some update since the step began (``swing_lifted``: out of contact and
+  ``lift_min_height`` above where it started; the sensor flickers while a foot rocks in place)
+  and ``tau >=
   touchdown_min_fraction * duration`` (author: 0.6); earlier contacts (scuffs) and a foot that
   never left the ground are no touchdown (a standing robot's steps time out instead, below). At
   a touchdown the swing foot becomes the stance foot, a new plan is made from its actual
@@ -126,6 +128,10 @@ class ReferenceCommandCfg(CommandTermCfg):
     """Sites tracked as the feet (sole level)."""
     touchdown_min_fraction: float = 0.6
     """A swing-foot contact counts as touchdown from tau >= this x planned duration (author 0.6)."""
+    lift_min_height: float = 0.02
+    """A swing foot has left the ground once it is out of contact and this much above where it
+    was when the step began [m] (a contact sensor that flickers while a foot rocks in place is
+    no lift-off; issue 55)."""
     touchdown_timeout_fraction: float = 1.5
     """No touchdown by tau >= this x planned duration: restart the step from the same stance."""
     stance_tie_m: float = 0.01
@@ -358,7 +364,10 @@ class ReferenceCommand(CommandTerm):
         running = active & ~self.queue.is_reset
         contact = self.foot_contact()
         swing_contact = torch.where(self.stance_is_left, contact[:, 1], contact[:, 0])
-        self.swing_lifted |= active & ~swing_contact
+        feet_z = self.feet_pos()[..., 2]
+        swing_z = torch.where(self.stance_is_left, feet_z[:, 1], feet_z[:, 0])
+        high = swing_z > self.step.swing_start[:, 2] + self.cfg.lift_min_height
+        self.swing_lifted |= active & ~swing_contact & high
         dur = self.step.duration
         due = self.tau >= self.cfg.touchdown_min_fraction * dur
         touchdown = running & swing_contact & self.swing_lifted & due
