@@ -71,3 +71,18 @@ def test_touchdowns_carry_the_com_reference_without_a_jump(env):
     assert len(touchdowns) >= 3, len(touchdowns)
     assert max(p for p, _ in touchdowns) < 1e-4, touchdowns
     assert max(v for _, v in touchdowns) < 1e-3, touchdowns
+
+
+def test_the_reference_section_reaches_the_command_term():
+    """``reference.*`` on the command line is what the env's ``reference`` term is built with;
+    a wrong value is one line naming the choices."""
+    from march.config.schema import ConfigError
+    from march.env.build import build_env_cfg
+
+    cfg = load(["compute=smoke", "reference.com_anchoring=stance", "reference.com_height=step"])
+    ref = build_env_cfg(cfg, "teacher").commands["reference"].reference
+    assert (ref.com_anchoring, ref.com_height) == ("stance", "step")
+    ref = build_env_cfg(load(["compute=smoke"]), "teacher").commands["reference"].reference
+    assert (ref.com_anchoring, ref.com_height, ref.com_height_min) == ("continuous", "fixed", 0.57)
+    with pytest.raises(ConfigError, match="continuous, stance"):
+        load(["reference.com_anchoring=sideways"])
