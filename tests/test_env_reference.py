@@ -65,12 +65,13 @@ def test_zero_action_makes_no_touchdown_and_no_jump(env):
 @pytest.mark.sim
 def test_touchdowns_carry_the_com_reference_without_a_jump(env):
     """Random actions (the robot stumbles, lifts and lands its feet): real touchdowns happen and
-    at each the CoM reference is continuous (float32: < 0.1 mm, < 1 mm/s)."""
-    switches = _walk(env, 0.4, seed=3)
-    touchdowns = [(p, v) for p, v, td in switches if td]
-    assert len(touchdowns) >= 3, len(touchdowns)
-    assert max(p for p, _ in touchdowns) < 1e-4, touchdowns
-    assert max(v for _, v in touchdowns) < 1e-3, touchdowns
+    at each, as at every restart, the CoM reference is continuous (float32: < 0.1 mm,
+    < 1 mm/s). (With ``reference.com_anchoring=stance`` the same walks jump by decimetres:
+    scripts/reference_jumps.py.)"""
+    switches = _walk(env, 0.4, steps=160, seed=3)
+    assert sum(td for _, _, td in switches) >= 1, switches
+    assert max(p for p, _, _ in switches) < 1e-4, switches
+    assert max(v for _, v, _ in switches) < 1e-3, switches
 
 
 def test_the_reference_section_reaches_the_command_term():
