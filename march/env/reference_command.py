@@ -144,7 +144,8 @@ class ReferenceCommandCfg(CommandTermCfg):
     compile_math: bool = False
     """``torch.compile`` (dynamic shapes) :func:`reference_at` (``compute.compile_math``)."""
     planner_seed: int | None = 0
-    """Seed of the planner's random draws (torch.Generator on the env device)."""
+    """Seed of the planner's random draws: one counter-based stream per env keyed by (seed,
+    env index) (``ReferenceCommand.planner_streams``; an evaluation keys them by rollout)."""
     planner: PlannerCfg = field(default_factory=PlannerCfg)
     reference: ReferenceCfg = field(default_factory=ReferenceCfg)
     hlip: HlipCfg = field(default_factory=HlipCfg)
