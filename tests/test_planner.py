@@ -353,11 +353,12 @@ def test_short_of_pace_steps_as_far_as_it_can_and_flags_a_stall():
 def _plain_search(stance_xy, stance_is_left, command, fh, cfg, generator):
     """The search of march.reference.planner written the plain way: per step and rollout, the
     candidates listed in the score order (duration, stone, [hard clamp, soft clamp, K random
-    points]) and scored by step_cost._step_cost against locate-on-the-stone clearances, on the
+    points]) and scored by step_cost.score_steps against locate-on-the-stone clearances, on the
     planner's own draws. The planner's fused layouts must give the same floats, bit for bit."""
     from march.reference.plan_tables import course_frame
+    from march.reference.planner_cfg import EPS
     from march.reference.search_inputs import planner_draws
-    from march.reference.step_cost import _EPS, _step_cost, goal_ahead, pace_terms, step_terms
+    from march.reference.step_cost import goal_ahead, pace_terms, score_steps, step_terms
 
     e, r, n = stance_xy.shape[0], cfg.num_rollouts, cfg.num_steps
     m = min(cfg.num_candidate_stones, fh.center.shape[1])
@@ -368,7 +369,7 @@ def _plain_search(stance_xy, stance_is_left, command, fh, cfg, generator):
     _, z0 = locate_on_stones(fh, stance_xy)
     lands = torch.stack([~stance_is_left if i % 2 == 0 else stance_is_left for i in range(n)], 1)
     half = fh.half_size.movedim(-1, 0)  # (2, E, S)
-    hard = half - cfg.stone_margin - _EPS
+    hard = half - cfg.stone_margin - EPS
     usable = fh.valid & (hard >= 0.0).all(0)
     hard, soft = hard.clamp(min=0.0), (half - cfg.stone_margin - cfg.edge_clearance).clamp(min=0.0)
     halves = torch.where(fh.valid, half, float("-inf"))
@@ -420,7 +421,7 @@ def _plain_search(stance_xy, stance_is_left, command, fh, cfg, generator):
         ahead = goal_ahead(fh, p).view(e, r, 1, 1, 1)
         pace = pace_terms(terms.cmd[0], ahead, cfg)
         prev = p.view(2, e, r, 1, 1, 1)
-        cost, ok = _step_cost(prev, cand, clearance, height, terms, pace, cfg)
+        cost, ok = score_steps(prev, cand, clearance, height, terms, pace, cfg)
         flat = cost.reshape(e, r, -1)
         choice = (flat + noise[i]).argmin(-1)  # (E, R)
         t_idx = choice // (m * (k + 2))
@@ -428,7 +429,7 @@ def _plain_search(stance_xy, stance_is_left, command, fh, cfg, generator):
         ok = ok.expand_as(cost).reshape(e, r, -1).gather(-1, choice[..., None])[..., 0]
         new = cand.reshape(2, e, r, -1).gather(-1, choice.expand(2, e, r)[..., None])[..., 0]
         advance = ((new - p) * axis.T[:, :, None]).unbind(0)
-        need = cfg.pace_fraction * terms.cmd[0].reshape(e, 1).clamp(min=0.0) * dur[t_idx] - _EPS
+        need = cfg.pace_fraction * terms.cmd[0].reshape(e, 1).clamp(min=0.0) * dur[t_idx] - EPS
         stalled |= goal_ahead(fh, p) & (advance[0] + advance[1] < need)
         total = (
             total + flat.gather(-1, choice[..., None])[..., 0]

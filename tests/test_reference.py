@@ -303,6 +303,9 @@ def _random_step_state(e: int, g: torch.Generator, dtype: torch.dtype) -> StepSt
         axis=torch.nn.functional.normalize(r(e, 2) - 0.5, dim=-1),
         ramp=r(e) > 0.6,
         ramp_from=4 * r(e, 2) - 2,
+        com_from_pos=4 * r(e, 3) - 2,
+        com_from_vel=2 * r(e, 3) - 1,
+        z0=0.57 + 0.1 * r(e),
     )
 
 
@@ -316,7 +319,12 @@ def test_reference_outputs_equal_reference_at():
     worst_new = worst_old = 0.0
     for seed in range(25):
         g = torch.Generator().manual_seed(seed)
-        cfg = ReferenceCfg(foot_height_offset=0.01 * (seed % 2), pitch_offset=0.03 * (seed % 3))
+        cfg = ReferenceCfg(
+            foot_height_offset=0.01 * (seed % 2),
+            pitch_offset=0.03 * (seed % 3),
+            com_anchoring=("continuous", "stance")[int(seed % 3 == 2)],
+            com_height=("fixed", "step")[seed % 2],
+        )
         st = _random_step_state(31, g, F64)
         tau = st.duration[:, None] * 1.6 * torch.rand(31, 3, generator=g, dtype=F64)
         pos, vel = reference_outputs(st, tau, cfg, HlipCfg(), 17)
@@ -350,8 +358,10 @@ def test_reference_outputs_equal_reference_at():
 
 
 def test_reference_outputs_take_few_ops():
-    """Both instants of a step (the command term's refresh) in under 90 ops; reference_at on
-    the step state copied twice took ~200 (and the copy ~24 more)."""
+    """Both instants of a step (the command term's refresh) in under 90 ops with the stance
+    anchoring, under 115 with the continuous CoM (issue 55: its correction is one batched
+    product, ~32 ops); reference_at on the step state copied twice took ~200 (and the copy ~24
+    more)."""
     from march.bench.ops import OpCounter
     from march.reference.fused_reference import reference_outputs, reference_tables
 
@@ -359,8 +369,12 @@ def test_reference_outputs_take_few_ops():
     st = _random_step_state(16, g, torch.float32)
     tables = reference_tables(ReferenceCfg(), 17, torch.float32, "cpu")
     tau = torch.rand(16, 2, generator=g)
-    with torch.inference_mode(), OpCounter() as ops:
+    stance = ReferenceCfg(com_anchoring="stance")
+    with torch.inference_mode(), OpCounter() as carry:
         reference_outputs(st, tau, ReferenceCfg(), HlipCfg(), 17, tables)
+    assert carry.total < 115, carry.total
+    with torch.inference_mode(), OpCounter() as ops:
+        reference_outputs(st, tau, stance, HlipCfg(), 17, tables)
     both = StepState(**{f: torch.cat([getattr(st, f)] * 2) for f in st.__dataclass_fields__})
     with torch.inference_mode(), OpCounter() as old:
         reference_at(both, tau.T.flatten()).flatten()

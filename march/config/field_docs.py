@@ -2,8 +2,8 @@
 
 Every field of :class:`march.config.MarchConfig` and its sections: its type, default, unit (the
 first ``[...]`` of its docstring), the values its section's ``__post_init__`` allows (read from
-the calls to the :mod:`march.config.checks` helpers: ``_one_of``, ``_interval``, ``_at_least``,
-``_positive``, ``_identifier``) and its docstring; then every option of every ``conf/`` group with
+the calls to the :mod:`march.config.checks` helpers: ``check_one_of``, ``check_interval``,
+``check_at_least``, ``check_positive``, ``check_identifier``) and its docstring; then every option of every ``conf/`` group with
 its YAML. The mkdocs hook (``docs/hooks/march_docs.py``) writes it as a page at build time, so it
 cannot go stale; ``tests/test_docs.py`` fails when a field has no docstring. Pure data: no
 simulator import.
@@ -92,18 +92,18 @@ def allowed_values(cls: type) -> dict[str, str]:
             continue
         key = args[1].value
         kw = {k.arg: _constant(k.value, module) for k in node.keywords}
-        if name == "_one_of" and len(args) >= 4:
+        if name == "check_one_of" and len(args) >= 4:
             valid = _constant(args[3], module)
             if valid:
                 out[key] = "one of " + ", ".join(f"`{v}`" for v in valid)
-        elif name == "_positive":
+        elif name == "check_positive":
             out[key] = "> 0"
-        elif name == "_identifier":
+        elif name == "check_identifier":
             out[key] = "a name: letters, digits, underscores"
-        elif name == "_at_least" and len(args) >= 4:
+        elif name == "check_at_least" and len(args) >= 4:
             lo = _constant(args[3], module)
             out[key] = f">= {lo}" if lo is not None else out.get(key, "")
-        elif name == "_interval" and len(args) >= 5:
+        elif name == "check_interval" and len(args) >= 5:
             lo, hi = _constant(args[3], module), _constant(args[4], module)
             left = "(" if kw.get("lo_open") else "["
             right = ")" if kw.get("hi_open") else "]"

@@ -21,10 +21,10 @@ from march.config.checks import (
     SEED_MAX,
     STAGES,
     ConfigError,
-    _fmt,
-    _interval,
-    _need,
+    check_interval,
     cnn_output_hw,
+    fmt_value,
+    require,
 )
 from march.config.registry import SWEEPS_DIR
 from march.config.simulation import (
@@ -33,6 +33,7 @@ from march.config.simulation import (
     DepthCfg,
     DrCfg,
     EnvCfg,
+    ReferenceSectionCfg,
     RewardCfg,
     TerminationCfg,
 )
@@ -89,6 +90,7 @@ class MarchConfig:
     compute: ComputeCfg = field(default_factory=ComputeCfg)
     env: EnvCfg = field(default_factory=EnvCfg)
     reward: RewardCfg = field(default_factory=RewardCfg)
+    reference: ReferenceSectionCfg = field(default_factory=ReferenceSectionCfg)
     termination: TerminationCfg = field(default_factory=TerminationCfg)
     curriculum: CurriculumCfg = field(default_factory=CurriculumCfg)
     student: StudentCfg = field(default_factory=StudentCfg)
@@ -104,21 +106,21 @@ class MarchConfig:
     def __post_init__(self) -> None:
         self.termination.adopt(self.reward)  # reward.tilt_limit_deg etc. of older configs
         for name in self.extra_modules:
-            _need(
+            require(
                 "", "extra_modules", self.extra_modules, _module_name(name), "dotted module names"
             )
         if self.stage not in STAGES:
             raise ConfigError(
                 f"stage={self.stage!r} is not valid; choose one of {', '.join(STAGES)}"
             )
-        _interval("", "seed", self.seed, 0, SEED_MAX)
+        check_interval("", "seed", self.seed, 0, SEED_MAX)
         if self.objective not in OBJECTIVES:
             raise ConfigError(
                 f"objective={self.objective!r} is not a summary value; choose one of "
                 f"{', '.join(OBJECTIVES)}"
             )
         for key in ("teacher_ckpt", "student_ckpt", "resume", "out"):
-            _need("", key, getattr(self, key), getattr(self, key) != "", "a path (or left unset)")
+            require("", key, getattr(self, key), getattr(self, key) != "", "a path (or left unset)")
         hw = cnn_output_hw(
             (self.depth.height, self.depth.width),
             self.student.cnn_kernels,
@@ -127,11 +129,11 @@ class MarchConfig:
         if min(hw) < 1:
             raise ConfigError(
                 f"depth.height x depth.width={self.depth.height}x{self.depth.width} must be at "
-                f"least what the student CNN (kernels {_fmt(self.student.cnn_kernels)}, strides "
-                f"{_fmt(self.student.cnn_strides)}) reduces to 1x1; it gives {hw[0]}x{hw[1]}"
+                f"least what the student CNN (kernels {fmt_value(self.student.cnn_kernels)}, strides "
+                f"{fmt_value(self.student.cnn_strides)}) reduces to 1x1; it gives {hw[0]}x{hw[1]}"
             )
         batch = self.compute.num_envs * self.teacher.num_steps_per_env
-        _need(
+        require(
             "teacher",
             "num_mini_batches",
             self.teacher.num_mini_batches,
@@ -139,7 +141,7 @@ class MarchConfig:
             f"<= compute.num_envs x teacher.num_steps_per_env = {batch} "
             "(one sample per mini-batch at least)",
         )
-        _need(
+        require(
             "dr",
             "camera_fov_deg",
             self.dr.camera_fov_deg,
@@ -150,7 +152,7 @@ class MarchConfig:
             t = self.terrain
             length = t.end_margin + t.start_length + sum(t.hardware_gaps) + t.goal_length
             length += len(t.hardware_lateral) * t.hardware_stone_size[0]
-            _need(
+            require(
                 "terrain",
                 "size",
                 t.size,

@@ -1,5 +1,5 @@
 """Config sections of the simulated world: compute, environment, depth camera, reward,
-terrain curriculum and domain randomization (``conf/`` groups of the same names).
+the reference trajectory, terrain curriculum and domain randomization (``conf/`` groups of the same names).
 
 Each ``__post_init__`` checks its values with :mod:`march.config.checks`. Pure data: no simulator
 import.
@@ -17,15 +17,15 @@ from march.config.checks import (
     MJ_GEOM_GROUPS,
     SEED_MAX,
     ConfigError,
-    _at_least,
-    _bounds,
-    _check_shapes,
-    _each,
-    _identifier,
-    _interval,
-    _need,
-    _one_of,
-    _positive,
+    check_at_least,
+    check_bounds,
+    check_each,
+    check_identifier,
+    check_interval,
+    check_one_of,
+    check_positive,
+    check_shapes,
+    require,
 )
 from march.config.terms import check_entry
 
@@ -63,16 +63,16 @@ class ComputeCfg:
     ``bench_graphs`` phase compares it with ``default``."""
 
     def __post_init__(self) -> None:
-        _check_shapes("compute", self)
-        _one_of("compute", "compile_mode", self.compile_mode, ("default", "reduce-overhead"))
-        _one_of("compute", "name", self.name, COMPUTES)
+        check_shapes("compute", self)
+        check_one_of("compute", "compile_mode", self.compile_mode, ("default", "reduce-overhead"))
+        check_one_of("compute", "name", self.name, COMPUTES)
         dev = self.device
         if not (dev in ("cpu", "cuda") or (dev.startswith("cuda:") and dev[5:].isdigit())):
             raise ConfigError(f"compute.device={self.device!r}: use cpu, cuda or cuda:N")
-        _positive("compute", "num_envs", self.num_envs)
-        _positive("compute", "eval_num_envs", self.eval_num_envs)
-        _positive("compute", "dist_timeout_s", self.dist_timeout_s)
-        _need(
+        check_positive("compute", "num_envs", self.num_envs)
+        check_positive("compute", "eval_num_envs", self.eval_num_envs)
+        check_positive("compute", "dist_timeout_s", self.dist_timeout_s)
+        require(
             "compute",
             "torch_threads",
             self.torch_threads,
@@ -107,13 +107,13 @@ class EnvCfg:
     """Gain of that heading controller [1/s] (mjlab's velocity task uses 0.5)."""
 
     def __post_init__(self) -> None:
-        _check_shapes("env", self)
-        _positive("env", "episode_length_s", self.episode_length_s)
-        _positive("env", "sim_dt", self.sim_dt)
-        _positive("env", "decimation", self.decimation)
-        _positive("env", "history_length", self.history_length)
+        check_shapes("env", self)
+        check_positive("env", "episode_length_s", self.episode_length_s)
+        check_positive("env", "sim_dt", self.sim_dt)
+        check_positive("env", "decimation", self.decimation)
+        check_positive("env", "history_length", self.history_length)
         step = self.sim_dt * self.decimation
-        _need(
+        require(
             "env",
             "episode_length_s",
             self.episode_length_s,
@@ -169,22 +169,22 @@ class DepthCfg:
     """Per-env delay [control steps], drawn uniformly from [lo, hi] at reset (1 step = 20 ms)."""
 
     def __post_init__(self) -> None:
-        _check_shapes("depth", self)
-        _need("depth", "name", self.name, bool(self.name), "a non-empty sensor name")
-        _at_least("depth", "width", self.width, 1)
-        _at_least("depth", "height", self.height, 1)
-        _interval("depth", "fovy", self.fovy, 0, 180, lo_open=True, hi_open=True)
-        _positive("depth", "max_range", self.max_range)
-        _interval("depth", "min_range", self.min_range, 0, self.max_range, hi_open=True)
-        _interval("depth", "pitch_deg", self.pitch_deg, -90, 90)
-        _need(
+        check_shapes("depth", self)
+        require("depth", "name", self.name, bool(self.name), "a non-empty sensor name")
+        check_at_least("depth", "width", self.width, 1)
+        check_at_least("depth", "height", self.height, 1)
+        check_interval("depth", "fovy", self.fovy, 0, 180, lo_open=True, hi_open=True)
+        check_positive("depth", "max_range", self.max_range)
+        check_interval("depth", "min_range", self.min_range, 0, self.max_range, hi_open=True)
+        check_interval("depth", "pitch_deg", self.pitch_deg, -90, 90)
+        require(
             "depth",
             "geom_groups",
             self.geom_groups,
             len(self.geom_groups) > 0 and all(0 <= g < MJ_GEOM_GROUPS for g in self.geom_groups),
             f"a non-empty list of MuJoCo geom groups 0..{MJ_GEOM_GROUPS - 1}",
         )
-        _at_least("depth", "noise_scale", self.noise_scale, 0)
+        check_at_least("depth", "noise_scale", self.noise_scale, 0)
         if not 0.0 <= self.dropout < 1.0:
             raise ConfigError(f"depth.dropout={self.dropout} must be in [0, 1)")
         if self.delay_steps[0] > self.delay_steps[1] or self.delay_steps[0] < 0:
@@ -221,10 +221,48 @@ class RewardCfg:
     """Moved to ``termination.max_foot_drop_m``."""
 
     def __post_init__(self) -> None:
-        _check_shapes("reward", self)
-        _identifier("reward", "name", self.name)
+        check_shapes("reward", self)
+        check_identifier("reward", "name", self.name)
         for name, value in self.terms.items():
             check_entry(name, value)
+
+
+COM_ANCHORINGS = ("continuous", "stance")
+"""``reference.com_anchoring`` values (march.reference.com_carry.COM_ANCHORINGS)."""
+COM_HEIGHTS = ("fixed", "step")
+"""``reference.com_height`` values (march.reference.com_carry.COM_HEIGHTS)."""
+
+
+@dataclass
+class ReferenceSectionCfg:
+    """The CLF teacher's reference trajectory (``reference``; SPEC section 2, "References";
+    march.reference.com_carry, docs/method.md). Used by the env's ``reference`` command, the
+    audits and every tool that builds the env."""
+
+    com_anchoring: str = "continuous"
+    """``continuous`` (default): the CoM reference carries the previous reference's CoM state
+    across a touchdown (continuous in position and velocity; each step ends on its planned HLIP
+    orbit). ``stance``: each step's HLIP orbit is anchored at the new stance foot (the earlier
+    reference; it jumps by about (l_old - l_new)/2 at every touchdown), kept for comparison."""
+    com_height: str = "fixed"
+    """``fixed`` (default): CoM height z0 = 0.67 m (author) for every step. ``step``: the CoM
+    is lowered with the step's length along the course, z = clamp(0.67 - com_height_slope
+    (|l| - com_height_free_step), com_height_min, 0.67), so long steps are within the G1's
+    reach; the HLIP's lambda uses that height."""
+    com_height_free_step: float = 0.5
+    """``com_height=step``: steps up to this long [m] keep z0."""
+    com_height_slope: float = 0.35
+    """``com_height=step``: CoM lowered per metre of step beyond the free length [m/m]."""
+    com_height_min: float = 0.57
+    """``com_height=step``: the lowest CoM height [m]."""
+
+    def __post_init__(self) -> None:
+        check_shapes("reference", self)
+        check_one_of("reference", "com_anchoring", self.com_anchoring, COM_ANCHORINGS)
+        check_one_of("reference", "com_height", self.com_height, COM_HEIGHTS)
+        check_at_least("reference", "com_height_free_step", self.com_height_free_step, 0)
+        check_at_least("reference", "com_height_slope", self.com_height_slope, 0)
+        check_interval("reference", "com_height_min", self.com_height_min, 0.3, 0.67)
 
 
 MOVED_TO_TERMINATION = ("tilt_limit_deg", "min_base_height_m", "max_foot_drop_m")
@@ -245,10 +283,10 @@ class TerminationCfg:
     stone; stone tops vary by at most terrain.height_hard = 0.10 m)."""
 
     def __post_init__(self) -> None:
-        _check_shapes("termination", self)
-        _interval("termination", "tilt_limit_deg", self.tilt_limit_deg, 0, 180, lo_open=True)
-        _at_least("termination", "min_base_height_m", self.min_base_height_m, 0)
-        _positive("termination", "max_foot_drop_m", self.max_foot_drop_m)
+        check_shapes("termination", self)
+        check_interval("termination", "tilt_limit_deg", self.tilt_limit_deg, 0, 180, lo_open=True)
+        check_at_least("termination", "min_base_height_m", self.min_base_height_m, 0)
+        check_positive("termination", "max_foot_drop_m", self.max_foot_drop_m)
 
     def adopt(self, reward: RewardCfg) -> None:
         """Carry an old config's ``reward.<threshold>`` over (then clear it there); a value set
@@ -291,16 +329,16 @@ class CurriculumCfg:
     """Level down when progress < this x the goal distance."""
 
     def __post_init__(self) -> None:
-        _one_of("curriculum", "name", self.name, CURRICULA)
-        _check_shapes("curriculum", self)
-        _positive("curriculum", "num_levels", self.num_levels)
-        _positive("curriculum", "num_cols", self.num_cols)
-        _interval("curriculum", "max_init_level", self.max_init_level, 0, self.num_levels - 1)
-        _interval("curriculum", "flat_levels", self.flat_levels, 0, self.num_levels - 1)
-        _interval("curriculum", "terrain_seed", self.terrain_seed, 0, SEED_MAX)
+        check_one_of("curriculum", "name", self.name, CURRICULA)
+        check_shapes("curriculum", self)
+        check_positive("curriculum", "num_levels", self.num_levels)
+        check_positive("curriculum", "num_cols", self.num_cols)
+        check_interval("curriculum", "max_init_level", self.max_init_level, 0, self.num_levels - 1)
+        check_interval("curriculum", "flat_levels", self.flat_levels, 0, self.num_levels - 1)
+        check_interval("curriculum", "terrain_seed", self.terrain_seed, 0, SEED_MAX)
         # Progress is measured against the goal distance: 1 = the goal platform was reached.
-        _interval("curriculum", "promote_fraction", self.promote_fraction, 0, 1, lo_open=True)
-        _interval(
+        check_interval("curriculum", "promote_fraction", self.promote_fraction, 0, 1, lo_open=True)
+        check_interval(
             "curriculum",
             "demote_fraction",
             self.demote_fraction,
@@ -354,20 +392,20 @@ class DrCfg:
     """Camera FOV half-range [deg]."""
 
     def __post_init__(self) -> None:
-        _check_shapes("dr", self)
-        _one_of("dr", "name", self.name, DRS)
-        _bounds("dr", "friction", self.friction, 0)
-        _bounds("dr", "link_mass_scale", self.link_mass_scale, 0, lo_open=True)
-        _bounds("dr", "base_added_mass_kg", self.base_added_mass_kg)
-        _bounds("dr", "encoder_bias_rad", self.encoder_bias_rad)
-        _each("dr", "base_com_offset_m", self.base_com_offset_m, 0)
-        _bounds("dr", "effort_limit_scale", self.effort_limit_scale, 0, lo_open=True)
-        _bounds("dr", "joint_damping_scale", self.joint_damping_scale, 0)
-        _bounds("dr", "joint_friction", self.joint_friction, 0)
-        _bounds("dr", "push_interval_s", self.push_interval_s, 0, lo_open=True)
-        _at_least("dr", "push_lin_vel", self.push_lin_vel, 0)
-        _at_least("dr", "push_ang_vel", self.push_ang_vel, 0)
-        _bounds("dr", "control_delay_ms", self.control_delay_ms, 0)
-        _at_least("dr", "camera_pos_m", self.camera_pos_m, 0)
-        _each("dr", "camera_rot_deg", self.camera_rot_deg, 0)
-        _at_least("dr", "camera_fov_deg", self.camera_fov_deg, 0)
+        check_shapes("dr", self)
+        check_one_of("dr", "name", self.name, DRS)
+        check_bounds("dr", "friction", self.friction, 0)
+        check_bounds("dr", "link_mass_scale", self.link_mass_scale, 0, lo_open=True)
+        check_bounds("dr", "base_added_mass_kg", self.base_added_mass_kg)
+        check_bounds("dr", "encoder_bias_rad", self.encoder_bias_rad)
+        check_each("dr", "base_com_offset_m", self.base_com_offset_m, 0)
+        check_bounds("dr", "effort_limit_scale", self.effort_limit_scale, 0, lo_open=True)
+        check_bounds("dr", "joint_damping_scale", self.joint_damping_scale, 0)
+        check_bounds("dr", "joint_friction", self.joint_friction, 0)
+        check_bounds("dr", "push_interval_s", self.push_interval_s, 0, lo_open=True)
+        check_at_least("dr", "push_lin_vel", self.push_lin_vel, 0)
+        check_at_least("dr", "push_ang_vel", self.push_ang_vel, 0)
+        check_bounds("dr", "control_delay_ms", self.control_delay_ms, 0)
+        check_at_least("dr", "camera_pos_m", self.camera_pos_m, 0)
+        check_each("dr", "camera_rot_deg", self.camera_rot_deg, 0)
+        check_at_least("dr", "camera_fov_deg", self.camera_fov_deg, 0)

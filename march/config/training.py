@@ -18,15 +18,15 @@ from march.config.checks import (
     RSL_ACTIVATIONS,
     SEED_MAX,
     ConfigError,
-    _at_least,
-    _check_shapes,
-    _each,
-    _fmt,
-    _identifier,
-    _interval,
-    _need,
-    _one_of,
-    _positive,
+    check_at_least,
+    check_each,
+    check_identifier,
+    check_interval,
+    check_one_of,
+    check_positive,
+    check_shapes,
+    fmt_value,
+    require,
 )
 from march.config.parts import check_parts, check_value
 
@@ -92,8 +92,8 @@ class StudentCfg:
     """eps added to the running std of the observation normalisers (rsl-rl default)."""
 
     def __post_init__(self) -> None:
-        _check_shapes("student", self)
-        _identifier("student", "variant", self.variant)
+        check_shapes("student", self)
+        check_identifier("student", "variant", self.variant)
         parts = BUILTIN_PARTS.get(self.variant, ("", "", ""))
         for key, default in zip(("image", "fusion", "head"), parts, strict=True):
             if not getattr(self, key):
@@ -105,21 +105,21 @@ class StudentCfg:
                 setattr(self, key, default)
             check_value(key, getattr(self, key))
         check_parts(self.parts, {"image": self.image, "fusion": self.fusion, "head": self.head})
-        _each("student", "cnn_channels", self.cnn_channels, 1, nonempty=True)
-        _each("student", "cnn_kernels", self.cnn_kernels, 1)
-        _each("student", "cnn_strides", self.cnn_strides, 1)
+        check_each("student", "cnn_channels", self.cnn_channels, 1, nonempty=True)
+        check_each("student", "cnn_kernels", self.cnn_kernels, 1)
+        check_each("student", "cnn_strides", self.cnn_strides, 1)
         for key in ("d_model", "n_heads", "n_layers", "dim_feedforward", "num_modes"):
-            _at_least("student", key, getattr(self, key), 1)
-        _each("student", "fusion_mlp", self.fusion_mlp, 1)
-        _each("student", "head_hidden", self.head_hidden, 1)
-        _positive("student", "min_std", self.min_std)
-        _one_of("student", "activation", self.activation, ACTIVATIONS)
-        _positive("student", "huber_delta", self.huber_delta)
-        _positive("student", "normalizer_eps", self.normalizer_eps)
+            check_at_least("student", key, getattr(self, key), 1)
+        check_each("student", "fusion_mlp", self.fusion_mlp, 1)
+        check_each("student", "head_hidden", self.head_hidden, 1)
+        check_positive("student", "min_std", self.min_std)
+        check_one_of("student", "activation", self.activation, ACTIVATIONS)
+        check_positive("student", "huber_delta", self.huber_delta)
+        check_positive("student", "normalizer_eps", self.normalizer_eps)
         if not len(self.cnn_channels) == len(self.cnn_kernels) == len(self.cnn_strides):
             raise ConfigError(
-                f"student.cnn_channels={_fmt(self.cnn_channels)}, student.cnn_kernels="
-                f"{_fmt(self.cnn_kernels)} and student.cnn_strides={_fmt(self.cnn_strides)} "
+                f"student.cnn_channels={fmt_value(self.cnn_channels)}, student.cnn_kernels="
+                f"{fmt_value(self.cnn_kernels)} and student.cnn_strides={fmt_value(self.cnn_strides)} "
                 "must have equal length (one entry per conv layer)"
             )
         if self.d_model % self.n_heads:
@@ -132,7 +132,9 @@ class StudentCfg:
                 f"student.log_std_min={self.log_std_min} must be < student.log_std_max="
                 f"{self.log_std_max}"
             )
-        _interval("student", "init_log_std", self.init_log_std, self.log_std_min, self.log_std_max)
+        check_interval(
+            "student", "init_log_std", self.init_log_std, self.log_std_min, self.log_std_max
+        )
 
 
 @dataclass
@@ -208,28 +210,28 @@ class TeacherCfg:
         }
 
     def __post_init__(self) -> None:
-        _check_shapes("teacher", self)
-        _positive("teacher", "max_iterations", self.max_iterations)
-        _positive("teacher", "budget_scale", self.budget_scale)
-        _positive("teacher", "num_steps_per_env", self.num_steps_per_env)
-        _each("teacher", "hidden_dims", self.hidden_dims, 1, nonempty=True)
-        _one_of("teacher", "activation", self.activation, RSL_ACTIVATIONS)
-        _positive("teacher", "init_std", self.init_std)
+        check_shapes("teacher", self)
+        check_positive("teacher", "max_iterations", self.max_iterations)
+        check_positive("teacher", "budget_scale", self.budget_scale)
+        check_positive("teacher", "num_steps_per_env", self.num_steps_per_env)
+        check_each("teacher", "hidden_dims", self.hidden_dims, 1, nonempty=True)
+        check_one_of("teacher", "activation", self.activation, RSL_ACTIVATIONS)
+        check_positive("teacher", "init_std", self.init_std)
         for group in ("legs", "waist", "arms"):
-            _positive("teacher", f"init_std_{group}", getattr(self, f"init_std_{group}"))
-        _positive("teacher", "learning_rate", self.learning_rate)
-        _positive("teacher", "save_interval", self.save_interval)
-        _at_least("teacher", "max_nonfinite_updates", self.max_nonfinite_updates, 1)
-        _one_of("teacher", "schedule", self.schedule, ("adaptive", "fixed"))
-        _at_least("teacher", "num_learning_epochs", self.num_learning_epochs, 1)
-        _at_least("teacher", "num_mini_batches", self.num_mini_batches, 1)
-        _positive("teacher", "clip_param", self.clip_param)
-        _at_least("teacher", "value_loss_coef", self.value_loss_coef, 0)
-        _at_least("teacher", "entropy_coef", self.entropy_coef, 0)
-        _interval("teacher", "gamma", self.gamma, 0, 1)
-        _interval("teacher", "lam", self.lam, 0, 1)
-        _positive("teacher", "desired_kl", self.desired_kl)
-        _positive("teacher", "max_grad_norm", self.max_grad_norm)
+            check_positive("teacher", f"init_std_{group}", getattr(self, f"init_std_{group}"))
+        check_positive("teacher", "learning_rate", self.learning_rate)
+        check_positive("teacher", "save_interval", self.save_interval)
+        check_at_least("teacher", "max_nonfinite_updates", self.max_nonfinite_updates, 1)
+        check_one_of("teacher", "schedule", self.schedule, ("adaptive", "fixed"))
+        check_at_least("teacher", "num_learning_epochs", self.num_learning_epochs, 1)
+        check_at_least("teacher", "num_mini_batches", self.num_mini_batches, 1)
+        check_positive("teacher", "clip_param", self.clip_param)
+        check_at_least("teacher", "value_loss_coef", self.value_loss_coef, 0)
+        check_at_least("teacher", "entropy_coef", self.entropy_coef, 0)
+        check_interval("teacher", "gamma", self.gamma, 0, 1)
+        check_interval("teacher", "lam", self.lam, 0, 1)
+        check_positive("teacher", "desired_kl", self.desired_kl)
+        check_positive("teacher", "max_grad_norm", self.max_grad_norm)
         if self.eval_interval < 0:
             raise ConfigError(
                 f"teacher.eval_interval={self.eval_interval} must be >= 0 (0 = only at the end)"
@@ -265,17 +267,17 @@ class DistillCfg:
     metrics.csv) that stop the run with one line; its last checkpoint is the last good one."""
 
     def __post_init__(self) -> None:
-        _check_shapes("distill", self)
-        _positive("distill", "learning_rate", self.learning_rate)
-        _positive("distill", "max_grad_norm", self.max_grad_norm)
-        _at_least("distill", "teacher_std_scale", self.teacher_std_scale, 0)
-        _positive("distill", "max_iterations", self.max_iterations)
-        _positive("distill", "num_steps_per_env", self.num_steps_per_env)
-        _positive("distill", "num_learning_epochs", self.num_learning_epochs)
-        _positive("distill", "gradient_length", self.gradient_length)
-        _positive("distill", "teacher_samples", self.teacher_samples)
-        _positive("distill", "save_interval", self.save_interval)
-        _at_least("distill", "max_nonfinite_updates", self.max_nonfinite_updates, 1)
+        check_shapes("distill", self)
+        check_positive("distill", "learning_rate", self.learning_rate)
+        check_positive("distill", "max_grad_norm", self.max_grad_norm)
+        check_at_least("distill", "teacher_std_scale", self.teacher_std_scale, 0)
+        check_positive("distill", "max_iterations", self.max_iterations)
+        check_positive("distill", "num_steps_per_env", self.num_steps_per_env)
+        check_positive("distill", "num_learning_epochs", self.num_learning_epochs)
+        check_positive("distill", "gradient_length", self.gradient_length)
+        check_positive("distill", "teacher_samples", self.teacher_samples)
+        check_positive("distill", "save_interval", self.save_interval)
+        check_at_least("distill", "max_nonfinite_updates", self.max_nonfinite_updates, 1)
         if self.eval_interval < 0:
             raise ConfigError(
                 f"distill.eval_interval={self.eval_interval} must be >= 0 (0 = only at the end)"
@@ -315,13 +317,13 @@ class EvalCfg:
     """Which policy to evaluate in stage=eval: student or teacher."""
 
     def __post_init__(self) -> None:
-        _check_shapes("eval", self)
-        _positive("eval", "num_rollouts", self.num_rollouts)
-        _positive("eval", "episode_length_s", self.episode_length_s)
-        _one_of("eval", "course", self.course, COURSES)
-        _interval("eval", "terrain_seed", self.terrain_seed, 0, SEED_MAX)
-        _one_of("eval", "policy", self.policy, ("student", "teacher"))
-        _positive("eval", "command_vx", self.command_vx)
+        check_shapes("eval", self)
+        check_positive("eval", "num_rollouts", self.num_rollouts)
+        check_positive("eval", "episode_length_s", self.episode_length_s)
+        check_one_of("eval", "course", self.course, COURSES)
+        check_interval("eval", "terrain_seed", self.terrain_seed, 0, SEED_MAX)
+        check_one_of("eval", "policy", self.policy, ("student", "teacher"))
+        check_positive("eval", "command_vx", self.command_vx)
 
 
 @dataclass
@@ -334,9 +336,9 @@ class LoggerCfg:
     """wandb project."""
 
     def __post_init__(self) -> None:
-        _check_shapes("logger", self)
-        _one_of("logger", "name", self.name, LOGGERS)
-        _need("logger", "project", self.project, bool(self.project), "a non-empty project name")
+        check_shapes("logger", self)
+        check_one_of("logger", "name", self.name, LOGGERS)
+        require("logger", "project", self.project, bool(self.project), "a non-empty project name")
 
 
 @dataclass
@@ -356,12 +358,12 @@ class FiguresCfg:
     def __post_init__(self) -> None:
         for pair in self.compare:
             parts = str(pair).split(":")
-            _need(
+            require(
                 "figures",
                 "compare",
                 list(self.compare),
                 len(parts) == 2 and all(parts) and parts[0] != parts[1],
                 "a list of ARM:REFERENCE pairs of two different arms",
             )
-        _identifier("figures", "reference_variant", self.reference_variant)
-        _identifier("figures", "ablation_teacher", self.ablation_teacher)
+        check_identifier("figures", "reference_variant", self.reference_variant)
+        check_identifier("figures", "ablation_teacher", self.ablation_teacher)

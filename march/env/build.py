@@ -42,6 +42,7 @@ from mjlab.utils.noise import UniformNoiseCfg as Unoise
 from march.compiled_math import set_compile_mode
 from march.config import MarchConfig
 from march.config.terms import import_extra_modules
+from march.env.clf_meter import attach as attach_clf_meter
 from march.env.course import course_levels
 from march.env.depth import corrupt, depth_camera_cfg, normalize
 from march.env.nonfinite import nonfinite_termination
@@ -55,6 +56,7 @@ from march.env.stone_terrain import terrain_entity_cfg
 from march.env.term_meter import attach as attach_term_meter
 from march.env.terminations import foot_too_low, goal_reached, planner_infeasible
 from march.env.velocity_command import sync_free
+from march.reference.trajectory import ReferenceCfg
 
 PURPOSES = ("teacher", "student", "eval")
 COURSE_HEADING = 0.0
@@ -362,9 +364,17 @@ def build_env_cfg(
         # all envs): a wave resets every env at once, so a training-sized batch would defer
         # touchdowns (the clf arm scored with a stale reference meanwhile). Training keeps its
         # fixed share (replan_capacity_fraction).
+        ref = cfg.reference
         env_cfg.commands[REFERENCE_COMMAND] = ReferenceCommandCfg(
             planner_seed=cfg.seed,
             compile_math=cfg.compute.compile_math,
+            reference=ReferenceCfg(
+                com_anchoring=ref.com_anchoring,
+                com_height=ref.com_height,
+                com_height_free_step=ref.com_height_free_step,
+                com_height_slope=ref.com_height_slope,
+                com_height_min=ref.com_height_min,
+            ),
             **({"replan_capacity_fraction": 1.0} if purpose == "eval" else {}),
         )
 
@@ -439,8 +449,11 @@ def make_env(
     with _output_to(log), pinned_solver_order(purpose == "eval"):  # batch-free order (issue 57)
         env = ManagerBasedRlEnv(cfg=env_cfg, device=cfg.compute.device)
     keep_termination_counts_on_device(env)  # no .item() per term and reset (reset_extras)
-    # per-term reward / termination sums (not for evaluation) and CLF diagnostics, on the device
-    attach_term_meter(env, per_term=purpose != "eval")
+    # the per-step meters, on the device: per-term reward / termination sums (not for an
+    # evaluation) and the CLF diagnostics (where the env has the reference command)
+    if purpose != "eval":
+        attach_term_meter(env)
+    attach_clf_meter(env)
     env.march_spec = EnvSpec(  # type: ignore[attr-defined]
         purpose=purpose,
         num_envs=env.num_envs,

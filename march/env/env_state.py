@@ -9,7 +9,9 @@ what the next iteration depends on beyond the episode's own motion:
   and the tensors of the command terms other than ``reference`` (the twist command each env
   walks to and its resampling clock); the reference is planned afresh from the reset robot;
 - the planner's generator (the ``reference`` term's ``torch.Generator``), for the random streams
-  of :mod:`march.learn.train_state`.
+  of :mod:`march.learn.train_state`;
+- ``planner``: the counters of the planner's per-env streams (``planner_streams``, keyed by
+  (seed, env): issue 55), so the resumed envs' plans draw where the saved run would have.
 
 :func:`restore_env_state` puts levels back and resets every env while ``common_step_counter``
 is still 0 (the curriculum term moves no level on that reset), so the resumed envs start from
@@ -85,7 +87,17 @@ def env_state(env: ManagerBasedRlEnv) -> dict[str, Any]:
         "episode_length_buf": env.episode_length_buf.detach().cpu().clone(),
         "commands": commands,
     }
+    streams = _planner_streams(env)
+    if streams is not None:
+        out["planner"] = {"stream_counts": streams.counts.detach().cpu().clone()}
     return out
+
+
+def _planner_streams(env: ManagerBasedRlEnv) -> Any:
+    """The reference command's per-env planner streams, if the env plans footsteps."""
+    if REFERENCE_COMMAND not in env.command_manager.active_terms:
+        return None
+    return getattr(env.command_manager.get_term(REFERENCE_COMMAND), "planner_streams", None)
 
 
 def _tensor(state: dict[str, Any], key: str, where: str, num_envs: int) -> torch.Tensor:
@@ -148,4 +160,10 @@ def restore_env_state(env: ManagerBasedRlEnv, payload: dict[str, Any]) -> list[s
                     current[key].copy_(value.to(current[key].device, current[key].dtype))
     else:
         notes.append("the checkpoint holds no episode clocks (an older run): episodes start over")
+    streams, planner = _planner_streams(env), payload.get("planner")
+    if streams is not None and isinstance(planner, dict):
+        counts = _tensor(planner, "stream_counts", "planner", n)
+        streams.counts.copy_(counts.to(streams.counts.device, streams.counts.dtype))
+    elif streams is not None:
+        notes.append("the checkpoint holds no planner stream counters (an older run): they restart")
     return notes

@@ -18,24 +18,34 @@ Decisions (documented here once; the README repeats them)
   references are the course heading (yaw rate 0); why: README, "Velocity command".
 - **Start from standing.** The first step of an episode ramps its CoM reference from rest at the
   measured CoM into the HLIP orbit (``march.reference.trajectory``, ``StepState.ramp``); later
-  steps (and timeout restarts) start on the orbit as before.
+  steps carry the previous reference's CoM state (below, "Touchdown").
 - **Initial stance (episode reset).** The foot that is further behind along the course direction
   is the stance foot; when the feet are level within ``stance_tie_m`` (the usual spawn) the left
   foot is the stance foot, so the right foot swings first. The first plan starts from that foot
   on the start platform. Robot state is only valid after mjlab's post-reset ``forward()``, so a
   reset marks the env pending and the plan is made in the command update that follows it.
-- **Touchdown.** The swing foot's contact (``found`` of the ``feet_ground_contact`` sensor, per
-  foot) counts as a touchdown once ``tau >= touchdown_min_fraction * duration`` (author: 0.6);
-  earlier contacts (the foot has not left yet, or scuffs) are ignored. At a touchdown the swing
-  foot becomes the stance foot, a new plan is made from its actual position (only for the envs
-  that touched down), the reference is re-anchored there (HLIP orbit of the new step anchored at
-  the actual stance foot; lift-off = the new swing foot's current position), ``tau`` restarts
-  and ``step_switched`` is set so the V history restarts (no derivative across the switch).
+- **Touchdown** (issue 55: only a real one). The swing foot's contact (``found`` of the
+  ``feet_ground_contact`` sensor, per foot) counts as a touchdown once the foot has been off the
+  ground at some update since the step began (``swing_lifted``: out of contact and
+  ``lift_min_height`` above where it started; the sensor flickers while a foot rocks in place)
+  and ``tau >=
+  touchdown_min_fraction * duration`` (author: 0.6); earlier contacts (scuffs) and a foot that
+  never left the ground are no touchdown (a standing robot's steps time out instead, below). At
+  a touchdown the swing foot becomes the stance foot, a new plan is made from its actual
+  position (only for the envs that touched down), the new step's reference starts from the
+  actual stance foot and carries the previous reference's CoM state
+  (``reference.com_anchoring=continuous``, :mod:`march.reference.com_carry`; ``stance``: the
+  orbit anchored at the new stance foot, which jumps), lift-off = the new swing foot's current
+  position, ``tau`` restarts and ``step_switched`` is set so the V history restarts (no
+  derivative across the switch).
 - **Timeout.** If the swing foot has not touched down by ``tau >= touchdown_timeout_fraction *
   duration`` the step is restarted instead of switched: the swing foot is still in the air, so
   making it the stance foot would anchor the reference (and the holonomic terms) on a foot that
   bears no weight. The plan is remade from the same stance foot, the new swing starts where the
-  foot is, ``tau`` restarts and ``step_switched`` is set (counted in ``forced_count``).
+  foot is, ``tau`` restarts and ``step_switched`` is set (counted in ``forced_count``). The
+  CoM reference carries on continuously from where the old step's was (continuous anchoring):
+  a robot that stands still sees a reference that keeps stepping in place of it, one restart
+  every 1.5 T, never a jump.
 - **CoM and outputs**: the measured outputs y_sim are documented with their code in
   :mod:`march.env.clf_outputs`.
 - **r_dclf clip**: :attr:`march.env.reference_cfg.ReferenceCommandCfg.clf`.
@@ -53,13 +63,14 @@ Decisions (documented here once; the README repeats them)
 
 from __future__ import annotations
 
-from dataclasses import fields
+import math
+from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING
 
 import torch
-from mjlab.managers.command_manager import CommandTerm
+from mjlab.managers.command_manager import CommandTerm, CommandTermCfg
 
-from march.clf.lyapunov import CLF_OUTPUT_NAMES, UPPER_BODY_JOINTS, ClfModel, VHistory
+from march.clf.lyapunov import CLF_OUTPUT_NAMES, UPPER_BODY_JOINTS, ClfCfg, ClfModel, VHistory
 from march.compiled_math import maybe_fused
 from march.env import rollout_draws
 from march.env.clf_outputs import (
@@ -71,13 +82,15 @@ from march.env.clf_outputs import (
 )
 from march.env.course import foothold_table
 from march.env.masked_rows import MaskedRows
-from march.env.reference_cfg import ReferenceCommandCfg
 from march.env.replan_queue import ReplanQueue
 from march.env.step_cache import root_frame, site_pos
+from march.keyed_random import RowStreams
 from march.reference.fused_reference import reference_outputs, reference_tables
+from march.reference.hlip import HlipCfg
 from march.reference.plan_tables import course_frame, plan_tables
 from march.reference.planner import Plan, plan_footsteps
-from march.reference.trajectory import StepState, angle_mask, step_state_from_plan
+from march.reference.planner_cfg import PlannerCfg
+from march.reference.trajectory import ReferenceCfg, StepState, angle_mask, step_state_from_plan
 from march.world.footholds import Footholds
 
 if TYPE_CHECKING:
@@ -94,8 +107,70 @@ PLAN_STATE = (
     "plan_stalled",
     "tau",
     "step_switched",
+    "swing_lifted",
 )
 """The term's own per-env tensors a new step sets (besides the ``StepState``)."""
+
+
+@dataclass(kw_only=True)
+class ReferenceCommandCfg(CommandTermCfg):
+    """Configuration of the ``reference`` command term (defaults: author values, SPEC §2)."""
+
+    resampling_time_range: tuple[float, float] = (1.0e9, 1.0e9)
+    """Only episode resets restart the term (no timed resampling)."""
+    entity_name: str = "robot"
+    velocity_command: str = "twist"
+    """The velocity command term this one reads (v_D and the yaw rate)."""
+    contact_sensor: str = "feet_ground_contact"
+    foot_bodies: tuple[str, str] = ("left_ankle_roll_link", "right_ankle_roll_link")
+    """Contact-sensor primaries of the left and right foot."""
+    foot_sites: tuple[str, str] = ("left_foot", "right_foot")
+    """Sites tracked as the feet (sole level)."""
+    touchdown_min_fraction: float = 0.6
+    """A swing-foot contact counts as touchdown from tau >= this x planned duration (author 0.6)."""
+    lift_min_height: float = 0.02
+    """A swing foot has left the ground once it is out of contact and this much above where it
+    was when the step began [m] (a contact sensor that flickers while a foot rocks in place is
+    no lift-off; issue 55)."""
+    touchdown_timeout_fraction: float = 1.5
+    """No touchdown by tau >= this x planned duration: restart the step from the same stance."""
+    stance_tie_m: float = 0.01
+    """At reset, feet within this along the course count as level (then the left foot stands)."""
+    replan_capacity_fraction: float = 0.125
+    """Share of the envs whose touchdown or timeout can be planned in one update (the fixed
+    size of the per-step planner batch; module docstring, "Replanning without host syncs")."""
+    replan_capacity_min: int = 8
+    """The per-update planner batch holds at least this many envs (or all of them)."""
+    compile_math: bool = False
+    """``torch.compile`` (dynamic shapes) :func:`reference_at` (``compute.compile_math``)."""
+    planner_seed: int | None = 0
+    """Seed of the planner's random draws: one counter-based stream per env keyed by (seed,
+    env index) (``ReferenceCommand.planner_streams``; an evaluation keys them by rollout)."""
+    planner: PlannerCfg = field(default_factory=PlannerCfg)
+    reference: ReferenceCfg = field(default_factory=ReferenceCfg)
+    hlip: HlipCfg = field(default_factory=HlipCfg)
+    clf: ClfCfg = field(default_factory=lambda: ClfCfg(dclf_clip=1.0))
+    """CLF outputs and normalisers. r_dclf is clipped at -1 (``dclf_clip = 1.0``, the author's
+    ``clip(., 0, 1)``; the paper prints no clip): unclipped, under the initial policy's action
+    noise (std 1) the weighted r_dclf averages about -22 per step against +3.7 for the weighted
+    r_clf (8 envs, 150 steps), so the decrease term swamps every other signal; clipped it
+    averages about -0.5."""
+
+    def capacity(self, num_envs: int) -> int:
+        """Envs planned per update for touchdowns and timeouts, for ``num_envs`` envs."""
+        by_share = math.ceil(self.replan_capacity_fraction * num_envs)
+        return min(num_envs, max(self.replan_capacity_min, by_share))
+
+    def build(self, env: ManagerBasedRlEnv) -> ReferenceCommand:
+        return ReferenceCommand(self, env)
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.touchdown_min_fraction < self.touchdown_timeout_fraction:
+            raise ValueError("need 0 <= touchdown_min_fraction < touchdown_timeout_fraction")
+        if not 0.0 < self.replan_capacity_fraction <= 1.0 or self.replan_capacity_min < 1:
+            raise ValueError("need 0 < replan_capacity_fraction <= 1 and replan_capacity_min >= 1")
+        if not math.isclose(self.planner.step_width, self.hlip.step_width):
+            raise ValueError("planner.step_width and hlip.step_width must agree")
 
 
 class ReferenceCommand(CommandTerm):
@@ -134,6 +209,12 @@ class ReferenceCommand(CommandTerm):
         )
         self.generator = torch.Generator(device=dev)
         self.generator.manual_seed(int(cfg.planner_seed if cfg.planner_seed is not None else 0))
+        self.planner_streams = RowStreams(e, dev)
+        """The planner's random draws, one counter-based stream per env keyed by (planner_seed,
+        env index) (issue 55): an env's plans do not depend on the batch, its place in the
+        planner's batch or the other envs' touchdowns (march.keyed_random). ``generator`` is
+        kept for callers that plan with shared draws."""
+        self.planner_streams.assign(int(cfg.planner_seed or 0), 0)
 
         n = cfg.planner.num_steps
         zeros3 = torch.zeros(e, 3, device=dev)
@@ -156,6 +237,9 @@ class ReferenceCommand(CommandTerm):
         """(E,) pelvis-yaw reference: the course heading [rad] (set at each episode start)."""
         self.step_switched = torch.zeros(e, dtype=torch.bool, device=dev)
         """(E,) the reference switched (touchdown, restart or reset) in the last update."""
+        self.swing_lifted = torch.zeros(e, dtype=torch.bool, device=dev)
+        """(E,) the swing foot has been off the ground at an update since the step began: only
+        then does its contact end the step (a real touchdown)."""
         self.touchdown_count = torch.zeros(e, dtype=torch.long, device=dev)
         """(E,) touchdowns (stance switches) since the env was built."""
         self.forced_count = torch.zeros(e, dtype=torch.long, device=dev)
@@ -165,6 +249,8 @@ class ReferenceCommand(CommandTerm):
         self.queue = ReplanQueue(e, cfg.capacity(e), dev)
         """The resets to plan and the touchdowns / timeouts waiting for the planner batch."""
         self._all_envs = torch.ones(e, dtype=torch.bool, device=dev)
+        self._mass_key: tuple[int, int] | None = None
+        self._mass_cache: tuple[torch.Tensor, torch.Tensor] | None = None
         self._dt: float | torch.Tensor = 0.0
         self.step = StepState(
             stance_pos=zeros3.clone(),
@@ -179,6 +265,9 @@ class ReferenceCommand(CommandTerm):
             axis=torch.tensor([[1.0, 0.0]], device=dev).repeat(e, 1),
             ramp=torch.zeros(e, dtype=torch.bool, device=dev),
             ramp_from=torch.zeros(e, 2, device=dev),
+            com_from_pos=zeros3.clone(),
+            com_from_vel=zeros3.clone(),
+            z0=torch.full((e,), cfg.hlip.z0, device=dev),
         )
         self.y_ref_pos = torch.zeros(e, NUM_OUTPUTS, device=dev)
         """(E, 29) reference outputs at the current tau (CLF_OUTPUT_NAMES order)."""
@@ -258,6 +347,17 @@ class ReferenceCommand(CommandTerm):
             active = torch.zeros(e, dtype=torch.bool, device=self.device)
             active[env_ids] = True
         self.step_switched &= ~active
+        # The reference at the new tau (what a step that begins now carries): the last refresh
+        # computed it (y_ref at tau + step_dt) unless something changed since or dt differs.
+        cached = self._next_ref
+        com_now = None
+        if (
+            cached is not None
+            and cached[0] == self._ref_key()
+            and isinstance(self._dt, float)
+            and self._dt == self._env.step_dt
+        ):
+            com_now = (cached[1][:, :3], cached[2][:, :3])
         self._step_version += 1
         self.tau += active * self._dt  # dt: a float, or per env on mjlab's auto-reset path
 
@@ -265,8 +365,13 @@ class ReferenceCommand(CommandTerm):
         running = active & ~self.queue.is_reset
         contact = self.foot_contact()
         swing_contact = torch.where(self.stance_is_left, contact[:, 1], contact[:, 0])
+        feet_z = self.feet_pos()[..., 2]
+        swing_z = torch.where(self.stance_is_left, feet_z[:, 1], feet_z[:, 0])
+        high = swing_z > self.step.swing_start[:, 2] + self.cfg.lift_min_height
+        self.swing_lifted |= active & ~swing_contact & high
         dur = self.step.duration
-        touchdown = running & swing_contact & (self.tau >= self.cfg.touchdown_min_fraction * dur)
+        due = self.tau >= self.cfg.touchdown_min_fraction * dur
+        touchdown = running & swing_contact & self.swing_lifted & due
         timeout = running & (self.tau >= self.cfg.touchdown_timeout_fraction * dur)
         # One planner batch of a fixed size: the resets, then due envs, then padding.
         batch = self.queue.next_batch(touchdown, timeout, active)
@@ -281,7 +386,7 @@ class ReferenceCommand(CommandTerm):
 
         if batch.num_resets:
             self._start_episode(resets)
-        self._new_step(batch.ids, apply=batch.apply, ramp=batch.ramp)
+        self._new_step(batch.ids, apply=batch.apply, ramp=batch.ramp, com_now=com_now)
         self._refresh_outputs()
 
     # ---------------------------------------------------------------- planning
@@ -326,12 +431,15 @@ class ReferenceCommand(CommandTerm):
         env_ids: torch.Tensor,
         apply: torch.Tensor | None = None,
         ramp: torch.Tensor | None = None,
+        com_now: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> Plan:
         """Replan ``env_ids`` (no duplicates, except repeated resets) from their stance foot and
         start step 0 of the plan where ``apply`` (n,) is True (all if None); the other rows are
         planned but left as they were (the fixed-size batch of :meth:`_update_command`).
         ``ramp`` (n,): the env starts from standing (episode start): its CoM reference ramps
-        from the measured CoM."""
+        from the measured CoM (and carries it, at rest). ``com_now``: (E, 3) CoM reference
+        position and velocity at the current tau (computed here when None), carried into the
+        new step (``reference.com_anchoring=continuous``)."""
         n = env_ids.numel()
         if apply is None:
             apply = torch.ones(n, dtype=torch.bool, device=self.device)
@@ -348,6 +456,15 @@ class ReferenceCommand(CommandTerm):
         twist = self._env.command_manager.get_command(self.cfg.velocity_command)[env_ids]
         cmd = twist[:, 0:1] * axis + twist[:, 1:2] * lat
         keyed = rollout_draws.active(self._env)
+        if keyed is None:  # each env's own stream, advanced only where its plan is applied
+            ids = env_ids.long()
+
+            def own(shape: tuple[int, ...]) -> torch.Tensor:
+                return self.planner_streams.uniform(ids, shape, torch.float32, advance=apply)
+
+            row_uniform = own
+        else:  # an evaluation: each env's samples from its rollout's stream (rollout_draws)
+            row_uniform = keyed.planner_uniform(env_ids, apply)
         plan = plan_footsteps(
             stance[:, :2],
             left,
@@ -356,10 +473,18 @@ class ReferenceCommand(CommandTerm):
             self.cfg.planner,
             self.generator,
             compiled=self.cfg.compile_math,
-            # an evaluation: each env's samples from its rollout's stream (rollout_draws)
-            row_uniform=None if keyed is None else keyed.planner_uniform(env_ids, apply),
+            row_uniform=row_uniform,
         )
-        com = self._env.sim.data.subtree_com[env_ids, self._root_body, :2]
+        com = self._env.sim.data.subtree_com[env_ids, self._root_body]
+        if com_now is None:
+            com_now = self.reference(self.tau)
+        ramp = torch.zeros_like(apply) if ramp is None else ramp
+        # An episode start carries the measured CoM at rest; a walk the reference's CoM state.
+        held = ramp[:, None]
+        com_from = (
+            torch.where(held, com, com_now[0][env_ids, :3]),
+            torch.where(held, 0.0, com_now[1][env_ids, :3]),
+        )
         st = step_state_from_plan(
             plan,
             stance_pos=plan.start,
@@ -367,9 +492,12 @@ class ReferenceCommand(CommandTerm):
             yaw0=self.yaw0[env_ids],
             yaw_rate=torch.zeros_like(cmd[:, 0]),  # the yaw reference holds the course heading
             axis=axis,
-            ramp_from=com,
+            ramp_from=com[:, :2],
+            com_from=com_from,
+            cfg=self.cfg.reference,
+            hlip=self.cfg.hlip,
         )
-        st.ramp = torch.zeros_like(apply) if ramp is None else ramp
+        st.ramp = ramp
 
         values = {f"step.{name}": getattr(st, name) for name in STEP_FIELDS}
         values.update(
@@ -380,6 +508,7 @@ class ReferenceCommand(CommandTerm):
             plan_stalled=plan.stalled,
             tau=self.tau.new_zeros(n),
             step_switched=torch.ones_like(apply),
+            swing_lifted=torch.zeros_like(apply),
         )
         self._rows.write(env_ids, apply, values)
         self._step_version += 1
@@ -404,10 +533,14 @@ class ReferenceCommand(CommandTerm):
         )
 
     def _masses(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """(W|1, B) robot body masses and their (W|1, 1) sums, kept after the first call: DR
-        changes masses at startup only (an evaluation's waves drop it: march.env.rollout_draws)."""
-        if getattr(self, "_mass_cache", None) is None:
-            self._mass_cache = body_masses(self._env, self._body_ids)
+        """(W|1, B) robot body masses and their (W|1, 1) sums, kept while the model's mass
+        tensor is the same one at the same version: DR writes masses at startup (and an
+        evaluation's waves again, march.env.rollout_draws), each write bumps the version and the
+        next call reads them afresh (host-side attributes only: no sync)."""
+        mass = self._env.sim.model.body_mass
+        key = (id(mass), -1 if mass.is_inference() else mass._version)
+        if self._mass_key != key:
+            self._mass_key, self._mass_cache = key, body_masses(self._env, self._body_ids)
         return self._mass_cache
 
     def measured(self) -> tuple[torch.Tensor, torch.Tensor]:

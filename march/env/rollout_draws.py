@@ -91,12 +91,8 @@ class KeyedDraws:
         restore_randomized_fields(self.env)
         if "startup" in manager.available_modes:
             manager.apply(mode="startup")
-        # What a command term kept of the model (the reference's body masses, read once since
-        # training draws them at startup only) is stale now: it reads them again.
-        for name in self.env.command_manager.active_terms:
-            term = self.env.command_manager.get_term(name)
-            if hasattr(term, "_mass_cache"):
-                term._mass_cache = None
+        # (The reference term keys its body-mass cache on the model's mass tensor and its
+        # version, so the masses written here are read again without a reset from outside.)
 
     def rows(self, n: int, what: str) -> torch.Tensor | None:
         """The env rows of a draw of ``n`` rows (None: all of them), or one clear error."""

@@ -24,7 +24,6 @@ from typing import Any
 
 import torch
 
-from march.env.clf_meter import attach as attach_clf_meter
 from march.env.clf_meter import pop_clf
 
 REWARD_PREFIX = "reward/"
@@ -91,12 +90,9 @@ def _levels(env: Any) -> torch.Tensor | None:
     return levels if isinstance(levels, torch.Tensor) else None
 
 
-def attach(env: Any, per_term: bool = True) -> TermMeter | None:
-    """Put a :class:`TermMeter` on ``env`` (``env.term_meter``) if ``per_term``, and the CLF
-    diagnostics (:mod:`march.env.clf_meter`) where the env has the reference command."""
-    attach_clf_meter(env)
-    if not per_term:
-        return None
+def attach(env: Any) -> TermMeter:
+    """Put a :class:`TermMeter` on ``env`` (``env.term_meter``). (The CLF diagnostics are
+    attached beside it by march.env.build, :func:`march.env.clf_meter.attach`.)"""
     meter = TermMeter(env)
     env.term_meter = meter
     return meter

@@ -14,12 +14,20 @@ import torch
 
 from march.reference.hlip import HlipCfg
 from march.reference.kept import kept
-from march.reference.trajectory import ReferenceCfg, StepState, wrap_to_pi
+from march.reference.trajectory import (
+    ReferenceCfg,
+    StepState,
+    com_orbit_height,
+    step_lambda,
+    wrap_to_pi,
+)
 
-BASIS_COLUMNS = 10
+BASIS_COLUMNS = 14
 """Polynomials of the phase s that :func:`reference_outputs` evaluates in one product: the swing
 foot's xy Bezier weights of p0 and p1, its z Bezier weights of z0, c and z1, the three d/ds
-weights (of p1 - p0, c - z0 and z1 - c), and the ramp's smoothstep and its d/ds."""
+weights (of p1 - p0, c - z0 and z1 - c), the ramp's smoothstep and its d/ds, and the CoM
+carry's Hermite polynomials (1 - s)^2 (1 + 2 s), s (1 - s)^2 and their d/ds
+(march.reference.com_carry)."""
 
 
 def reference_tables(
@@ -62,6 +70,11 @@ def _make_reference_tables(
     add(7, 5, range(4, 5), 6.0)  #        + 6 b^5_4 (z1 - c)
     add(8, 3, range(2, 4))  # smoothstep 3 s^2 - 2 s^3
     add(9, 2, range(1, 2), 3.0)  # its d/ds 6 s (1 - s)
+    add(10, 3, range(0, 2))  # carry: h00 = (1 - s)^3 + 3 s (1 - s)^2 = (1 - s)^2 (1 + 2 s)
+    add(11, 3, range(1, 2), 1.0 / 3.0)  # h10 = s (1 - s)^2
+    add(12, 2, range(1, 2), -3.0)  # d h00 / ds = -6 s (1 - s)
+    add(13, 2, range(0, 1))  # d h10 / ds = (1 - s)^2 - 2 s (1 - s)
+    add(13, 2, range(1, 2), -1.0)
     # Control matrix (10 basis rows x [pos xyz, d/ds xyz]) from u = [start xyz, target xyz,
     # apex], with c = (64 apex - 7 (z0 + z1)) / 50 (the z control point of swing_trajectory).
     ctrl = torch.zeros(7, BASIS_COLUMNS, 6, dtype=torch.float64)
@@ -92,6 +105,9 @@ def _make_reference_tables(
         torch.tensor([0.0, 0.0, cfg.foot_height_offset], dtype=torch.float64),
         torch.zeros(max(2, num_upper), dtype=torch.float64),
         torch.tensor([1.0, 1.0, -1.0, 1.0], dtype=torch.float64),  # [axis; lat] from axis
+        # the carry's coefficient rows from the start gap e0 (march.reference.com_carry)
+        torch.tensor([[1.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0]], dtype=torch.float64),
+        torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64),  # the LIP planes
     )
     index = (
         torch.tensor([0, 1, 1, 0]),  # the frame's entries from axis: [ax, ay, ay, ax] * sign
@@ -135,11 +151,14 @@ def reference_outputs(
     exps, bern, ctrl_map, pelvis_angles, lean, lean_rate, pitch_off, foot_off, zeros, sign = tables[
         :10
     ]
-    frame_idx, l1_idx = tables[10:]
+    carry_rows, lip_planes = tables[10:12]
+    frame_idx, l1_idx = tables[12:]
     single = tau.dim() == 1
     t = tau[:, None] if single else tau  # (E, K)
     e, k = t.shape
-    lam = hlip.lam
+    lam = step_lambda(step, cfg, hlip)
+    lam = lam if isinstance(lam, float) else lam[:, None]  # float, or (E, 1) (com_height=step)
+    carry = cfg.com_anchoring == "continuous" and step.com_from_pos is not None
     dur = step.duration[:, None]
     phase = t / dur
     s = phase.clamp(0.0, 1.0)
@@ -164,18 +183,53 @@ def reference_outputs(
     r = (l0 + (ch[:, 0:1] - ch[:, 0:2]) * l1 / den) * 0.5
     v = (sh[:, 2:] * l0 + (sh[:, 0:1] + sh[:, 0:2]) * l1) * (0.5 * lam) / den
     orbit = torch.stack([r, v], dim=1) @ frame  # (E, [r, v], xy), world frame
-    back = lam * (t.clamp(min=0.0) - dur)  # flow from the pre-impact state to t
+    # flow from the pre-impact state to t (and to 0 first when the step carries a CoM state)
+    t_flow = torch.cat([torch.zeros_like(t[:, :1]), t], dim=1) if carry else t
+    kf = t_flow.shape[1]
+    back = lam * (t_flow.clamp(min=0.0) - dur)
     cb, sb = torch.cosh(back), torch.sinh(back)
-    flow = torch.stack([cb, sb / lam, lam * sb, cb], dim=-1).view(e, 2 * k, 2)
-    com = (flow @ orbit).view(e, k, 2, 2)
-    com_pos = com[..., 0, :] + step.stance_pos[:, None, :2]
-    com_vel = com[..., 1, :]
+    flow = torch.stack([cb, sb / lam, lam * sb, cb], dim=-1).view(e, 2 * kf, 2)
+    com = (flow @ orbit).view(e, kf, 2, 2)
+    com_pos = com[:, kf - k :, 0, :] + step.stance_pos[:, None, :2]
+    com_vel = com[:, kf - k :, 1, :]
+    com_z = com_orbit_height(step, cfg, hlip)[:, None, None].expand(e, k, 1)
+    com_vz = zeros[:1].expand(e, k, 1)
     if step.ramp is not None and step.ramp_from is not None:
         gap = com_pos - step.ramp_from[:, None]
         smooth, dsmooth = basis[..., 8:9], basis[..., 9:10] / dur[..., None]
         on = step.ramp[:, None, None]
         com_vel = torch.where(on, smooth * com_vel + dsmooth * gap, com_vel)
         com_pos = torch.where(on, step.ramp_from[:, None] + smooth * gap, com_pos)
+    if carry:
+        # march.reference.com_carry's correction c = F @ C in one product per env: F (K, [pos,
+        # vel], 3) the basis [LIP part, h00, T h10] and its rates at every instant, C (3, xyz)
+        # the coefficients [e0 in the LIP planes; e0 in height; the velocity left at 0].
+        # sinh(lam (T - t)) = -sinh(back), cosh(lam (T - t)) = cosh(back); sinh(lam T) = sh0.
+        neg_inv = -1.0 / sh[:, 0:1]
+        herm = basis[..., 10:14]
+        f = torch.stack(
+            [
+                sb[:, 1:] * neg_inv,
+                herm[..., 0],
+                herm[..., 1] * dur,
+                cb[:, 1:] * (lam * neg_inv),
+                herm[..., 2] / dur,
+                herm[..., 3],
+            ],
+            dim=-1,
+        )
+        # e0 and the velocity gap: the previous reference's CoM state minus the orbit's at 0
+        # (the ramp of an episode start excepted in xy: it starts at the measured CoM).
+        gap = torch.stack([step.com_from_pos, step.com_from_vel], 1)  # (E, [p, v], 3)
+        gap = gap - torch.cat([com[:, 0], zeros[:2, None].expand(e, 2, 1)], -1)
+        gap[:, 0] -= torch.cat([step.stance_pos[:, :2], com_z[:, 0]], -1)
+        if step.ramp is not None:
+            gap[..., :2] *= (~step.ramp)[:, None, None]
+        coef = gap[:, :1] * carry_rows  # (E, 3, 3): rows e0 (LIP planes), e0 (height), 0
+        coef[:, 2] = gap[:, 1] - gap[:, 0] * (lam * ch[:, 0:1] * neg_inv) * lip_planes
+        corr = (f.view(e, 2 * k, 3) @ coef).view(e, k, 2, 3)
+        com_pos, com_vel = com_pos + corr[..., 0, :2], com_vel + corr[..., 1, :2]
+        com_z, com_vz = com_z + corr[..., 0, 2:], com_vz + corr[..., 1, 2:]
     # Pelvis roll / pitch (lean toward the stance foot) and yaw.
     angles = s[..., None] * pelvis_angles
     left = step.stance_is_left.long()
@@ -185,11 +239,9 @@ def reference_outputs(
     yaw = wrap_to_pi(step.yaw0[:, None] + step.yaw_rate[:, None] * t)[..., None]
     yaw_rate = step.yaw_rate[:, None, None].expand(e, k, 1)
     swing_vel = swing[..., 3:] * ((phase < 1.0) / dur)[..., None]
-    com_z = (step.stance_pos[:, 2:3] + hlip.z0)[:, None].expand(e, k, 1)
     z2, zu = zeros[:2].expand(e, k, 2), zeros[:num_upper].expand(e, k, num_upper)
-    z1 = zeros[:1].expand(e, k, 1)
     pos = torch.cat([com_pos, com_z, roll_pitch, yaw, swing[..., :3], z2, yaw, zu], dim=-1)
-    vel = torch.cat([com_vel, z1, roll_pitch_rate, yaw_rate, swing_vel, z2, yaw_rate, zu], -1)
+    vel = torch.cat([com_vel, com_vz, roll_pitch_rate, yaw_rate, swing_vel, z2, yaw_rate, zu], -1)
     if single:
         return pos[:, 0], vel[:, 0]
     return pos, vel

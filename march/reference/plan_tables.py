@@ -8,16 +8,13 @@ are the two course readings the planner's callers share (the env's command, the 
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import torch
 
 from march.reference.kept import kept
-from march.reference.step_cost import _EPS
+from march.reference.planner_cfg import EPS, PlannerCfg
 from march.world.footholds import Footholds
-
-if TYPE_CHECKING:
-    from march.reference.planner import PlannerCfg
 
 
 def course_frame(footholds: Footholds) -> tuple[torch.Tensor, torch.Tensor]:
@@ -49,18 +46,18 @@ class PlanTables(NamedTuple):
     ``Footholds`` field). Rows first, so that an x-y pair of rows is a (2, ...) stack."""
 
     stones: torch.Tensor
-    """(17, E, S) per stone: centre x, y (``_CENTER_XY``), z (``_CZ``); the lower (``_LOWER``)
-    and upper (``_UPPER``) bounds of a foothold clamped into the stone, (2 margins, 2 axes)
+    """(17, E, S) per stone: centre x, y (``CENTER_XY``), z (``CZ``); the lower (``LOWER``)
+    and upper (``UPPER``) bounds of a foothold clamped into the stone, (2 margins, 2 axes)
     each (hard: with the hard margin, soft: with margin + edge clearance); the half extents with
-    the hard margin (``_SPREAD``), over which group (b)'s points spread; the half sizes the
-    clearance is measured against (``_HALF``): -inf on a padding entry or a stone too small for
+    the hard margin (``SPREAD``), over which group (b)'s points spread; the half sizes the
+    clearance is measured against (``HALF``): -inf on a padding entry or a stone too small for
     the hard margin, so that every point on it is off the stones; the half sizes with -inf on a
-    padding entry only (``_HALVES``: the nearest-stone search and the stance foot's stone)."""
+    padding entry only (``HALVES``: the nearest-stone search and the stance foot's stone)."""
     course: torch.Tensor
-    """(13, E) per env: the course frame as (2 world axes j, 4) rows (``_FRAME``): [lat_j,
+    """(13, E) per env: the course frame as (2 world axes j, 4) rows (``FRAME``): [lat_j,
     axis_j, lat_j, axis_j] (axis along the course, lat across it, to the left), so that a world
     step s maps to s[0] * [0] + s[1] * [1] = (across, along, across, along); the course start
-    xy (``_START``), its direction as given (``_DIR``) and the goal distance (``_GOAL``)."""
+    xy (``START``), its direction as given (``DIR``) and the goal distance (``GOAL``)."""
 
     def index(self, env_ids: torch.Tensor) -> PlanTables:
         """The tables of ``env_ids`` (an index into E)."""
@@ -80,10 +77,10 @@ class PlanTables(NamedTuple):
 
 
 # Rows of PlanTables.stones (first dim) and .course.
-_CENTER_XY, _CZ = slice(0, 2), 2
-_LOWER, _UPPER = slice(3, 7), slice(7, 11)
-_SPREAD, _HALF, _HALVES = slice(11, 13), slice(13, 15), slice(15, 17)
-_FRAME, _START, _DIR, _GOAL = slice(0, 8), slice(8, 10), slice(10, 12), 12
+CENTER_XY, CZ = slice(0, 2), 2
+LOWER, UPPER = slice(3, 7), slice(7, 11)
+SPREAD, HALF, HALVES = slice(11, 13), slice(13, 15), slice(15, 17)
+FRAME, START, DIR, GOAL = slice(0, 8), slice(8, 10), slice(10, 12), 12
 
 
 def plan_tables(footholds: Footholds, cfg: PlannerCfg) -> PlanTables:
@@ -92,11 +89,11 @@ def plan_tables(footholds: Footholds, cfg: PlannerCfg) -> PlanTables:
     half = footholds.half_size.movedim(-1, 0)  # (2, E, S)
     # (2 margins, 2 axes, E, S): hard = half - margin - eps, soft = half - margin - clearance
     margins = kept(
-        ("margins", _EPS, cfg.edge_clearance, half.device, half.dtype),
+        ("margins", EPS, cfg.edge_clearance, half.device, half.dtype),
         lambda: torch.stack(
             [
                 torch.full((), v, device=half.device, dtype=half.dtype)
-                for v in (_EPS, cfg.edge_clearance)
+                for v in (EPS, cfg.edge_clearance)
             ]
         ).view(2, 1, 1, 1),
     )
@@ -135,10 +132,30 @@ def plan_tables(footholds: Footholds, cfg: PlannerCfg) -> PlanTables:
     return PlanTables(stones, course)
 
 
-def _stance_z(tables: PlanTables, xy: torch.Tensor) -> torch.Tensor:
+def pad_stones(tables: PlanTables, count: int) -> PlanTables:
+    """``tables`` with at least ``count`` stones per env: padding entries (half sizes -inf, as a
+    padded ``Footholds`` entry's: never nearest, never under a foot, every point on them off the
+    stones) appended where it has fewer. The planner searches a fixed number of stones, so its
+    draws have one shape whatever the batch's stone count (issue 55)."""
+    s = tables.stones.shape[2]
+    if s >= count:
+        return tables
+    pad = torch.zeros(
+        tables.stones.shape[0],
+        tables.stones.shape[1],
+        count - s,
+        device=tables.stones.device,
+        dtype=tables.stones.dtype,
+    )
+    pad[HALF] = float("-inf")
+    pad[HALVES] = float("-inf")
+    return PlanTables(torch.cat([tables.stones, pad], dim=2), tables.course)
+
+
+def stance_z(tables: PlanTables, xy: torch.Tensor) -> torch.Tensor:
     """(E,) top height of the stone under the points ``xy`` (E, 2): the valid stone with the
     largest clearance min(half - |xy - c|) (:func:`locate_on_stones`'s choice)."""
     st = tables.stones
-    inside = st[_HALVES] - (xy.T[:, :, None] - st[_CENTER_XY]).abs_()
+    inside = st[HALVES] - (xy.T[:, :, None] - st[CENTER_XY]).abs_()
     best = torch.minimum(inside[0], inside[1]).argmax(-1, keepdim=True)
-    return st[_CZ].gather(1, best)[:, 0]
+    return st[CZ].gather(1, best)[:, 0]

@@ -53,9 +53,9 @@ rows into the score layout (T, M, 2 + K) of the noise and the argmin, where the 
 depend on the duration are added; the six constraints are rows of one buffer tested against
 their bounds in one comparison, and one gather reads a rollout's choice (duration, cost,
 feasibility, point, its stone's height, its advance). Every float is the one
-:func:`march.reference.step_cost._step_cost` computes (the same ops on the same values; the
+:func:`march.reference.step_cost.score_steps` computes (the same ops on the same values; the
 search tests a >= b as -a <= -b and reads -clearance, negations being exact), so the plans are
-the old ones bit for bit (:func:`evaluate_plan` still scores with ``_step_cost``).
+the old ones bit for bit (:func:`evaluate_plan` still scores with ``score_steps``).
 
 Frames: positions and the velocity command are in the world frame. Longitudinal/lateral limits and
 the nominal width use the course frame given by ``Footholds.direction`` (+x for generated courses).
@@ -76,107 +76,36 @@ import torch
 
 from march.compiled_math import fused
 from march.reference.plan_tables import (
-    _CENTER_XY,
-    _CZ,
-    _DIR,
-    _FRAME,
-    _GOAL,
-    _HALF,
-    _HALVES,
-    _LOWER,
-    _SPREAD,
-    _START,
-    _UPPER,
+    CENTER_XY,
+    CZ,
+    DIR,
+    FRAME,
+    GOAL,
+    HALF,
+    HALVES,
+    LOWER,
+    SPREAD,
+    START,
+    UPPER,
     PlanTables,
-    _stance_z,
     course_frame,
     locate_on_stones,
+    pad_stones,
     plan_tables,
+    stance_z,
 )
+from march.reference.planner_cfg import EPS, PlannerCfg
 from march.reference.search_inputs import RowUniform, planner_draws, score_layout
 from march.reference.step_cost import (
-    _EPS,
     XY,
-    _step_cost,
     goal_ahead,
     height_ok,
     into,
     pace_terms,
+    score_steps,
     step_terms,
 )
 from march.world.footholds import Footholds
-
-"""Numerical slack [m] so that clamped footholds pass ``Footholds.contains`` in float32."""
-
-
-@dataclass
-class PlannerCfg:
-    """Footstep planner parameters (author values where SPEC.md gives them)."""
-
-    num_steps: int = 4
-    """Horizon N: planned steps per replan (paper: 4)."""
-    num_rollouts: int = 16
-    """Greedy random-shooting rollouts R (paper: 16); rollout 0 is noise-free greedy."""
-    duration_range: tuple[float, float] = (0.45, 0.7)
-    """Shortest and longest step duration dt [s] (author)."""
-    num_durations: int = 7
-    """Number of evenly spaced duration candidates in ``duration_range`` (author: 7)."""
-    step_width: float = 0.25
-    """Nominal lateral distance between the feet [m] (author y_nom); keep equal to HlipCfg."""
-    max_step: float = 0.85
-    """Upper bound on the horizontal step length ||l|| [m] (author)."""
-    min_step_forward: float = -0.25
-    """Lower bound on the step component along the course [m] (a short backward step is allowed)."""
-    min_lateral: float = 0.08
-    """Least lateral distance of the landing foot to its own side of the stance foot [m]."""
-    max_lateral: float = 0.45
-    """Largest lateral distance of the landing foot from the stance foot [m]."""
-    max_step_height: float = 0.3
-    """Largest |height change| between stance and landing stone tops [m]."""
-    stone_margin: float = 0.04
-    """Hard margin: a foothold keeps at least this distance to every stone edge [m]."""
-    edge_clearance: float = 0.1
-    """Soft margin: footholds closer than this to an edge pay the edge cost [m] (author)."""
-    edge_cost: float = 100.0
-    """Edge cost weight; c_edge = edge_cost * (max(0, clearance - d_edge) / clearance)^2 (author)."""
-    w_velocity: float = 1.0
-    """Weight of ||v_i - v_D||^2 [1/(m/s)^2] (paper: 1)."""
-    w_time: float = 0.45
-    """Step-time regulariser weight on (dt - T_nom)^2 [1/s^2] (author's extra, not the paper's:
-    mostly breaks ties toward the middle duration on open ground). 0 = paper cost."""
-    num_candidate_stones: int = 8
-    """M: stones per step nearest to the nominal foothold that are searched."""
-    samples_per_stone: int = 4
-    """K: random footholds drawn uniformly on each searched stone (with the hard margin)."""
-    fuse_candidates: bool | None = None
-    """No effect since issue 41 (kept so that configs that set it still load): the search scores
-    both candidate groups in one pass per term on every device (the plans were the same)."""
-    explore_temperature: float = 0.2
-    """Softmin temperature of the randomised rollouts [cost units]; 0 makes all rollouts greedy."""
-    infeasible_cost: float = 1.0e4
-    """Cost added per violated step; keeps costs finite and ranks least-violating fallbacks."""
-    pace_fraction: float = 0.5
-    """rho: a step keeps pace when its advance along the course is at least rho * v_D * dt
-    (v_D the command's component along the course, dt the step's duration). 0 disables the
-    progress term (the paper's cost alone, which steps in place before a far stone). 0.5 leaves
-    the velocity term room to average the pace over short and long steps (0.9 made walks on the
-    easiest courses 20% faster than commanded) and still rules out steps in place."""
-    pace_cost: float = 1.0e3
-    """Cost per step of missing the pace entirely: pace_cost * max(0, rho v_D dt - advance) /
-    (rho v_D dt), charged only while the goal platform lies ahead of the stance foot. Larger than
-    any edge + velocity cost (<= ~110) so a step that keeps pace always beats one that does not,
-    smaller than ``infeasible_cost`` so a feasible short step still beats an infeasible one."""
-
-    @property
-    def nominal_duration(self) -> float:
-        """T_nom: the middle of ``duration_range`` [s] (a candidate when num_durations is odd)."""
-        return 0.5 * (self.duration_range[0] + self.duration_range[1])
-
-    def duration_grid(
-        self, device: torch.device | str = "cpu", dtype=torch.float32
-    ) -> torch.Tensor:
-        """(num_durations,) candidate step durations [s]."""
-        return torch.linspace(*self.duration_range, self.num_durations, device=device, dtype=dtype)
 
 
 @dataclass
@@ -239,7 +168,7 @@ def evaluate_plan(
         lat[:, None].movedim(-1, 0),
         cfg,
     )
-    cost, ok = _step_cost(
+    cost, ok = score_steps(
         prev,
         footholds_xy.movedim(-1, 0),
         clear,
@@ -298,7 +227,10 @@ def _plan(
 ) -> Plan:
     """:func:`plan_footsteps` on the current thread count (``source``: generator or per env)."""
     tables = footholds if isinstance(footholds, PlanTables) else plan_tables(footholds, cfg)
-    m = min(cfg.num_candidate_stones, tables.stones.shape[2])
+    # Every plan searches M stones (padding entries where a batch has fewer): the draws' shape,
+    # and so each env's numbers, never depend on the stone count its batch was padded to.
+    tables = pad_stones(tables, cfg.num_candidate_stones)
+    m = cfg.num_candidate_stones
     unit, noise = planner_draws(cfg, m, source, stance_xy.device, stance_xy.dtype)
     search = fused(_search) if compiled else _search
     return search(stance_xy, stance_is_left, command, tables, unit, noise, cfg)
@@ -341,7 +273,7 @@ def _search(
     docstring of :mod:`march.reference.search_inputs`); the chosen points, costs and stall
     flags are read after it. Points are (2, ...) x-y stacks (step_cost.XY).
 
-    The numbers are those of :func:`march.reference.step_cost._step_cost` bit for bit: the
+    The numbers are those of :func:`march.reference.step_cost.score_steps` bit for bit: the
     same float ops on the same values, where a constraint a >= b is tested as -a > -b
     (violated) and the edge cost reads -clearance (negations are exact)."""
     tables = footholds if isinstance(footholds, PlanTables) else plan_tables(footholds, cfg)
@@ -352,7 +284,7 @@ def _search(
     k, nt = cfg.samples_per_stone, cfg.num_durations
     q, f = 2 * nt + k, nt * m * (k + 2)
     lay = score_layout(cfg, m, device, dtype)
-    frame = tables.course[_FRAME].view(2, 4, e)  # [j]: (lat_j, axis_j, lat_j, axis_j)
+    frame = tables.course[FRAME].view(2, 4, e)  # [j]: (lat_j, axis_j, lat_j, axis_j)
     # Per env and step: nominal offsets (3), constraint signs (3), lands_left (1).
     sides = torch.where(stance_is_left[None, :, None], lay.sides[1, :, None], lay.sides[0, :, None])
     lands_left = sides[6] > 0.5  # (E, N)
@@ -380,11 +312,11 @@ def _search(
     nom_d = (
         sides[1][None, :, :, None] * lat[:, :, None, None] + v_cmd[:, :, None, None] * lay.durations
     )
-    centers = st[_CENTER_XY, :, None]  # (2, E, 1, S)
-    halves = st[_HALVES, :, None]
-    start = tables.course[_START].view(2, e, 1)
-    direction = tables.course[_DIR].view(2, e, 1)
-    goal = tables.course[_GOAL].view(e, 1)
+    centers = st[CENTER_XY, :, None]  # (2, E, 1, S)
+    halves = st[HALVES, :, None]
+    start = tables.course[START].view(2, e, 1)
+    direction = tables.course[DIR].view(2, e, 1)
+    goal = tables.course[GOAL].view(e, 1)
 
     fbuf[_F_DT].copy_(lay.duration)
     # What each step chose, (N, 7, E, R) (the _F_PICK rows), then the summed (cost, violations)
@@ -395,7 +327,7 @@ def _search(
     pos_b = pos[..., 2 * nt :]
     moved = gbuf.view(_G_ROWS, e, r, m * q)
 
-    z0 = _stance_z(tables, stance_xy)
+    z0 = stance_z(tables, stance_xy)
     p = stance_xy.T[:, :, None].expand(2, e, r)  # the rollouts' stance feet
     pz = z0[:, None].expand(e, r)
     aheads = []
@@ -408,17 +340,17 @@ def _search(
         near = (d[0] + d[1]).topk(m, dim=-1, largest=False).indices  # (E, R, M)
         rows = st.gather(2, near.view(1, e, r * m).expand(st.shape[0], -1, -1))
         rows = rows.view(-1, e, r, m, 1)
-        center, half = rows[_CENTER_XY], rows[_HALF]  # (2, E, R, M, 1)
+        center, half = rows[CENTER_XY], rows[HALF]  # (2, E, R, M, 1)
         # (a) the nominal foothold clamped into each stone (hard and soft margins), (M, T, 2);
         # (b) random points on each stone, (M, K): draws shared (2, R, M, K) or per env (2, E, ...)
         lower, upper = (
             rows[s].view(2, 2, e, r, m).permute(1, 2, 3, 4, 0)[:, :, :, :, None]
-            for s in (_LOWER, _UPPER)
+            for s in (LOWER, UPPER)
         )  # (2 axes, E, R, M, 1, 2 margins)
         into(pos_a, torch.clamp, nom[:, :, :, None, :, None], lower, upper)
         unit_i = unit[i] if unit.dim() == 6 else unit[i][:, None]
-        into(pos_b, torch.add, center, unit_i * rows[_SPREAD])
-        gbuf[_G_Z].copy_(rows[_CZ].expand(e, r, m, q))
+        into(pos_b, torch.add, center, unit_i * rows[SPREAD])
+        gbuf[_G_Z].copy_(rows[CZ].expand(e, r, m, q))
         # What depends on the point only, (E, R, M, Q) per row.
         off = (pos - center).abs_().sub_(half)  # -(half - |xy - c|): minus the clearance
         into(wbuf[_W_NEGCLEAR], torch.maximum, off[0], off[1])
@@ -431,7 +363,7 @@ def _search(
         into(wbuf[_W_SQ], torch.add, sq[0], sq[1])
         into(wbuf[_W_DZ], torch.sub, gbuf[_G_Z], pz.view(e, r, 1, 1)).abs_()
         # Feasible where every row is within its bound: a NaN fails (not x <= b), as in
-        # _step_cost's >= tests. The row holds ok - 1: 0.0 feasible, -1.0 infeasible.
+        # score_steps's >= tests. The row holds ok - 1: 0.0 feasible, -1.0 infeasible.
         ok = (wbuf <= lay.limits).view(torch.uint8).amin(0)
         into(gbuf[_G_PEN], torch.add, ok, -1.0)
         edge = wbuf[_W_NEGCLEAR].add(cfg.edge_clearance).div_(cfg.edge_clearance).clamp_(0.0, 1.0)
@@ -473,7 +405,7 @@ def _search(
         total.copy_(chosen_rows[0, _F_COST : _F_PEN + 1])
 
     # Stall flag: a chosen step falls short of the pace while the goal lies ahead.
-    need = floor[:, None] * chosen_rows[:, _F_DT] - _EPS
+    need = floor[:, None] * chosen_rows[:, _F_DT] - EPS
     stalled = (torch.stack(aheads) & (chosen_rows[:, _F_ALONG] < need)).any(0)
     # Best rollout: feasible ones first, then the lowest noise-free cost.
     feasible = total[1] == 0.0

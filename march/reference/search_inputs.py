@@ -22,14 +22,12 @@ Two candidate layouts (one pass each; the planner's module docstring, "Solver"):
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import torch
 
 from march.reference.kept import kept
-
-if TYPE_CHECKING:
-    from march.reference.planner import PlannerCfg
+from march.reference.planner_cfg import EPS, PlannerCfg
 
 RowUniform = Callable[[tuple[int, ...]], torch.Tensor]
 """``draw(shape)``: (E, *shape) uniforms in [0, 1), one stream per env of the batch."""
@@ -118,8 +116,6 @@ class ScoreLayout(NamedTuple):
 
 def score_layout(cfg: PlannerCfg, m: int, device: torch.device, dtype: torch.dtype) -> ScoreLayout:
     """The kept :class:`ScoreLayout` of ``cfg`` with M = ``m`` searched stones."""
-    from march.reference.step_cost import _EPS
-
     nt, k, n = cfg.num_durations, cfg.samples_per_stone, cfg.num_steps
     key = (
         "layout",
@@ -149,7 +145,7 @@ def score_layout(cfg: PlannerCfg, m: int, device: torch.device, dtype: torch.dty
         t_idx, m_idx = tm // m, tm % m
         index = m_idx * q + torch.where(c < 2, t_idx * 2 + c, 2 * nt + c - 2)
         bounds = (
-            -(cfg.stone_margin - 2 * _EPS),
+            -(cfg.stone_margin - 2 * EPS),
             cfg.max_step**2,
             -cfg.min_lateral,
             -cfg.min_step_forward,

@@ -8,12 +8,10 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import torch
 
-if TYPE_CHECKING:
-    from march.reference.planner import PlannerCfg
-    from march.world.footholds import Footholds
+from march.reference.planner_cfg import EPS, PlannerCfg
 
-_EPS = 1e-5
-"""Slack of the margin tests [m]."""
+if TYPE_CHECKING:
+    from march.world.footholds import Footholds
 
 XY = torch.Tensor
 """A 2-D vector field as one (2, ...) tensor, x (or the along component) at [0] and y (or the
@@ -25,7 +23,7 @@ component-wise expression gives, bit for bit."""
 
 
 class StepTerms(NamedTuple):
-    """The parts of :func:`_step_cost` that do not depend on where the step lands: they depend on
+    """The parts of :func:`score_steps` that do not depend on where the step lands: they depend on
     the duration, the landing side, the command and the course frame only, so the planner builds
     them once per plan (not per candidate; :func:`step_terms`)."""
 
@@ -113,7 +111,7 @@ def all_of(*masks: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tenso
     return out
 
 
-def _step_cost(
+def score_steps(
     prev: XY,
     pos: XY,
     clearance: torch.Tensor,
@@ -149,7 +147,7 @@ def _step_cost(
     own = course * terms.own_side  # (along, signed lateral distance)
     sq = step.mul_(step)
     feasible = all_of(
-        clearance >= cfg.stone_margin - 2 * _EPS,
+        clearance >= cfg.stone_margin - 2 * EPS,
         sq[0] + sq[1] <= cfg.max_step**2,
         *(own >= terms.lower).unbind(0),
         own[1] <= cfg.max_lateral,

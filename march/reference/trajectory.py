@@ -2,8 +2,8 @@
 
 Outputs, in this order (``output_names``), each with a position and a velocity:
 
-    com_x, com_y, com_z                  CoM [m]: HLIP orbit in x/y anchored at the stance foot,
-                                         constant height z0 above the stance foot
+    com_x, com_y, com_z                  CoM [m]: HLIP orbit of the planned step in x/y, height z0;
+                                         continuous across touchdowns (march.reference.com_carry)
     pelvis_roll, pelvis_pitch, pelvis_yaw  pelvis Euler angles [rad]: yaw = yaw0 + yaw_rate tau
                                          (the command term holds it at the course heading,
                                          yaw_rate 0); small roll/pitch oscillations per step
@@ -32,6 +32,14 @@ so it starts at the measured CoM with zero velocity, v is the exact time derivat
 the planned touchdown (s = 1, ds/dtau = 0) it is on the orbit's pre-impact state, where the
 following steps continue as before. Past the planned duration every step's CoM reference keeps
 flowing along the HLIP (:func:`march.reference.hlip.hlip_com_state`).
+
+Continuity across touchdowns (issue 55, ``ReferenceCfg.com_anchoring``): with ``continuous``
+(default) a step that carries the previous reference's CoM state (``StepState.com_from_pos``,
+``com_from_vel``) adds :func:`march.reference.com_carry.carry_correction` to its orbit, so the
+CoM reference is continuous in position and velocity and ends each step on the planned orbit; its
+height blends from the previous reference's to z0 above the lower of the stance and landing
+stones. With ``stance`` (or a step without ``com_from_*``) the orbit is anchored at the stance
+foot and the height is z0 above it (the earlier reference, which jumps at every touchdown).
 """
 
 from __future__ import annotations
@@ -41,6 +49,13 @@ from dataclasses import dataclass, fields
 
 import torch
 
+from march.reference.com_carry import (
+    COM_ANCHORINGS,
+    COM_HEIGHTS,
+    carry_correction,
+    pendulum_lambda,
+    step_com_height,
+)
 from march.reference.hlip import HlipCfg, hlip_com_state
 from march.reference.kept import kept
 from march.reference.planner import Plan
@@ -71,6 +86,30 @@ class ReferenceCfg:
     """Pelvis pitch oscillation amplitude [rad] (one period per step)."""
     pitch_offset: float = 0.0
     """Constant forward pelvis pitch [rad]."""
+    com_anchoring: str = "continuous"
+    """``continuous``: the CoM reference carries the previous reference's CoM state across a
+    touchdown (continuous position and velocity, each step ending on its orbit); ``stance``:
+    each step's HLIP orbit is anchored at the new stance foot (the earlier reference; jumps by
+    about (l_old - l_new)/2 at every touchdown). march.reference.com_carry."""
+    com_height: str = "fixed"
+    """``fixed``: CoM height z0 (HlipCfg.z0, author 0.67 m) for every step; ``step``: lowered
+    with the step length (:attr:`com_height_free_step`, ``_slope``, ``_min``) so that long
+    steps are within the G1's reach; the HLIP's lambda uses the height of the step."""
+    com_height_free_step: float = 0.5
+    """``com_height=step``: steps up to this long along the course keep z0 [m]."""
+    com_height_slope: float = 0.35
+    """``com_height=step``: CoM height lowered per metre of step beyond the free length [m/m]."""
+    com_height_min: float = 0.57
+    """``com_height=step``: the lowest CoM height [m] (the measured envelope reaches 0.90 m
+    steps at 0.57 m)."""
+
+    def __post_init__(self) -> None:
+        if self.com_anchoring not in COM_ANCHORINGS:
+            raise ValueError(f"com_anchoring must be one of {COM_ANCHORINGS}")
+        if self.com_height not in COM_HEIGHTS:
+            raise ValueError(f"com_height must be one of {COM_HEIGHTS}")
+        if self.com_height_slope < 0.0 or self.com_height_min <= 0.0:
+            raise ValueError("need com_height_slope >= 0 and com_height_min > 0")
 
 
 def wrap_to_pi(angle: torch.Tensor) -> torch.Tensor:
@@ -184,6 +223,13 @@ class StepState:
     at ``ramp_from`` (module docstring). None = no env ramps."""
     ramp_from: torch.Tensor | None = None
     """(E, 2) measured CoM xy at the start of a ramping step [m] (read where ``ramp``)."""
+    com_from_pos: torch.Tensor | None = None
+    """(E, 3) the previous reference's CoM position at the instant this step began [m], world
+    (``com_anchoring=continuous``; None: the orbit alone, anchored at the stance foot)."""
+    com_from_vel: torch.Tensor | None = None
+    """(E, 3) the previous reference's CoM velocity then [m/s]."""
+    z0: torch.Tensor | None = None
+    """(E,) CoM height of this step [m] (``com_height=step``; None or ``fixed``: HlipCfg.z0)."""
 
 
 def step_state_from_plan(
@@ -194,11 +240,17 @@ def step_state_from_plan(
     yaw_rate: torch.Tensor,
     axis: torch.Tensor | None = None,
     ramp_from: torch.Tensor | None = None,
+    com_from: tuple[torch.Tensor, torch.Tensor] | None = None,
+    cfg: ReferenceCfg | None = None,
+    hlip: HlipCfg | None = None,
 ) -> StepState:
     """The step state right after a touchdown and replan: step 0 of ``plan`` is being taken.
 
     ``ramp_from`` (E, 2): the measured CoM of envs that start from standing (episode start); the
     step's CoM reference then ramps from rest there. None: every env continues a walk.
+    ``com_from``: (E, 3) position and velocity of the previous reference's CoM at this instant
+    (:func:`com_state`), carried into the step (``com_anchoring=continuous``). ``cfg`` and
+    ``hlip`` give the step's CoM height (:func:`step_height`).
     """
     if axis is None:
         axis = torch.zeros_like(stance_pos[:, :2])
@@ -207,13 +259,17 @@ def step_state_from_plan(
     ramp = torch.full((e,), ramp_from is not None, dtype=torch.bool, device=stance_pos.device)
     if ramp_from is None:
         ramp_from = torch.zeros_like(stance_pos[:, :2])
+    target = plan.footholds[:, 0]
     return StepState(
         ramp=ramp,
         ramp_from=ramp_from,
+        com_from_pos=None if com_from is None else com_from[0],
+        com_from_vel=None if com_from is None else com_from[1],
+        z0=step_height(stance_pos, target, axis, cfg or ReferenceCfg(), hlip or HlipCfg()),
         stance_pos=stance_pos,
         stance_is_left=~plan.lands_left[:, 0],
         swing_start=swing_start,
-        target=plan.footholds[:, 0],
+        target=target,
         next_target=plan.footholds[:, 1],
         duration=plan.durations[:, 0],
         next_duration=plan.durations[:, 1],
@@ -221,6 +277,55 @@ def step_state_from_plan(
         yaw_rate=yaw_rate,
         axis=axis,
     )
+
+
+def step_height(
+    stance_pos: torch.Tensor,
+    target: torch.Tensor,
+    axis: torch.Tensor,
+    cfg: ReferenceCfg,
+    hlip: HlipCfg,
+) -> torch.Tensor:
+    """(E,) CoM height [m] of the steps from ``stance_pos`` to ``target`` (E, 3): z0 with
+    ``com_height=fixed``, lowered with the step's length along ``axis`` (E, 2) with ``step``
+    (:func:`march.reference.com_carry.step_com_height`)."""
+    if cfg.com_height == "fixed":
+        return torch.full_like(stance_pos[:, 0], hlip.z0)
+    along = ((target[:, :2] - stance_pos[:, :2]) * axis).sum(-1)
+    return step_com_height(
+        along, hlip.z0, cfg.com_height_free_step, cfg.com_height_slope, cfg.com_height_min
+    )
+
+
+def step_lambda(step: StepState, cfg: ReferenceCfg, hlip: HlipCfg) -> torch.Tensor | float:
+    """The HLIP's lambda of each step: sqrt(g / z) of the height it is walked at (a float with
+    ``com_height=fixed``, (E,) with ``step``)."""
+    if cfg.com_height == "fixed" or step.z0 is None:
+        return hlip.lam
+    return pendulum_lambda(step.z0, hlip.g)
+
+
+def com_orbit_height(step: StepState, cfg: ReferenceCfg, hlip: HlipCfg) -> torch.Tensor:
+    """(E,) the height [m] the step's CoM orbit ends at: z0 above the stance stone
+    (``com_anchoring=stance``, the earlier reference), or above the lower of the stance and
+    landing stones (``continuous``: on a step down the CoM comes down with the foot, on a step
+    up it stays low until the new stance, within both legs' reach)."""
+    z0 = hlip.z0 if cfg.com_height == "fixed" or step.z0 is None else step.z0
+    if cfg.com_anchoring == "stance":
+        return step.stance_pos[:, 2] + z0
+    return torch.minimum(step.stance_pos[:, 2], step.target[:, 2]) + z0
+
+
+def com_state(
+    step: StepState,
+    tau: torch.Tensor,
+    cfg: ReferenceCfg | None = None,
+    hlip: HlipCfg | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(E, 3) CoM reference position and velocity at ``tau`` into ``step``: what the next step
+    carries (``step_state_from_plan``'s ``com_from``)."""
+    ref = reference_at(step, tau, cfg, hlip, num_upper=0)
+    return ref.com_pos, ref.com_vel
 
 
 @dataclass
@@ -327,21 +432,44 @@ def reference_at(
         step.swing_start, target, phase, step.duration, cfg.swing_height
     )
     stance_xy = step.stance_pos[:, :2]
-    com_xy, com_vxy = hlip_com_state(
-        stance_xy,
-        step.target[:, :2] - stance_xy,
-        step.next_target[:, :2] - step.target[:, :2],
-        step.duration,
-        step.next_duration,
-        tau,
-        hlip.lam,
-        step.axis,
-    )
+    lam = step_lambda(step, cfg, hlip)
+
+    def orbit(at: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return hlip_com_state(
+            stance_xy,
+            step.target[:, :2] - stance_xy,
+            step.next_target[:, :2] - step.target[:, :2],
+            step.duration,
+            step.next_duration,
+            at,
+            lam,
+            step.axis,
+        )
+
+    com_xy, com_vxy = orbit(tau)
     if step.ramp is not None and step.ramp_from is not None:
         com_xy, com_vxy = ramp_from_rest(
             com_xy, com_vxy, step.ramp_from, step.ramp, tau, step.duration
         )
-    com_z = step.stance_pos[:, 2:3] + hlip.z0
+    com_z = com_orbit_height(step, cfg, hlip)[:, None]
+    com_vz = torch.zeros_like(com_z)
+    if cfg.com_anchoring == "continuous" and step.com_from_pos is not None:
+        # The previous reference's CoM state minus the orbit's at tau = 0; the ramp of an
+        # episode start already begins at the measured CoM at rest (its xy gap is not carried).
+        xy0, vxy0 = orbit(torch.zeros_like(tau))
+        keep = 1.0 if step.ramp is None else (~step.ramp).to(tau.dtype)[:, None]
+        gap_pos = torch.cat(
+            [(step.com_from_pos[:, :2] - xy0) * keep, step.com_from_pos[:, 2:] - com_z], -1
+        )
+        gap_vel = torch.cat(
+            [(step.com_from_vel[:, :2] - vxy0) * keep, step.com_from_vel[:, 2:]], -1
+        )
+        lam_e = lam if isinstance(lam, float) else lam[:, None]
+        dp, dv = carry_correction(
+            gap_pos[:, None], gap_vel[:, None], tau[:, None], step.duration[:, None], lam_e
+        )
+        com_xy, com_vxy = com_xy + dp[:, 0, :2], com_vxy + dv[:, 0, :2]
+        com_z, com_vz = com_z + dp[:, 0, 2:], com_vz + dv[:, 0, 2:]
     pelvis_ori, pelvis_rate = pelvis_reference(step, tau, cfg)
     zeros = torch.zeros_like(pelvis_ori)
     swing_ori = torch.cat([zeros[:, :2], pelvis_ori[:, 2:3]], dim=-1)
@@ -349,7 +477,7 @@ def reference_at(
     upper = torch.zeros(e, num_upper, dtype=tau.dtype, device=tau.device)
     return Reference(
         com_pos=torch.cat([com_xy, com_z], dim=-1),
-        com_vel=torch.cat([com_vxy, torch.zeros_like(com_z)], dim=-1),
+        com_vel=torch.cat([com_vxy, com_vz], dim=-1),
         pelvis_ori=pelvis_ori,
         pelvis_rate=pelvis_rate,
         swing_pos=swing_pos,

@@ -1,0 +1,89 @@
+"""The ``reference`` command in the real teacher env (issue 55): a swing foot that never leaves
+the ground ends no step (zero action: no touchdown, only timeout restarts), and the CoM
+reference does not jump where a step ends, at a touchdown or at a restart (the old step's
+reference at that instant against the new step's at tau = 0)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from march.config.cli import load
+from march.env.build import make_env
+from march.env.reference_command import reference_term
+
+STEPS = 120
+
+
+@pytest.fixture(scope="module")
+def env():
+    env = make_env(load(["compute=smoke", "dr=none"]), "teacher", num_envs=4)
+    yield env
+    env.close()
+
+
+def _walk(env, std: float, steps: int = STEPS, seed: int = 0):
+    """Step with actions std * N(0, 1); per switch that is not an episode reset, the CoM
+    reference's (position, velocity) jump and whether it was a touchdown."""
+    term = reference_term(env)
+    gen = torch.Generator().manual_seed(seed)
+    n_act = env.action_manager.total_action_dim
+    env.reset()
+    found = []
+    for _ in range(steps):
+        before = term._next_ref
+        tds, fcs = term.touchdown_count.clone(), term.forced_count.clone()
+        _, _, terminated, truncated, _ = env.step(
+            std * torch.randn(env.num_envs, n_act, generator=gen)
+        )
+        if before is None:
+            continue
+        kept = ~(terminated | truncated)
+        pos = (term.y_ref_pos[:, :3] - before[1][:, :3]).norm(dim=-1)
+        vel = (term.y_ref_vel[:, :3] - before[2][:, :3]).norm(dim=-1)
+        for i in range(env.num_envs):
+            td, fc = bool(term.touchdown_count[i] > tds[i]), bool(term.forced_count[i] > fcs[i])
+            if kept[i] and (td or fc):
+                found.append((float(pos[i]), float(vel[i]), td))
+    return found
+
+
+@pytest.mark.sim
+def test_zero_action_makes_no_touchdown_and_no_jump(env):
+    """Standing (zero action, the feet never lift): no touchdown in 120 steps (2.4 s), the steps
+    time out and restart from the same stance instead, each without a jump."""
+    term = reference_term(env)
+    start = term.touchdown_count.clone()
+    switches = _walk(env, 0.0)
+    assert int((term.touchdown_count - start).sum()) == 0
+    assert len(switches) >= env.num_envs  # every env restarted at least once (1.5 T < 1.05 s)
+    assert all(not td for _, _, td in switches)
+    assert max(p for p, _, _ in switches) < 1e-4
+    assert max(v for _, v, _ in switches) < 1e-3
+
+
+@pytest.mark.sim
+def test_touchdowns_carry_the_com_reference_without_a_jump(env):
+    """Random actions (the robot stumbles, lifts and lands its feet): real touchdowns happen and
+    at each, as at every restart, the CoM reference is continuous (float32: < 0.1 mm,
+    < 1 mm/s). (With ``reference.com_anchoring=stance`` the same walks jump by decimetres:
+    scripts/reference_jumps.py.)"""
+    switches = _walk(env, 0.4, steps=160, seed=3)
+    assert sum(td for _, _, td in switches) >= 1, switches
+    assert max(p for p, _, _ in switches) < 1e-4, switches
+    assert max(v for _, v, _ in switches) < 1e-3, switches
+
+
+def test_the_reference_section_reaches_the_command_term():
+    """``reference.*`` on the command line is what the env's ``reference`` term is built with;
+    a wrong value is one line naming the choices."""
+    from march.config.schema import ConfigError
+    from march.env.build import build_env_cfg
+
+    cfg = load(["compute=smoke", "reference.com_anchoring=stance", "reference.com_height=step"])
+    ref = build_env_cfg(cfg, "teacher").commands["reference"].reference
+    assert (ref.com_anchoring, ref.com_height) == ("stance", "step")
+    ref = build_env_cfg(load(["compute=smoke"]), "teacher").commands["reference"].reference
+    assert (ref.com_anchoring, ref.com_height, ref.com_height_min) == ("continuous", "fixed", 0.57)
+    with pytest.raises(ConfigError, match="continuous, stance"):
+        load(["reference.com_anchoring=sideways"])
