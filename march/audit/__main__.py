@@ -1,3 +1,5 @@
+"""`python -m march.audit`: the entry point of the audit tool (reference, rewards, envelope)."""
+
 import os
 
 # MuJoCo picks its rendering backend when first imported (the reference job films the G1).
