@@ -32,7 +32,13 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from march.config import ConfigError, MarchConfig, to_march_config
-from march.config.cli import duplicate_overrides, fail, renamed_group, resolve_compute
+from march.config.cli import (
+    duplicate_overrides,
+    fail,
+    override_problem,
+    renamed_group,
+    resolve_compute,
+)
 from march.config.memory import check_memory
 from march.config.terms import check_terms, import_extra_modules
 from march.learn import distributed, preemption, tuning
@@ -441,6 +447,8 @@ if __name__ == "__main__":
     if problem := sweep_problem(sys.argv[1:]):
         fail(problem)
     if problem := duplicate_overrides(sys.argv[1:]) or renamed_group(sys.argv[1:]):
+        fail(problem)
+    if problem := override_problem(sys.argv[1:]):  # Hydra's refusals, in one line (issue 59)
         fail(problem)
     sys.argv = _resume_argv(_rank_argv(sys.argv))
     try:  # the output directory, and a run already there locked, before Hydra writes anything
