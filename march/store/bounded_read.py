@@ -57,6 +57,12 @@ class FileRefused(ValueError):
     """A bundle file that is not read: one line naming it and why."""
 
 
+class NotParsed(FileRefused):
+    """A file that is not valid JSON / YAML text at all (cut short, not text): a reader that
+    lists broken runs (the figures) may note it and go on; any other refusal (a link, a size,
+    a key given twice, a YAML alias) is a file march did not write."""
+
+
 def open_regular(path: Path, label: str, limit: int, wanted: str) -> Any:
     """``path`` opened for binary reading, or :class:`FileRefused` in one line naming ``label``
     (``wanted``: what to pass instead, for a missing file)."""
@@ -109,7 +115,7 @@ def read_yaml_text(
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as err:
-        raise FileRefused(f"{label}: not UTF-8 text ({err.reason} at byte {err.start})") from None
+        raise NotParsed(f"{label}: not UTF-8 text ({err.reason} at byte {err.start})") from None
     check_yaml_plain(text, label)
     return text
 
@@ -150,7 +156,7 @@ def check_yaml_plain(text: str, label: str) -> None:
                 raise FileRefused(f"{label}: holds more than one YAML document")
     except yaml.YAMLError as err:
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise FileRefused(f"{label}: not readable YAML ({first})") from None
+        raise NotParsed(f"{label}: not readable YAML ({first})") from None
 
 
 def read_in_folder(folder: Path, name: Any, what: str, limit: int) -> bytes:
@@ -192,7 +198,7 @@ def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
 
 
 def _not_json(word: str) -> Any:
-    raise FileRefused(f"{word} is not a JSON number")
+    raise NotParsed(f"{word} is not a JSON number")  # an older writer's NaN: not hostile
 
 
 def _depth(node: Any) -> int:
@@ -217,10 +223,10 @@ def parse_json_strict(data: bytes, label: str) -> Any:
             data.decode("utf-8"), object_pairs_hook=_no_duplicates, parse_constant=_not_json
         )
     except FileRefused as err:
-        raise FileRefused(f"{label}: not strict JSON ({err})") from None
+        raise type(err)(f"{label}: not strict JSON ({err})") from None
     except (UnicodeDecodeError, ValueError, RecursionError) as err:
         first = str(err).splitlines()[0] if str(err) else type(err).__name__
-        raise FileRefused(f"{label}: not readable JSON ({first})") from None
+        raise NotParsed(f"{label}: not readable JSON ({first})") from None
     if _depth(doc) > MAX_JSON_DEPTH:
         raise FileRefused(f"{label}: nested deeper than {MAX_JSON_DEPTH} levels")
     return doc
