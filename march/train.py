@@ -219,9 +219,7 @@ def run_pipeline(
             )
             # An Optuna trial (hydra/sweeper=march_optuna): report, maybe stop here (pruned).
             # The run's last evaluation is the trial's value, never the pruner's to cut.
-            step = iteration + (cfg.teacher.max_iterations if stage == "student" else 0)
-            last = cfg.distill.max_iterations if stage == "student" else cfg.teacher.iterations
-            final = iteration >= last and (stage == "student" or cfg.stage == "teacher")
+            step, final = trial_step(cfg, stage, iteration)
             tuning.report(float(row[cfg.objective]), step, final=final)
             return row
 
@@ -286,6 +284,15 @@ def run_pipeline(
         return summary
     finally:
         log.close()
+
+
+def trial_step(cfg: MarchConfig, stage: str, iteration: int) -> tuple[int, bool]:
+    """(the Optuna step, whether it is the run's last evaluation) of an evaluation of ``stage``
+    at ``iteration``: the student's steps follow the teacher iterations that ran
+    (``teacher.iterations``, the budget scale applied), so no two evaluations share a step."""
+    step = iteration + (cfg.teacher.iterations if stage == "student" else 0)
+    last = cfg.distill.max_iterations if stage == "student" else cfg.teacher.iterations
+    return step, iteration >= last and (stage == "student" or cfg.stage == "teacher")
 
 
 @hydra.main(config_path="../conf", config_name="config", version_base="1.3")
