@@ -281,7 +281,10 @@ def hydra_refusal(err: BaseException, args: Sequence[str]) -> str:
             return f"{typed}: there is no config group {group!r} (conf/{group}/)"
         near = _closest(name, options)
         hint = f"; did you mean {group}={near}?" if near else ""
-        return f"{typed}: {group} has no option {name!r}; options: {', '.join(options)}{hint}"
+        return (
+            f"{typed}: {group} has no option {name!r} (no {group}/{name}.yaml on the search "
+            f"path); options: {', '.join(options)}{hint}"
+        )
     if isinstance(err, OverrideParseException):
         typed = err.override or "an override"
         lines = str(err.message).splitlines()
