@@ -270,3 +270,45 @@ def test_resume_refuses_a_bad_file_in_one_line_and_changes_nothing(tmp_path, bad
     assert out.returncode == 2 and len(out.stderr.splitlines()) == 1, out.stderr
     assert needle in out.stderr and out.stderr.startswith(f"error: resume={run}: ")
     assert _tree_hash(run) == before
+
+
+@pytest.mark.parametrize(
+    "tool",
+    [
+        "export",
+        pytest.param("play", marks=pytest.mark.slow),
+        pytest.param("audit", marks=pytest.mark.slow),
+        pytest.param("eval", marks=pytest.mark.slow),
+        pytest.param("inspect-run", marks=pytest.mark.slow),
+    ],
+)
+def test_every_tool_refuses_a_zip_bomb_before_the_simulator(tmp_path, tool):
+    """The record check runs before the term check imports mjlab (~30 s on a loaded machine)."""
+    (tmp_path / "run" / "student").mkdir(parents=True)
+    bomb = zip_bomb(tmp_path / "run" / "student" / "latest.pt")
+    args = {
+        "export": ["march.export", f"student_ckpt={bomb}", f"out={tmp_path / 'out'}"],
+        "play": ["march.play", f"student_ckpt={bomb}"],
+        "audit": ["march.audit", "rewards", f"teacher_ckpt={bomb}", f"out={tmp_path / 'a.json'}"],
+        "eval": [
+            "march.train",
+            "stage=eval",
+            f"student_ckpt={bomb}",
+            f"hydra.run.dir={tmp_path / 'e'}",
+        ],
+        "inspect-run": ["march.inspect", "run", str(tmp_path / "run")],
+    }[tool]
+    code = (
+        "import runpy, sys\n"
+        f"sys.argv = {args!r}\n"
+        "try:\n"
+        "    runpy.run_module(sys.argv[0], run_name='__main__', alter_sys=True)\n"
+        "finally:\n"
+        "    print('mjlab' in sys.modules)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300
+    )
+    assert out.returncode == 2 and len(out.stderr.splitlines()) == 1, out.stderr
+    assert "is compressed" in out.stderr and out.stdout.split()[-1] == "False", out.stdout
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]  # nothing written

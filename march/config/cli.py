@@ -130,6 +130,7 @@ def run_tool(
         fail(twice)
     try:
         cfg = load(args)
+        check_checkpoint_files(cfg)
         if check_reward:
             check_terms(cfg)  # every term known, its params valid: before any env
     except (HydraException, OmegaConfBaseException) as err:
@@ -150,6 +151,23 @@ def run_tool(
         torch.set_num_threads(cfg.compute.torch_threads)
     os.environ.setdefault("WANDB_MODE", "offline")
     return fn(cfg)
+
+
+def check_checkpoint_files(cfg: MarchConfig) -> None:
+    """The checkpoint files the command line names (``teacher_ckpt=``, ``student_ckpt=``), as
+    far as they can be judged without unpickling (:func:`march.store.checkpoint.check_file`: no
+    link, bounded, zip records as torch writes them): before the term check imports the
+    simulator, so a crafted file is one line in seconds. A missing file is left to the tool,
+    whose message says what to pass."""
+    from march.store.checkpoint import CheckpointError, check_file
+
+    for kind in ("teacher", "student"):
+        path = getattr(cfg, f"{kind}_ckpt", None)
+        if path and os.path.lexists(path):
+            try:
+                check_file(path, f"{kind}_ckpt={path}")
+            except CheckpointError as err:
+                raise ConfigError(str(err)) from None
 
 
 RENAMED_GROUPS = {"arm": "experiment"}
