@@ -234,6 +234,16 @@ def test_the_gate_refuses_a_module_a_checkpoint_names(tmp_path):
     assert not (tmp_path / "ran").exists() and name not in sys.modules
 
 
+def test_the_gate_refuses_an_interpolation_in_a_checkpoints_config(tmp_path, monkeypatch):
+    monkeypatch.setenv("MARCH_PLANTED", "resolved")
+    saved = asdict(load(["compute=smoke"]))
+    saved["reward"]["label"] = "${oc.env:MARCH_PLANTED}"
+    payload = {"kind": "teacher", "iteration": 0, "env_steps": 0, "config": saved}
+    torch.save(payload, tmp_path / "t.pt")
+    with pytest.raises(ConfigError, match=r"reward.label holds a '\$\{...\}' interpolation"):
+        read_checkpoint(str(tmp_path / "t.pt"), "teacher", named=[])
+
+
 # --- the real command: one line, the directory unchanged ---------------------------------------
 
 
