@@ -109,10 +109,14 @@ def run_tool(
     argv: Sequence[str] | None = None,
     usage: str = "",
     check_reward: bool = True,
+    before_terms: Callable[[MarchConfig], None] | None = None,
 ) -> object:
     """Parse ``[job] key=value ...``, compose the config and run the job with clear errors.
     ``check_reward``: check the reward terms too (imports the env's term modules; a job that
-    builds no env may skip it)."""
+    builds no env may skip it). ``before_terms``: the tool's own checks that need no simulator
+    (raising :class:`ConfigError`), run before the term check imports it: a tool given a
+    checkpoint passes :func:`march.store.gate.check_checkpoint_files`, so a crafted file is one
+    line in seconds."""
     args = list(sys.argv[1:] if argv is None else argv)
     if callable(jobs):
         job, fn = None, jobs
@@ -130,7 +134,8 @@ def run_tool(
         fail(twice)
     try:
         cfg = load(args)
-        check_checkpoint_files(cfg)
+        if before_terms is not None:
+            before_terms(cfg)  # e.g. the checkpoint files, judged before the simulator loads
         if check_reward:
             check_terms(cfg)  # every term known, its params valid: before any env
     except (HydraException, OmegaConfBaseException) as err:
@@ -151,23 +156,6 @@ def run_tool(
         torch.set_num_threads(cfg.compute.torch_threads)
     os.environ.setdefault("WANDB_MODE", "offline")
     return fn(cfg)
-
-
-def check_checkpoint_files(cfg: MarchConfig) -> None:
-    """The checkpoint files the command line names (``teacher_ckpt=``, ``student_ckpt=``), as
-    far as they can be judged without unpickling (:func:`march.store.checkpoint.check_file`: no
-    link, bounded, zip records as torch writes them): before the term check imports the
-    simulator, so a crafted file is one line in seconds. A missing file is left to the tool,
-    whose message says what to pass."""
-    from march.store.checkpoint import CheckpointError, check_file
-
-    for kind in ("teacher", "student"):
-        path = getattr(cfg, f"{kind}_ckpt", None)
-        if path and os.path.lexists(path):
-            try:
-                check_file(path, f"{kind}_ckpt={path}")
-            except CheckpointError as err:
-                raise ConfigError(str(err)) from None
 
 
 RENAMED_GROUPS = {"arm": "experiment"}

@@ -195,6 +195,25 @@ def check_weights(payload: dict[str, Any], kind: str, label: str, cfg: MarchConf
             )
 
 
+def check_checkpoint_files(cfg: MarchConfig) -> None:
+    """The checkpoint files ``cfg`` names (``teacher_ckpt=``, ``student_ckpt=``), as far as they
+    can be judged without unpickling (:func:`march.store.checkpoint.check_file`: no link,
+    bounded, zip records as torch writes them), one :class:`ConfigError` line: a tool passes it
+    to ``run_tool(before_terms=...)``, so a zip bomb is refused before the simulator loads. A
+    missing file is left to the tool, whose message says what to pass."""
+    import os
+
+    from march.store.checkpoint import check_file
+
+    for kind in ("teacher", "student"):
+        path = getattr(cfg, f"{kind}_ckpt", None)
+        if path and os.path.lexists(path):
+            try:
+                check_file(path, f"{kind}_ckpt={path}")
+            except CheckpointError as err:
+                raise ConfigError(str(err)) from None
+
+
 def read_checkpoint(
     path: str,
     kind: str,
@@ -281,6 +300,7 @@ def apply_policy_checkpoint(
 __all__ = [
     "CheckpointError",
     "apply_policy_checkpoint",
+    "check_checkpoint_files",
     "check_checkpoint",
     "check_named_modules",
     "check_weights",
