@@ -21,7 +21,6 @@ This script reads files only (pandas, matplotlib), never the simulator or the ``
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -30,6 +29,11 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
+
+if __package__ in (None, ""):  # run as a script: make ``march`` importable from a checkout
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from march.store.bounded_read import FileRefused, read_json  # noqa: E402
 
 ENVS = ("march_teacher", "bare_rough", "bare_flat")
 """The bench's envs, in the order drawn."""
@@ -78,10 +82,19 @@ def bench_files(paths: list[Path]) -> list[Path]:
     return found
 
 
+def read_bench(path: Path) -> dict:
+    """A bench JSON through march's gate (:func:`march.store.bounded_read.read_json`: no link,
+    bounded, strict); :class:`~march.store.bounded_read.FileRefused` in one line."""
+    data = read_json(path, str(path), wanted="a JSON file python -m march.bench wrote")
+    if not isinstance(data, dict):
+        raise FileRefused(f"{path}: not a JSON object")
+    return data
+
+
 def _readable(path: Path) -> bool:
     try:
-        json.loads(path.read_text())
-    except (OSError, ValueError):
+        read_bench(path)
+    except FileRefused:
         return False
     return True
 
@@ -194,9 +207,9 @@ def main(argv: list[str] | None = None) -> int:
     status = 0
     for path in files:
         try:
-            bench = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as err:
-            print(f"bench_figure: {path}: not a bench JSON ({err})")
+            bench = read_bench(path)
+        except FileRefused as err:
+            print(f"bench_figure: not a bench JSON ({err})")
             status = 2
             continue
         out = args.out or path.parent

@@ -90,6 +90,7 @@ from analysis.plotting import (  # noqa: E402
 )
 from analysis.reports import report, write_tables  # noqa: E402
 from analysis.rundirs import discover, runs_frame  # noqa: E402
+from march.store.bounded_read import FileRefused  # noqa: E402
 
 
 def analyze(
@@ -215,8 +216,14 @@ def analyze(
     }
 
 
+class _OneLineParser(argparse.ArgumentParser):
+    def error(self, message: str):  # argparse prints its usage block too: one line instead
+        print(f"figures.py: {message} (--help lists the options)", file=sys.stderr)
+        raise SystemExit(2)
+
+
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = _OneLineParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("dirs", nargs="+", type=Path, help="run dirs or Hydra sweep dirs")
     ap.add_argument("--out", type=Path, default=None, help="output dir (default <first>/figures)")
     ap.add_argument(
@@ -294,7 +301,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.terms:  # reward/<term>, termination/<term>, levels, loss/<part> per run
         from analysis.term_curves import draw
 
-        lines = draw(discover(args.dirs), out, smooth=1)
+        try:
+            lines = draw(discover(args.dirs), out, smooth=1)
+        except FileRefused as err:  # a run file march did not write (march.store.bounded_read)
+            print(f"figures.py: {err}", file=sys.stderr)
+            return 2
         print("\n".join(lines) if lines else "figures.py: no runs found", file=sys.stdout)
         return 0 if lines else 2
     if not 0.0 < args.threshold_fraction <= 1.0:
@@ -313,7 +324,7 @@ def main(argv: list[str] | None = None) -> int:
             args.allow_duplicates,
             args.threshold_fraction,
         )
-    except DuplicateRunsError as err:
+    except (DuplicateRunsError, FileRefused) as err:
         print(f"figures.py: {err}", file=sys.stderr)
         return 2
     if not res["runs"]:

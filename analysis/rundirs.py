@@ -5,12 +5,17 @@ Hydra sweep directory (``multirun.yaml`` + ``0/``, ``1/``, ...) is searched, nev
 CSV files cut off mid-write or with malformed rows still load (the bad rows are dropped and named
 in the run's ``issues``); an ``eval.csv`` written by an older version with fewer columns loads with
 the columns it has.
+
+Every file is read once through march's gate (:mod:`march.store.bounded_read`): no symbolic
+link, its size bounded before it is read, ``config.yaml`` with no YAML anchor, alias or tag
+(checked on the parser's events before OmegaConf builds it: a "billion laughs" file never
+expands), ``summary.json`` strict. A file the gate refuses raises
+:class:`~march.store.bounded_read.FileRefused` (one line naming it: the figures stop there);
+one that is only cut short or not valid text is a run issue, as before.
 """
 
 from __future__ import annotations
 
-import csv
-import json
 import os
 import re
 from dataclasses import dataclass, field
@@ -19,9 +24,17 @@ from pathlib import Path
 import pandas as pd
 from omegaconf import OmegaConf
 
+from march.store.bounded_read import (
+    MAX_SUMMARY_BYTES,
+    FileRefused,
+    NotParsed,
+    read_json,
+    read_yaml_text,
+)
+from march.store.run_tables import read_table
 from march.store.status import read_status
 
-STRING_COLUMNS = {"stage"}
+STRING_COLUMNS = {"stage"}  # as march.store.run_tables.TEXT_COLUMNS
 
 
 @dataclass
@@ -145,47 +158,30 @@ def _cfg_get(cfg, key: str):
 
 
 def read_csv_tolerant(path: Path) -> tuple[pd.DataFrame | None, list[str], bool]:
-    """Read a CSV that may be cut off mid-write. Returns (frame or None, issues, problem).
+    """Read a run's CSV table, which may be cut off mid-write. Returns (frame or None, issues,
+    problem).
 
-    The header defines the columns, so a file from an older version with fewer columns loads as
-    it is; a row whose field count differs from the header is dropped and counted.
+    Through :func:`march.store.run_tables.read_table` (no link, bounded, every row checked):
+    the header defines the columns, so a file from an older version with fewer columns loads as
+    it is; a last row cut off by a kill is dropped and named; any other bad row (a field that
+    is not a number, a row with other fields than its header) is no row march wrote and raises
+    :class:`~march.store.bounded_read.FileRefused` (one line).
     """
     name = path.name
-    if not path.is_file():
+    table = read_table(path)
+    if table is None:
         return None, [], False
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        return None, [f"{name} unreadable ({type(exc).__name__})"], True
-    lines = text.splitlines()
-    if not lines or not lines[0].strip():
+    if not table.header:
         return None, [f"{name} empty"], True
-    header = next(csv.reader([lines[0]]))
-    body = lines[1:]
     issues: list[str] = []
     problem = False
-    if body and not text.endswith("\n"):
-        body = body[:-1]
+    if table.torn is not None:
         issues.append(f"{name}: last line cut off (dropped)")
         problem = True
-    rows = [r for r in csv.reader(body) if r]
-    good = [r for r in rows if len(r) == len(header)]
-    if len(good) != len(rows):
-        issues.append(f"{name}: {len(rows) - len(good)} malformed row(s) dropped")
-        problem = True
-    df = pd.DataFrame(good, columns=header)
+    df = pd.DataFrame(table.rows, columns=table.header)
     for col in df.columns:
-        if col in STRING_COLUMNS:
-            continue
-        conv = pd.to_numeric(df[col], errors="coerce")
-        if conv.notna().sum() >= (df[col] != "").sum():
-            df[col] = conv
-    if "iteration" in df.columns:
-        bad = df["iteration"].isna()
-        if bad.any():
-            issues.append(f"{name}: {int(bad.sum())} row(s) without iteration dropped")
-            problem = True
-            df = df[~bad]
+        if col not in STRING_COLUMNS:
+            df[col] = pd.to_numeric(df[col].replace("", None), errors="coerce")
     if "stage" in df.columns:
         df["stage"] = df["stage"].astype(str).str.strip()
     return df.reset_index(drop=True), issues, problem
@@ -194,10 +190,16 @@ def read_csv_tolerant(path: Path) -> tuple[pd.DataFrame | None, list[str], bool]
 def load_run(path: Path) -> Run:
     run = Run(path=path)
     cfg_path = path / "config.yaml"
-    if not cfg_path.is_file():
+    if not os.path.lexists(cfg_path):
         cfg_path = path / ".hydra" / "config.yaml"
     try:
-        cfg = OmegaConf.to_container(OmegaConf.load(cfg_path), resolve=False)
+        text = read_yaml_text(cfg_path, str(cfg_path))  # a refusal (alias, link, size) raises
+        cfg = OmegaConf.to_container(OmegaConf.create(text), resolve=False)
+    except NotParsed as exc:
+        cfg = {}
+        run.issues.append(f"{cfg_path.name} unreadable ({exc})")
+    except FileRefused:
+        raise  # not a file march wrote: one line, the figures stop
     except Exception as exc:  # noqa: BLE001
         cfg = {}
         run.issues.append(f"{cfg_path.name} unreadable ({type(exc).__name__})")
@@ -258,11 +260,11 @@ def load_run(path: Path) -> Run:
     run.mtime = max((p.stat().st_mtime for p in path.iterdir() if p.is_file()), default=0.0)
 
     summary_path = path / "summary.json"
-    if summary_path.is_file():
+    if os.path.lexists(summary_path):
         try:
-            run.summary = json.loads(summary_path.read_text())
-        except (OSError, ValueError) as exc:
-            run.issues.append(f"summary.json unreadable ({type(exc).__name__})")
+            run.summary = read_json(summary_path, str(summary_path), MAX_SUMMARY_BYTES)
+        except NotParsed as exc:
+            run.issues.append(f"summary.json unreadable ({exc})")
     return run
 
 

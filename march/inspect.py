@@ -5,7 +5,8 @@ with weights, terminations, events (domain randomization) with their ranges, ter
 and the pieces that are still placeholders. How a researcher checks a config before spending GPU
 hours. ``python -m march.inspect budget compute=gpu``: what those GPU hours are, per stage and
 sweep (:mod:`march.learn.budget`). ``python -m march.inspect run <run dir>``: the run's status
-as it truly is (a ``running`` run whose process is gone reads ``killed``) and its checkpoints.
+as it truly is (a ``running`` run whose process is gone reads ``killed``), what its config.yaml
+names, and its newest checkpoints with their iterations (every file read through the gate).
 """
 
 from __future__ import annotations
@@ -233,22 +234,56 @@ def list_job(argv: list[str]) -> None:
 
 
 def run_job(argv: list[str]) -> None:
-    """``python -m march.inspect run <run dir>``: the run's status as its readers see it
-    (march.store.status: ``running`` with its pid gone on this host reads ``killed``) and its
-    newest checkpoints' iterations, as JSON. Reads only; builds no env."""
+    """``python -m march.inspect run <run dir>``: as JSON, the run's status as its readers see it
+    (march.store.status: ``running`` with its pid gone on this host reads ``killed``), what its
+    config.yaml names (stage, reward, student, seed) and, for its newest teacher and student
+    checkpoints, their path, iteration and env steps. Every file is read through the gate
+    (config.yaml without YAML aliases, checkpoints through :func:`march.store.checkpoint.
+    load_checkpoint`: no link, bounded, zip records checked, plain data); a file it refuses is
+    one line, exit 2. Builds no env."""
     from pathlib import Path
 
+    from omegaconf import OmegaConf
+
     from march.config.cli import fail
-    from march.store.checkpoint import latest_checkpoint
+    from march.store.bounded_read import FileRefused, read_yaml_text
+    from march.store.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint
     from march.store.status import read_status
 
     if len(argv) != 1 or not Path(argv[0]).is_dir():
         fail("usage: python -m march.inspect run <run dir>")
     run = Path(argv[0])
-    report: dict[str, Any] = {"run": str(run), "status": read_status(run)}
-    for kind in ("teacher", "student"):
-        found = latest_checkpoint(run / kind) if (run / kind).is_dir() else None
-        report[f"{kind}_checkpoint"] = str(found) if found else None
+    report: dict[str, Any] = {"run": str(run), "status": read_status(run), "config": None}
+    try:
+        if (run / "config.yaml").is_file() or (run / "config.yaml").is_symlink():
+            path = run / "config.yaml"
+            text = read_yaml_text(path, str(path))  # no alias, bounded
+            tree = OmegaConf.to_container(OmegaConf.create(text), resolve=False)  # nothing run
+
+            def get(key: str) -> Any:
+                node: Any = tree
+                for part in key.split("."):
+                    node = node.get(part) if isinstance(node, dict) else None
+                return node
+
+            keys = ("stage", "reward.name", "student.variant", "seed")
+            report["config"] = {k: get(k) for k in keys}
+        for kind in ("teacher", "student"):
+            found = latest_checkpoint(run / kind) if (run / kind).is_dir() else None
+            entry = None
+            if found is not None:
+                payload = load_checkpoint(found, kind, source=str(found))
+                entry = {
+                    "path": str(found),
+                    "iteration": payload.get("iteration"),
+                    "env_steps": payload.get("env_steps"),
+                }
+            report[f"{kind}_checkpoint"] = entry
+    except (FileRefused, CheckpointError) as err:
+        fail(str(err))
+    except Exception as err:  # noqa: BLE001 - a config.yaml OmegaConf cannot build
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        fail(f"{run / 'config.yaml'}: cannot be read ({first})")
     print(json.dumps(report, indent=2))
 
 

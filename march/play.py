@@ -283,7 +283,11 @@ def expected_frames(steps: int, stride: int) -> int:
 
 def main(argv: Sequence[str] | None = None) -> None:
     view, args = viewer_args(list(sys.argv[1:] if argv is None else argv))
-    run_tool(lambda cfg: play(cfg, explicit_overrides=args, view=view), args, usage=USAGE)
+    from march.store.gate import check_checkpoint_files
+
+    # The checkpoint judged (link, size, zip records) before the term check loads the simulator.
+    job = lambda cfg: play(cfg, explicit_overrides=args, view=view)  # noqa: E731
+    run_tool(job, args, usage=USAGE, before_terms=check_checkpoint_files)
 
 
 if __name__ == "__main__":

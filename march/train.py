@@ -32,7 +32,13 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from march.config import ConfigError, MarchConfig, to_march_config
-from march.config.cli import duplicate_overrides, fail, renamed_group, resolve_compute
+from march.config.cli import (
+    duplicate_overrides,
+    fail,
+    override_problem,
+    renamed_group,
+    resolve_compute,
+)
 from march.config.memory import check_memory
 from march.config.terms import check_terms, import_extra_modules
 from march.learn import distributed, preemption, tuning
@@ -205,9 +211,7 @@ def run_pipeline(
             print(eval_line(row), flush=True)  # the distance beside the standing floor
             # An Optuna trial (hydra/sweeper=march_optuna): report, maybe stop here (pruned).
             # The run's last evaluation is the trial's value, never the pruner's to cut.
-            step = iteration + (cfg.teacher.max_iterations if stage == "student" else 0)
-            last = cfg.distill.max_iterations if stage == "student" else cfg.teacher.iterations
-            final = iteration >= last and (stage == "student" or cfg.stage == "teacher")
+            step, final = trial_step(cfg, stage, iteration)
             tuning.report(float(row[cfg.objective]), step, final=final)
             return row
 
@@ -272,6 +276,15 @@ def run_pipeline(
         return summary
     finally:
         log.close()
+
+
+def trial_step(cfg: MarchConfig, stage: str, iteration: int) -> tuple[int, bool]:
+    """(the Optuna step, whether it is the run's last evaluation) of an evaluation of ``stage``
+    at ``iteration``: the student's steps follow the teacher iterations that ran
+    (``teacher.iterations``, the budget scale applied), so no two evaluations share a step."""
+    step = iteration + (cfg.teacher.iterations if stage == "student" else 0)
+    last = cfg.distill.max_iterations if stage == "student" else cfg.teacher.iterations
+    return step, iteration >= last and (stage == "student" or cfg.stage == "teacher")
 
 
 @hydra.main(config_path="../conf", config_name="config", version_base="1.3")
@@ -433,6 +446,8 @@ if __name__ == "__main__":
     if problem := sweep_problem(sys.argv[1:]):
         fail(problem)
     if problem := duplicate_overrides(sys.argv[1:]) or renamed_group(sys.argv[1:]):
+        fail(problem)
+    if problem := override_problem(sys.argv[1:]):  # Hydra's refusals, in one line (issue 59)
         fail(problem)
     sys.argv = _resume_argv(_rank_argv(sys.argv))
     try:  # the output directory, and a run already there locked, before Hydra writes anything

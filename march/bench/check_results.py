@@ -7,18 +7,23 @@ the targets judged on them. Plain functions of files and dicts, tested on CPU
 from __future__ import annotations
 
 import csv
-import json
 from pathlib import Path
 from typing import Any
 
 from march.bench.targets import STEP_TARGETS, SYNC_TARGETS
+from march.store.bounded_read import FileRefused, read_bytes, read_json
+
+MAX_SYNCS_BYTES = 256 << 20
+"""``syncs.tsv``: one line per recorded sync (a few MB for the check's phases)."""
 
 
 def read_rows(path: Path, stage: str) -> list[dict[str, str]]:
-    if not path.is_file():
-        return []
-    with path.open() as f:
-        return [r for r in csv.DictReader(f) if r.get("stage") == stage]
+    """The rows of ``stage`` in a run table, read through the gate
+    (:func:`march.store.run_tables.read_table`: no link, bounded, every row checked)."""
+    from march.store.run_tables import read_table
+
+    table = read_table(path)
+    return [] if table is None else [r for r in table.rows if r.get("stage") == stage]
 
 
 def write_rows(rows: list[dict[str, str]], path: Path) -> None:
@@ -67,10 +72,10 @@ def bench_results(
         if not usable or not path.is_file():
             continue
         try:
-            bench = json.loads(path.read_text())
+            bench = read_json(path, str(path), wanted="the bench's JSON")
             summary = {k: bench.get(k) for k in BENCH_KEYS}
             summary["steps_per_s"] = {w: v["steps_per_s"] for w, v in bench["workloads"].items()}
-        except (json.JSONDecodeError, KeyError, TypeError, AttributeError) as err:
+        except (FileRefused, KeyError, TypeError, AttributeError) as err:
             return None, [], f"unreadable {name}: {err}"
         if name == f"{stem}.json":
             return summary, [name], ""
@@ -86,7 +91,7 @@ def sync_results(path: Path) -> dict[str, Any]:
     march source lines that synced in more than one env step of a part (a read once per
     iteration falls in one step: it is listed in the file, not here); and the syncs per env
     step of march's env and bare rough's, stepped alone (once both are recorded)."""
-    lines = path.read_text().splitlines()
+    lines = read_bytes(path, str(path), MAX_SYNCS_BYTES, "syncs.tsv").decode().splitlines()
     rows = [ln.split("\t") for ln in lines if ln and not ln.startswith(("#", "phase"))]
     rows = [r for r in rows if len(r) >= 4]
 

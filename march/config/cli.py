@@ -109,10 +109,14 @@ def run_tool(
     argv: Sequence[str] | None = None,
     usage: str = "",
     check_reward: bool = True,
+    before_terms: Callable[[MarchConfig], None] | None = None,
 ) -> object:
     """Parse ``[job] key=value ...``, compose the config and run the job with clear errors.
     ``check_reward``: check the reward terms too (imports the env's term modules; a job that
-    builds no env may skip it)."""
+    builds no env may skip it). ``before_terms``: the tool's own checks that need no simulator
+    (raising :class:`ConfigError`), run before the term check imports it: a tool given a
+    checkpoint passes :func:`march.store.gate.check_checkpoint_files`, so a crafted file is one
+    line in seconds."""
     args = list(sys.argv[1:] if argv is None else argv)
     if callable(jobs):
         job, fn = None, jobs
@@ -130,9 +134,15 @@ def run_tool(
         fail(twice)
     try:
         cfg = load(args)
+        if before_terms is not None:
+            before_terms(cfg)  # e.g. the checkpoint files, judged before the simulator loads
         if check_reward:
             check_terms(cfg)  # every term known, its params valid: before any env
-    except (HydraException, OmegaConfBaseException, ConfigError) as err:
+    except (HydraException, OmegaConfBaseException) as err:
+        if full_error():
+            raise  # HYDRA_FULL_ERROR=1: the whole report, as Hydra gives it
+        fail(hydra_refusal(err, args))
+    except ConfigError as err:
         fail(_one_line(err))
     try:
         from march.config.memory import check_memory
@@ -231,9 +241,171 @@ def _one_line(err: BaseException) -> str:
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
     if not lines:
         return type(err).__name__
-    # Hydra's "Could not find 'reward/bogus'" is followed by the available options: keep them.
-    if "Available options" in text:
-        head = lines[0]
-        opts = [ln for ln in lines[1:] if not ln.startswith("Available")]
-        return f"{head}; available options: {', '.join(opts)}"
     return lines[0] if len(lines) == 1 else f"{lines[0]} ({lines[-1]})"
+
+
+HYDRA_FLAGS = ("-m", "--multirun")
+"""The only Hydra flags :func:`override_problem` composes with; any other (``--cfg``,
+``--config-name``, ``--info``, ...) is Hydra's own business and it reports its faults itself."""
+
+
+def full_error() -> bool:
+    """Whether the user asked for Hydra's whole report (``HYDRA_FULL_ERROR=1``)."""
+    return os.environ.get("HYDRA_FULL_ERROR") == "1"
+
+
+def _closest(word: str, choices: Sequence[str]) -> str | None:
+    import difflib
+
+    found = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.5)
+    return found[0] if found else None
+
+
+def _typed(args: Sequence[str], key: str) -> str:
+    """The override as the user typed it that sets ``key`` (a dotted key or a group)."""
+    for arg in args:
+        head = arg.split("=", 1)[0].lstrip("+~").split("@", 1)[0]
+        if head == key:
+            return arg
+    return key
+
+
+def hydra_refusal(err: BaseException, args: Sequence[str]) -> str:
+    """One line for a Hydra / OmegaConf refusal of the overrides ``args``: the override as typed,
+    what is wrong, and what would be right (the options of a group, the closest key, the type a
+    key takes, how to write a list). Hydra's own report runs to 5-12 lines."""
+    from hydra.errors import MissingConfigException, OverrideParseException
+    from omegaconf.errors import ConfigKeyError, ValidationError
+
+    if isinstance(err, MissingConfigException) and err.missing_cfg_file:
+        group, _, name = err.missing_cfg_file.rpartition("/")
+        options = list(err.options or [])
+        if not group:
+            return f"{_one_line(err)} (python -m march.inspect list shows every group)"
+        typed = _typed(args, group)
+        if not options:
+            return f"{typed}: there is no config group {group!r} (conf/{group}/)"
+        near = _closest(name, options)
+        hint = f"; did you mean {group}={near}?" if near else ""
+        return (
+            f"{typed}: {group} has no option {name!r} (no {group}/{name}.yaml on the search "
+            f"path); options: {', '.join(options)}{hint}"
+        )
+    if isinstance(err, OverrideParseException):
+        typed = err.override or "an override"
+        lines = str(err.message).splitlines()
+        where = ""
+        if len(lines) > 1 and lines[0].startswith("LexerNoViableAltException: "):
+            col = len(lines[1]) - len(lines[1].lstrip()) - len("LexerNoViableAltException: ")
+            if 0 <= col < len(typed):
+                where = f": {typed[col]!r} (character {col + 1}) is not allowed there"
+        elif lines:
+            where = f" ({lines[0]})"
+        return (
+            f"{typed}: Hydra cannot read this override{where}; keys and plain values are ASCII "
+            "letters, digits and _-./:; quote any other value (key='value')"
+        )
+    cause = err.__cause__ or err.__context__
+    if isinstance(cause, ConfigKeyError | ValidationError) or (
+        isinstance(cause, Exception) and type(cause).__name__ == "ConfigAttributeError"
+    ):
+        full_key = getattr(cause, "full_key", None) or getattr(cause, "key", None) or ""
+        key = str(getattr(cause, "key", None) or full_key.rsplit(".", 1)[-1])
+        typed = _typed(args, str(full_key)) if full_key else "an override"
+        parent = getattr(cause, "parent_node", None)
+        first = str(getattr(cause, "msg", "") or cause).strip().splitlines()
+        first_line = first[0] if first else type(cause).__name__
+        if isinstance(cause, ValidationError):
+            return f"{typed}: {first_line}"
+        keys: list[str] = []
+        try:
+            keys = [str(k) for k in parent.keys()] if parent is not None else []
+        except Exception:  # noqa: BLE001 - a node without keys: no suggestion
+            keys = []
+        if "." not in str(full_key):
+            from march.config.registry import CONF_DIR as conf
+
+            keys += [p.name for p in conf.iterdir() if p.is_dir()]
+        keys = [k for k in dict.fromkeys(keys) if k != "hydra"]
+        near = _closest(key, keys)
+        where = str(full_key).rsplit(".", 1)[0] if "." in str(full_key) else "the config"
+        hint = f"; did you mean {near}?" if near else ""
+        return (
+            f"{typed}: {where} has no key {key!r}{hint} (python -m march.inspect list shows "
+            "every key; +key=value adds one, for a plug-in)"
+        )
+    text = str(err)
+    if text.startswith("Ambiguous value for argument"):
+        typed = text.split("'", 2)[1] if text.count("'") >= 2 else "an override"
+        key = typed.split("=", 1)[0]
+        return (
+            f"{typed}: a comma makes a sweep, which needs -m (--multirun); for a list write "
+            f"{key}=[...], for text with a comma quote it: {key}='...'"
+        )
+    if isinstance(cause, BaseException) and str(cause).strip():
+        return f"{_one_line(err)}: {_one_line(cause)}"
+    return _one_line(err)
+
+
+def _sweep_jobs(args: Sequence[str], most: int = 16) -> list[list[str]]:
+    """Command lines a multirun's sweeps (``seed=1,2``, ``range(...)``) expand to, enough to
+    try every value once: the first job, then each other value of each sweep with the rest at
+    their first (at most ``most``). A sweep that cannot be listed (``interval``, ``glob``) is
+    left to the sweeper."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser = OverridesParser.create()
+    heads, values = [], []
+    for arg in args:
+        (ov,) = parser.parse_overrides([arg])
+        if not ov.is_sweep_override():
+            heads.append(arg)
+            values.append([None])
+            continue
+        try:
+            listed = list(ov.sweep_string_iterator())
+        except Exception:  # noqa: BLE001 - interval / glob: the sweeper's to expand
+            continue
+        heads.append(arg.split("=", 1)[0])
+        values.append(listed or [None])
+
+    def line(choice: dict[int, str]) -> list[str]:
+        return [
+            h if vals == [None] else f"{h}={choice.get(i, vals[0])}"
+            for i, (h, vals) in enumerate(zip(heads, values, strict=True))
+        ]
+
+    jobs = [line({})]
+    for i, vals in enumerate(values):
+        jobs += [line({i: v}) for v in vals[1:]]
+    return jobs[:most]
+
+
+def override_problem(argv: Sequence[str]) -> str | None:
+    """One line saying why Hydra would refuse the command line ``argv`` (without the program
+    name), else None: each override parsed on its own, then the config composed (Hydra's
+    compose API: nothing written), each value of a multirun's sweeps once. Runs before
+    ``@hydra.main`` (``march.train``), whose own report is many lines and exit 1; with
+    ``HYDRA_FULL_ERROR=1``, or another Hydra flag on the line, Hydra reports itself."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    if full_error():
+        return None
+    flags = [a for a in argv if a.startswith("-")]
+    if any(f not in HYDRA_FLAGS for f in flags):
+        return None
+    args = [a for a in argv if not a.startswith("-")]
+    parser = OverridesParser.create()
+    for arg in args:
+        try:
+            parser.parse_overrides([arg])
+        except HydraException as err:
+            return hydra_refusal(err, args)
+    for job in _sweep_jobs(args) if flags else [args]:
+        try:
+            compose(job)
+        except (HydraException, OmegaConfBaseException) as err:
+            return hydra_refusal(err, job)
+        except ConfigError:
+            return None  # march's own checks: main says them, with the run's context
+    return None

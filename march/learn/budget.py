@@ -25,7 +25,6 @@ of the anchor's class; a run over N GPUs divides the wall time, not the GPU hour
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -78,10 +77,19 @@ def newest_bench() -> Path | None:
 
 
 def read_json(path: Path, what: str) -> dict[str, Any]:
+    """A bench / check JSON file through the gate (:func:`march.store.bounded_read.read_json`:
+    no link, bounded, strict: a key given twice refused); one :class:`ConfigError` line."""
+    from march.store.bounded_read import FileRefused
+    from march.store.bounded_read import read_json as read_checked
+
+    label = f"budget.{what}={path}"
     try:
-        return json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise ConfigError(f"budget.{what}={path}: not a readable JSON file ({err})") from None
+        data = read_checked(Path(path), label, wanted="a JSON file python -m march.bench wrote")
+    except FileRefused as err:
+        raise ConfigError(str(err)) from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{label}: not a JSON object")
+    return data
 
 
 def speeds(cfg: MarchConfig, bench: Path | None, check: Path | None) -> Speeds:

@@ -13,7 +13,9 @@ from typing import IO, Any
 from march.config import ConfigError, LoggerCfg
 from march.config.schema import EVAL_METRICS
 from march.learn.distributed import writes_files
+from march.store.bounded_read import FileRefused, read_bytes
 from march.store.checkpoint import replace_durably, write_text_durably
+from march.store.run_tables import MAX_TABLE_BYTES, Table, read_table
 
 METRIC_COLUMNS = (
     "stage",
@@ -121,7 +123,10 @@ def drop_torn_row(path: Path) -> bool:
     """
     if not path.is_file():
         return False
-    data = path.read_bytes()
+    try:  # no link, bounded (march.store.bounded_read)
+        data = read_bytes(path, str(path), MAX_TABLE_BYTES, "a table march.train wrote")
+    except FileRefused as err:
+        raise ConfigError(str(err)) from None
     if not data:
         return False
     lines = data.splitlines(keepends=True)
@@ -147,15 +152,15 @@ def truncate_rows(path: Path, stage: str, after_iteration: int) -> None:
         return
     if not path.is_file():
         return
+    table = checked_table(path)  # every row checked before the file changes
     drop_torn_row(path)
-    with path.open(newline="") as f:
-        rows = list(csv.DictReader(f))
+    rows = table.rows
     keep = [r for r in rows if r["stage"] != stage or int(r["iteration"]) <= after_iteration]
     if len(keep) == len(rows):
         return
     tmp = path.with_suffix(".tmp")
     with open_run_file(tmp, "w") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
+        writer = csv.DictWriter(f, fieldnames=table.header)
         writer.writeheader()
         writer.writerows(keep)
         f.flush()
@@ -163,15 +168,26 @@ def truncate_rows(path: Path, stage: str, after_iteration: int) -> None:
     replace_durably(tmp, path)
 
 
+def checked_table(path: Path) -> Table:
+    """The run table ``path`` read through the gate (:func:`march.store.run_tables.read_table`:
+    no link, bounded, every row checked; a torn last row left out), an empty one without the
+    file; a bad row is one :class:`ConfigError` line."""
+    try:
+        table = read_table(path)
+    except FileRefused as err:
+        raise ConfigError(str(err)) from None
+    return table if table is not None else Table(header=[])
+
+
 def has_row(path: Path, stage: str, iteration: int) -> bool:
     """Whether ``path`` (a CSV with stage and iteration columns) holds a row of that stage and
     iteration."""
     if not path.is_file():
         return False
-    with path.open(newline="") as f:
-        return any(
-            r["stage"] == stage and int(r["iteration"]) == iteration for r in csv.DictReader(f)
-        )
+    return any(
+        r.get("stage") == stage and r.get("iteration") == str(iteration)
+        for r in checked_table(path).rows
+    )
 
 
 def append_row(path: Path, columns: tuple[str, ...], row: dict[str, Any]) -> None:
@@ -190,10 +206,9 @@ def append_rows(path: Path, columns: tuple[str, ...], rows: list[dict[str, Any]]
     new = not path.is_file()
     if not new:
         with path.open(newline="") as f:
-            header = next(csv.reader(f), None)
+            header = next(csv.reader([f.readline(1 << 20)]), None)  # its first line only
         if header is not None and header != list(columns):
-            with path.open(newline="") as f:
-                old_rows = list(csv.DictReader(f))
+            old_rows = checked_table(path).rows  # an older run's file: read through the gate
             tmp = path.with_suffix(".tmp")
             with open_run_file(tmp, "w") as f:
                 writer = csv.DictWriter(f, fieldnames=list(columns), extrasaction="ignore")
@@ -249,13 +264,10 @@ def stage_offsets(path: Path) -> dict[str, int]:
     if not path.is_file():
         return {}
     order: dict[str, int] = {}
-    with path.open(newline="") as f:
-        for r in csv.DictReader(f):
-            try:
-                steps = int(float(r.get("env_steps") or 0))
-            except ValueError:
-                continue
-            order[r["stage"]] = max(order.get(r["stage"], 0), steps)
+    for r in checked_table(path).rows:
+        steps = float(r.get("env_steps") or 0)
+        steps = int(steps) if math.isfinite(steps) else 0
+        order[r["stage"]] = max(order.get(r["stage"], 0), steps)
     out, total = {}, 0
     for stage, steps in order.items():
         out[stage] = total
@@ -296,8 +308,7 @@ class MetricsLog:
         if self._columns is None:
             self._columns = METRIC_COLUMNS
             if self.path.is_file():
-                with self.path.open(newline="") as f:
-                    header = next(csv.reader(f), None) or []
+                header = checked_table(self.path).header
                 self._columns += tuple(c for c in header if c not in METRIC_COLUMNS)
         new = [k for k in row if k not in self._columns]
         self._columns += tuple(new)

@@ -14,7 +14,7 @@ feeds and result. Every fault is a :class:`UsageError`: one line for the user, n
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -102,6 +102,9 @@ class Bundle:
 
     onnx_path: Path
     spec: dict[str, Any]
+    onnx_bytes: bytes = field(default=b"", repr=False)
+    """The ONNX graph as read and checked against the bundle's SHA-256: what the policy loads
+    (never the file by its path again)."""
 
     @classmethod
     def load(cls, onnx_path: str | Path) -> Bundle:
@@ -142,7 +145,7 @@ class Bundle:
         data = read_in_bundle(folder, spec["onnx"]["file"], "ONNX file")
         if _sha256(data) != spec["onnx"]["sha256"]:
             raise UsageError(f"onnx={onnx_path}: its SHA-256 differs from the bundle's record")
-        return cls(onnx_path, spec)
+        return cls(onnx_path, spec, data)
 
     def scene(self, course: str) -> mujoco.MjModel:
         """The compiled scene of ``course`` (gzipped MJB, loaded from memory)."""

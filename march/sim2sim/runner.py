@@ -106,7 +106,10 @@ class Sim2Sim:
             raise UsageError(
                 f"the bundle's {course} scene does not fit its deploy.json: {err}"
             ) from None
-        self.session = policy_session(bundle.onnx_path, threads)
+        # The bytes Bundle.load checked against the bundle's SHA-256, not the file read again.
+        self.session = policy_session(
+            bundle.onnx_bytes or bundle.onnx_path, threads, bundle.onnx_path
+        )
 
     def _bind(self, bundle: Bundle, course: str) -> None:
         """Find everything deploy.json names in the scene."""
@@ -311,15 +314,21 @@ class Sim2Sim:
         return bool(tilt > t["tilt_limit_rad"] or low or feet.any())
 
 
-def policy_session(path: Path, threads: int = 1) -> ort.InferenceSession:
-    """onnxruntime on the CPU with ``threads`` threads, every graph optimisation on."""
+def policy_session(
+    graph: Path | bytes, threads: int = 1, path: Path | None = None
+) -> ort.InferenceSession:
+    """onnxruntime on the CPU with ``threads`` threads, every graph optimisation on. ``graph``:
+    the ONNX model's bytes (as read and checked: :attr:`Bundle.onnx_bytes`) or a file;
+    ``path``: how messages name it (default ``graph``)."""
+    path = path if path is not None else graph if isinstance(graph, Path) else Path("<bytes>")
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = threads
     opts.inter_op_num_threads = 1
     opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     try:
-        sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        model = graph if isinstance(graph, bytes) else str(graph)
+        sess = ort.InferenceSession(model, opts, providers=["CPUExecutionProvider"])
     except Exception as err:  # noqa: BLE001 - any unloadable graph is the same user error
         raise UsageError(f"onnx={path}: onnxruntime cannot load it ({err})") from None
     names = [i.name for i in sess.get_inputs()]

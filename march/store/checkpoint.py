@@ -60,6 +60,23 @@ def open_plain_file(path: Path, label: str, limit: int, wanted: str) -> Any:
         raise CheckpointError(str(err)) from None
 
 
+_CHECKED: dict[str, Any] = {}
+"""Checkpoints this process read and checked, by absolute path, for the one read that uses them
+(:func:`keep_checked`)."""
+
+
+def _key(path: str | Path) -> str:
+    return os.path.abspath(os.fspath(path))
+
+
+def keep_checked(path: str | Path, payload: dict[str, Any]) -> None:
+    """Keep ``payload``, read from ``path`` and checked (a resume's checkpoints, checked before
+    any env is built), for the next :func:`load_checkpoint` of ``path`` in this process: the
+    bytes that were checked are the bytes that are used, never a second read of a file that
+    may have changed in between. A write of ``path`` (:func:`save_atomic`) forgets it."""
+    _CHECKED[_key(path)] = payload
+
+
 def save_atomic(payload: dict[str, Any], path: Path) -> None:
     """Write to a temporary file in the same directory, fsync, then rename over ``path``.
 
@@ -68,6 +85,7 @@ def save_atomic(payload: dict[str, Any], path: Path) -> None:
     :class:`CheckpointError`: one line, and the previous checkpoint is left as it was.
     In a run over N processes only rank 0 writes (march.learn.distributed).
     """
+    _CHECKED.pop(_key(path), None)  # what was checked is no longer what the file holds
     if not writes_files():
         return
     try:
@@ -270,6 +288,53 @@ def _place(obj: Any, device: str, key: Any = None) -> Any:
     return obj
 
 
+def check_records(f: Any, label: str) -> None:
+    """The zip archive a ``torch.save`` file is, judged by its central directory before torch
+    inflates any record: every record stored as torch writes it (uncompressed: its inflated
+    size is its packed size) and all of them within the file's own size. A record deflated
+    from gigabytes of zeros (a 17 MB file that torch would inflate to 1.5 GB before any check
+    of ours) is refused here, having read only the directory. ``f``: the open file, left at
+    its start. A file that is no zip archive is left to torch (its legacy format, or its own
+    refusal of a file that is no checkpoint)."""
+    import zipfile
+
+    size = os.fstat(f.fileno()).st_size
+    try:
+        if not zipfile.is_zipfile(f):
+            return  # torch's legacy format (records as they are in the file) or no checkpoint
+        with zipfile.ZipFile(f) as archive:
+            records = archive.infolist()
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as err:
+        why = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise CheckpointError(
+            f"{label}: not a readable checkpoint (truncated or corrupt: {why})"
+        ) from None
+    finally:
+        f.seek(0)
+    inflated = 0
+    for record in records:
+        if record.compress_type != zipfile.ZIP_STORED or record.file_size != record.compress_size:
+            raise CheckpointError(
+                f"{label}: its record {record.filename!r} is compressed ({record.compress_size} "
+                f"bytes that inflate to {record.file_size}); torch.save stores every record as "
+                "it is, so march wrote no such file; not read"
+            )
+        inflated += record.file_size
+    if inflated > size:
+        raise CheckpointError(
+            f"{label}: its records add up to {inflated} bytes, more than the file's {size}; "
+            "not a checkpoint march wrote; not read"
+        )
+
+
+def check_file(path: str | Path, label: str) -> None:
+    """The checks on ``path`` that read no record (no link, a regular file within
+    :data:`MAX_CHECKPOINT_BYTES`, its zip directory: :func:`check_records`): a run's files are
+    all put through these before any of them is unpickled and checked in full."""
+    with open_plain_file(Path(path), label, MAX_CHECKPOINT_BYTES, "a march checkpoint") as f:
+        check_records(f, label)
+
+
 def _read_plain(path: str | Path, label: str, wanted: str) -> Any:
     """The one unpickling read of march: plain data only (``weights_only=True``), bounded in
     size, no link; a file that names any Python callable is refused in one line."""
@@ -280,6 +345,7 @@ def _read_plain(path: str | Path, label: str, wanted: str) -> Any:
         MAX_CHECKPOINT_BYTES,
         wanted,
     )
+    check_records(f, label)
     try:
         # Read onto the CPU whatever device wrote it (a GPU run's file loads on a CPU-only
         # machine); tensors are moved afterwards, RNG states never. torch warns about unusual
@@ -330,11 +396,14 @@ def load_checkpoint(
     the only form ``torch.set_rng_state`` and ``Generator.set_state`` accept, so a checkpoint
     written on one device resumes on any other (CPU, ``cuda``, ``cuda:1``, ``meta``); so do
     the ``streams``, ``curriculum`` and ``episode`` entries (:mod:`march.learn.train_state`).
+    A checkpoint this process checked and kept (:func:`keep_checked`) is taken from memory.
     """
     label = source or f"{kind}_ckpt={path}"
-    payload = _read_plain(
-        path, label, f"a checkpoint written by march.train (outputs/<run>/{kind}/latest.pt)"
-    )
+    payload = _CHECKED.pop(_key(path), None)  # read and checked already (keep_checked)
+    if payload is None:
+        payload = _read_plain(
+            path, label, f"a checkpoint written by march.train (outputs/<run>/{kind}/latest.pt)"
+        )
     if not isinstance(payload, dict) or payload.get("kind") != kind:
         found = payload.get("kind") if isinstance(payload, dict) else type(payload).__name__
         raise CheckpointError(f"{label}: this is a {found!r} checkpoint, not a {kind}")

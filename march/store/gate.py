@@ -11,7 +11,7 @@ fault one :class:`~march.config.ConfigError` line naming the file, before any en
 2. its entries (:func:`check_checkpoint`): iteration and env steps whole numbers in range, no
    ``${...}`` interpolation or resolver anywhere in its config, the config valid as if typed on
    the command line (types, ranges, the memory bound);
-3. the modules its config names (:func:`check_named_modules`): imported only when the user names
+3. the modules its config names (:func:`~march.store.file_config.check_named_modules`): imported only when the user names
    them too (``extra_modules=[...]`` on the command line or in their config);
 4. its weights against its config (:func:`check_weights`): every tensor's shape that the network
    its config and layout describe would have, built on the ``meta`` device (no memory).
@@ -32,49 +32,11 @@ import torch
 
 from march.config import ConfigError, MarchConfig, to_march_config
 from march.store.checkpoint import CheckpointError, load_checkpoint
+from march.store.file_config import check_named_modules, interpolations
+from march.store.provenance import apply_checkpoint_config, policy_changes
 
 ITERATION_MAX = 10**9
 """No march stage runs anywhere near this many iterations: a larger count is not a checkpoint's."""
-
-
-def _interpolations(node: Any, where: str = "") -> list[str]:
-    """Keys (dotted) of ``node`` whose key or string value holds ``${`` once parsed."""
-    found = []
-    items = (
-        node.items()
-        if isinstance(node, dict)
-        else enumerate(node)
-        if isinstance(node, list | tuple)
-        else ()
-    )
-    for k, v in items:
-        key = (
-            f"{where}.{k}" if where and isinstance(k, str) else f"{where}[{k}]" if where else str(k)
-        )
-        if isinstance(k, str) and "${" in k:
-            found.append(key)
-        elif isinstance(v, str):
-            if "${" in v:
-                found.append(key)
-        else:
-            found += _interpolations(v, key)
-    return found
-
-
-def check_named_modules(saved: Any, named: Sequence[str], label: str) -> None:
-    """The modules a file's config names (``extra_modules``) must all be named by the user too:
-    a file never makes march import a module. One line naming the first other module."""
-    if saved in (None, [], ()):
-        return
-    if not isinstance(saved, list | tuple) or not all(isinstance(m, str) for m in saved):
-        raise ConfigError(f"{label}: its extra_modules {saved!r} is not a list of module names")
-    for name in saved:
-        if name not in named:
-            raise ConfigError(
-                f"{label}: its config names module {name!r} (extra_modules), which you did not "
-                "name; march imports a module a file names only when you name it too: add "
-                f"extra_modules=[{name}] to the command line (or your config) if you trust it"
-            )
 
 
 def check_checkpoint(
@@ -106,7 +68,7 @@ def check_checkpoint(
         return None
     if not isinstance(raw, dict):
         raise refuse(f"its config is a {type(raw).__name__}, not a mapping")
-    bad = _interpolations(raw)
+    bad = interpolations(raw)
     if bad:
         raise refuse(f"its config key {bad[0]} holds a '${{...}}' interpolation or resolver")
     if named is not None:
@@ -233,6 +195,25 @@ def check_weights(payload: dict[str, Any], kind: str, label: str, cfg: MarchConf
             )
 
 
+def check_checkpoint_files(cfg: MarchConfig) -> None:
+    """The checkpoint files ``cfg`` names (``teacher_ckpt=``, ``student_ckpt=``), as far as they
+    can be judged without unpickling (:func:`march.store.checkpoint.check_file`: no link,
+    bounded, zip records as torch writes them), one :class:`ConfigError` line: a tool passes it
+    to ``run_tool(before_terms=...)``, so a zip bomb is refused before the simulator loads. A
+    missing file is left to the tool, whose message says what to pass."""
+    import os
+
+    from march.store.checkpoint import check_file
+
+    for kind in ("teacher", "student"):
+        path = getattr(cfg, f"{kind}_ckpt", None)
+        if path and os.path.lexists(path):
+            try:
+                check_file(path, f"{kind}_ckpt={path}")
+            except CheckpointError as err:
+                raise ConfigError(str(err)) from None
+
+
 def read_checkpoint(
     path: str,
     kind: str,
@@ -271,8 +252,6 @@ def policy_from_checkpoint(
     checkpoint through the checks of :func:`read_checkpoint` (``payload``: already read, checked
     again), its policy applied (:func:`march.store.provenance.apply_checkpoint_config`; an
     explicit command-line choice that contradicts it is one line, said before the weights)."""
-    from march.store.provenance import apply_checkpoint_config, policy_changes
-
     label = f"{kind}_ckpt={path}"
     if payload is None:
         payload = load_checkpoint(path, kind, device, source=label)
@@ -321,6 +300,7 @@ def apply_policy_checkpoint(
 __all__ = [
     "CheckpointError",
     "apply_policy_checkpoint",
+    "check_checkpoint_files",
     "check_checkpoint",
     "check_named_modules",
     "check_weights",

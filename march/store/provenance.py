@@ -19,6 +19,7 @@ from dataclasses import asdict, fields, is_dataclass, replace
 from typing import Any
 
 from march.config import ConfigError, MarchConfig
+from march.store.file_config import check_named_modules
 
 # What defines a policy, by the dotted path of its config field. A path naming a section takes
 # every field of that section.
@@ -186,8 +187,6 @@ def apply_checkpoint_config(
         )
     # A module its run named (a student part or term of theirs) is never imported because the
     # file names it: the user must name it too (and then the tool has imported it already).
-    from march.store.gate import check_named_modules
-
     check_named_modules(saved.get("extra_modules"), cfg.extra_modules, f"{kind}_ckpt={path}")
     wanted = policy_fields(kind, distill)
     leaves = [leaf for f in wanted for leaf in _leaves(f, _get(cfg, f))]

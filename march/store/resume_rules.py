@@ -25,7 +25,7 @@ from omegaconf import OmegaConf
 
 from march.config import ConfigError, MarchConfig, to_march_config
 from march.config.terms import import_extra_modules
-from march.store.gate import _interpolations, check_named_modules
+from march.store.file_config import check_named_modules, interpolations
 
 MAX_CONFIG_BYTES = 1 << 20
 """A run's config.yaml is ~10 KB; a larger one is not a file march wrote."""
@@ -82,17 +82,17 @@ def load_saved_config(
     such as ``"\\x24{"`` are decoded by the parser first) is refused, naming its key, and
     nothing is resolved: march never writes one. ``named``: the modules the user named (their
     ``extra_modules``); a module the file names and they did not is refused, never imported."""
-    from march.store.checkpoint import CheckpointError, open_plain_file
+    from march.store.bounded_read import FileRefused, read_yaml_text
 
     path = run_dir / "config.yaml"
     try:
-        with open_plain_file(path, f"{option}={run_dir}: {path}", MAX_CONFIG_BYTES, "a run") as f:
-            text = f.read().decode()
+        # No link, bounded, and no anchor or alias (a billion-laughs file) before any loader.
+        text = read_yaml_text(path, f"{option}={run_dir}: {path}", MAX_CONFIG_BYTES, "a run")
         raw = OmegaConf.create(text)
         # Unresolved: the strings exactly as parsed, interpolations and all.
         tree = OmegaConf.to_container(raw, resolve=False)
-        bad = _interpolations(tree)
-    except CheckpointError as err:
+        bad = interpolations(tree)
+    except FileRefused as err:
         raise ConfigError(str(err)) from None
     except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__

@@ -8,7 +8,9 @@
 - :func:`claim`: in ``main``, the lock for the run's whole life (taken here if
   :func:`before_hydra` could not: a new directory, a sweep job) and no link among its files.
 - :func:`check_run_checkpoints`: the run's newest teacher and student checkpoints read and
-  validated (config, iteration, env steps) before any env is built.
+  validated (config, iteration, env steps) before any env is built, and kept for the resume
+  that uses them (:func:`march.store.checkpoint.keep_checked`: the bytes checked are the bytes
+  used); :func:`check_run_tables`: its CSV tables row by row (:mod:`march.store.run_tables`).
 """
 
 from __future__ import annotations
@@ -100,19 +102,24 @@ def before_hydra(argv: list[str], multirun: bool, rank0: bool = True) -> list[st
     resumed = _value(args, "resume")
     claim(run_dir, "resume" if resumed else key)
     check_output_dir(run_dir, key)
-    if not resumed:
-        _compare_before_hydra(run_dir, args)
+    _check_before_hydra(run_dir, args, "resume" if resumed else key)
     if _value(args, "hydra.output_subdir") is None:
         argv = [*argv, "hydra.output_subdir=null"]
     return argv
 
 
-def _compare_before_hydra(run_dir: Path, args: Sequence[str]) -> None:
-    """A new run pointed at a run: its composed config compared with the run's now, so that a
-    refusal leaves not even a line in the run's ``train.log`` (Hydra's job log, once Hydra has
-    started). ``main`` compares again with the final config (a policy checkpoint applied)."""
+def _check_before_hydra(run_dir: Path, args: Sequence[str], option: str) -> None:
+    """A run pointed at (``resume=`` or a new run in its directory): its files read through the
+    gate now, before Hydra appends to the run's ``train.log`` and before any env, so that a bad
+    file (a YAML bomb in config.yaml, a non-numeric metrics row, a zip-bomb checkpoint) or a
+    refused override is one line and leaves the directory as it was. Its config.yaml
+    (:func:`march.store.resume_rules.resume_config` / :func:`~march.store.resume_rules.
+    adopt_config`), then its tables and newest checkpoints (:func:`check_run_checkpoints`). ``main`` checks again with the final
+    config (a policy checkpoint applied), the process group's size known."""
     from march.config.cli import load
-    from march.store.resume_rules import adopt_config
+    from march.store.bounded_read import FileRefused
+    from march.store.checkpoint import CheckpointError
+    from march.store.resume_rules import adopt_config, resume_config
 
     if not (run_dir / "config.yaml").is_file():
         return  # main refuses it in one line (run files without a config)
@@ -121,8 +128,16 @@ def _compare_before_hydra(run_dir: Path, args: Sequence[str]) -> None:
         cfg = load(task)
     except Exception:  # noqa: BLE001 - a bad override: Hydra and main report it in one line
         return
-    if not (cfg.teacher_ckpt or cfg.student_ckpt):  # a checkpoint may change the policy: main
-        adopt_config(run_dir, cfg)
+    try:
+        if option == "resume":
+            cfg, _ = resume_config(run_dir, cfg, task)
+        elif cfg.teacher_ckpt or cfg.student_ckpt:
+            return  # a checkpoint may change the policy: main compares
+        else:
+            adopt_config(run_dir, cfg)
+        check_run_checkpoints(run_dir, cfg, option)  # its tables first
+    except (FileRefused, CheckpointError) as err:
+        raise ConfigError(str(err)) from None
 
 
 def check_run_checkpoints(
@@ -131,21 +146,26 @@ def check_run_checkpoints(
     option: str,
     world_mismatch: Callable[[dict], str | None] | None = None,
 ) -> list[str]:
-    """Read the run's newest checkpoints (CPU) through the gate (:func:`march.store.gate.
+    """The run's CSV tables checked row by row (:func:`check_run_tables`); then its newest
+    checkpoints read (CPU) through the gate (:func:`march.store.gate.
     read_checkpoint`: the command line's checks, weights against config) and check that they
     belong to this run (no difference a resume could not make); before any env is built.
     ``world_mismatch``: why this process group cannot resume a payload (``march.learn.
     distributed.world_mismatch``; the training room sits above this one)."""
-    from march.store.checkpoint import latest_checkpoint
+    from march.store.checkpoint import check_file, keep_checked, latest_checkpoint
     from march.store.gate import read_checkpoint
     from march.store.resume_rules import config_differences
 
-    notes = []
+    check_run_tables(run_dir, option)  # before anything in the directory changes
+    found = {}
     for kind in ("teacher", "student"):
         folder = Path(run_dir) / kind
         path = latest_checkpoint(folder) if folder.is_dir() else None
-        if path is None:
-            continue
+        if path is not None:
+            check_file(path, f"{option}={run_dir}: {path}")  # every file's zip directory first
+            found[kind] = path
+    notes = []
+    for kind, path in found.items():
         label = f"{option}={run_dir}: {path}"
         payload, saved = read_checkpoint(
             str(path), kind, cfg.extra_modules, source=label, world_mismatch=world_mismatch
@@ -158,8 +178,21 @@ def check_run_checkpoints(
                     f"{label}: written by another config than the run's config.yaml "
                     f"({'; '.join(unsafe[:4])}); it does not belong to this run"
                 )
+        keep_checked(path, payload)  # the resume uses these bytes, not a second read
         notes.append(f"[{kind}] checked {path}: iteration {payload['iteration']}")
     return notes
+
+
+def check_run_tables(run_dir: Path, option: str) -> None:
+    """Every CSV table of the run checked row by row (:func:`march.store.run_tables.
+    check_run_tables`) before anything in the directory changes; one :class:`ConfigError`."""
+    from march.store.bounded_read import FileRefused
+    from march.store.run_tables import check_run_tables as check_tables
+
+    try:
+        check_tables(run_dir, option)
+    except FileRefused as err:
+        raise ConfigError(str(err)) from None
 
 
 _HYDRA_JOB_FILES = {"train.log", ".hydra/config.yaml", ".hydra/hydra.yaml", ".hydra/overrides.yaml"}
