@@ -42,7 +42,6 @@ floor (the zero action on the same rollouts, ``floor_distance_m``).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -57,6 +56,7 @@ if __package__ in (None, ""):
 from analysis.rundirs import discover  # noqa: E402
 from march.stats import mean_summary as t_interval  # noqa: E402
 from march.stats import welch_summary as welch_interval  # noqa: E402
+from march.store.bounded_read import FileRefused, read_json  # noqa: E402
 from march.strict_json import dumps  # noqa: E402
 
 WINDOW = 5
@@ -428,7 +428,10 @@ def main(argv: list[str] | None = None) -> None:
         p.exit(2, f"error: no run directories under {', '.join(map(str, args.dirs))}\n")
     standing = None
     if args.standing:
-        audit = json.loads(args.standing.read_text())
+        try:
+            audit = read_json(args.standing, str(args.standing), wanted="the audit's JSON")
+        except FileRefused as err:
+            p.exit(2, f"error: {err}\n")
         zero = [b for b in audit["behaviours"] if b["behaviour"] == "zero"]
         if not zero or "v_over_vmax" not in zero[0]:
             p.exit(2, f"error: {args.standing} has no zero-action V/Vmax (audit reward=clf)\n")
