@@ -130,7 +130,9 @@ class Controller:
         self.guard = RangeGuard(spec)
         self.act_lo, self.act_hi = self._action_range()
         self.machine = SafetyMachine(self.timing)
-        self.session = policy_session(self.bundle.onnx_bytes, 1, self.bundle.onnx_path)
+        self.session = policy_session(
+            self.bundle.onnx_bytes or self.bundle.onnx_path, 1, self.bundle.onnx_path
+        )
         self._warm_up()
         c = spec["command"]
         vx = c["lin_vel_x"] if math.isnan(self.command[0]) else self.command[0]
