@@ -87,3 +87,55 @@ def test_the_reference_section_reaches_the_command_term():
     assert (ref.com_anchoring, ref.com_height, ref.com_height_min) == ("continuous", "fixed", 0.57)
     with pytest.raises(ConfigError, match="continuous, stance"):
         load(["reference.com_anchoring=sideways"])
+
+
+def _trace(env, term, seed: int, steps: int) -> list[torch.Tensor]:
+    """Reseed, reset and walk ``steps`` steps of 0.4 N(0, 1) actions; the reference outputs,
+    stance sides and the plans' footholds after every step."""
+    from march.env.build import reseed_env
+
+    reseed_env(env, seed)
+    term.planner_streams.assign(seed, 0)  # each env's planner stream from its start
+    torch.manual_seed(seed)  # the reset poses
+    gen = torch.Generator().manual_seed(seed)
+    n_act = env.action_manager.total_action_dim
+    env.reset()
+    out = []
+    for _ in range(steps):
+        env.step(0.4 * torch.randn(env.num_envs, n_act, generator=gen))
+        out += [
+            term.y_ref_pos.clone(),
+            term.y_ref_vel.clone(),
+            term.stance_is_left.clone(),
+            term.plan_footholds.clone(),
+        ]
+    return out
+
+
+@pytest.mark.sim
+def test_planning_only_when_due_changes_no_number(env, monkeypatch):
+    """``compute.replan_only_when_due`` (the cpu preset) skips the planner's fixed batch in the
+    updates where no env is reset, touches down or times out: over the same seeded walk the
+    reference, the stance sides and the plans are bit-identical to planning every update, and
+    the planner really was called fewer times (a skip that changed a plan, or no skip, fails)."""
+    import march.env.reference_command as module
+
+    term = reference_term(env)
+    calls = {"n": 0}
+    real = module.plan_footsteps
+
+    def counted(*args, **kwargs):
+        calls["n"] += 1
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(module, "plan_footsteps", counted)
+    runs = {}
+    for when_due in (False, True):
+        monkeypatch.setattr(term.cfg, "replan_only_when_due", when_due)
+        calls["n"] = 0
+        runs[when_due] = (_trace(env, term, seed=5, steps=100), calls["n"])
+    (every, n_every), (due, n_due) = runs[False], runs[True]
+    assert n_due < n_every / 2, (n_due, n_every)
+    assert len(every) == len(due)
+    for a, b in zip(every, due, strict=True):
+        assert torch.equal(a, b)

@@ -55,6 +55,12 @@ class ComputeCfg:
     bare mjlab rough's 760-795 (64 envs, 2026-12-03); off elsewhere: on CPU it makes the step
     slower (inductor's CPU kernels for the planner) and compiling takes minutes (README,
     "Speed"; ``python -m march.bench env`` reports the compile time)."""
+    replan_only_when_due: bool = False
+    """The reference command calls the footstep planner only in the updates where an env is
+    reset, touches down or times out, at the cost of one host read per update (the same plans
+    and numbers either way). On in the cpu preset, where a host read costs nothing and the
+    planner's fixed batch, planned every update to avoid that read, was 41 of march's 56 ms per
+    step at 32 envs (2026-12-06); off elsewhere (on a GPU the read stalls the stream)."""
     compile_mode: str = "default"
     """torch.compile's mode for ``compile_math``: ``default``, or ``reduce-overhead`` (each
     compiled graph also captured in a CUDA graph per input shape and replayed with one launch;

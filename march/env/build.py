@@ -368,6 +368,7 @@ def build_env_cfg(
         env_cfg.commands[REFERENCE_COMMAND] = ReferenceCommandCfg(
             planner_seed=cfg.seed,
             compile_math=cfg.compute.compile_math,
+            replan_only_when_due=cfg.compute.replan_only_when_due,
             reference=ReferenceCfg(
                 com_anchoring=ref.com_anchoring,
                 com_height=ref.com_height,

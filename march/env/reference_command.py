@@ -141,6 +141,12 @@ class ReferenceCommandCfg(CommandTermCfg):
     size of the per-step planner batch; module docstring, "Replanning without host syncs")."""
     replan_capacity_min: int = 8
     """The per-update planner batch holds at least this many envs (or all of them)."""
+    replan_only_when_due: bool = False
+    """Call the planner only in updates where an env is reset, touches down or times out (one
+    host read per update). On CPU a host read is free and the planner's fixed-size batch is most
+    of march's own per-step cost (41 of 56 ms per step at 32 envs, docs/benchmarks.md), so the
+    cpu preset turns it on (``compute.replan_only_when_due``); on a GPU the read is a sync per
+    step and the fixed batch never branches on data: off."""
     compile_math: bool = False
     """``torch.compile`` (dynamic shapes) :func:`reference_at` (``compute.compile_math``)."""
     planner_seed: int | None = 0
@@ -386,7 +392,15 @@ class ReferenceCommand(CommandTerm):
 
         if batch.num_resets:
             self._start_episode(resets)
-        self._new_step(batch.ids, apply=batch.apply, ramp=batch.ramp, com_now=com_now)
+        # On CPU (replan_only_when_due) one host read skips the planner when no row of the batch
+        # is applied: the padding rows' plans are discarded and no stream advances for them, so
+        # the skip changes no number (tests/test_env_reference.py compares both paths).
+        if (
+            batch.num_resets
+            or not self.cfg.replan_only_when_due
+            or bool(batch.apply.any())  # a host read: CPU only (replan_only_when_due)
+        ):
+            self._new_step(batch.ids, apply=batch.apply, ramp=batch.ramp, com_now=com_now)
         self._refresh_outputs()
 
     # ---------------------------------------------------------------- planning
