@@ -37,7 +37,15 @@ evaluation set under one protocol for every arm). Written into ``--out`` (defaul
   (``summary.json`` of complete runs, the run's last student evaluation), mean +- SE, and the
   paper's relative differences: (clf - modelfree) / modelfree for student full, (variant - full)
   / full for the ablation, written like ``torque -12%``; also printed on stdout.
-* ``figure_data.csv`` -- every plotted point (figure, panel, x_name, series, x, y, se, yerr, n).
+* ``figure_data.csv`` -- every plotted point (figure, panel, x_name, series, x, y, se, yerr, n),
+  the standing floors included (``x_name`` ``standing_floor``).
+
+The standing floor (issue 56): every evaluation row records the zero action's distance on the
+same rollouts (``floor_distance_m``). Every distance panel draws it as a dashed line (one black
+line when all series share it, else one per series in its colour; the training diagnostic's is
+the teacher evaluations' floor, so labelled), and every distance printed has it beside it
+(stdout, a ``standing floor`` column in final_metrics and sample_efficiency.csv, a "Standing
+floor" section in claims.md). Runs from before it: "no standing floor in these runs".
 * ``runs.{md,csv}`` -- every run found, its config keys, state, row counts and problems.
 
 A run without the rows a figure needs (an old run without teacher evaluations, a teacher-only
