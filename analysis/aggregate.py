@@ -481,6 +481,13 @@ def sample_efficiency(
             }
         )
     eff = pd.DataFrame(records, columns=SE_COLUMNS)
+    under = {n: f.distance_m for n, f in curves.floors.items() if f.distance_m >= target}
+    if under:  # reaching it takes no walking: the zero action scores as much
+        floors = ", ".join(f"{n} {d:.3g} m" for n, d in under.items())
+        notes.append(
+            f"sample_efficiency: the target {target:.3g} m is at or below the standing floor "
+            f"({floors}): reaching it is no progress"
+        )
     by = {row["reward"]: row for _, row in eff.iterrows()}
     for a, b in comp.pairs:
         ka, kb = primary(keys, a), primary(keys, b)

@@ -100,6 +100,7 @@ class ClaimsInput:
     used: set = field(default_factory=set)  # the groups some claim row compared
     listed: set = field(default_factory=set)  # the groups a line of ``refused`` names
     floors: list[str] = field(default_factory=list)  # the compared groups' standing floors
+    floor_warnings: list[str] = field(default_factory=list)  # distance targets at the floor
 
 
 def from_iteration(distill_budget) -> int:
@@ -255,6 +256,16 @@ def _baseline_rows(name: str, a: list[Run], b: list[Run], inp: ClaimsInput) -> l
     (stage=all runs: each trained its own teacher, whose eval.csv teacher rows it holds)."""
     est, target, grid = steps_to_target(a, b, inp.threshold_fraction)
     where = f" ({target:.3g} m)" if np.isfinite(target) else ""
+    floors = [
+        combine_floors([run_floor(stage_rows(r.evals, "teacher")) for r in g]) for g in (a, b)
+    ]
+    top = max((f.distance_m for f in floors if f is not None), default=math.nan)
+    if np.isfinite(target) and top >= target:  # claims.md's floor section says so
+        inp.floor_warnings.append(
+            f"{name}: the sample-efficiency target {target:.3g} m is at or below a compared "
+            f"arm's standing floor ({top:.3g} m on the teacher evaluations): reaching it is "
+            "no progress"
+        )
     grid = grid.split("; ")[0] if grid else "no evaluation grid"
     rows = [
         claim_row(
@@ -359,7 +370,7 @@ def claims(inp: ClaimsInput, notes: list[str]) -> pd.DataFrame:
             inp.used.add(kc)
     rows += ablation_rows(inp, notes)
     _unused(inp)
-    inp.floors = floor_lines(inp)
+    inp.floors = floor_lines(inp) + inp.floor_warnings
     return pd.DataFrame(rows, columns=CLAIM_COLUMNS)
 
 

@@ -550,3 +550,24 @@ def test_floors_that_differ_are_drawn_per_group_and_older_runs_named(tmp_path, m
     floor_part = claims_md.split("## Standing floor")[1].split("## Not compared")[0]
     assert "- modelfree / full: teacher evaluations: standing floor 0.3 ± 0.0057 m" in floor_part
     assert "- clf [stage student] / no_mdn: no standing floor (from before the floor)" in floor_part
+
+
+def test_a_distance_target_at_the_floor_is_named(tmp_path):
+    """Floors of 3.0 m (a robot that falls far): the sample-efficiency target, 90% of the
+    better final distance (3.3 m) = 2.97 m, is below them: reaching it is no progress, and
+    stdout and claims.md say so."""
+    sweep = tmp_path / "sweep"
+    for i, reward in enumerate(("clf", "modelfree")):
+        for seed in (0, 1):
+            syn.make_run(sweep / f"{i}{seed}", reward, "full", seed, floor=3.0)
+    code, text = _main([str(sweep), "--out", str(tmp_path / "out")])
+    assert code == 0
+    assert (
+        "note: sample_efficiency: the target 2.97 m is at or below the standing floor "
+        "(clf 3 m, modelfree 3 m): reaching it is no progress" in text
+    )
+    claims_md = (tmp_path / "out" / "claims.md").read_text()
+    assert (
+        "- baseline: the sample-efficiency target 2.97 m is at or below a compared arm's "
+        "standing floor (3 m on the teacher evaluations)" in claims_md
+    )
