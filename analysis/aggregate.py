@@ -15,6 +15,11 @@ Which rows feed what:
 * final metrics -- ``summary.json`` of complete runs (the final evaluation of the student, the
   same numbers as the run's last ``eval.csv`` student row).
 
+The standing floor (:class:`Floor`): every evaluation row written since issue 56 also carries
+the zero action's distance on the same rollouts (``floor_distance_m``, ``floor_se_distance_m``);
+each series' floor is the mean of its runs' floors, drawn and printed beside its distances.
+Rows from before the floor have none: the outputs say so instead of drawing one.
+
 Several seeds combine per iteration with :func:`combine` (``--se-mode``). Relative differences
 follow the paper's convention for the chosen pairs (analysis.arms.Comparisons): (A - B) / B for an
 arm pair A:B (default clf:modelfree), (variant - full) / full for the ablation.
@@ -62,6 +67,62 @@ TEACHER_PANELS = [
 ]
 
 
+FLOOR = "floor_distance_m"  # eval.csv / summary.json: the zero action's distance [m]
+FLOOR_SE = "floor_se_distance_m"  # its standard error over the rollouts [m]
+NO_FLOOR = "no standing floor in these runs (eval.csv / summary.json from before the floor)"
+
+
+@dataclass(frozen=True)
+class Floor:
+    """A series' standing floor: the zero action's distance on the same rollouts as its policies
+    (march.evaluation.protocol.standing_floor), the mean over its runs' floors."""
+
+    distance_m: float  # mean over runs of each run's floor [m]
+    se_m: float  # rollout SE of that mean, sqrt(sum se_i^2) / n [m] (NaN: none recorded)
+    n_runs: int  # runs with a floor
+    n_rollouts: int  # rollouts behind it, summed over those runs (0: not recorded)
+
+    def text(self) -> str:
+        """``standing floor 0.036 ± 0.008 m (zero action, 2 runs, 32 rollouts)``."""
+        se = "" if math.isnan(self.se_m) else f" ± {self.se_m:.2g}"
+        runs = f"{self.n_runs} run{'s' * (self.n_runs != 1)}"
+        rolls = f", {self.n_rollouts} rollouts" if self.n_rollouts else ""
+        return f"standing floor {self.distance_m:.3g}{se} m (zero action, {runs}{rolls})"
+
+
+def run_floor(rows: pd.DataFrame | dict | None) -> tuple[float, float, int] | None:
+    """One run's floor (distance, SE, rollouts) from its eval rows of one stage (the mean over
+    the rows: one value per eval env, so the same in every row) or its summary.json; None when
+    it has none (written before the floor existed)."""
+    if rows is None:
+        return None
+    if isinstance(rows, dict):  # summary.json
+        d = rows.get(FLOOR)
+        if d is None or pd.isna(d):
+            return None
+        se = rows.get(FLOOR_SE)
+        return float(d), math.nan if se is None else float(se), int(rows.get("n_rollouts") or 0)
+    if FLOOR not in rows.columns:
+        return None
+    rows = rows[rows[FLOOR].notna()]
+    if rows.empty:
+        return None
+    se = rows[FLOOR_SE].mean() if FLOOR_SE in rows.columns else math.nan
+    n = int(rows["n_rollouts"].iloc[-1]) if "n_rollouts" in rows.columns else 0
+    return float(rows[FLOOR].mean()), float(se), n
+
+
+def combine_floors(per_run: list[tuple[float, float, int] | None]) -> Floor | None:
+    """The floor of a series from its runs' (:func:`run_floor`); None when no run has one. The
+    SE is the rollout SE of the mean (pooled): a floor is a property of the courses, not of a
+    training seed."""
+    got = [f for f in per_run if f is not None]
+    if not got:
+        return None
+    mean, se, n = combine([f[0] for f in got], [f[1] for f in got], "pooled")
+    return Floor(mean, se, n, sum(f[2] for f in got))
+
+
 @dataclass
 class Curves:
     """Aggregated curves per series (a reward or a variant) and the series that have none."""
@@ -69,6 +130,7 @@ class Curves:
     series: dict[str, pd.DataFrame] = field(default_factory=dict)
     missing: dict[str, str] = field(default_factory=dict)  # series -> why it has no curve
     refused: dict[str, str] = field(default_factory=dict)  # series -> "not compared (...)"
+    floors: dict[str, Floor] = field(default_factory=dict)  # series -> its standing floor
 
     def __bool__(self) -> bool:
         return bool(self.series)
@@ -166,6 +228,9 @@ def _eval_curves(
         frames = [f for f in (eval_rows(r, stage) for r in group) if f is not None]
         if frames:
             out.series[name] = aggregate_eval(frames, mode)
+            floor = combine_floors([run_floor(f) for f in frames])
+            if floor is not None:
+                out.floors[name] = floor
         else:
             out.missing[name] = (
                 f"no {what}runs"
@@ -343,6 +408,7 @@ SE_COLUMNS = [
     "relative",
     "per_run",
     "source",
+    "floor_distance_m",  # the arm's standing floor on the teacher evaluations (NaN: none)
 ]
 
 
@@ -409,9 +475,19 @@ def sample_efficiency(
                 "relative": "",
                 "per_run": " ".join(per_run),
                 "source": f"eval.csv teacher rows (fixed stone evaluation set); target {source}",
+                "floor_distance_m": (
+                    curves.floors[series].distance_m if series in curves.floors else math.nan
+                ),
             }
         )
     eff = pd.DataFrame(records, columns=SE_COLUMNS)
+    under = {n: f.distance_m for n, f in curves.floors.items() if f.distance_m >= target}
+    if under:  # reaching it takes no walking: the zero action scores as much
+        floors = ", ".join(f"{n} {d:.3g} m" for n, d in under.items())
+        notes.append(
+            f"sample_efficiency: the target {target:.3g} m is at or below the standing floor "
+            f"({floors}): reaching it is no progress"
+        )
     by = {row["reward"]: row for _, row in eff.iterrows()}
     for a, b in comp.pairs:
         ka, kb = primary(keys, a), primary(keys, b)

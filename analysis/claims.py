@@ -33,6 +33,11 @@ config as a whole (:func:`analysis.groups.variant_of_arm`: a reward term beyond 
 variant); every pair refused, and every group that is not the paper's arm, is listed once with
 the reason in ``claims.md`` ("Not compared").
 
+The distances behind these claims (the sample-efficiency target, the ablation's distance row)
+are read against each compared group's standing floor, the zero action's distance on the same
+rollouts: ``claims.md`` lists it per group ("Standing floor"), on the teacher evaluations and the
+final student evaluation, or says the runs have none (from before the floor existed).
+
 Every verdict counts the finite per-seed values it was computed from, per arm (and per iteration
 for the "every iteration" rows): ``n_seeds`` reports them; fewer than 3 on either side is
 ``inconclusive`` with the reason in ``why`` (:func:`march.stats.judge`).
@@ -48,6 +53,7 @@ import numpy as np
 import pandas as pd
 
 from analysis.ablation_claims import ablation_rows
+from analysis.aggregate import NO_FLOOR, combine_floors, run_floor
 from analysis.claim_row import CLAIM_COLUMNS, claim_row, scale_text
 from analysis.groups import (
     CONF_DIR,
@@ -93,6 +99,8 @@ class ClaimsInput:
     refused: list[str] = field(default_factory=list)  # what was not compared, and why
     used: set = field(default_factory=set)  # the groups some claim row compared
     listed: set = field(default_factory=set)  # the groups a line of ``refused`` names
+    floors: list[str] = field(default_factory=list)  # the compared groups' standing floors
+    floor_warnings: list[str] = field(default_factory=list)  # distance targets at the floor
 
 
 def from_iteration(distill_budget) -> int:
@@ -248,6 +256,16 @@ def _baseline_rows(name: str, a: list[Run], b: list[Run], inp: ClaimsInput) -> l
     (stage=all runs: each trained its own teacher, whose eval.csv teacher rows it holds)."""
     est, target, grid = steps_to_target(a, b, inp.threshold_fraction)
     where = f" ({target:.3g} m)" if np.isfinite(target) else ""
+    floors = [
+        combine_floors([run_floor(stage_rows(r.evals, "teacher")) for r in g]) for g in (a, b)
+    ]
+    top = max((f.distance_m for f in floors if f is not None), default=math.nan)
+    if np.isfinite(target) and top >= target:  # claims.md's floor section says so
+        inp.floor_warnings.append(
+            f"{name}: the sample-efficiency target {target:.3g} m is at or below a compared "
+            f"arm's standing floor ({top:.3g} m on the teacher evaluations): reaching it is "
+            "no progress"
+        )
     grid = grid.split("; ")[0] if grid else "no evaluation grid"
     rows = [
         claim_row(
@@ -352,7 +370,35 @@ def claims(inp: ClaimsInput, notes: list[str]) -> pd.DataFrame:
             inp.used.add(kc)
     rows += ablation_rows(inp, notes)
     _unused(inp)
+    inp.floors = floor_lines(inp) + inp.floor_warnings
     return pd.DataFrame(rows, columns=CLAIM_COLUMNS)
+
+
+def floor_lines(inp: ClaimsInput) -> list[str]:
+    """Per group a claim compared: its standing floor on the teacher evaluations (eval.csv
+    teacher rows) and on the final student evaluation (summary.json), mean over its runs, or
+    that it has none; one line saying there is none when no such group has one (runs from
+    before the floor)."""
+    used = [k for k in inp.groups if k in inp.used]
+    arms = list(dict.fromkeys(k.arm_part() for k in used))  # named as final_metrics names them
+    names = series_names(arms, "reward", inp.conf_dir) if used else {}
+    lines, older = [], []
+    for k in used:
+        runs = inp.groups[k]
+        parts = []
+        for where, per_run in (
+            ("teacher evaluations", [run_floor(stage_rows(r.evals, "teacher")) for r in runs]),
+            ("final student evaluation", [run_floor(r.summary) for r in runs]),
+        ):
+            floor = combine_floors(per_run)
+            if floor is not None:
+                parts.append(f"{where}: {floor.text()}")
+        if parts:
+            lines.append(f"{names[k.arm_part()]} / {k.variant}: " + "; ".join(parts))
+        else:
+            name = f"{names[k.arm_part()]} / {k.variant}"
+            older.append(f"{name}: no standing floor (from before the floor)")
+    return lines + older if lines else ([NO_FLOOR] if used else [])
 
 
 def _unused(inp: ClaimsInput) -> None:
@@ -380,9 +426,9 @@ def _pct(x) -> str:
     return f"{x:+.1%}"
 
 
-def claims_markdown(table: pd.DataFrame, refused: list[str] = ()) -> str:
-    """claims.md: the table (relative values in percent, ratios as numbers), how to read it, and
-    what was not compared and why."""
+def claims_markdown(table: pd.DataFrame, refused: list[str] = (), floors: list[str] = ()) -> str:
+    """claims.md: the table (relative values in percent, ratios as numbers), how to read it, the
+    compared groups' standing floors, and what was not compared and why."""
     lines = [
         "# The paper's claims, measured",
         "",
@@ -417,6 +463,17 @@ def claims_markdown(table: pd.DataFrame, refused: list[str] = ()) -> str:
             f"[{show(r['ci_low'])}, {show(r['ci_high'])}] | {r['n_seeds']} | {cell(r['scale'])} | "
             f"**{r['verdict']}** | {cell(r['why'])} |"
         )
+    if floors:
+        lines += [
+            "",
+            "## Standing floor",
+            "",
+            "The zero action's distance on the same rollouts as each compared group's "
+            "evaluations (mean over its runs ± rollout SE): a distance, or a distance target, at "
+            "or below it is no progress.",
+            "",
+        ]
+        lines += [f"- {cell(line)}" for line in floors]
     lines += ["", "## Not compared", ""]
     lines += [f"- {cell(line)}" for line in refused] or ["- (every group found was compared)"]
     return "\n".join(lines) + "\n"

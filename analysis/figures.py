@@ -37,7 +37,15 @@ evaluation set under one protocol for every arm). Written into ``--out`` (defaul
   (``summary.json`` of complete runs, the run's last student evaluation), mean +- SE, and the
   paper's relative differences: (clf - modelfree) / modelfree for student full, (variant - full)
   / full for the ablation, written like ``torque -12%``; also printed on stdout.
-* ``figure_data.csv`` -- every plotted point (figure, panel, x_name, series, x, y, se, yerr, n).
+* ``figure_data.csv`` -- every plotted point (figure, panel, x_name, series, x, y, se, yerr, n),
+  the standing floors included (``x_name`` ``standing_floor``).
+
+The standing floor (issue 56): every evaluation row records the zero action's distance on the
+same rollouts (``floor_distance_m``). Every distance panel draws it as a dashed line (one black
+line when all series share it, else one per series in its colour; the training diagnostic's is
+the teacher evaluations' floor, so labelled), and every distance printed has it beside it
+(stdout, a ``standing floor`` column in final_metrics and sample_efficiency.csv, a "Standing
+floor" section in claims.md). Runs from before it: "no standing floor in these runs".
 * ``runs.{md,csv}`` -- every run found, its config keys, state, row counts and problems.
 
 A run without the rows a figure needs (an old run without teacher evaluations, a teacher-only
@@ -84,6 +92,7 @@ from analysis.plotting import (  # noqa: E402
     POINT_COLUMNS,
     SAMPLE_EFFICIENCY,
     eval_points,
+    floor_points,
     plot_eval_figure,
     plot_teacher_training,
     teacher_points,
@@ -91,6 +100,12 @@ from analysis.plotting import (  # noqa: E402
 from analysis.reports import report, write_tables  # noqa: E402
 from analysis.rundirs import discover, runs_frame  # noqa: E402
 from march.store.bounded_read import FileRefused  # noqa: E402
+
+
+def _cat(*frames: pd.DataFrame) -> pd.DataFrame:
+    """Point tables one after another (empty ones left out: pandas warns on them)."""
+    kept = [f for f in frames if not f.empty]
+    return pd.concat(kept, ignore_index=True) if kept else frames[0]
 
 
 def analyze(
@@ -127,7 +142,7 @@ def analyze(
 
     base = baseline_data(runs, mode, notes, comp)
     if base:
-        pts = eval_points(BASELINE, base)
+        pts = _cat(eval_points(BASELINE, base), floor_points("baseline", "distance_m", base.floors))
         axes_notes["baseline"] = plot_eval_figure(BASELINE, pts, base, mode, out, written, comp)
         all_points.append(pts)
     else:
@@ -142,6 +157,8 @@ def analyze(
         target = float(eff["target_distance_m"].iloc[0])
     if se_curves:
         pts = eval_points(SAMPLE_EFFICIENCY, se_curves)
+        floors = floor_points(SAMPLE_EFFICIENCY.stem, "distance_m", se_curves.floors)
+        pts = _cat(pts, floors)
         axes_notes["sample_efficiency"] = plot_eval_figure(
             SAMPLE_EFFICIENCY, pts, se_curves, mode, out, written, comp, target, eff
         )
@@ -154,7 +171,7 @@ def analyze(
 
     abl = ablation_data(runs, mode, notes, comp)
     if abl:
-        pts = eval_points(ABLATION, abl)
+        pts = _cat(eval_points(ABLATION, abl), floor_points("ablation", "distance_m", abl.floors))
         axes_notes["ablation"] = plot_eval_figure(ABLATION, pts, abl, mode, out, written, comp)
         all_points.append(pts)
     else:
@@ -164,7 +181,14 @@ def analyze(
     if teach:
         pts = teacher_points(teach)
         refused = teacher_refused(runs, comp)[1]
-        plot_teacher_training(teach, pts, window, out, written, notes, comp, refused)
+        # the arms' floors on their teacher evaluations (training rollouts have none)
+        floors = {k: f for k, f in se_curves.floors.items() if k in teach}
+        axes_notes["teacher_curves"] = {
+            "mean_distance_m": plot_teacher_training(
+                teach, pts, window, out, written, notes, comp, refused, floors
+            )
+        }
+        pts = _cat(pts, floor_points("teacher_curves", "mean_distance_m", floors))
         all_points.append(pts)
     else:
         notes.append("skip teacher_curves: no metrics.csv teacher rows with values in any run")
@@ -186,7 +210,9 @@ def analyze(
     )
     claim_rows = claims(claims_input, notes)
     claim_rows.to_csv(out / "claims.csv", index=False)
-    (out / "claims.md").write_text(claims_markdown(claim_rows, claims_input.refused))
+    (out / "claims.md").write_text(
+        claims_markdown(claim_rows, claims_input.refused, claims_input.floors)
+    )
     written += [out / "claims.csv", out / "claims.md"]
     if table.empty:
         notes.append("skip final_metrics: no complete run with a student summary.json")

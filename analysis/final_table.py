@@ -4,7 +4,9 @@ differences, each with its 95% interval across seeds (or "no claim" under 3 seed
 Reads ``summary.json`` of complete runs (the final evaluation of the student: the same numbers as
 the run's last ``eval.csv`` student row). One row per group (:mod:`analysis.groups`): the arm
 named by its reward (plus what tells it from the other groups of that reward), the variant in its
-own column.
+own column. Each row carries its group's standing floor (``floor_distance_m`` and its rollout SE
+``floor_se_distance_m``: the zero action on the final evaluation's rollouts, the mean over the
+group's runs; NaN for runs from before the floor existed).
 """
 
 from __future__ import annotations
@@ -16,11 +18,15 @@ import pandas as pd
 
 from analysis.aggregate import (
     COUNT_KEYS,
+    FLOOR,
+    FLOOR_SE,
     METRICS,
     OWN_REWARD_METRICS,
     combine,
+    combine_floors,
     format_rel,
     rel_diff,
+    run_floor,
 )
 from analysis.arms import Comparisons
 from analysis.groups import (
@@ -116,6 +122,9 @@ def final_table(runs: list[Run], mode: str, notes: list[str], comp: Comparisons)
             rec[f"mean_{key}"], rec[f"se_{key}"], _ = combine(means, ses, mode)
             vals = np.asarray(means, dtype=float)
             per_seed.setdefault((reward, variant), {})[key] = vals[~np.isnan(vals)]
+        floor = combine_floors([run_floor(r.summary) for r in members])
+        rec[FLOOR] = math.nan if floor is None else floor.distance_m
+        rec[FLOOR_SE] = math.nan if floor is None else floor.se_m
         records.append(rec)
     table = pd.DataFrame(records)
     if table.empty:

@@ -4,6 +4,12 @@ Every figure is drawn from a tidy frame with the columns of ``POINT_COLUMNS``; t
 written to ``figure_data.csv``, so what a figure shows can be read back number by number. A
 series or metric without rows is named in a grey note above its panel instead of being left out
 silently.
+
+Every distance panel draws the standing floor (the zero action's distance on the same rollouts,
+:class:`analysis.aggregate.Floor`) as a dashed horizontal line: one black line when every series
+drawn has the same floor (to 3 significant digits), else one per series in its colour. Runs from
+before the floor existed have none: the panel's note says so. Its value is in
+``figure_data.csv`` too (``x_name`` ``standing_floor``, one row per figure, panel and series).
 """
 
 from __future__ import annotations
@@ -20,7 +26,13 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
-from analysis.aggregate import METRICS, TEACHER_PANELS, Curves  # noqa: E402
+from analysis.aggregate import (  # noqa: E402
+    METRICS,
+    NO_FLOOR,
+    TEACHER_PANELS,
+    Curves,
+    Floor,
+)
 from analysis.arms import Comparisons, Series  # noqa: E402
 
 FIG_EXTS = ("png", "pdf")
@@ -123,6 +135,76 @@ def eval_points(spec: FigureSpec, curves: Curves) -> pd.DataFrame:
     if not frames:
         return pd.DataFrame(columns=POINT_COLUMNS)
     return pd.concat(frames, ignore_index=True)[POINT_COLUMNS]
+
+
+FLOOR_X = "standing_floor"  # figure_data.csv x_name of a floor row (x is NaN)
+FLOOR_GID = "standing_floor"  # the floor lines' gid (svg id; how a test finds them)
+FLOOR_DASHES = (0, (5, 2))  # dashed, denser than the grey "--" target line
+
+
+def floor_points(figure: str, panel: str, floors: dict[str, Floor]) -> pd.DataFrame:
+    """figure_data.csv rows of the floors drawn in ``panel``: one per series, y = its floor."""
+    if not floors:
+        return pd.DataFrame(columns=POINT_COLUMNS)
+    return pd.DataFrame(
+        {
+            "figure": figure,
+            "panel": panel,
+            "x_name": FLOOR_X,
+            "series": list(floors),
+            "x": np.nan,
+            "y": [f.distance_m for f in floors.values()],
+            "se": [f.se_m for f in floors.values()],
+            "yerr": np.nan,
+            "n": [f.n_runs for f in floors.values()],
+        }
+    )[POINT_COLUMNS]
+
+
+def draw_floor(
+    ax,
+    floors: dict[str, Floor],
+    names: list[str],
+    styles: dict[str, Series],
+    legend: dict[str, object],
+    notes: list[str],
+    where: str = "",
+) -> None:
+    """The standing floor of the series ``names`` drawn in a distance panel (module docstring);
+    the series without one are named in ``notes``. ``where``: " on <the rollouts it was
+    measured on>" when not the panel's own (the training diagnostic)."""
+    have = {n: floors[n] for n in names if n in floors}
+    lacking = [n for n in names if n not in floors]
+    if not have:
+        if names:
+            notes.append(NO_FLOOR)
+        return
+    if lacking:
+        notes.append(f"no standing floor for {', '.join(lacking)} (eval.csv from before it)")
+    if len({f"{f.distance_m:.3g}" for f in have.values()}) == 1:
+        y = float(np.mean([f.distance_m for f in have.values()]))
+        runs = sum(f.n_runs for f in have.values())
+        line = ax.axhline(y, color="black", ls=FLOOR_DASHES, lw=1.2, gid=FLOOR_GID)
+        legend.setdefault(
+            f"standing floor {y:.3g} m (zero action{where or ' on the same rollouts'}, "
+            f"{runs} run{'s' * (runs != 1)})",
+            line,
+        )
+        ax.annotate(
+            "standing floor",
+            xy=(1.0, y),
+            xycoords=("axes fraction", "data"),
+            xytext=(-2, 2),
+            textcoords="offset points",
+            ha="right",
+            va="bottom",
+            fontsize=7,
+        )
+        return
+    for name, floor in have.items():  # the floors differ: one line per series, in its colour
+        color, label = _style(styles, name)
+        line = ax.axhline(floor.distance_m, color=color, ls=FLOOR_DASHES, lw=1.2, gid=FLOOR_GID)
+        legend.setdefault(f"{label}: {floor.text()}{where.replace(' on', ',', 1)}", line)
 
 
 def _note(ax, lines: list[str]) -> None:
@@ -236,6 +318,8 @@ def plot_eval_figure(
                 hit = reach[(reach["reward"] == name) & reach["iteration"].notna()]
                 if not hit.empty and not pd.isna(hit.iloc[0][xcol]):
                     ax.axvline(float(hit.iloc[0][xcol]), color=color, ls=":", lw=1)
+        if key == "distance_m":
+            draw_floor(ax, curves.floors, drawn, styles, legend, notes)
         if target is not None and key == "distance_m" and not np.isnan(target):
             line = ax.axhline(target, color="gray", ls="--", lw=1)
             legend.setdefault(f"target {target:.3g} m (reach: dotted lines)", line)
@@ -335,13 +419,18 @@ def plot_teacher_training(
     notes: list[str],
     comp: Comparisons,
     refused: dict[str, str] | None = None,
-) -> None:
-    """Training diagnostic from metrics.csv teacher rows; says on its face it is no comparison."""
+    floors: dict[str, Floor] | None = None,
+) -> list[str]:
+    """Training diagnostic from metrics.csv teacher rows; says on its face it is no comparison.
+    ``floors``: each arm's standing floor on its teacher evaluations (eval.csv), drawn in the
+    distance panel with a label saying where it was measured. Returns the distance panel's
+    notes."""
     fig, axes = plt.subplots(1, len(TEACHER_PANELS), figsize=(13, 3.8))
     per_iter = _steps_per_iteration(data)
     if per_iter is None and points["x_name"].eq("env_steps").any():
         notes.append("teacher_curves: steps per iteration differ between runs; no iteration axis")
     legend: dict[str, object] = {}
+    panel_notes: list[str] = []
     for ax, (col, ylabel) in zip(axes, TEACHER_PANELS, strict=True):
         sel = points[points["panel"] == col]
         for reward in data:
@@ -355,6 +444,11 @@ def plot_teacher_training(
             ax.fill_between(
                 pts["x"], pts["y"] - pts["yerr"], pts["y"] + pts["yerr"], color=color, alpha=0.25
             )
+        if col == "mean_distance_m":
+            drawn = [reward for reward in data if not sel[sel["series"] == reward].empty]
+            where = " on the teacher evaluation set, not these training levels"
+            draw_floor(ax, floors or {}, drawn, comp.arms, legend, panel_notes, where)
+            _note(ax, panel_notes)
         xname = sel["x_name"].iloc[0] if not sel.empty else "env_steps"
         ax.set_xlabel("teacher env steps" if xname == "env_steps" else "teacher iteration")
         ax.set_ylabel(ylabel)
@@ -376,3 +470,4 @@ def plot_teacher_training(
     )
     fig.tight_layout()
     save(fig, out, "teacher_curves", written)
+    return panel_notes

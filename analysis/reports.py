@@ -1,4 +1,8 @@
-"""Write the tables (runs, final metrics, sample efficiency, figure data) and the stdout summary."""
+"""Write the tables (runs, final metrics, sample efficiency, figure data) and the stdout summary.
+
+Every distance printed has the standing floor beside it (the zero action's distance on the same
+rollouts: ``distance 4 m (standing floor 0.035 m)``, a ``standing floor`` column in
+final_metrics.md); runs from before the floor existed are said to have none."""
 
 from __future__ import annotations
 
@@ -8,7 +12,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from analysis.aggregate import METRICS
+from analysis.aggregate import FLOOR, FLOOR_SE, METRICS, NO_FLOOR
 from analysis.arms import Comparisons
 
 UNITS = {"distance_m": " m", "abs_torque_nm": " Nm", "abs_ang_jerk": " rad/s^3"}
@@ -52,13 +56,38 @@ def comparisons(table: pd.DataFrame, comp: Comparisons) -> list[str]:
     return lines
 
 
+def _has_floor(row) -> bool:
+    return FLOOR in row.index and not pd.isna(row[FLOOR])
+
+
+def _floor_cell(row) -> str:
+    if not _has_floor(row):
+        return "none (older run)"
+    se = row[FLOOR_SE] if FLOOR_SE in row.index else math.nan
+    return fmt(row[FLOOR]) + ("" if pd.isna(se) else f" ± {fmt(se)}")
+
+
+def _floor_line(table: pd.DataFrame) -> str:
+    """final_metrics.md's sentence on the standing floor column."""
+    if FLOOR not in table.columns or table[FLOOR].isna().all():
+        return f"Standing floor: {NO_FLOOR}.\n\n"
+    return (
+        "Standing floor: the zero action's distance on the same rollouts as the final "
+        "evaluation (summary.json `floor_distance_m`, mean over the group's runs ± rollout SE); "
+        "a distance at or below it is no progress.\n\n"
+    )
+
+
 def _final_md(table: pd.DataFrame, mode: str, comp: Comparisons) -> str:
-    header = ["reward", "variant", "n runs", "iteration"] + [METRICS[k][0] for k in METRICS]
-    header += ["compared to", "relative difference"]
+    names = [METRICS[k][0] for k in METRICS]
+    at = names.index(METRICS["distance_m"][0]) + 1  # the floor beside the distance
+    header = ["reward", "variant", "n runs", "iteration"] + names[:at] + ["standing floor"]
+    header += names[at:] + ["compared to", "relative difference"]
     rows, apart = [], []
     for _, row in table.iterrows():
         cells = [row["reward"], row["variant"], str(row["n_runs"]), str(row["iteration"])]
-        cells += [f"{fmt(row[f'mean_{k}'])} ± {fmt(row[f'se_{k}'])}" for k in METRICS]
+        values = [f"{fmt(row[f'mean_{k}'])} ± {fmt(row[f'se_{k}'])}" for k in METRICS]
+        cells += values[:at] + [_floor_cell(row)] + values[at:]
         if _refused(row):  # its own table: never beside the groups it may not be compared with
             apart.append(cells + [row["not_compared"]])
             continue
@@ -80,6 +109,7 @@ def _final_md(table: pd.DataFrame, mode: str, comp: Comparisons) -> str:
         f"{pairs} for the arm comparison (student {full}; chosen by {comp.source}), "
         f"(variant - {full}) / {full} for the ablation ({comp.ablation_teacher} teacher)."
         f"\nUnits: {units}.\n\n"
+        + _floor_line(table)
         + md_table(header, rows)
         + "\n## Relative differences\n\n"
         + rel
@@ -126,14 +156,27 @@ def write_tables(
 
 
 def _values(row, keys) -> str:
+    """``distance 4 m (standing floor 0.035 m), success 80%, ...`` of a final-table row."""
     parts = []
     for k in keys:
         v = row[f"mean_{k}"]
         if k == "success_rate" and not pd.isna(v):
             parts.append(f"success {100 * v:.0f}%")
         else:
-            parts.append(f"{METRICS[k][0]} {fmt(v)}{UNITS.get(k, '')}")
+            floor = f" (standing floor {fmt(row[FLOOR])} m)" if k == "distance_m" else ""
+            floor = floor if _has_floor(row) else ""
+            parts.append(f"{METRICS[k][0]} {fmt(v)}{UNITS.get(k, '')}{floor}")
     return ", ".join(parts)
+
+
+def _no_floor(rows: pd.DataFrame, name, buf) -> None:
+    """One line for the printed rows without a standing floor (older runs): all, or which
+    (``name``: row -> how its line names it)."""
+    if FLOOR not in rows.columns or rows[FLOOR].isna().all():
+        print(f"  {NO_FLOOR}", file=buf)
+    elif rows[FLOOR].isna().any():
+        older = ", ".join(name(row) for _, row in rows[rows[FLOOR].isna()].iterrows())
+        print(f"  no standing floor for {older} (from before the floor)", file=buf)
 
 
 def report(res: dict, out: Path) -> str:
@@ -171,6 +214,7 @@ def report(res: dict, out: Path) -> str:
                     + _values(row, ["distance_m", "success_rate", "abs_torque_nm", "abs_ang_jerk"]),
                     file=buf,
                 )
+            _no_floor(base[base["not_compared"] == ""], lambda row: row["reward"], buf)
             for _, row in base[base["compared_to"] != ""].iterrows():
                 ref = row["compared_to"].split(";")[0].rsplit("/", 1)[0]
                 print(f"  {row['reward']} vs {ref}: {row['relative']}", file=buf)
@@ -190,6 +234,7 @@ def report(res: dict, out: Path) -> str:
                     + vs,
                     file=buf,
                 )
+            _no_floor(abl, lambda row: f"{row['variant']} ({row['reward']})", buf)
     eff: pd.DataFrame = res["sample_efficiency"]
     if not eff.empty:
         print(
@@ -198,11 +243,15 @@ def report(res: dict, out: Path) -> str:
             file=buf,
         )
         for _, row in eff.iterrows():
+            floor = f"; standing floor {fmt(row[FLOOR])} m" if _has_floor(row) else ""
             if row["result"] == "reached":
                 steps = "" if pd.isna(row["env_steps"]) else f" ({row['env_steps']:.4g} env steps)"
-                print(f"  {row['reward']}: iteration {int(row['iteration'])}{steps}", file=buf)
+                print(
+                    f"  {row['reward']}: iteration {int(row['iteration'])}{steps}{floor}", file=buf
+                )
             else:
-                print(f"  {row['reward']}: not reached", file=buf)
+                print(f"  {row['reward']}: not reached{floor}", file=buf)
+        _no_floor(eff, lambda row: row["reward"], buf)
         for _, row in eff[eff["compared_to"] != ""].iterrows():
             print(f"  {row['reward']} vs {row['compared_to']}: {row['relative']}", file=buf)
     print(

@@ -9,6 +9,9 @@ Every source of numbers carries a distinctive value so a test can tell which row
 * ``metrics.csv`` training rows: teacher ``mean_distance_m`` = ``TRAIN_DISTANCE0 + TRAIN_SLOPE * it`` (far above
   any evaluation distance, as on flat_first's flat levels), student ``teacher_reward`` =
   ``TRAIN_TEACHER_REWARD``; a figure showing them read the wrong rows.
+* the standing floor (``make_run(..., floor=x)``): ``floor_distance_m`` = x and
+  ``floor_se_distance_m`` = ``FLOOR_SE`` in every eval.csv row and summary.json, as evaluations
+  write them since issue 56; without ``floor`` the run has none (a run from before it).
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ STUDENT_ITERS = 50
 STUDENT_EVAL_ITS = (0, 25, 49)
 EVAL_SE = 0.05
 RUN_SE = 0.3  # rollout SE in summary.json
+FLOOR_SE = 0.008  # the standing floor's rollout SE [m]
 KEYS = ["distance_m", "success_rate", "abs_torque_nm", "abs_ang_jerk", "reward"]
 # final evaluation per (reward, variant, seed): distance, success, torque, jerk, return.
 # Seed means: clf/full (4.0, 0.8, 8.8, 30.5, 1.5), modelfree/full (3.2, 0.4, 10.0, 50.0, 1.2).
@@ -165,6 +169,7 @@ def make_run(
     truncate: bool = False,
     status: bool = True,
     extra: dict | None = None,
+    floor: float | None = None,
 ) -> Path:
     """One run dir. stage "student" runs (the ablation sweep: a fixed teacher checkpoint) and
     stage "eval" runs have no teacher rows; ``teacher_iters`` defaults to TEACHER_ITERS[reward]."""
@@ -185,6 +190,10 @@ def make_run(
     evals = teacher_eval_rows(reward, seed, n_teacher)
     if student:
         evals += student_eval_rows(reward, variant, seed)
+    floor_cols = (
+        {} if floor is None else {"floor_distance_m": floor, "floor_se_distance_m": FLOOR_SE}
+    )
+    evals = [{**row, **floor_cols} for row in evals]
     if evals:
         pd.DataFrame(evals).to_csv(d / "eval.csv", index=False)
     if final:
@@ -199,6 +208,7 @@ def make_run(
         for k, v in zip(KEYS, FINAL[(reward, variant, seed)], strict=True):
             summary[f"mean_{k}"] = v
             summary[f"se_{k}"] = RUN_SE
+        summary.update(floor_cols)
         (d / "summary.json").write_text(json.dumps(summary))
     if status:
         error = "RuntimeError: simulated crash in PPO update" if state == "failed" else None

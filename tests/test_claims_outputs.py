@@ -7,7 +7,9 @@
   stdout and every figure's data: they appear nowhere side by side;
 * a clf arm with a plugin reward term (``swing_clearance``): a variant, labelled so in every
   output, never "the paper's clf arm";
-* the ablation's refused group listed once under "Not compared".
+* the ablation's refused group listed once under "Not compared";
+* the standing floor (issue 56): a refused arm's floor is neither drawn nor printed beside the
+  compared arm's, and a sweep without floor columns still gives every output.
 
 Each was planted in the code before this test existed and the test failed (the report of issue
 57 says how)."""
@@ -46,10 +48,16 @@ def three_seeds(monkeypatch):
     monkeypatch.setitem(syn.FINAL, ("modelfree", "full", 2), syn.FINAL[("modelfree", "full", 0)])
 
 
-def _sweep(root: Path, runs: list[tuple[str, int, dict]], edit=None) -> Path:
+def _sweep(
+    root: Path, runs: list[tuple[str, int, dict]], edit=None, floors: dict | None = None
+) -> Path:
+    """``floors``: reward -> the standing floor [m] its runs write (None: runs without one)."""
     sweep = root / "sweep"
     for i, (reward, seed, extra) in enumerate(runs):
-        d = syn.make_run(sweep / str(i), reward, "full", seed, extra={**DISTILL, **extra})
+        floor = (floors or {}).get(reward)
+        d = syn.make_run(
+            sweep / str(i), reward, "full", seed, extra={**DISTILL, **extra}, floor=floor
+        )
         if edit is not None:
             evals = pd.read_csv(d / "eval.csv")
             edit(evals, reward, seed).to_csv(d / "eval.csv", index=False)
@@ -95,13 +103,15 @@ def test_every_seed_past_the_target_at_its_first_evaluation_is_never_reproduced(
     assert "evaluation grid" in line and "one evaluation at" in line
 
 
-def test_cross_scale_arms_appear_nowhere_side_by_side(tmp_path, three_seeds):
+@pytest.mark.parametrize("floors", [None, {"clf": 0.03, "modelfree": 0.3}])
+def test_cross_scale_arms_appear_nowhere_side_by_side(tmp_path, three_seeds, floors):
     """modelfree at compute.name=cpu, clf at smoke: every output names the pair 'not compared
     (differ in compute.name ...)'; no line of any output holds both arms otherwise, no figure
-    draws modelfree, and no relative difference is printed for the pair."""
+    draws modelfree (nor its standing floor), and no relative difference is printed for the
+    pair; with or without floor columns."""
     runs = [("clf", s, {}) for s in (0, 1, 2)]
     runs += [("modelfree", s, {"compute": {"name": "cpu"}}) for s in (0, 1, 2)]
-    res, texts = _analyze(tmp_path, _sweep(tmp_path, runs))
+    res, texts = _analyze(tmp_path, _sweep(tmp_path, runs, floors=floors))
     for name, text in texts.items():
         for line in text.splitlines():
             if (
@@ -128,6 +138,20 @@ def test_cross_scale_arms_appear_nowhere_side_by_side(tmp_path, three_seeds):
     assert set(arms["series"]) == {"clf"}
     assert not (res["final"]["relative"].str.contains("%")).any()
     assert res["baseline"].refused["modelfree"].startswith("not compared (differ in compute.name")
+    floor_rows = arms[arms["x_name"] == "standing_floor"]
+    if floors is None:  # runs from before the floor: said in every output that prints distance
+        assert (points["x_name"] != "standing_floor").all()
+        for name in ("stdout", "final_metrics.md"):  # claims.md: no claim compared a distance
+            assert "no standing floor in these runs" in texts[name], name
+    else:  # clf's floor beside clf's distances; modelfree's (0.3 m) nowhere
+        assert set(floor_rows["figure"]) == {"baseline", "sample_efficiency", "teacher_curves"}
+        assert set(floor_rows["series"]) == {"clf"} and (floor_rows["y"] == 0.03).all()
+        assert "clf (n=3, it 49): distance 4 m (standing floor 0.03 m)" in texts["stdout"]
+        for name, text in texts.items():  # final_metrics.md keeps modelfree's row apart
+            text = text.split("## Not compared")[0]
+            assert "standing floor 0.3 " not in text and "| 0.3 ±" not in text, name
+        apart = texts["final_metrics.md"].split("## Not compared")[1]
+        assert "| 0.3 ± 0.004619 |" in apart  # its own floor, in its own table
 
 
 def test_a_plugin_modified_clf_arm_is_a_variant_in_every_output(tmp_path, three_seeds):

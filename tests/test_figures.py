@@ -283,9 +283,16 @@ def test_missing_rows_are_named_never_a_crash(tmp_path):
     # the old file loads with the columns it has: distance and torque plotted, return named missing
     base = res["points"].query("figure == 'baseline' and series == 'clf'")
     assert base.query("panel == 'abs_torque_nm'").set_index("x")["y"].to_dict() == {0: 9, 49: 8}
+    # no floor columns (written before the standing floor): said, never drawn, never a crash
     assert res["axes_notes"]["baseline"]["distance_m"] == [
-        "no data: modelfree (no full-student runs)"
+        "no data: modelfree (no full-student runs)",
+        agg.NO_FLOOR,
     ]
+    assert res["axes_notes"]["teacher_curves"]["mean_distance_m"] == [agg.NO_FLOOR]
+    assert not (res["points"]["x_name"] == "standing_floor").any()
+    assert f"  {agg.NO_FLOOR}" in text and "(standing floor" not in text
+    assert f"Standing floor: {agg.NO_FLOOR}." in (out / "final_metrics.md").read_text()
+    assert "| none (older run) |" in (out / "final_metrics.md").read_text()
     assert res["axes_notes"]["ablation"]["reward_per_step"] == [
         "no data: no_transformer (no clf runs)",
         "no data: no_mdn (no clf runs)",
@@ -440,3 +447,127 @@ def test_compare_flag_is_checked_and_sweep_requests_are_read(tmp_path):
     )
     got = arms.sweep_requests([sweep])
     assert got == (["clf", "modelfree"], ["full", "no_cnn"])  # arm -> its reward's name
+
+
+def _floor_lines(monkeypatch) -> dict[str, list[tuple[str, float, str]]]:
+    """Record, per figure stem, the standing-floor lines of every panel as drawn (ylabel, y,
+    colour), just before the figure is saved and closed."""
+    from matplotlib.colors import to_hex
+
+    from analysis import plotting
+
+    drawn: dict[str, list[tuple[str, float, str]]] = {}
+    real = plotting.save
+
+    def save(figure, out, stem, written):
+        drawn[stem] = [
+            (ax.get_ylabel(), float(line.get_ydata()[0]), to_hex(line.get_color()))
+            for ax in figure.axes
+            for line in ax.get_lines()
+            if line.get_gid() == plotting.FLOOR_GID and np.ptp(line.get_ydata()) == 0
+        ]
+        real(figure, out, stem, written)
+
+    monkeypatch.setattr(plotting, "save", save)
+    return drawn
+
+
+DIST = agg.METRICS["distance_m"][1]  # the distance panels' y label
+
+
+def test_standing_floor_printed_and_drawn_beside_every_distance(tmp_path, monkeypatch):
+    """Floors planted per run (clf seeds 0.03 and 0.05 m, modelfree 0.04 and 0.04): each arm's
+    floor is their mean, 0.04 m, the same for both, so every distance panel (baseline, both
+    sample-efficiency distance panels, the training diagnostic) draws one black dashed line at
+    0.04, and every distance printed has it beside it."""
+    drawn = _floor_lines(monkeypatch)
+    sweep = tmp_path / "sweep"
+    floors = {("clf", 0): 0.03, ("clf", 1): 0.05, ("modelfree", 0): 0.04, ("modelfree", 1): 0.04}
+    for i, ((reward, seed), f) in enumerate(floors.items()):
+        syn.make_run(sweep / str(i), reward, "full", seed, floor=f)
+    out = tmp_path / "out"
+    code, text = _main([str(sweep), "--out", str(out)])
+    assert code == 0
+    black = "#000000"
+    assert drawn["baseline"] == [(DIST, pytest.approx(0.04), black)]
+    assert drawn["sample_efficiency"] == [(DIST, pytest.approx(0.04), black)] * 2
+    assert drawn["ablation"] == [(DIST, pytest.approx(0.04), black)]  # clf's full students
+    assert drawn["teacher_curves"] == [("mean distance [m]", pytest.approx(0.04), black)]
+    pts = pd.read_csv(out / "figure_data.csv").query("x_name == 'standing_floor'")
+    assert set(pts["figure"]) == {"baseline", "sample_efficiency", "ablation", "teacher_curves"}
+    clf = pts.query("figure == 'baseline' and series == 'clf'").iloc[0]
+    pooled = math.sqrt(2 * syn.FLOOR_SE**2) / 2  # rollout SE of the mean of two floors
+    assert (clf["y"], clf["se"], clf["n"]) == (pytest.approx(0.04), pytest.approx(pooled), 2)
+    # stdout: the final evaluation and the sample-efficiency lines
+    assert "clf (n=2, it 49): distance 4 m (standing floor 0.04 m), success 80%" in text
+    assert "modelfree (n=2, it 49): distance 3.2 m (standing floor 0.04 m)" in text
+    assert "clf: iteration 50 (4.915e+06 env steps); standing floor 0.04 m" in text
+    assert "no standing floor" not in text
+    table = pd.read_csv(out / "final_metrics.csv").set_index("reward")
+    assert table.loc["clf", "floor_distance_m"] == pytest.approx(0.04)
+    assert table.loc["clf", "floor_se_distance_m"] == pytest.approx(pooled)
+    md = (out / "final_metrics.md").read_text()
+    header = next(ln for ln in md.splitlines() if ln.startswith("| reward |"))
+    assert "| distance | standing floor | success |" in header
+    clf_line = next(ln for ln in md.splitlines() if ln.startswith("| clf | full |"))
+    assert "| 4 ± 0.2 | 0.04 ± 0.005657 |" in clf_line
+    eff = pd.read_csv(out / "sample_efficiency.csv").set_index("reward")
+    assert eff.loc["modelfree", "floor_distance_m"] == pytest.approx(0.04)
+    claims_md = (out / "claims.md").read_text()
+    floor_part = claims_md.split("## Standing floor")[1].split("## Not compared")[0]
+    assert (
+        "- clf / full: teacher evaluations: standing floor 0.04 ± 0.0057 m (zero action, 2 runs, "
+        "128 rollouts); final student evaluation: standing floor 0.04 ± 0.0057 m" in floor_part
+    )
+
+
+def test_floors_that_differ_are_drawn_per_group_and_older_runs_named(tmp_path, monkeypatch):
+    """clf's floor 0.03 m, modelfree's 0.3 m: one line per arm in its colour; the ablation's
+    students (a sweep from before the floor) get none, and the outputs say so."""
+    drawn = _floor_lines(monkeypatch)
+    sweep = tmp_path / "sweep"
+    for i, (reward, f) in enumerate((("clf", 0.03), ("modelfree", 0.3))):
+        for seed in (0, 1):
+            syn.make_run(sweep / f"{i}{seed}", reward, "full", seed, floor=f)
+    abl = tmp_path / "abl"
+    syn.make_run(abl / "0", "clf", "full", 2, stage="student")
+    syn.make_run(abl / "1", "clf", "no_mdn", 0, stage="student")
+    res = fig.analyze([sweep, abl], tmp_path / "out")
+    text = fig.report(res, tmp_path / "out")
+    blue, red = "#1f77b4", "#d62728"  # tab:blue, tab:red: clf's and modelfree's colours
+    want = [(DIST, pytest.approx(0.03), blue), (DIST, pytest.approx(0.3), red)]
+    assert drawn["baseline"] == want
+    assert drawn["sample_efficiency"] == want * 2
+    assert drawn["ablation"] == []  # no floor in those runs: named, not drawn
+    assert agg.NO_FLOOR in res["axes_notes"]["ablation"]["distance_m"]
+    assert "modelfree (n=2, it 49): distance 3.2 m (standing floor 0.3 m)" in text
+    assert "full (clf, n=2): reward/step n/a, distance 4 m (standing floor 0.03 m)" in text
+    assert (
+        "  no standing floor for full (clf [stage student]), no_mdn (clf [stage student]) "
+        "(from before the floor)" in text
+    )
+    claims_md = (tmp_path / "out" / "claims.md").read_text()
+    floor_part = claims_md.split("## Standing floor")[1].split("## Not compared")[0]
+    assert "- modelfree / full: teacher evaluations: standing floor 0.3 ± 0.0057 m" in floor_part
+    assert "- clf [stage student] / no_mdn: no standing floor (from before the floor)" in floor_part
+
+
+def test_a_distance_target_at_the_floor_is_named(tmp_path):
+    """Floors of 3.0 m (a robot that falls far): the sample-efficiency target, 90% of the
+    better final distance (3.3 m) = 2.97 m, is below them: reaching it is no progress, and
+    stdout and claims.md say so."""
+    sweep = tmp_path / "sweep"
+    for i, reward in enumerate(("clf", "modelfree")):
+        for seed in (0, 1):
+            syn.make_run(sweep / f"{i}{seed}", reward, "full", seed, floor=3.0)
+    code, text = _main([str(sweep), "--out", str(tmp_path / "out")])
+    assert code == 0
+    assert (
+        "note: sample_efficiency: the target 2.97 m is at or below the standing floor "
+        "(clf 3 m, modelfree 3 m): reaching it is no progress" in text
+    )
+    claims_md = (tmp_path / "out" / "claims.md").read_text()
+    assert (
+        "- baseline: the sample-efficiency target 2.97 m is at or below a compared arm's "
+        "standing floor (3 m on the teacher evaluations)" in claims_md
+    )
