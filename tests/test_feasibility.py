@@ -471,3 +471,81 @@ def test_the_audit_reads_the_reference_config_the_env_is_built_from():
     assert audited.planner_seed == 5
     modelfree = reference_command_cfg(load(["compute=smoke", "reward=modelfree"]))
     assert modelfree.planner == audited.planner and modelfree.hlip == audited.hlip
+
+
+def hand_planned_walk(
+    kin: KinematicG1, lengths: tuple[float, ...], reference: ReferenceCfg, monkeypatch
+) -> WalkTrace:
+    """The audit's own walk (``ik_walks``) on flat ground with the planner's step 0 replaced by
+    hand-chosen steps: ``lengths`` [m] ahead along +x, 0.25 m across, 0.4 s each (20 ticks
+    exactly: the touchdown tick is at tau = T, no timing term). Each plan starts where the
+    kinematic G1's foot landed, as the walk's plans do."""
+    from march.audit import ik_walk
+    from march.reference.planner import plan_footsteps as real_planner
+    from march.world.courses import CourseCfg, flat_course
+    from march.world.footholds import footholds_from_layouts
+
+    steps = iter(lengths)
+
+    def by_hand(stance, left, command, footholds, cfg, gen):
+        plan = real_planner(stance, left, command, footholds, cfg, gen)
+        length = next(steps)
+        across = torch.where(left, -0.25, 0.25)  # the landing foot's side of the stance foot
+        first = plan.start + torch.stack([torch.full_like(across, length), across, 0 * across], -1)
+        second = first + torch.stack([torch.full_like(across, length), -across, 0 * across], -1)
+        plan.footholds = torch.stack([first, second], dim=1)
+        plan.durations = torch.full((len(left), 2), 0.4)
+        plan.lands_left = torch.stack([~left, left], dim=1)
+        plan.feasible = torch.ones_like(left)
+        return plan
+
+    monkeypatch.setattr(ik_walk, "plan_footsteps", by_hand)
+    layouts = [flat_course(CourseCfg(size=(6.0, 4.0)))]
+    footholds = footholds_from_layouts(layouts, np.stack([lay.origin for lay in layouts]))
+    command = torch.tensor([[0.8, 0.0]])
+    trace = ik_walk.ik_walks(kin, footholds, command, len(lengths), reference=reference)[0]
+    assert trace.real_touchdown == [True] * len(lengths)
+    # the step's horizontal length: l along the course, 0.25 m across
+    assert trace.step_length == pytest.approx([math.hypot(x, 0.25) for x in lengths], abs=1e-3)
+    return trace
+
+
+def test_the_walk_carries_the_com_reference_across_a_touchdown_as_the_env_does(kin, monkeypatch):
+    """A hand-planned two-step walk, 0.45 m then 0.25 m. With the continuous reference (the
+    default) the audit's jump column reads ~0 for the CoM, position and velocity. With
+    ``com_anchoring=stance`` each step's HLIP orbit restarts at -l_new/2 behind the new stance
+    foot after the old one ended l_old/2 ahead of the old foot: a jump of (l_old - l_new)/2 =
+    0.1 m (plus the landing offset of the kinematic G1's foot, < 5 mm here) and, by the
+    period-1 orbit's symmetry (v(0) = v- = lam coth(lam T / 2) l / 2), a velocity jump of
+    lam coth(lam T / 2) (l_old - l_new) / 2 exactly (the orbit's velocity depends on the step
+    vector alone)."""
+    from march.audit.feasibility import jump_summary, touchdown_jumps
+
+    hlip = HlipCfg()
+    com_x, com_vx = CLF_OUTPUT_NAMES.index("com_x"), 29 + CLF_OUTPUT_NAMES.index("com_x")
+    continuous = hand_planned_walk(kin, (0.45, 0.25), ReferenceCfg(), monkeypatch)
+    jumps = touchdown_jumps([continuous])
+    assert jumps.shape == (1, 58)
+    summary = jump_summary(jumps)
+    assert summary["position_group_norm"]["com"]["max"] < 1e-4
+    assert summary["rate_group_norm"]["com"]["max"] < 1e-3
+    stance = hand_planned_walk(kin, (0.45, 0.25), ReferenceCfg(com_anchoring="stance"), monkeypatch)
+    jump = touchdown_jumps([stance])[0]
+    assert jump[com_x] == pytest.approx(0.1, abs=0.005)
+    lam, half_t = hlip.lam, 0.5 * 0.4
+    assert jump[com_vx] == pytest.approx(lam / math.tanh(lam * half_t) * 0.1, rel=1e-3)
+
+
+def test_the_walk_lowers_the_com_with_the_step_length_when_asked(kin, monkeypatch):
+    """``com_height=step``: a 0.7 m step ends with its CoM reference at
+    0.67 - 0.35 (0.7 - 0.5) = 0.60 m, the 0.3 m step after it back at 0.67 m, carried across
+    the touchdown without a jump; ``fixed`` walks both at 0.67 m."""
+    from march.audit.feasibility import touchdown_jumps
+
+    com_z = CLF_OUTPUT_NAMES.index("com_z")
+    lowered = hand_planned_walk(kin, (0.7, 0.3), ReferenceCfg(com_height="step"), monkeypatch)
+    ends = np.asarray(lowered.ref_end)[:, com_z]
+    assert ends == pytest.approx([0.60, 0.67], abs=1e-5)
+    assert np.abs(touchdown_jumps([lowered])[0][[0, 1, 2, 29, 30, 31]]).max() < 1e-4
+    fixed = hand_planned_walk(kin, (0.7, 0.3), ReferenceCfg(), monkeypatch)
+    assert np.asarray(fixed.ref_end)[:, com_z] == pytest.approx([0.67, 0.67], abs=1e-5)

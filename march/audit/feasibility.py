@@ -55,7 +55,7 @@ from march.audit.ik_walk import TouchdownRule, WalkTrace, ik_walks  # noqa: E402
 from march.audit.kinematic_g1 import ANGLES, GROUPS, IkCfg, KinematicG1, wrap  # noqa: E402
 from march.clf.lyapunov import CLF_OUTPUT_NAMES  # noqa: E402
 from march.config import MarchConfig  # noqa: E402
-from march.env.reference_cfg import ReferenceCommandCfg  # noqa: E402
+from march.env.reference_command import ReferenceCommandCfg  # noqa: E402
 from march.errors import ConfigError  # noqa: E402
 from march.strict_json import strict  # noqa: E402
 from march.world.courses import flat_course, generate_course  # noqa: E402

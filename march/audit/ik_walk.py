@@ -9,7 +9,11 @@ for that instant's reference (:func:`march.reference.trajectory.reference_at`). 
 with tau >= T: ideal timing), the next plan starts from where the IK's swing foot actually
 landed, the new stance foot is held at its landing pose, and the new swing foot lifts off from
 where it stands; so a step the G1 cannot reach moves the walk where the robot really is, and a
-landing off the stones ends the walk as an infeasible plan.
+landing off the stones ends the walk as an infeasible plan. Each step is built as the env's
+command term builds it (:func:`next_step`): the CoM reference carries the previous step's
+reference CoM state at the touchdown tick (``reference.com_anchoring=continuous``, the default;
+``stance`` anchors each step's orbit at the new stance foot, the earlier reference), at the
+step's CoM height (``reference.com_height``), so the audit measures the reference the env tracks.
 
 Only a real touchdown ends a step and replans (issue 55): the swing foot must have left the
 ground (risen ``lift_min`` above its lift-off height) and come down onto the planned stone top
@@ -32,10 +36,11 @@ import torch
 
 from march.audit.kinematic_g1 import KinematicG1, rotation_zyx
 from march.reference.hlip import HlipCfg
-from march.reference.planner import PlannerCfg, plan_footsteps
+from march.reference.planner import Plan, PlannerCfg, plan_footsteps
 from march.reference.trajectory import (
     ReferenceCfg,
     StepState,
+    com_state,
     reference_at,
     step_state_from_plan,
 )
@@ -114,6 +119,61 @@ def step_row(step: StepState, i: int, n: int) -> StepState:
     return StepState(**values)
 
 
+def touchdown_tick(duration: float, dt: float) -> int:
+    """The tick of a step of planned ``duration`` [s] at which it touches down: the first with
+    tau >= T (ideal timing), at least 1."""
+    return max(1, math.ceil(duration / dt - 1e-6))
+
+
+def touchdown_tau(step: StepState, dt: float) -> torch.Tensor:
+    """(E,) float32 tau [s] of each env's touchdown tick in ``step``: the same value
+    :func:`track_step` evaluates the step's last reference at (``arange(n + 1) * dt``'s last
+    entry), so the next step carries the old reference's CoM state at that very instant."""
+    ticks = [touchdown_tick(float(d), dt) for d in step.duration]
+    return torch.tensor(ticks, dtype=torch.float32) * dt
+
+
+def next_step(
+    plan: Plan,
+    swing: torch.Tensor,
+    yaw0: torch.Tensor,
+    axis: torch.Tensor,
+    previous: StepState | None,
+    dt: float,
+    reference: ReferenceCfg,
+    hlip: HlipCfg,
+) -> StepState:
+    """The step each env takes after replanning (``plan``'s step 0), as the env's reference
+    command builds it (``march.env.reference_command``): stance at ``plan.start``, the swing
+    foot lifting off at ``swing`` (E, 3), the CoM reference carrying the previous step's
+    reference CoM state at its touchdown tick (``reference.com_anchoring=continuous``; ignored
+    with ``stance``) and the step's CoM height (``reference.com_height``).
+
+    ``previous`` None: the walk starts standing, as an episode does: the CoM reference ramps
+    from rest at the feet's midpoint and carries, at rest, the height a G1 stands at (z0 above
+    the stance stone: the env carries its measured CoM, 0.672 m on the default pose)."""
+    zero = torch.zeros_like(yaw0)
+    if previous is None:
+        ramp_from = 0.5 * (plan.start[:, :2] + swing[:, :2])
+        standing = torch.cat([ramp_from, plan.start[:, 2:] + hlip.z0], dim=-1)
+        com_from = (standing, torch.zeros_like(standing))
+    else:
+        ramp_from = None
+        com_from = com_state(previous, touchdown_tau(previous, dt), reference, hlip)
+    return step_state_from_plan(
+        plan,
+        plan.start,
+        swing,
+        yaw0,
+        zero,
+        axis,
+        ramp_from=ramp_from,
+        com_from=com_from,
+        cfg=reference,
+        hlip=hlip,
+    )
+
+
 def site_pose(kin: KinematicG1, left: bool) -> tuple[np.ndarray, np.ndarray]:
     """(3,) position and (3, 3) rotation of the left / right foot site in the last measured
     state (``kin.data``)."""
@@ -155,7 +215,7 @@ def track_step(
     dt = kin.cfg.dt
     is_left = bool(step.stance_is_left[0])
     duration = float(step.duration[0])
-    n = max(1, math.ceil(duration / dt - 1e-6))
+    n = touchdown_tick(duration, dt)
     tau = torch.arange(0, n + 1, dtype=torch.float32) * dt
     ref = reference_at(step_row(step, 0, n + 1), tau, reference, hlip, NUM_UPPER)
     ref_pos, ref_vel = (x.double().numpy() for x in ref.flatten())
@@ -230,7 +290,7 @@ def ik_walks(
     qpos: list[np.ndarray | None] = [None] * e
     held: list[tuple[np.ndarray, np.ndarray] | None] = [None] * e
     traces = [WalkTrace() for _ in range(e)]
-    zero = torch.zeros(e)
+    step: StepState | None = None
     for k in range(max_steps):
         plan = plan_footsteps(stance, left, command[:, :2], footholds, planner, gen)
         for i in torch.nonzero(active & ~plan.feasible).flatten().tolist():
@@ -238,12 +298,10 @@ def ik_walks(
         active = active & plan.feasible
         if not bool(active.any()):
             break
-        ramp_from = None
         if swing is None:
             swing = plan.start.clone()
             swing[:, :2] -= planner.step_width * lat
-            ramp_from = 0.5 * (plan.start[:, :2] + swing[:, :2])
-        step = step_state_from_plan(plan, plan.start, swing, yaw0, zero, axis, ramp_from=ramp_from)
+        step = next_step(plan, swing, yaw0, axis, step, kin.cfg.dt, reference, hlip)
         next_swing = swing.clone()
         for i in torch.nonzero(active).flatten().tolist():
             is_left = bool(step.stance_is_left[i])

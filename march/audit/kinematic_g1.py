@@ -47,7 +47,7 @@ import torch
 from march.clf.lyapunov import UPPER_BODY_JOINTS, ClfCfg, ClfModel
 from march.env.clf_outputs import outputs_from_state
 from march.env.g1 import g1_default_pose, g1_mjcf_spec
-from march.env.reference_cfg import ReferenceCommandCfg
+from march.env.reference_command import ReferenceCommandCfg
 
 GROUPS: dict[str, tuple[int, int]] = {
     "com": (0, 3),

@@ -48,7 +48,7 @@ Decisions (documented here once; the README repeats them)
   every 1.5 T, never a jump.
 - **CoM and outputs**: the measured outputs y_sim are documented with their code in
   :mod:`march.env.clf_outputs`.
-- **r_dclf clip**: :attr:`march.env.reference_cfg.ReferenceCommandCfg.clf`.
+- **r_dclf clip**: :attr:`ReferenceCommandCfg.clf`.
 - **Replanning without host syncs** (issues 11, 41): one planner batch per update, of a size
   that depends on the host-known reset count only (``capacity``, or a power of two up to E when
   more envs reset): mjlab's reset envs first, then the due touchdowns and timeouts, then
