@@ -61,7 +61,8 @@ def run_damping(spec: dict, rate_hz: float, domain: int, kd: float, seconds: flo
         cmd = damping_lowcmd(limits, kd, int(spec["deploy"]["mode_pr"]))
         w = dds.writer(dds.participant(domain, "lo"), "rt/lowcmd", hg.LowCmd_)
         t0, k = time.perf_counter(), 0
-        while bridge.poll() is None and time.perf_counter() - t0 < seconds + 30:
+        deadline = t0 + seconds + 30  # the bridge ends itself after `seconds`; a bound, no check
+        while bridge.poll() is None and time.perf_counter() < deadline:
             w.write(cmd)
             k += 1
             wait = t0 + k / rate_hz - time.perf_counter()

@@ -193,19 +193,6 @@ def upper_body_outputs(names: list[str]) -> np.ndarray:
     return np.array([n in UPPER_BODY_JOINTS for n in names])
 
 
-def restart_planner_streams(env: Any) -> None:
-    """Put the ``reference`` command's per-env planner streams (issue 55) back where the env
-    was built: counters at 0, keyed by (planner_seed, env index). ``reseed_env`` re-seeds the
-    term's shared generator but not these streams, whose counters advance with every applied
-    plan; without the restart a behaviour's plans, hence its reference and reward, would depend
-    on the behaviours rolled before it."""
-    for name in env.command_manager.active_terms:
-        term = env.command_manager.get_term(name)
-        streams = getattr(term, "planner_streams", None)
-        if streams is not None:
-            streams.assign(int(term.cfg.planner_seed or 0), 0)
-
-
 def roll_behaviour(env: Any, act: Act, name: str, seed: int, horizon: int) -> BehaviourResult:
     """Roll ``act`` from the seeded start for ``horizon`` steps (see the module doc)."""
     from march.env.build import reseed_env
@@ -223,8 +210,7 @@ def roll_behaviour(env: Any, act: Act, name: str, seed: int, horizon: int) -> Be
         names = list(meter.term.clf.cfg.output_names)
         upper = torch.as_tensor(upper_body_outputs(names), device=env.device)
     e, dev = env.num_envs, env.device
-    reseed_env(env, seed)
-    restart_planner_streams(env)
+    reseed_env(env, seed)  # also restarts the per-env planner streams (issue 55)
     torch.manual_seed(seed)
     obs, _ = env.reset()
     alive = torch.ones(e, dtype=torch.bool, device=dev)

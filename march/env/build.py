@@ -484,8 +484,8 @@ def reseed_env(env: ManagerBasedRlEnv, seed: int) -> None:
     - the observation buffers are initialised (one observation pass): mjlab's first pass after a
       build pushes a frame and draws the delay lags where every later reset only backfills, so
       a first evaluation would otherwise run one delay draw ahead of the others;
-    - each command term's own generator (the reference command's planner) restarts from
-      ``seed``, and the resets its replan queue has not planned yet are forgotten (the caller's
+    - each command term's own generator and per-env planner streams (the reference command's
+      planner) restart from ``seed``, and the resets its replan queue has not planned yet are forgotten (the caller's
       reset queues every env again)."""
     env.observation_manager.compute(update_history=True)
     for name in env.command_manager.active_terms:
@@ -493,6 +493,9 @@ def reseed_env(env: ManagerBasedRlEnv, seed: int) -> None:
         generator = getattr(term, "generator", None)
         if isinstance(generator, torch.Generator):
             generator.manual_seed(int(seed))
+        streams = getattr(term, "planner_streams", None)  # each env's planner stream
+        if streams is not None:
+            streams.assign(int(seed), 0)
         queue = getattr(term, "queue", None)
         if queue is not None:
             queue.take_resets()
