@@ -193,6 +193,8 @@ def load_run(path: Path) -> Run:
     if not os.path.lexists(cfg_path):
         cfg_path = path / ".hydra" / "config.yaml"
     try:
+        if not os.path.lexists(cfg_path):  # a run killed before it wrote one: listed, not fatal
+            raise NotParsed(f"{cfg_path}: no such file")
         text = read_yaml_text(cfg_path, str(cfg_path))  # a refusal (alias, link, size) raises
         cfg = OmegaConf.to_container(OmegaConf.create(text), resolve=False)
     except NotParsed as exc:
