@@ -44,15 +44,13 @@ from typing import Any
 from march.robot import dds, hg
 from march.robot.signals import say, stop_on_signals
 from march.robot.wire_checks import Limits, command_fault, damping_lowcmd
+from march.sim2sim.bundle_files import scene_bytes
 from march.sim2sim.bundle_schema import SchemaError, UsageError, check_spec
 from march.sim2sim.motors import MotorTableError, motor_table
 from march.store.bounded_read import (
-    MAX_INFLATION,
     MAX_ONNX_BYTES,
-    MAX_SCENE_BYTES,
     MAX_SPEC_BYTES,
     FileRefused,
-    gunzip_bounded,
     parse_json_strict,
     read_in_folder,
 )
@@ -101,13 +99,7 @@ def _check_files(folder: Path, spec: dict[str, Any]) -> None:
         raise FileRefused(f"{folder / spec['onnx']['file']}: its SHA-256 differs from the record")
     del data
     for course, entry in spec["courses"].items():
-        packed = read_in_folder(folder, entry["scene"], f"{course} scene", MAX_SCENE_BYTES)
-        where = folder / entry["scene"]
-        if hashlib.sha256(packed).hexdigest() != entry["sha256"]:
-            raise FileRefused(f"{where}: its SHA-256 differs from the bundle's record")
-        limit = min(MAX_SCENE_BYTES, MAX_INFLATION * len(packed))
-        gunzip_bounded(packed, limit, f"{where}: the {course} scene")
-        del packed
+        scene_bytes(folder, course, entry)
 
 
 class Supervisor:

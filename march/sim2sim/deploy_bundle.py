@@ -20,15 +20,13 @@ from typing import Any
 
 import mujoco
 
+from march.sim2sim.bundle_files import scene_bytes
 from march.sim2sim.bundle_schema import SchemaError, UsageError, check_spec
 from march.sim2sim.motors import MotorTableError, motor_table
 from march.store.bounded_read import (
-    MAX_INFLATION,
     MAX_ONNX_BYTES,
-    MAX_SCENE_BYTES,
     MAX_SPEC_BYTES,
     FileRefused,
-    gunzip_bounded,
     parse_json_strict,
     read_in_folder,
 )
@@ -152,18 +150,8 @@ class Bundle:
         courses = self.spec["courses"]
         if course not in courses:
             raise UsageError(f"course={course}: the bundle has {', '.join(courses)}")
-        entry = courses[course]
-        folder = self.onnx_path.parent
-        packed = read_in_bundle(folder, entry["scene"], f"{course} scene", MAX_SCENE_BYTES)
-        path = folder / entry["scene"]
-        if _sha256(packed) != entry["sha256"]:
-            raise UsageError(f"{path}: its SHA-256 differs from the bundle's record")
-        # Inflated in pieces, bounded before it is held (a crafted small file cannot fill memory).
-        limit = min(MAX_SCENE_BYTES, MAX_INFLATION * len(packed))
-        try:
-            raw = gunzip_bounded(packed, limit, f"{path}: the {course} scene")
-        except FileRefused as err:
-            raise UsageError(str(err)) from None
+        raw = scene_bytes(self.onnx_path.parent, course, courses[course])
+        path = self.onnx_path.parent / courses[course]["scene"]
         try:
             return mujoco.MjModel.from_binary_path("scene.mjb", {"scene.mjb": raw})
         except (OSError, EOFError, ValueError) as err:
