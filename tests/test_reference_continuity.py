@@ -12,7 +12,13 @@ import torch
 from march.reference.com_carry import step_com_height
 from march.reference.fused_reference import reference_outputs
 from march.reference.hlip import HlipCfg, hlip_com_state
-from march.reference.trajectory import ReferenceCfg, StepState, com_state
+from march.reference.trajectory import (
+    ReferenceCfg,
+    StepState,
+    com_state,
+    pelvis_state,
+    reference_at,
+)
 
 torch.set_num_threads(1)
 F64 = torch.float64
@@ -42,7 +48,7 @@ def _planned(stance, left, axis, g):
     return torch.cat([xy, z[:, None]], -1)
 
 
-def _step(stance, left, axis, g, zero, com_from=None, cfg=None):
+def _step(stance, left, axis, g, zero, com_from=None, cfg=None, pelvis_from=None):
     target = _planned(stance, left, axis, g)
     nxt = _planned(target, ~left, axis, g)
     dur = 0.45 + 0.25 * torch.rand(stance.shape[0], generator=g, dtype=F64)
@@ -59,6 +65,8 @@ def _step(stance, left, axis, g, zero, com_from=None, cfg=None):
         axis=axis,
         com_from_pos=None if com_from is None else com_from[0],
         com_from_vel=None if com_from is None else com_from[1],
+        pelvis_from_pos=None if pelvis_from is None else pelvis_from[0],
+        pelvis_from_vel=None if pelvis_from is None else pelvis_from[1],
     )
     if cfg is not None and cfg.com_height == "step":
         along = ((target[:, :2] - stance[:, :2]) * axis).sum(-1)
@@ -68,10 +76,11 @@ def _step(stance, left, axis, g, zero, com_from=None, cfg=None):
     return st
 
 
-def _walk(cfg: ReferenceCfg, e: int = 32, steps: int = 30, seed: int = 0):
+def _walk(cfg: ReferenceCfg, e: int = 32, steps: int = 30, seed: int = 0, restarts: bool = False):
     """Chain ``steps`` steps: touchdown at a random tau in [0.6 T, 1.5 T] (the command's window)
     at the planned foothold plus up to 4 cm of landing offset; yields per touchdown the old
-    step, the touchdown time, the new step."""
+    step, the touchdown time, the new step. ``restarts``: a third of the switches are timeout
+    restarts instead (at 1.5 T, the same stance foot, the foot not moved)."""
     g = torch.Generator().manual_seed(seed)
     zero = torch.zeros(e, dtype=F64)
     step = _first_step(e, g)
@@ -79,8 +88,15 @@ def _walk(cfg: ReferenceCfg, e: int = 32, steps: int = 30, seed: int = 0):
         td = step.duration * (0.6 + 0.9 * torch.rand(e, generator=g, dtype=F64))
         landing = step.target.clone()
         landing[:, :2] += 0.08 * (torch.rand(e, 2, generator=g, dtype=F64) - 0.5)
+        left = ~step.stance_is_left
+        if restarts:
+            again = torch.rand(e, generator=g, dtype=F64) < 1.0 / 3.0
+            td = torch.where(again, 1.5 * step.duration, td)
+            landing = torch.where(again[:, None], step.stance_pos, landing)
+            left = torch.where(again, step.stance_is_left, left)
         carried = com_state(step, td, cfg, HLIP)
-        new = _step(landing, ~step.stance_is_left, step.axis, g, zero, carried, cfg)
+        pelvis = pelvis_state(step, td, cfg)
+        new = _step(landing, left, step.axis, g, zero, carried, cfg, pelvis)
         yield step, td, new
         step = new
 
@@ -240,3 +256,91 @@ def test_step_height_and_lambda_follow_the_step():
         assert float(v[0, 0]) == pytest.approx(lam / math.tanh(lam * T / 2) * length / 2, 1e-12)
         assert float(p[0, 2]) == pytest.approx(float(zs), abs=1e-12)
         assert float(p[0, 0]) == pytest.approx(length / 2, abs=1e-12)
+
+
+@pytest.mark.parametrize("pitch_offset", [0.0, 0.05])
+def test_pelvis_roll_and_pitch_do_not_jump_at_a_switch(pitch_offset):
+    """Over 32 x 30 generated switches (touchdowns early and late, a third of them timeout
+    restarts on the same stance side, durations 0.45-0.7 s): the pelvis roll and pitch
+    reference and their rates right after a switch equal those right before (the step's own
+    lean alone jumps by ~0.1-0.4 rad/s in rate there), the fused reference agrees, and at
+    tau = T each step is back on its own lean: roll 0, pitch the offset, the rates the lean's
+    (roll -lean pi / T, pitch 2 pi A / T: analytic)."""
+    cfg = ReferenceCfg(pitch_offset=pitch_offset)
+    worst_p = worst_v = 0.0
+    own_jumps = []
+    for old, td, new in _walk(cfg, restarts=True):
+        before = pelvis_state(old, td, cfg)
+        after = pelvis_state(new, torch.zeros_like(td), cfg)
+        worst_p = max(worst_p, float((after[0] - before[0]).abs().max()))
+        worst_v = max(worst_v, float((after[1] - before[1]).abs().max()))
+        pos, vel = reference_outputs(new, torch.zeros_like(td), cfg, HLIP, 0)
+        assert torch.allclose(pos[:, 3:5], before[0], atol=1e-9, rtol=0)
+        assert torch.allclose(vel[:, 3:5], before[1], atol=1e-9, rtol=0)
+        bare = StepState(**{**new.__dict__, "pelvis_from_pos": None, "pelvis_from_vel": None})
+        own = pelvis_state(bare, torch.zeros_like(td), cfg)
+        own_jumps.append((own[1] - before[1]).abs().amax(-1))
+        # back on its own lean just before the planned touchdown
+        t_end = new.duration * (1.0 - 1e-9)
+        end_p, end_v = pelvis_state(new, t_end, cfg)
+        lean = torch.where(new.stance_is_left, -1.0, 1.0).to(F64) * cfg.roll_amplitude
+        w = math.pi / new.duration
+        assert torch.allclose(end_p[:, 0], torch.zeros_like(td), atol=1e-7)
+        assert torch.allclose(end_p[:, 1], torch.full_like(td, pitch_offset), atol=1e-7)
+        assert torch.allclose(end_v[:, 0], -lean * w, atol=1e-6)
+        assert torch.allclose(end_v[:, 1], cfg.pitch_amplitude * 2.0 * w, atol=1e-6)
+    assert worst_p < 1e-12 and worst_v < 1e-12, (worst_p, worst_v)
+    assert float(torch.cat(own_jumps).median()) > 0.05  # the measure can see a jump
+
+
+def test_pelvis_carry_hand_values_and_rates_are_derivatives():
+    """One step (T = 0.5 s, left stance) entered with roll 0.02 rad at -0.1 rad/s and pitch
+    -0.01 rad at 0.3 rad/s. By hand: roll = -a sin(pi phi) + e0 h00 + v0 T h10 with e0 the
+    entry minus the own value at 0 (0, and the pitch offset) and v0 the entry rate minus the
+    own rate at 0 (-a pi / T, 2 pi A / T); the rates are the finite differences of the angles."""
+    T = 0.5
+    cfg = ReferenceCfg()
+    st = StepState(
+        stance_pos=torch.zeros(1, 3, dtype=F64),
+        stance_is_left=torch.tensor([True]),
+        swing_start=torch.tensor([[0.0, -W, 0.0]], dtype=F64),
+        target=torch.tensor([[0.4, -W, 0.0]], dtype=F64),
+        next_target=torch.tensor([[0.8, 0.0, 0.0]], dtype=F64),
+        duration=torch.tensor([T], dtype=F64),
+        next_duration=torch.tensor([T], dtype=F64),
+        yaw0=torch.zeros(1, dtype=F64),
+        yaw_rate=torch.zeros(1, dtype=F64),
+        axis=torch.tensor([[1.0, 0.0]], dtype=F64),
+        pelvis_from_pos=torch.tensor([[0.02, -0.01]], dtype=F64),
+        pelvis_from_vel=torch.tensor([[-0.1, 0.3]], dtype=F64),
+    )
+    a, amp = cfg.roll_amplitude, cfg.pitch_amplitude
+    e0 = (0.02, -0.01)
+    v0 = (-0.1 - (-a * math.pi / T), 0.3 - 2 * math.pi * amp / T)
+    for tau in (0.0, 0.05, 0.17, 0.25, 0.41, T, 0.6):
+        phi = min(tau / T, 1.0)
+        h00, h10 = (1 - phi) ** 2 * (1 + 2 * phi), phi * (1 - phi) ** 2
+        own = (-a * math.sin(math.pi * phi), amp * math.sin(2 * math.pi * phi))
+        t = torch.tensor([tau], dtype=F64)
+        got, _ = pelvis_state(st, t, cfg)
+        for i in range(2):
+            want = own[i] + e0[i] * h00 + v0[i] * T * h10
+            assert float(got[0, i]) == pytest.approx(want, abs=1e-12), (tau, i)
+        if 0.0 < tau < T:
+            hs = 1e-6
+            fd = (pelvis_state(st, t + hs, cfg)[0] - pelvis_state(st, t - hs, cfg)[0]) / (2 * hs)
+            assert torch.allclose(pelvis_state(st, t, cfg)[1], fd, atol=1e-6)
+    full = reference_at(st, torch.tensor([0.0], dtype=F64), cfg, HLIP, 0)
+    assert torch.allclose(full.pelvis_rate[0, :2], st.pelvis_from_vel[0], atol=1e-12)
+
+
+def test_the_stance_anchoring_keeps_the_old_pelvis():
+    """``com_anchoring=stance`` ignores the carried pelvis state (the earlier reference: its
+    roll rate restarts at the new step's own, a jump), so the old figures are reproduced."""
+    cfg = ReferenceCfg(com_anchoring="stance")
+    jumps = []
+    for old, td, new in _walk(cfg, steps=10, restarts=True):
+        before = pelvis_state(old, td, cfg)
+        after = pelvis_state(new, torch.zeros_like(td), cfg)
+        jumps.append((after[1] - before[1]).abs().amax(-1))
+    assert float(torch.cat(jumps).median()) > 0.05

@@ -41,6 +41,7 @@ from march.reference.trajectory import (
     ReferenceCfg,
     StepState,
     com_state,
+    pelvis_state,
     reference_at,
     step_state_from_plan,
 )
@@ -157,9 +158,13 @@ def next_step(
         ramp_from = 0.5 * (plan.start[:, :2] + swing[:, :2])
         standing = torch.cat([ramp_from, plan.start[:, 2:] + hlip.z0], dim=-1)
         com_from = (standing, torch.zeros_like(standing))
+        rest = torch.zeros_like(standing[:, :2])
+        rest[:, 1] = reference.pitch_offset
+        pelvis_from = (rest, torch.zeros_like(rest))
     else:
         ramp_from = None
         com_from = com_state(previous, touchdown_tau(previous, dt), reference, hlip)
+        pelvis_from = pelvis_state(previous, touchdown_tau(previous, dt), reference)
     return step_state_from_plan(
         plan,
         plan.start,
@@ -171,6 +176,7 @@ def next_step(
         com_from=com_from,
         cfg=reference,
         hlip=hlip,
+        pelvis_from=pelvis_from,
     )
 
 

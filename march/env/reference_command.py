@@ -28,12 +28,13 @@ Decisions (documented here once; the README repeats them)
   ``feet_ground_contact`` sensor, per foot) counts as a touchdown once the foot has been off the
   ground at some update since the step began (``swing_lifted``: out of contact and
   ``lift_min_height`` above where it started; the sensor flickers while a foot rocks in place)
-  and ``tau >=
-  touchdown_min_fraction * duration`` (author: 0.6); earlier contacts (scuffs) and a foot that
-  never left the ground are no touchdown (a standing robot's steps time out instead, below). At
+  and ``tau >= touchdown_min_fraction * duration`` (author: 0.6), while the pelvis tilts less
+  than ``touchdown_max_tilt`` from upright; earlier contacts (scuffs), a foot that never left the
+  ground and the feet of a robot that is falling over are no touchdown (a standing robot's
+  steps time out instead, below). At
   a touchdown the swing foot becomes the stance foot, a new plan is made from its actual
   position (only for the envs that touched down), the new step's reference starts from the
-  actual stance foot and carries the previous reference's CoM state
+  actual stance foot and carries the previous reference's CoM state and pelvis roll and pitch
   (``reference.com_anchoring=continuous``, :mod:`march.reference.com_carry`; ``stance``: the
   orbit anchored at the new stance foot, which jumps), lift-off = the new swing foot's current
   position, ``tau`` restarts and ``step_switched`` is set so the V history restarts (no
@@ -97,6 +98,9 @@ if TYPE_CHECKING:
     from mjlab.envs import ManagerBasedRlEnv
 
 NUM_OUTPUTS = len(CLF_OUTPUT_NAMES)
+CARRIED = 5
+"""Reference outputs a new step carries from the previous one (continuous anchoring): CoM x, y,
+z, pelvis roll and pitch, the first columns of ``CLF_OUTPUT_NAMES``."""
 STEP_FIELDS = tuple(f.name for f in fields(StepState))
 """The per-env tensors of a ``StepState``."""
 PLAN_STATE = (
@@ -132,6 +136,11 @@ class ReferenceCommandCfg(CommandTermCfg):
     """A swing foot has left the ground once it is out of contact and this much above where it
     was when the step began [m] (a contact sensor that flickers while a foot rocks in place is
     no lift-off; issue 55)."""
+    touchdown_max_tilt: float = 0.35
+    """A swing-foot contact is a touchdown only while the pelvis tilts less than this from
+    upright [rad] (20 deg): a falling robot's feet lift and land without stepping (zero action
+    counted 2 such contacts at 0.58-0.62 rad; a walking reference leans 0.03 rad; the episode
+    ends at 50 deg, ``termination.tilt_limit_deg``). Issue 55."""
     touchdown_timeout_fraction: float = 1.5
     """No touchdown by tau >= this x planned duration: restart the step from the same stance."""
     stance_tie_m: float = 0.01
@@ -173,6 +182,8 @@ class ReferenceCommandCfg(CommandTermCfg):
     def __post_init__(self) -> None:
         if not 0.0 <= self.touchdown_min_fraction < self.touchdown_timeout_fraction:
             raise ValueError("need 0 <= touchdown_min_fraction < touchdown_timeout_fraction")
+        if not 0.0 < self.touchdown_max_tilt <= math.pi:
+            raise ValueError("need 0 < touchdown_max_tilt <= pi")
         if not 0.0 < self.replan_capacity_fraction <= 1.0 or self.replan_capacity_min < 1:
             raise ValueError("need 0 < replan_capacity_fraction <= 1 and replan_capacity_min >= 1")
         if not math.isclose(self.planner.step_width, self.hlip.step_width):
@@ -273,6 +284,8 @@ class ReferenceCommand(CommandTerm):
             ramp_from=torch.zeros(e, 2, device=dev),
             com_from_pos=zeros3.clone(),
             com_from_vel=zeros3.clone(),
+            pelvis_from_pos=torch.zeros(e, 2, device=dev),
+            pelvis_from_vel=torch.zeros(e, 2, device=dev),
             z0=torch.full((e,), cfg.hlip.z0, device=dev),
         )
         self.y_ref_pos = torch.zeros(e, NUM_OUTPUTS, device=dev)
@@ -363,7 +376,7 @@ class ReferenceCommand(CommandTerm):
             and isinstance(self._dt, float)
             and self._dt == self._env.step_dt
         ):
-            com_now = (cached[1][:, :3], cached[2][:, :3])
+            com_now = (cached[1][:, :CARRIED], cached[2][:, :CARRIED])
         self._step_version += 1
         self.tau += active * self._dt  # dt: a float, or per env on mjlab's auto-reset path
 
@@ -377,7 +390,8 @@ class ReferenceCommand(CommandTerm):
         self.swing_lifted |= active & ~swing_contact & high
         dur = self.step.duration
         due = self.tau >= self.cfg.touchdown_min_fraction * dur
-        touchdown = running & swing_contact & self.swing_lifted & due
+        upright = self.pelvis_tilt_cos() >= math.cos(self.cfg.touchdown_max_tilt)  # not falling
+        touchdown = running & swing_contact & self.swing_lifted & due & upright
         timeout = running & (self.tau >= self.cfg.touchdown_timeout_fraction * dur)
         # One planner batch of a fixed size: the resets, then due envs, then padding.
         batch = self.queue.next_batch(touchdown, timeout, active)
@@ -418,6 +432,11 @@ class ReferenceCommand(CommandTerm):
         ``site_pos_w`` converts the pose of every site on each access)."""
         return site_pos(self._env, tuple(self.cfg.foot_sites), self.cfg.entity_name)
 
+    def pelvis_tilt_cos(self) -> torch.Tensor:
+        """(E,) cosine of the pelvis's tilt from upright: R22 of the root body's rotation matrix
+        (MuJoCo's xmat, row-major; one read, no quaternion maths)."""
+        return self._env.sim.data.xmat[:, self._root_body].reshape(self.num_envs, 9)[:, 8]
+
     def foot_contact(self) -> torch.Tensor:
         """(E, 2) bool: left / right foot touches the terrain."""
         found = self.sensor.data.found
@@ -451,9 +470,10 @@ class ReferenceCommand(CommandTerm):
         start step 0 of the plan where ``apply`` (n,) is True (all if None); the other rows are
         planned but left as they were (the fixed-size batch of :meth:`_update_command`).
         ``ramp`` (n,): the env starts from standing (episode start): its CoM reference ramps
-        from the measured CoM (and carries it, at rest). ``com_now``: (E, 3) CoM reference
-        position and velocity at the current tau (computed here when None), carried into the
-        new step (``reference.com_anchoring=continuous``)."""
+        from the measured CoM (and carries it, at rest). ``com_now``: (E, >= 5) reference
+        positions and velocities at the current tau, CoM xyz then pelvis roll and pitch
+        (computed here when None), carried into the new step
+        (``reference.com_anchoring=continuous``)."""
         n = env_ids.numel()
         if apply is None:
             apply = torch.ones(n, dtype=torch.bool, device=self.device)
@@ -499,6 +519,13 @@ class ReferenceCommand(CommandTerm):
             torch.where(held, com, com_now[0][env_ids, :3]),
             torch.where(held, 0.0, com_now[1][env_ids, :3]),
         )
+        # An episode start carries the pelvis at rest (level roll, the pitch offset).
+        rest = torch.zeros_like(com_now[0][env_ids, 3:5])
+        rest[:, 1] = self.cfg.reference.pitch_offset
+        pelvis_from = (
+            torch.where(held, rest, com_now[0][env_ids, 3:5]),
+            torch.where(held, 0.0, com_now[1][env_ids, 3:5]),
+        )
         st = step_state_from_plan(
             plan,
             stance_pos=plan.start,
@@ -510,6 +537,7 @@ class ReferenceCommand(CommandTerm):
             com_from=com_from,
             cfg=self.cfg.reference,
             hlip=self.cfg.hlip,
+            pelvis_from=pelvis_from,
         )
         st.ramp = ramp
 

@@ -1,6 +1,7 @@
-"""The continuous CoM reference: carrying the previous step's reference CoM state into the new
-step's HLIP orbit (issue 55; SPEC section 2, "References", revised 2026-12-06), and the CoM
-height a step is walked at. Plain torch, no simulator import.
+"""The continuous reference across touchdowns: carrying the previous step's reference CoM state
+into the new step's HLIP orbit, and its pelvis roll and pitch into the new step's lean (issue
+55; SPEC section 2, "References", revised 2026-12-06), and the CoM height a step is walked at.
+Plain torch, no simulator import.
 
 Why. Anchoring each step's orbit at the new stance foot (the earlier decision, still selectable
 as ``reference.com_anchoring=stance``) restarts the CoM reference at -l_new/2 behind the new
@@ -30,6 +31,14 @@ the orbit's by -e0 lam / sinh(lam T), and the next step's h absorbs it; e0 of th
 depends only on the plan's change and the touchdown's timing and place). Past T (a late
 touchdown) the LIP part keeps flowing and h stays 0 (phi is clamped), so position and velocity
 stay one C^1 curve until the touchdown or the timeout restart, which carry it on.
+
+Pelvis roll and pitch (``hermite_carry``): the step's own lean (roll toward the stance foot,
+pitch one period per step) starts at (0, pitch_offset) with a rate that depends on the stance
+side and the step's duration, so a touchdown that comes early or late, a timeout restart (same
+stance side) or a change of duration left a jump of 0.2-0.35 rad/s in the rates. The previous
+reference's roll and pitch (position and rate) at the switch are carried by the cubic Hermite
+correction e0 h00(phi) + (u0 - v_o(0)) T h10(phi), with h00 = (1 - phi)^2 (1 + 2 phi) and
+h10 = phi (1 - phi)^2: continuous at tau = 0, gone with its slope at tau = T.
 
 CoM height (``reference.com_height``): ``fixed`` walks every step at z0 (author 0.67 m, the
 G1's standing CoM height); ``step`` lowers it with the step's length along the course,
@@ -66,6 +75,20 @@ def pendulum_lambda(z: torch.Tensor | float, g: float) -> torch.Tensor | float:
     if isinstance(z, torch.Tensor):
         return torch.sqrt(g / z)
     return math.sqrt(g / z)
+
+
+def hermite_carry(
+    gap_pos: torch.Tensor, gap_vel: torch.Tensor, tau: torch.Tensor, duration: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The correction e0 h00(phi) + v0 T h10(phi) and its tau-derivative (module docstring, the
+    pelvis): ``gap_pos`` e0 and ``gap_vel`` v0 (E, D), ``tau`` and ``duration`` (E,) [s].
+    At tau = 0 it is (e0, v0); from tau = T on it is (0, 0)."""
+    phi = (tau / duration).clamp(0.0, 1.0)[:, None]
+    one = 1.0 - phi
+    t = duration[:, None]
+    pos = gap_pos * (one * one * (1.0 + 2.0 * phi)) + gap_vel * (t * phi * one * one)
+    vel = gap_pos * (-6.0 * phi * one / t) + gap_vel * (one * (1.0 - 3.0 * phi))
+    return pos, vel
 
 
 def carry_correction(

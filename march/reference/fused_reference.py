@@ -141,7 +141,8 @@ def reference_outputs(
       v = lam (sinh A l0 + (sinh a0 + sinh a1) l1) / (2 (cosh A - 1)), a_i = lam T_i,
       A = a0 + a1; the sagittal plane is the period-1 case l1 = l0, T1 = T0), turned into the
       world frame once per env and flowed to every instant by one 2x2 product;
-    - the pelvis roll and pitch oscillations as one sin / cos of (pi s, 2 pi s).
+    - the pelvis roll and pitch oscillations as one sin / cos of (pi s, 2 pi s), plus the
+      carry of the previous reference's (the same Hermite basis as the CoM's height).
     ``tables``: :func:`reference_tables` (looked up when None; pass them into a compiled call).
     """
     cfg = cfg or ReferenceCfg()
@@ -236,6 +237,14 @@ def reference_outputs(
     roll_pitch = torch.sin(angles) * lean[left][:, None] + pitch_off
     rate_scale = (t < dur) / dur
     roll_pitch_rate = torch.cos(angles) * lean_rate[left][:, None] * rate_scale[..., None]
+    if cfg.com_anchoring == "continuous" and step.pelvis_from_pos is not None:
+        # The carry of the previous reference's roll and pitch, e0 h00 + v0 T h10
+        # (march.reference.com_carry.hermite_carry): e0, v0 the gap to the step's own at 0.
+        herm, d = basis[..., 10:14], dur[..., None]
+        e0 = (step.pelvis_from_pos - pitch_off)[:, None]
+        v0 = (step.pelvis_from_vel - lean_rate[left] / dur)[:, None]
+        roll_pitch = roll_pitch + e0 * herm[..., 0:1] + v0 * (herm[..., 1:2] * d)
+        roll_pitch_rate = roll_pitch_rate + e0 * (herm[..., 2:3] / d) + v0 * herm[..., 3:4]
     yaw = wrap_to_pi(step.yaw0[:, None] + step.yaw_rate[:, None] * t)[..., None]
     yaw_rate = step.yaw_rate[:, None, None].expand(e, k, 1)
     swing_vel = swing[..., 3:] * ((phase < 1.0) / dur)[..., None]

@@ -40,6 +40,9 @@ CoM reference is continuous in position and velocity and ends each step on the p
 height blends from the previous reference's to z0 above the lower of the stance and landing
 stones. With ``stance`` (or a step without ``com_from_*``) the orbit is anchored at the stance
 foot and the height is z0 above it (the earlier reference, which jumps at every touchdown).
+The pelvis roll and pitch carry the same way (``StepState.pelvis_from_pos``, ``_vel``;
+:func:`march.reference.com_carry.hermite_carry`): their rates no longer jump at a touchdown that
+comes early or late, at a restart or where the duration changes.
 """
 
 from __future__ import annotations
@@ -53,6 +56,7 @@ from march.reference.com_carry import (
     COM_ANCHORINGS,
     COM_HEIGHTS,
     carry_correction,
+    hermite_carry,
     pendulum_lambda,
     step_com_height,
 )
@@ -230,6 +234,11 @@ class StepState:
     """(E, 3) the previous reference's CoM velocity then [m/s]."""
     z0: torch.Tensor | None = None
     """(E,) CoM height of this step [m] (``com_height=step``; None or ``fixed``: HlipCfg.z0)."""
+    pelvis_from_pos: torch.Tensor | None = None
+    """(E, 2) the previous reference's pelvis roll and pitch at the instant this step began
+    [rad] (``com_anchoring=continuous``; None: the step's own lean from its start)."""
+    pelvis_from_vel: torch.Tensor | None = None
+    """(E, 2) their rates then [rad/s]."""
 
 
 def step_state_from_plan(
@@ -243,6 +252,7 @@ def step_state_from_plan(
     com_from: tuple[torch.Tensor, torch.Tensor] | None = None,
     cfg: ReferenceCfg | None = None,
     hlip: HlipCfg | None = None,
+    pelvis_from: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> StepState:
     """The step state right after a touchdown and replan: step 0 of ``plan`` is being taken.
 
@@ -250,7 +260,9 @@ def step_state_from_plan(
     step's CoM reference then ramps from rest there. None: every env continues a walk.
     ``com_from``: (E, 3) position and velocity of the previous reference's CoM at this instant
     (:func:`com_state`), carried into the step (``com_anchoring=continuous``). ``cfg`` and
-    ``hlip`` give the step's CoM height (:func:`step_height`).
+    ``hlip`` give the step's CoM height (:func:`step_height`). ``pelvis_from``: (E, 2) the
+    previous reference's pelvis roll and pitch and their rates (:func:`pelvis_state`), carried
+    the same way.
     """
     if axis is None:
         axis = torch.zeros_like(stance_pos[:, :2])
@@ -265,6 +277,8 @@ def step_state_from_plan(
         ramp_from=ramp_from,
         com_from_pos=None if com_from is None else com_from[0],
         com_from_vel=None if com_from is None else com_from[1],
+        pelvis_from_pos=None if pelvis_from is None else pelvis_from[0],
+        pelvis_from_vel=None if pelvis_from is None else pelvis_from[1],
         z0=step_height(stance_pos, target, axis, cfg or ReferenceCfg(), hlip or HlipCfg()),
         stance_pos=stance_pos,
         stance_is_left=~plan.lands_left[:, 0],
@@ -326,6 +340,15 @@ def com_state(
     carries (``step_state_from_plan``'s ``com_from``)."""
     ref = reference_at(step, tau, cfg, hlip, num_upper=0)
     return ref.com_pos, ref.com_vel
+
+
+def pelvis_state(
+    step: StepState, tau: torch.Tensor, cfg: ReferenceCfg | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(E, 2) pelvis roll and pitch reference [rad] and their rates [rad/s] at ``tau`` into
+    ``step``: what the next step carries (``step_state_from_plan``'s ``pelvis_from``)."""
+    ori, rate = pelvis_reference(step, tau, cfg or ReferenceCfg())
+    return ori[:, :2], rate[:, :2]
 
 
 @dataclass
@@ -394,7 +417,9 @@ def ramp_from_rest(
 def pelvis_reference(
     step: StepState, tau: torch.Tensor, cfg: ReferenceCfg
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pelvis (roll, pitch, yaw) and their rates (E, 3) at time ``tau`` into the step."""
+    """Pelvis (roll, pitch, yaw) and their rates (E, 3) at time ``tau`` into the step: the
+    step's own lean plus, with ``com_anchoring=continuous``, the carry of the previous
+    reference's roll and pitch (:func:`march.reference.com_carry.hermite_carry`)."""
     active = (tau < step.duration).to(tau.dtype)
     phase = (tau / step.duration).clamp(0.0, 1.0)
     w = math.pi / step.duration
@@ -404,6 +429,15 @@ def pelvis_reference(
     roll_rate = lean * w * torch.cos(math.pi * phase) * active
     pitch = cfg.pitch_offset + cfg.pitch_amplitude * torch.sin(2.0 * math.pi * phase)
     pitch_rate = cfg.pitch_amplitude * 2.0 * w * torch.cos(2.0 * math.pi * phase) * active
+    if cfg.com_anchoring == "continuous" and step.pelvis_from_pos is not None:
+        # The previous reference's roll and pitch minus the step's own at tau = 0.
+        own_pos = torch.stack([torch.zeros_like(lean), torch.full_like(lean, cfg.pitch_offset)], -1)
+        own_vel = torch.stack([lean * w, cfg.pitch_amplitude * 2.0 * w], -1)
+        dp, dv = hermite_carry(
+            step.pelvis_from_pos - own_pos, step.pelvis_from_vel - own_vel, tau, step.duration
+        )
+        roll, pitch = roll + dp[:, 0], pitch + dp[:, 1]
+        roll_rate, pitch_rate = roll_rate + dv[:, 0], pitch_rate + dv[:, 1]
     yaw = wrap_to_pi(step.yaw0 + step.yaw_rate * tau)
     ori = torch.stack([roll, pitch, yaw], dim=-1)
     return ori, torch.stack([roll_rate, pitch_rate, step.yaw_rate], dim=-1)
