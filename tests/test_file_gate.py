@@ -292,29 +292,45 @@ def bad_files(tmp_path_factory) -> Path:
 REFUSALS = {
     # case: (the command after `python`, with {root} for the fixture's folder; the words of the
     # one line; what the line starts with)
-    "train-resume-laughs": ("-m march.train resume={root}/laughs", "YAML anchor", "resume="),
-    "train-resume-zip": ("-m march.train resume={root}/zip-bomb", "is compressed", "resume="),
-    "train-resume-metrics": ("-m march.train resume={root}/metrics-row", "'abc'", "resume="),
-    "train-new-run-laughs": ("-m march.train hydra.run.dir={root}/laughs", "YAML anchor", "hydra"),
+    "train-resume-laughs": (
+        "-m march.train resume={root}/laughs",
+        "YAML anchor",
+        "resume={root}/laughs: ",
+    ),
+    "train-resume-zip": (
+        "-m march.train resume={root}/zip-bomb",
+        "is compressed",
+        "resume={root}/zip-bomb: ",
+    ),
+    "train-resume-metrics": (
+        "-m march.train resume={root}/metrics-row",
+        "'abc'",
+        "resume={root}/metrics-row: ",
+    ),
+    "train-new-run-laughs": (
+        "-m march.train hydra.run.dir={root}/laughs",
+        "YAML anchor",
+        "hydra.run.dir={root}/laughs: ",
+    ),
     "train-eval-zip": (
         "-m march.train stage=eval student_ckpt={root}/s/student/latest.pt",
         "is compressed",
-        "student_ckpt=",
+        "student_ckpt={root}/s/student/latest.pt: ",
     ),
     "export-zip": (
         "-m march.export student_ckpt={root}/s/student/latest.pt out={root}/out",
         "is compressed",
-        "student_ckpt=",
+        "student_ckpt={root}/s/student/latest.pt: ",
     ),
     "play-zip": (
         "-m march.play student_ckpt={root}/s/student/latest.pt",
         "is compressed",
-        "student_ckpt=",
+        "student_ckpt={root}/s/student/latest.pt: ",
     ),
     "audit-zip": (
         "-m march.audit rewards teacher_ckpt={root}/s/student/latest.pt out={root}/a.json",
         "is compressed",
-        "teacher_ckpt=",
+        "teacher_ckpt={root}/s/student/latest.pt: ",
     ),
     "inspect-laughs": ("-m march.inspect run {root}/laughs", "YAML anchor", "{root}/laughs"),
     "inspect-zip": ("-m march.inspect run {root}/zip-bomb", "is compressed", "{root}/zip-bomb"),
