@@ -79,11 +79,12 @@ def _value(args: Sequence[str], key: str) -> str | None:
 def before_hydra(argv: list[str], multirun: bool, rank0: bool = True) -> list[str]:
     """Checks on the command line before Hydra starts; returns argv (with
     ``hydra.output_subdir=null`` added for a directory that already holds a run). Raises
-    :class:`ConfigError` with one line."""
+    :class:`ConfigError` with one line. ``march.train`` runs :func:`check_files_before_hydra`
+    first (the same files, judged without torch); every refusal of those is made here too,
+    once the command line is composed."""
     args = argv[1:]
     if twice := duplicate_overrides(args):
         raise ConfigError(twice)
-    check_files_before_hydra(argv, multirun, rank0)
     key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
     explicit = _value(args, key)
     if explicit is None:
@@ -160,8 +161,8 @@ def _check_before_hydra(run_dir: Path, args: Sequence[str], option: str) -> None
 
     if not (run_dir / "config.yaml").is_file():
         return  # main refuses it in one line (run files without a config)
-    # Its files as far as they are judged without torch were checked already
-    # (check_files_before_hydra); now against the config composed from the command line.
+    # march.train judged these files without torch already (check_files_before_hydra); now
+    # they are read against the config composed from the command line.
     task = [a for a in args if "=" in a and not a.lstrip("+~").startswith("hydra")]
     try:
         cfg = load(task)
