@@ -247,7 +247,7 @@ def run_job(argv: list[str]) -> None:
 
     from march.config.cli import fail
     from march.store.bounded_read import FileRefused, read_yaml_text
-    from march.store.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint
+    from march.store.checkpoint_file import CheckpointError, check_file, latest_checkpoint
     from march.store.status import read_status
 
     if len(argv) != 1 or not Path(argv[0]).is_dir():
@@ -268,10 +268,18 @@ def run_job(argv: list[str]) -> None:
 
             keys = ("stage", "reward.name", "student.variant", "seed")
             report["config"] = {k: get(k) for k in keys}
-        for kind in ("teacher", "student"):
-            found = latest_checkpoint(run / kind) if (run / kind).is_dir() else None
+        newest = {
+            kind: latest_checkpoint(run / kind) if (run / kind).is_dir() else None
+            for kind in ("teacher", "student")
+        }
+        for found in newest.values():
+            if found is not None:  # every file's zip directory, before torch is imported
+                check_file(found, str(found))
+        for kind, found in newest.items():
             entry = None
             if found is not None:
+                from march.store.checkpoint import load_checkpoint  # torch
+
                 payload = load_checkpoint(found, kind, source=str(found))
                 entry = {
                     "path": str(found),

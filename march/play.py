@@ -37,8 +37,9 @@ from typing import Any
 
 from march.config import MarchConfig
 from march.config.cli import fail, run_tool
-from march.env.plan_drawing import enable_plan_drawing
-from march.env.rendering import HEIGHT, WIDTH, make_renderer, rendering_error
+
+# march.env (torch, mjlab) is imported in play(), after the checkpoint's file checks: a crafted
+# file is refused without torch (issue 59: one line, under 200 MB resident).
 
 USAGE = (
     "usage: python -m march.play student_ckpt=<file> | teacher_ckpt=<file> "
@@ -148,6 +149,8 @@ def play(
     import torch
 
     from march.config import ConfigError
+    from march.env.plan_drawing import enable_plan_drawing
+    from march.env.rendering import HEIGHT, WIDTH, make_renderer, rendering_error
     from march.store.checkpoint import CheckpointError
     from march.store.gate import policy_from_checkpoint as read_policy
 
@@ -283,7 +286,7 @@ def expected_frames(steps: int, stride: int) -> int:
 
 def main(argv: Sequence[str] | None = None) -> None:
     view, args = viewer_args(list(sys.argv[1:] if argv is None else argv))
-    from march.store.gate import check_checkpoint_files
+    from march.store.checkpoint_file import check_checkpoint_files
 
     # The checkpoint judged (link, size, zip records) before the term check loads the simulator.
     job = lambda cfg: play(cfg, explicit_overrides=args, view=view)  # noqa: E731

@@ -42,13 +42,14 @@ from march.config.cli import (
 from march.config.memory import check_memory
 from march.config.terms import check_terms, import_extra_modules
 from march.learn import distributed, preemption, tuning
-from march.learn.eta import ETA_ITERATIONS, EtaMetricsLog, EtaWatch
-from march.learn.faults import NumericalFault
 from march.store import run_dir as run_files
 from march.store import run_lock
-from march.store.checkpoint import CheckpointError, write_text_durably
-from march.store.gate import apply_policy_checkpoint, read_checkpoint
+from march.store.checkpoint_file import CheckpointError
 from march.store.status import read_status, write_status
+
+# torch (~250 MB resident for the import alone) and what imports it (the gate's full read, the
+# metrics log, the fault guards) are imported where they are used, after the checks: a bad file
+# or argument is refused without them (issue 59: one line, under 200 MB resident).
 
 
 def _seed_everything(seed: int) -> None:
@@ -67,6 +68,8 @@ def banner(
     cfg: MarchConfig, run_dir: Path, placeholders: dict[str, str], auto: bool = False
 ) -> str:
     """The start banner: what runs, at which scale (and why), where, and when wall time shows."""
+    from march.learn.eta import ETA_ITERATIONS
+
     c, t, d, e = cfg.compute, cfg.teacher, cfg.distill, cfg.eval
     why = ""
     if auto:
@@ -159,8 +162,10 @@ def run_pipeline(
     from march.evaluation.protocol import evaluate, policy_from_checkpoint
     from march.evaluation.summary import eval_line, format_summary, write_summary
     from march.learn.distill import DistillRunner, student_policy
+    from march.learn.eta import EtaMetricsLog, EtaWatch
     from march.learn.metrics import truncate_rows
     from march.learn.teacher import TeacherRunner, teacher_policy
+    from march.store.gate import apply_policy_checkpoint, read_checkpoint
 
     if cfg.compute.torch_threads:
         torch.set_num_threads(cfg.compute.torch_threads)
@@ -299,6 +304,8 @@ def main(dcfg: DictConfig) -> float | None:
         cfg = to_march_config(dcfg)
         _check_inputs(cfg)
         if not cfg.resume:  # a resumed run continues with its saved (already applied) config
+            from march.store.gate import apply_policy_checkpoint
+
             cfg, notes = apply_policy_checkpoint(cfg, overrides)
         # Every reward term known, its params valid (one line). After the files and the
         # checkpoint: the term registry imports the simulator (~5 s), so a missing file or a
@@ -361,6 +368,9 @@ def main(dcfg: DictConfig) -> float | None:
     # written nothing into the run directory.
     distributed.rank_log(run_dir)
     distributed.barrier()  # every rank has read config.yaml before rank 0 rewrites it
+    from march.learn.faults import NumericalFault
+    from march.store.checkpoint import write_text_durably
+
     if dist.main:
         write_text_durably(run_dir / "config.yaml", OmegaConf.to_yaml(OmegaConf.structured(cfg)))
     os.environ.setdefault("WANDB_MODE", "offline")
@@ -447,15 +457,17 @@ if __name__ == "__main__":
         fail(problem)
     if problem := duplicate_overrides(sys.argv[1:]) or renamed_group(sys.argv[1:]):
         fail(problem)
+    argv = _resume_argv(_rank_argv(sys.argv))
+    multirun = any(a in MULTIRUN_FLAGS for a in argv[1:])
+    rank0 = distributed.env_world()[0] == 0
+    try:  # the files handed in, without torch: composing compute=auto imports it (issue 59)
+        run_files.check_files_before_hydra(argv, multirun, rank0)
+    except ConfigError as err:
+        fail(str(err))
     if problem := override_problem(sys.argv[1:]):  # Hydra's refusals, in one line (issue 59)
         fail(problem)
-    sys.argv = _resume_argv(_rank_argv(sys.argv))
     try:  # the output directory, and a run already there locked, before Hydra writes anything
-        sys.argv = run_files.before_hydra(
-            sys.argv,
-            multirun=any(a in MULTIRUN_FLAGS for a in sys.argv[1:]),
-            rank0=distributed.env_world()[0] == 0,
-        )
+        sys.argv = run_files.before_hydra(argv, multirun=multirun, rank0=rank0)
     except ConfigError as err:
         fail(str(err))
     main()

@@ -100,7 +100,7 @@ JOBS = {"rewards": rewards, "reference": reference, "envelope": envelope}
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    from march.store.gate import check_checkpoint_files
+    from march.store.checkpoint_file import check_checkpoint_files
 
     # teacher_ckpt= judged (link, size, zip records) before the term check loads the simulator
     run_tool(JOBS, argv, usage=USAGE, before_terms=check_checkpoint_files)

@@ -83,17 +83,27 @@ def resolve_compute(cfg: DictConfig, overrides: Sequence[str]) -> DictConfig:
     return merged
 
 
-def compose(overrides: Sequence[str] = ()) -> DictConfig:
-    """Compose conf/ with overrides (compute=auto resolved), as march.train would."""
+def compose(
+    overrides: Sequence[str] = (), check_files: Callable[[DictConfig], None] | None = None
+) -> DictConfig:
+    """Compose conf/ with overrides (compute=auto resolved), as march.train would.
+    ``check_files``: checks of the files the composed tree names, run before compute=auto is
+    resolved (that asks torch for CUDA: ~250 MB resident for the import alone), so a crafted
+    file is refused without torch."""
     with hydra.initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = hydra.compose(config_name="config", overrides=list(overrides))
+    if check_files is not None:
+        check_files(cfg)
     return resolve_compute(cfg, overrides)
 
 
-def load(overrides: Sequence[str] = ()) -> MarchConfig:
+def load(
+    overrides: Sequence[str] = (), check_files: Callable[[DictConfig], None] | None = None
+) -> MarchConfig:
     """The checked config; ``extra_modules`` are imported first (their student parts and terms
-    register before the config's checks read the registries)."""
-    cfg = compose(overrides)
+    register before the config's checks read the registries). ``check_files``: as
+    :func:`compose`'s."""
+    cfg = compose(overrides, check_files)
     import_extra_modules(OmegaConf.select(cfg, "extra_modules", default=None) or [])
     return to_march_config(cfg)
 
@@ -109,14 +119,15 @@ def run_tool(
     argv: Sequence[str] | None = None,
     usage: str = "",
     check_reward: bool = True,
-    before_terms: Callable[[MarchConfig], None] | None = None,
+    before_terms: Callable[[DictConfig], None] | None = None,
 ) -> object:
     """Parse ``[job] key=value ...``, compose the config and run the job with clear errors.
     ``check_reward``: check the reward terms too (imports the env's term modules; a job that
-    builds no env may skip it). ``before_terms``: the tool's own checks that need no simulator
-    (raising :class:`ConfigError`), run before the term check imports it: a tool given a
-    checkpoint passes :func:`march.store.gate.check_checkpoint_files`, so a crafted file is one
-    line in seconds."""
+    builds no env may skip it). ``before_terms``: the tool's own checks of the files its config
+    names (raising :class:`ConfigError`), run on the composed tree before compute=auto asks
+    torch for CUDA and before the term check imports the simulator: a tool given a checkpoint
+    passes :func:`march.store.checkpoint_file.check_checkpoint_files`, so a crafted file is one
+    line in seconds, without torch (issue 59: under 200 MB resident)."""
     args = list(sys.argv[1:] if argv is None else argv)
     if callable(jobs):
         job, fn = None, jobs
@@ -133,9 +144,7 @@ def run_tool(
     if twice := duplicate_overrides(args) or renamed_group(args):
         fail(twice)
     try:
-        cfg = load(args)
-        if before_terms is not None:
-            before_terms(cfg)  # e.g. the checkpoint files, judged before the simulator loads
+        cfg = load(args, before_terms)  # e.g. the checkpoint files, judged before torch loads
         if check_reward:
             check_terms(cfg)  # every term known, its params valid: before any env
     except (HydraException, OmegaConfBaseException) as err:

@@ -350,7 +350,7 @@ def export(cfg: MarchConfig, overrides: Sequence[str] = ()) -> dict[str, Any]:
 
 def main(argv: Sequence[str] | None = None) -> None:
     args = list(sys.argv[1:] if argv is None else argv)
-    from march.store.gate import check_checkpoint_files
+    from march.store.checkpoint_file import check_checkpoint_files
 
     # student_ckpt= judged (link, size, zip records) before the term check loads the simulator
     run_tool(lambda cfg: export(cfg, args), args, usage=USAGE, before_terms=check_checkpoint_files)

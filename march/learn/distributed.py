@@ -28,10 +28,12 @@ import dataclasses
 import os
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
+
+if TYPE_CHECKING:  # torch where a function needs it: march.train's refusals run without it
+    import torch
 
 
 @dataclass(frozen=True)
@@ -119,6 +121,8 @@ def visible_device(local_rank: int, count: int | None = None) -> str:
     """The CUDA device of a rank from what its process can see: one visible GPU (a cluster that
     binds one GPU per task, ``CUDA_VISIBLE_DEVICES`` set per task) is ``cuda:0`` whatever the
     local rank; several are indexed by the local rank. One line when the rank has none."""
+    import torch
+
     count = torch.cuda.device_count() if count is None else count
     if count == 1:
         return "cuda:0"
@@ -147,6 +151,7 @@ def init(device: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> Dist:
         return _DIST
     import datetime
 
+    import torch
     import torch.distributed as td
 
     backend = "nccl" if device.startswith("cuda") else "gloo"
@@ -253,6 +258,8 @@ def rank_config(cfg: Any, d: Dist | None = None, count: int | None = None) -> An
 
 def collective_device() -> torch.device:
     """The device collectives run on (nccl needs CUDA tensors)."""
+    import torch
+
     if _DIST.backend == "nccl":
         return torch.device("cuda", torch.cuda.current_device())
     return torch.device("cpu")
@@ -300,6 +307,8 @@ def mean_over_ranks(values: Mapping[str, float]) -> dict[str, float]:
     rank takes the same undo decision in :class:`march.learn.faults.UpdateGuard`)."""
     if not _DIST.active or not values:
         return dict(values)
+    import torch
+
     keys = list(values)
     x = torch.tensor([float(values[k]) for k in keys], dtype=torch.float64)
     x = _all_reduce_sum(x) / _DIST.world
@@ -309,6 +318,8 @@ def mean_over_ranks(values: Mapping[str, float]) -> dict[str, float]:
 def sum_over_ranks(value: int) -> int:
     if not _DIST.active:
         return int(value)
+    import torch
+
     return int(_all_reduce_sum(torch.tensor([int(value)], dtype=torch.int64)).item())
 
 
@@ -317,6 +328,8 @@ def pop_episode_stats(stats: Any) -> dict[str, float]:
     episodes (each rank weighted by its episode count)."""
     if not _DIST.active:
         return stats.pop()
+    import torch
+
     count = int(stats.total.clamp(max=stats.window))
     local = torch.zeros(4, dtype=torch.float64)
     if count:
@@ -347,6 +360,7 @@ def average_gradients(parameters: Iterable[torch.nn.Parameter]) -> None:
     params = [p for p in parameters if p.grad is not None]
     if not params:
         return
+    import torch
     import torch.distributed as td
 
     flat = torch.cat([p.grad.reshape(-1) for p in params]).to(collective_device())

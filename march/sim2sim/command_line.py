@@ -59,14 +59,18 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import mujoco
 import numpy as np
 
 from march.sim2sim.deploy_bundle import Bundle, UsageError
 from march.sim2sim.guard import CommandRefused, check_command
-from march.sim2sim.runner import Delays, Sim2Sim, rollout
+
+# The runner (onnxruntime) is imported after the bundle's checks: a bad file is refused
+# without it (issue 59).
+if TYPE_CHECKING:
+    from march.sim2sim.runner import Delays
 
 USAGE = (
     "usage: python -m march.sim2sim onnx=<student.onnx> [course=hardware|stones] "
@@ -176,6 +180,8 @@ class Video:
 
 def episode_delays(args: Args, spec: dict[str, Any], seed: int) -> Delays:
     """The delays of one episode from the arguments (fixed, or drawn as in training)."""
+    from march.sim2sim.runner import Delays
+
     dt = float(spec["rates"]["physics_dt_s"])
     if args.delays == "train":
         return Delays.draw_train(spec["latency"], dt, seed)
@@ -210,6 +216,8 @@ def run(args: Args) -> dict[str, Any]:
         check_command(spec, (vx, vy, 0.0))
     except CommandRefused as err:
         raise UsageError(str(err)) from None
+    from march.sim2sim.runner import Sim2Sim, rollout
+
     sim = Sim2Sim(bundle, args.course, args.threads)
     sim.set_command(vx, vy)
     cell = bundle.cell(args.course, args.difficulty, args.seed)

@@ -8,7 +8,9 @@ every tool:
 
 - checkpoints: :func:`march.store.gate.read_checkpoint` (no link, bounded size, plain data,
   entries and config checked, the modules it names named by the user too, weights against its
-  config) and :func:`march.store.gate.policy_from_checkpoint` (then its policy applied);
+  config) and :func:`march.store.gate.policy_from_checkpoint` (then its policy applied); the
+  checks that read no record, without torch, first: :mod:`march.store.checkpoint_file` (a
+  crafted file is refused before torch is imported);
 - a run's saved config against a new one: :func:`march.store.resume_rules.resume_config`,
   :func:`~march.store.resume_rules.adopt_config`, one copy of the rules in
   :func:`~march.store.resume_rules.check_changes`;

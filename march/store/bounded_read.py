@@ -233,8 +233,15 @@ def parse_json_strict(data: bytes, label: str) -> Any:
 
 
 def gunzip_bounded(packed: bytes, limit: int, label: str) -> bytes:
-    """The gzip stream ``packed`` inflated, at most ``limit`` bytes, else :class:`FileRefused`
-    (no more than ``limit`` + one piece is ever held)."""
+    """The gzip stream ``packed`` inflated, at most ``limit`` bytes, else :class:`FileRefused`.
+    Inflated twice: first counted with each piece dropped, so that a bomb is refused holding
+    one piece whatever its ratio (the tools' refusals stay under 200 MB resident, issue 59);
+    then, within the bound, kept."""
+    _inflate(packed, limit, label, keep=False)
+    return _inflate(packed, limit, label, keep=True)
+
+
+def _inflate(packed: bytes, limit: int, label: str, keep: bool) -> bytes:
     inflater = zlib.decompressobj(wbits=16 + zlib.MAX_WBITS)
     out, size, rest = [], 0, packed
     try:
@@ -244,7 +251,8 @@ def gunzip_bounded(packed: bytes, limit: int, label: str) -> bytes:
             size += len(piece)
             if size > limit:
                 raise FileRefused(f"{label}: inflates to more than {limit} bytes; not loaded")
-            out.append(piece)
+            if keep:
+                out.append(piece)
             if not piece and not rest:
                 break
         if not inflater.eof:

@@ -26,9 +26,18 @@ from typing import Any
 import numpy as np
 import torch
 
+# The file-level checks live without torch (march.store.checkpoint_file); their names are
+# read from here too, as before the split.
+from march.store.checkpoint_file import (  # noqa: F401
+    LATEST,
+    MAX_CHECKPOINT_BYTES,
+    CheckpointError,
+    check_file,
+    check_records,
+    latest_checkpoint,
+    open_plain_file,
+)
 from march.strict_json import dumps
-
-LATEST = "latest.pt"
 
 
 def writes_files() -> bool:
@@ -38,26 +47,6 @@ def writes_files() -> bool:
     import torch.distributed as td
 
     return not (td.is_available() and td.is_initialized()) or td.get_rank() == 0
-
-
-MAX_CHECKPOINT_BYTES = 4 << 30
-"""Larger files are refused before they are read (a full-size student checkpoint is ~50 MB,
-with its optimizer state; the smoke run's are 15 MB)."""
-
-
-class CheckpointError(RuntimeError):
-    """A checkpoint that is missing or does not fit the current config; says how to fix it."""
-
-
-def open_plain_file(path: Path, label: str, limit: int, wanted: str) -> Any:
-    """:func:`march.store.bounded_read.open_regular` (no link, a regular file within ``limit``
-    bytes) with its refusal as a :class:`CheckpointError`."""
-    from march.store.bounded_read import FileRefused, open_regular
-
-    try:
-        return open_regular(path, label, limit, wanted)
-    except FileRefused as err:
-        raise CheckpointError(str(err)) from None
 
 
 _CHECKED: dict[str, Any] = {}
@@ -180,16 +169,6 @@ def ensure_model_file(payload: dict[str, Any], directory: Path) -> Path:
     return path
 
 
-def latest_checkpoint(directory: Path) -> Path | None:
-    """The newest checkpoint in ``directory`` (``latest.pt`` if present), or None."""
-    if (directory / LATEST).is_file():
-        return directory / LATEST
-    found = sorted(
-        p for p in directory.glob("model_*.pt") if re.fullmatch(r"model_\d+\.pt", p.name)
-    )
-    return found[-1] if found else None
-
-
 #: Leaf types a checkpoint may hold, matched exactly (a subclass, e.g. an IntEnum, is a class
 #: the weights-only unpickler would have to build). ``nn.Parameter`` is a tensor it knows.
 PLAIN_LEAVES = (torch.Tensor, torch.nn.Parameter, str, bytes, int, float, bool, type(None))
@@ -286,53 +265,6 @@ def _place(obj: Any, device: str, key: Any = None) -> Any:
     if isinstance(obj, tuple) and not isinstance(obj, torch.Size):
         return tuple(_place(v, device) for v in obj)
     return obj
-
-
-def check_records(f: Any, label: str) -> None:
-    """The zip archive a ``torch.save`` file is, judged by its central directory before torch
-    inflates any record: every record stored as torch writes it (uncompressed: its inflated
-    size is its packed size) and all of them within the file's own size. A record deflated
-    from gigabytes of zeros (a 17 MB file that torch would inflate to 1.5 GB before any check
-    of ours) is refused here, having read only the directory. ``f``: the open file, left at
-    its start. A file that is no zip archive is left to torch (its legacy format, or its own
-    refusal of a file that is no checkpoint)."""
-    import zipfile
-
-    size = os.fstat(f.fileno()).st_size
-    try:
-        if not zipfile.is_zipfile(f):
-            return  # torch's legacy format (records as they are in the file) or no checkpoint
-        with zipfile.ZipFile(f) as archive:
-            records = archive.infolist()
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as err:
-        why = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise CheckpointError(
-            f"{label}: not a readable checkpoint (truncated or corrupt: {why})"
-        ) from None
-    finally:
-        f.seek(0)
-    inflated = 0
-    for record in records:
-        if record.compress_type != zipfile.ZIP_STORED or record.file_size != record.compress_size:
-            raise CheckpointError(
-                f"{label}: its record {record.filename!r} is compressed ({record.compress_size} "
-                f"bytes that inflate to {record.file_size}); torch.save stores every record as "
-                "it is, so march wrote no such file; not read"
-            )
-        inflated += record.file_size
-    if inflated > size:
-        raise CheckpointError(
-            f"{label}: its records add up to {inflated} bytes, more than the file's {size}; "
-            "not a checkpoint march wrote; not read"
-        )
-
-
-def check_file(path: str | Path, label: str) -> None:
-    """The checks on ``path`` that read no record (no link, a regular file within
-    :data:`MAX_CHECKPOINT_BYTES`, its zip directory: :func:`check_records`): a run's files are
-    all put through these before any of them is unpickled and checked in full."""
-    with open_plain_file(Path(path), label, MAX_CHECKPOINT_BYTES, "a march checkpoint") as f:
-        check_records(f, label)
 
 
 def _read_plain(path: str | Path, label: str, wanted: str) -> Any:

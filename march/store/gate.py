@@ -32,6 +32,7 @@ import torch
 
 from march.config import ConfigError, MarchConfig, to_march_config
 from march.store.checkpoint import CheckpointError, load_checkpoint
+from march.store.checkpoint_file import check_checkpoint_files
 from march.store.file_config import check_named_modules, interpolations
 from march.store.provenance import apply_checkpoint_config, policy_changes
 
@@ -193,25 +194,6 @@ def check_weights(payload: dict[str, Any], kind: str, label: str, cfg: MarchConf
             raise refuse(
                 f"{states[kind]}[{k!r}] has shape {list(got[k])}, its config's network {list(expected[k])}"
             )
-
-
-def check_checkpoint_files(cfg: MarchConfig) -> None:
-    """The checkpoint files ``cfg`` names (``teacher_ckpt=``, ``student_ckpt=``), as far as they
-    can be judged without unpickling (:func:`march.store.checkpoint.check_file`: no link,
-    bounded, zip records as torch writes them), one :class:`ConfigError` line: a tool passes it
-    to ``run_tool(before_terms=...)``, so a zip bomb is refused before the simulator loads. A
-    missing file is left to the tool, whose message says what to pass."""
-    import os
-
-    from march.store.checkpoint import check_file
-
-    for kind in ("teacher", "student"):
-        path = getattr(cfg, f"{kind}_ckpt", None)
-        if path and os.path.lexists(path):
-            try:
-                check_file(path, f"{kind}_ckpt={path}")
-            except CheckpointError as err:
-                raise ConfigError(str(err)) from None
 
 
 def read_checkpoint(

@@ -74,6 +74,27 @@ def _safe(path: str) -> bool:
     return any(path == s or path.startswith(s + ".") for s in RESUME_SAFE)
 
 
+def _unreadable(run_dir: Path, option: str, err: BaseException) -> ConfigError:
+    first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+    return ConfigError(f"{option}={run_dir}: its config.yaml cannot be read ({first})")
+
+
+def saved_config_text(run_dir: Path, option: str = "resume") -> str:
+    """The run's config.yaml as text through the gate: no link, bounded, no anchor, alias or
+    tag (a billion-laughs file, judged on the parser's events, never expanded); one
+    :class:`ConfigError` line. Needs no torch: ``march.train`` reads it before a config is
+    composed (compute=auto asks torch for CUDA), so a crafted file is refused in ~50 MB."""
+    from march.store.bounded_read import FileRefused, read_yaml_text
+
+    path = run_dir / "config.yaml"
+    try:
+        return read_yaml_text(path, f"{option}={run_dir}: {path}", MAX_CONFIG_BYTES, "a run")
+    except FileRefused as err:
+        raise ConfigError(str(err)) from None
+    except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
+        raise _unreadable(run_dir, option, err) from None
+
+
 def load_saved_config(
     run_dir: Path, option: str = "resume", named: Sequence[str] | None = None
 ) -> MarchConfig:
@@ -82,21 +103,15 @@ def load_saved_config(
     such as ``"\\x24{"`` are decoded by the parser first) is refused, naming its key, and
     nothing is resolved: march never writes one. ``named``: the modules the user named (their
     ``extra_modules``); a module the file names and they did not is refused, never imported."""
-    from march.store.bounded_read import FileRefused, read_yaml_text
-
     path = run_dir / "config.yaml"
+    text = saved_config_text(run_dir, option)
     try:
-        # No link, bounded, and no anchor or alias (a billion-laughs file) before any loader.
-        text = read_yaml_text(path, f"{option}={run_dir}: {path}", MAX_CONFIG_BYTES, "a run")
         raw = OmegaConf.create(text)
         # Unresolved: the strings exactly as parsed, interpolations and all.
         tree = OmegaConf.to_container(raw, resolve=False)
         bad = interpolations(tree)
-    except FileRefused as err:
-        raise ConfigError(str(err)) from None
     except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise ConfigError(f"{option}={run_dir}: its config.yaml cannot be read ({first})") from None
+        raise _unreadable(run_dir, option, err) from None
     if bad:
         raise ConfigError(
             f"{option}={run_dir}: {path} key {bad[0]} holds a '${{...}}' interpolation or resolver"
@@ -111,8 +126,7 @@ def load_saved_config(
     except ConfigError as err:
         raise ConfigError(f"{option}={run_dir}: its config.yaml is not valid: {err}") from None
     except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise ConfigError(f"{option}={run_dir}: its config.yaml cannot be read ({first})") from None
+        raise _unreadable(run_dir, option, err) from None
 
 
 def check_device(run_dir: Path, saved: MarchConfig, cfg: MarchConfig) -> None:

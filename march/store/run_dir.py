@@ -79,7 +79,9 @@ def _value(args: Sequence[str], key: str) -> str | None:
 def before_hydra(argv: list[str], multirun: bool, rank0: bool = True) -> list[str]:
     """Checks on the command line before Hydra starts; returns argv (with
     ``hydra.output_subdir=null`` added for a directory that already holds a run). Raises
-    :class:`ConfigError` with one line."""
+    :class:`ConfigError` with one line. ``march.train`` runs :func:`check_files_before_hydra`
+    first (the same files, judged without torch); every refusal of those is made here too,
+    once the command line is composed."""
     args = argv[1:]
     if twice := duplicate_overrides(args):
         raise ConfigError(twice)
@@ -108,6 +110,42 @@ def before_hydra(argv: list[str], multirun: bool, rank0: bool = True) -> list[st
     return argv
 
 
+def check_files_before_hydra(argv: list[str], multirun: bool, rank0: bool = True) -> None:
+    """The files the command line hands in, judged without torch before any config is composed
+    (composing compute=auto, or Hydra naming the run directory after the preset, asks torch for
+    CUDA: ~250 MB resident for the import alone), so that a crafted file is one line in about
+    50 MB (issue 59: under 200 MB): the checkpoints it names (``teacher_ckpt=``,
+    ``student_ckpt=``, a literal path: their zip directories) and, for the run directory it
+    points at (``hydra.run.dir=``, which ``resume=`` sets), config.yaml's YAML, its tables row
+    by row and its newest checkpoints' zip directories. :class:`ConfigError`, one line. What
+    needs a composed config (the override rules, the checkpoints' contents) follows in
+    :func:`before_hydra` and ``main``; a missing file, or a value Hydra has yet to read, is left
+    to them."""
+    from march.store.bounded_read import FileRefused
+    from march.store.checkpoint_file import CheckpointError, check_file
+    from march.store.resume_rules import saved_config_text
+
+    args = argv[1:]
+    key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+    explicit = _value(args, key)
+    try:
+        for name in ("teacher_ckpt", "student_ckpt"):
+            path = _value(args, name)
+            if path and "${" not in path and os.path.lexists(path):
+                check_file(path, f"{name}={path}")
+        if explicit is None or multirun or "${" in explicit or not rank0:
+            return
+        run_dir = Path(explicit)
+        if not holds_run(run_dir) or not (run_dir / "config.yaml").is_file():
+            return  # no run there, or run files without a config: main says so
+        option = "resume" if _value(args, "resume") else key
+        saved_config_text(run_dir, option)
+        check_run_tables(run_dir, option)
+        newest_checkpoints(run_dir, option)
+    except (FileRefused, CheckpointError) as err:
+        raise ConfigError(str(err)) from None
+
+
 def _check_before_hydra(run_dir: Path, args: Sequence[str], option: str) -> None:
     """A run pointed at (``resume=`` or a new run in its directory): its files read through the
     gate now, before Hydra appends to the run's ``train.log`` and before any env, so that a bad
@@ -118,11 +156,13 @@ def _check_before_hydra(run_dir: Path, args: Sequence[str], option: str) -> None
     config (a policy checkpoint applied), the process group's size known."""
     from march.config.cli import load
     from march.store.bounded_read import FileRefused
-    from march.store.checkpoint import CheckpointError
+    from march.store.checkpoint_file import CheckpointError
     from march.store.resume_rules import adopt_config, resume_config
 
     if not (run_dir / "config.yaml").is_file():
         return  # main refuses it in one line (run files without a config)
+    # march.train judged these files without torch already (check_files_before_hydra); now
+    # they are read against the config composed from the command line.
     task = [a for a in args if "=" in a and not a.lstrip("+~").startswith("hydra")]
     try:
         cfg = load(task)
@@ -152,18 +192,13 @@ def check_run_checkpoints(
     belong to this run (no difference a resume could not make); before any env is built.
     ``world_mismatch``: why this process group cannot resume a payload (``march.learn.
     distributed.world_mismatch``; the training room sits above this one)."""
-    from march.store.checkpoint import check_file, keep_checked, latest_checkpoint
+    check_run_tables(run_dir, option)  # before anything in the directory changes
+    found = newest_checkpoints(run_dir, option)  # every file's zip directory first
+    # torch (~250 MB resident) only now: a refused table or file was told without it.
+    from march.store.checkpoint import keep_checked
     from march.store.gate import read_checkpoint
     from march.store.resume_rules import config_differences
 
-    check_run_tables(run_dir, option)  # before anything in the directory changes
-    found = {}
-    for kind in ("teacher", "student"):
-        folder = Path(run_dir) / kind
-        path = latest_checkpoint(folder) if folder.is_dir() else None
-        if path is not None:
-            check_file(path, f"{option}={run_dir}: {path}")  # every file's zip directory first
-            found[kind] = path
     notes = []
     for kind, path in found.items():
         label = f"{option}={run_dir}: {path}"
@@ -181,6 +216,22 @@ def check_run_checkpoints(
         keep_checked(path, payload)  # the resume uses these bytes, not a second read
         notes.append(f"[{kind}] checked {path}: iteration {payload['iteration']}")
     return notes
+
+
+def newest_checkpoints(run_dir: Path, option: str) -> dict[str, Path]:
+    """The run's newest teacher and student checkpoints, by kind, each judged without torch
+    (:func:`march.store.checkpoint_file.check_file`: no link, bounded, its zip directory);
+    :class:`~march.store.checkpoint_file.CheckpointError` at the first refused one."""
+    from march.store.checkpoint_file import check_file, latest_checkpoint
+
+    found = {}
+    for kind in ("teacher", "student"):
+        folder = Path(run_dir) / kind
+        path = latest_checkpoint(folder) if folder.is_dir() else None
+        if path is not None:
+            check_file(path, f"{option}={run_dir}: {path}")
+            found[kind] = path
+    return found
 
 
 def check_run_tables(run_dir: Path, option: str) -> None:
