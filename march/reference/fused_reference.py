@@ -256,7 +256,8 @@ def reference_outputs(
     foot, foot_rate = z2, z2  # swing-foot roll and pitch: flat
     if cfg.swing_toe_down != 0.0:  # toed down at mid-swing (march.reference.trajectory.toe_down)
         foot = torch.cat([z2[..., :1], cfg.swing_toe_down * basis[..., 14:15]], dim=-1)
-        rate = basis[..., 15:16] * (cfg.swing_toe_down * (phase < 1.0) / dur)[..., None]
+        # (phase < 1) / dur first: a bool times a Python float would be float32
+        rate = basis[..., 15:16] * (((phase < 1.0) / dur) * cfg.swing_toe_down)[..., None]
         foot_rate = torch.cat([z2[..., :1], rate], dim=-1)
     pos = torch.cat([com_pos, com_z, roll_pitch, yaw, swing[..., :3], foot, yaw, zu], dim=-1)
     vel = torch.cat(
