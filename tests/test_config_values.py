@@ -118,6 +118,7 @@ BAD: dict[str, list[Any]] = {
     "reference.com_height_free_step": [-0.1],
     "reference.com_height_slope": [-1.0],
     "reference.com_height_min": [0.2, 0.8],
+    "reference.swing_toe_down": [-1.5, 1.01],
     "teacher.learning_rate": [0.0, -1e-4],
     "teacher.schedule": ["cosine"],
     "teacher.num_learning_epochs": [0],
@@ -223,6 +224,7 @@ GOOD: dict[str, list[Any]] = {
     "teacher.num_mini_batches": [32],
     "teacher.eval_interval": [0],
     "teacher.max_nonfinite_updates": [1],
+    "reference.swing_toe_down": [-1.0, 0.0, 1.0],
     "distill.max_nonfinite_updates": [1],
     "depth.width": [1],  # a 1x1-pixel camera still gives the CNN a 1x1 map
     "depth.height": [1],

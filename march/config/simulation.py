@@ -261,6 +261,12 @@ class ReferenceSectionCfg:
     """``com_height=step``: CoM lowered per metre of step beyond the free length [m/m]."""
     com_height_min: float = 0.57
     """``com_height=step``: the lowest CoM height [m]."""
+    swing_toe_down: float = 0.0
+    """Swing-foot pitch reference at mid-swing [rad], positive toe down: swing_toe_down
+    64 s^3 (1 - s)^3 of the swing phase s, flat with zero rate at lift-off and touchdown
+    (march.reference.trajectory.toe_down). 0 (default): flat all swing, as the author's.
+    Issue 55: at the apex of short steps the G1's swing ankle is at its dorsiflexion limit
+    (-0.873 rad) and cannot hold the foot flat; 0.35 is what docs/audit.md measures."""
 
     def __post_init__(self) -> None:
         check_shapes("reference", self)
@@ -269,6 +275,7 @@ class ReferenceSectionCfg:
         check_at_least("reference", "com_height_free_step", self.com_height_free_step, 0)
         check_at_least("reference", "com_height_slope", self.com_height_slope, 0)
         check_interval("reference", "com_height_min", self.com_height_min, 0.3, 0.67)
+        check_interval("reference", "swing_toe_down", self.swing_toe_down, -1.0, 1.0)
 
 
 MOVED_TO_TERMINATION = ("tilt_limit_deg", "min_base_height_m", "max_foot_drop_m")

@@ -375,6 +375,7 @@ def build_env_cfg(
                 com_height_free_step=ref.com_height_free_step,
                 com_height_slope=ref.com_height_slope,
                 com_height_min=ref.com_height_min,
+                swing_toe_down=ref.swing_toe_down,
             ),
             **({"replan_capacity_fraction": 1.0} if purpose == "eval" else {}),
         )

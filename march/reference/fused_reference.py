@@ -22,12 +22,13 @@ from march.reference.trajectory import (
     wrap_to_pi,
 )
 
-BASIS_COLUMNS = 14
+BASIS_COLUMNS = 16
 """Polynomials of the phase s that :func:`reference_outputs` evaluates in one product: the swing
 foot's xy Bezier weights of p0 and p1, its z Bezier weights of z0, c and z1, the three d/ds
-weights (of p1 - p0, c - z0 and z1 - c), the ramp's smoothstep and its d/ds, and the CoM
+weights (of p1 - p0, c - z0 and z1 - c), the ramp's smoothstep and its d/ds, the CoM
 carry's Hermite polynomials (1 - s)^2 (1 + 2 s), s (1 - s)^2 and their d/ds
-(march.reference.com_carry)."""
+(march.reference.com_carry), and the swing foot's toe-down 64 s^3 (1 - s)^3 and its d/ds
+(march.reference.trajectory.toe_down)."""
 
 
 def reference_tables(
@@ -75,6 +76,9 @@ def _make_reference_tables(
     add(12, 2, range(1, 2), -3.0)  # d h00 / ds = -6 s (1 - s)
     add(13, 2, range(0, 1))  # d h10 / ds = (1 - s)^2 - 2 s (1 - s)
     add(13, 2, range(1, 2), -1.0)
+    bern[3, 3, 14] = 64.0  # toe-down 64 s^3 (1 - s)^3
+    bern[2, 3, 15] = 192.0  # its d/ds 192 (s^2 (1 - s)^3 - s^3 (1 - s)^2)
+    bern[3, 2, 15] = -192.0
     # Control matrix (10 basis rows x [pos xyz, d/ds xyz]) from u = [start xyz, target xyz,
     # apex], with c = (64 apex - 7 (z0 + z1)) / 50 (the z control point of swing_trajectory).
     ctrl = torch.zeros(7, BASIS_COLUMNS, 6, dtype=torch.float64)
@@ -249,8 +253,16 @@ def reference_outputs(
     yaw_rate = step.yaw_rate[:, None, None].expand(e, k, 1)
     swing_vel = swing[..., 3:] * ((phase < 1.0) / dur)[..., None]
     z2, zu = zeros[:2].expand(e, k, 2), zeros[:num_upper].expand(e, k, num_upper)
-    pos = torch.cat([com_pos, com_z, roll_pitch, yaw, swing[..., :3], z2, yaw, zu], dim=-1)
-    vel = torch.cat([com_vel, com_vz, roll_pitch_rate, yaw_rate, swing_vel, z2, yaw_rate, zu], -1)
+    foot, foot_rate = z2, z2  # swing-foot roll and pitch: flat
+    if cfg.swing_toe_down != 0.0:  # toed down at mid-swing (march.reference.trajectory.toe_down)
+        foot = torch.cat([z2[..., :1], cfg.swing_toe_down * basis[..., 14:15]], dim=-1)
+        # (phase < 1) / dur first: a bool times a Python float would be float32
+        rate = basis[..., 15:16] * (((phase < 1.0) / dur) * cfg.swing_toe_down)[..., None]
+        foot_rate = torch.cat([z2[..., :1], rate], dim=-1)
+    pos = torch.cat([com_pos, com_z, roll_pitch, yaw, swing[..., :3], foot, yaw, zu], dim=-1)
+    vel = torch.cat(
+        [com_vel, com_vz, roll_pitch_rate, yaw_rate, swing_vel, foot_rate, yaw_rate, zu], -1
+    )
     if single:
         return pos[:, 0], vel[:, 0]
     return pos, vel

@@ -8,7 +8,8 @@ Outputs, in this order (``output_names``), each with a position and a velocity:
                                          (the command term holds it at the course heading,
                                          yaw_rate 0); small roll/pitch oscillations per step
     swing_x, swing_y, swing_z            swing foot [m]: Bezier from lift-off to the planned foothold
-    swing_roll, swing_pitch, swing_yaw   swing foot orientation [rad]: flat, yaw = pelvis yaw
+    swing_roll, swing_pitch, swing_yaw   swing foot orientation [rad]: flat (or toed down at
+                                         mid-swing, ``swing_toe_down``), yaw = pelvis yaw
     upper_0 ... upper_{U-1}              upper-body joints relative to default [rad]: zero
 
 Velocities of the angle outputs are Euler-angle rates [rad/s]. Angle outputs are wrapped to
@@ -106,6 +107,12 @@ class ReferenceCfg:
     com_height_min: float = 0.57
     """``com_height=step``: the lowest CoM height [m] (the measured envelope reaches 0.90 m
     steps at 0.57 m)."""
+    swing_toe_down: float = 0.0
+    """Swing-foot pitch reference at mid-swing [rad], positive toe down (:func:`toe_down`:
+    swing_toe_down 64 s^3 (1 - s)^3 of the swing phase s, flat with zero rate at lift-off and
+    touchdown). 0 (default): the foot flat all swing. Issue 55: at the apex of short steps the
+    G1's swing ankle is at its dorsiflexion limit (-0.873 rad) and cannot hold the foot flat;
+    ``0.35`` asks for what the ankle can do."""
 
     def __post_init__(self) -> None:
         if self.com_anchoring not in COM_ANCHORINGS:
@@ -114,6 +121,8 @@ class ReferenceCfg:
             raise ValueError(f"com_height must be one of {COM_HEIGHTS}")
         if self.com_height_slope < 0.0 or self.com_height_min <= 0.0:
             raise ValueError("need com_height_slope >= 0 and com_height_min > 0")
+        if not -1.0 <= self.swing_toe_down <= 1.0:
+            raise ValueError("swing_toe_down must lie in [-1, 1] rad")
 
 
 def wrap_to_pi(angle: torch.Tensor) -> torch.Tensor:
@@ -196,6 +205,21 @@ def swing_trajectory(
     active = (phase < 1.0).to(pos.dtype)[:, None]
     vel = torch.cat([dxy, dz], dim=-1) / duration[:, None] * active
     return pos, vel
+
+
+def toe_down(
+    phase: torch.Tensor, duration: torch.Tensor, amplitude: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Swing-foot pitch [rad] and its rate [rad/s] (E,) at ``phase`` = tau / T: amplitude
+    64 s^3 (1 - s)^3 with s = phase clamped to [0, 1] (``amplitude`` at s = 1/2; zero pitch,
+    rate and acceleration at lift-off and touchdown) and rate amplitude 192 s^2 (1 - s)^2
+    (1 - 2 s) / T inside the swing, 0 once it is over (the foot rests)."""
+    s = phase.clamp(0.0, 1.0)
+    r = 1.0 - s
+    pitch = amplitude * 64.0 * (s * r) ** 3
+    active = (phase < 1.0).to(phase.dtype)
+    rate = amplitude * 192.0 * (s * r) ** 2 * (1.0 - 2.0 * s) / duration * active
+    return pitch, rate
 
 
 @dataclass
@@ -508,6 +532,8 @@ def reference_at(
     zeros = torch.zeros_like(pelvis_ori)
     swing_ori = torch.cat([zeros[:, :2], pelvis_ori[:, 2:3]], dim=-1)
     swing_rate = torch.cat([zeros[:, :2], pelvis_rate[:, 2:3]], dim=-1)
+    if cfg.swing_toe_down != 0.0:
+        swing_ori[:, 1], swing_rate[:, 1] = toe_down(phase, step.duration, cfg.swing_toe_down)
     upper = torch.zeros(e, num_upper, dtype=tau.dtype, device=tau.device)
     return Reference(
         com_pos=torch.cat([com_xy, com_z], dim=-1),
