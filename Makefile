@@ -32,8 +32,29 @@ $(VENV)/.installed: pyproject.toml constraints-cpu.txt
 
 install: $(VENV)/.installed
 
+# The main job on a CPU machine with 2 or more cores runs as 2 processes of one run (torchrun,
+# gloo; march.learn.distributed): 2 x 16 envs step the cpu preset's 32 envs, one core each
+# (mjlab's physics is ~93 % of a step and runs on one thread per process), gradients and the
+# normalisers' moments are reduced over the two, the evaluations' 16 rollouts are dealt 8 + 8
+# (their rows do not depend on the split: march.evaluation.sharding). Same iterations, env
+# steps and rollouts as one process; different draws (rank 1 has its own seed stream), so
+# its numbers are not one process's. TRAIN_RANKS=1 runs the single process (docs/decisions.md,
+# issue 60). On a GPU machine, or with a compute choice in ARGS (another preset's envs): one.
+ifeq ($(CONSTRAINTS),)
+TRAIN_RANKS ?= 1
+else ifneq ($(findstring compute,$(ARGS)),)
+TRAIN_RANKS ?= 1
+else
+TRAIN_RANKS ?= $(shell n=$$(nproc 2>/dev/null || echo 1); [ $$n -ge 2 ] && echo 2 || echo 1)
+endif
+ifeq ($(TRAIN_RANKS),2)
+TRAIN_CMD := $(VENV)/bin/torchrun --standalone --nproc_per_node=2 -m march.train compute.num_envs=16 compute.eval_num_envs=8
+else
+TRAIN_CMD := $(PY) -m march.train
+endif
+
 train: $(VENV)/.installed  ## the main job: CLF teacher -> full student -> evaluation
-	$(PY) -m march.train reward=clf student=full $(ARGS)
+	$(TRAIN_CMD) reward=clf student=full $(ARGS)
 
 smoke: $(VENV)/.installed  ## the whole pipeline in a few minutes
 	$(PY) -m march.train compute=smoke $(ARGS)

@@ -60,7 +60,7 @@ def test_a_falling_robot_makes_no_touchdown(env):
     rad). Here such contacts happen (seen in the term's state: lifted, in contact, due, the
     pelvis tilted past ``touchdown_max_tilt``) and none is counted."""
     term = reference_term(env)
-    env.reset()
+    _seeded_reset(env, term, 0)  # the same falls whatever ran before in this env
     start = term.touchdown_count.clone()
     n_act = env.action_manager.total_action_dim
     blocked = 0
@@ -119,17 +119,22 @@ def test_the_reference_section_reaches_the_command_term():
         load(["reference.com_anchoring=sideways"])
 
 
-def _trace(env, term, seed: int, steps: int) -> list[torch.Tensor]:
-    """Reseed, reset and walk ``steps`` steps of 0.4 N(0, 1) actions; the reference outputs,
-    stance sides and the plans' footholds after every step."""
+def _seeded_reset(env, term, seed: int) -> None:
+    """Reseed the env, each env's planner stream and the reset poses, then reset."""
     from march.env.build import reseed_env
 
     reseed_env(env, seed)
     term.planner_streams.assign(seed, 0)  # each env's planner stream from its start
     torch.manual_seed(seed)  # the reset poses
+    env.reset()
+
+
+def _trace(env, term, seed: int, steps: int) -> list[torch.Tensor]:
+    """Reseed, reset and walk ``steps`` steps of 0.4 N(0, 1) actions; the reference outputs,
+    stance sides and the plans' footholds after every step."""
+    _seeded_reset(env, term, seed)
     gen = torch.Generator().manual_seed(seed)
     n_act = env.action_manager.total_action_dim
-    env.reset()
     out = []
     for _ in range(steps):
         env.step(0.4 * torch.randn(env.num_envs, n_act, generator=gen))
