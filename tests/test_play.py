@@ -358,12 +358,35 @@ def test_a_march_env_module_imported_first_leaves_mujoco_on_egl():
     clean = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
     for module in first:
         out = subprocess.run(
-            [sys.executable, "-c",
-             f"import march.env.{module}, mujoco; print(mujoco.GLContext.__module__)"],
+            [sys.executable, "-c", FIRST_MUJOCO_GL, f"march.env.{module}"],
             cwd=REPO, env=clean, capture_output=True, text=True, timeout=300,
         )  # fmt: skip
         assert out.returncode == 0, out.stderr[-2000:]
         assert out.stdout.split()[-1] == "mujoco.egl", (module, out.stdout)
+
+
+FIRST_MUJOCO_GL = """
+import importlib, importlib.abc, importlib.util, os, sys
+class Watch(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name != "mujoco":
+            return None
+        sys.meta_path.remove(self)
+        spec = importlib.util.find_spec("mujoco")
+        run = spec.loader.exec_module
+        def exec_module(module):
+            run(module)
+            print(module.GLContext.__module__, flush=True)
+            os._exit(0)
+        spec.loader.exec_module = exec_module
+        return spec
+sys.meta_path.insert(0, Watch())
+importlib.import_module(sys.argv[1])
+print("mujoco never imported", flush=True)
+"""
+"""``python -c FIRST_MUJOCO_GL <module>``: import ``module`` and print the GL context mujoco chose
+when it was first loaded, then stop there (mujoco fixes its context at that moment: the rest of
+the import, mujoco_warp's and mjlab's ~6 s of CPU, cannot change it)."""
 
 
 def test_viewer_argument_errors_are_one_line(capsys):

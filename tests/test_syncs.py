@@ -350,19 +350,22 @@ def test_episode_stats_window_over_many_random_steps():
 
 def _count_env_steps(env, steps: int) -> dict[str, object]:
     """Host syncs of ``steps`` env steps (random actions, then zeros) after a reset and one
-    step outside the count (lazy first-use set-ups)."""
+    step outside the count (lazy first-use set-ups); ``per_step``: each step's syncs apart."""
     gen = torch.Generator().manual_seed(0)
     shape = (env.num_envs, env.action_manager.total_action_dim)
     env.reset()
     env.step(torch.zeros(shape))
     resets = torch.zeros((), dtype=torch.long)
+    per_step: list[list[tuple[str, str, str | None]]] = []
     with torch.no_grad(), SyncCounter() as counter:
         for i in range(steps):
             # random actions (falls, resets, replans), then zeros (standing, touchdowns)
             a = 2 * torch.rand(shape, generator=gen) - 1 if i < steps // 2 else torch.zeros(shape)
+            n = len(counter.every)
             _, _, terminated, truncated, _ = env.step(a)
+            per_step.append(counter.every[n:])
             resets += (terminated | truncated).sum()
-    return {"counter": counter, "resets": int(resets)}
+    return {"counter": counter, "resets": int(resets), "per_step": per_step}
 
 
 def _steps_without_sync(reward: str, steps: int) -> dict[str, object]:
@@ -395,12 +398,23 @@ def rough_syncs() -> int:
         env.close()
 
 
+@pytest.fixture(scope="module")
+def clf_syncs() -> dict[str, object]:
+    """The clf teacher env's (dr=paper, 8 envs) syncs over ``STEPS`` steps, in total and per
+    step: both tests of the clf env read this one run (each had built the env and stepped it
+    the same way itself, the same seed and actions)."""
+    return _steps_without_sync("clf", steps=STEPS)
+
+
 @pytest.mark.sim
 @pytest.mark.parametrize("reward", ["clf", "modelfree"])
-def test_env_steps_issue_no_host_sync_from_march(reward, rough_syncs):
+def test_env_steps_issue_no_host_sync_from_march(reward, rough_syncs, request):
     """Counted over every file: march's step syncs no more than bare rough's, and nothing that
     syncs is march's (its code, or an mjlab method a march term inherits)."""
-    out = _steps_without_sync(reward, steps=STEPS)
+    if reward == "clf":
+        out = request.getfixturevalue("clf_syncs")
+    else:
+        out = _steps_without_sync(reward, steps=STEPS)
     counter = out["counter"]
     assert out["resets"] > 0  # the reset path (curriculum, DR events, replans) ran
     if reward == "clf":
@@ -559,45 +573,14 @@ functions build their range tensors from Python numbers on every call (not remov
 
 
 @pytest.mark.sim
-def test_a_teacher_env_step_syncs_at_most_twice(rough_syncs):
+def test_a_teacher_env_step_syncs_at_most_twice(rough_syncs, clf_syncs):
     """Every call that waits for the device (``.item()``, ``nonzero()``, ``bool()``...) in
     ``STEPS`` clf teacher env steps with dr=paper (random actions with falls and resets, then
     zeros), in any file: at most 2 per step, in every step (counted per step, reset steps
     included), all in mjlab's env step itself; fewer than bare rough's. The host-to-device
     copies (reset steps only) all come from mjlab's DR / reset event functions."""
-    from march.config.cli import load
-    from march.env.build import make_env
-
-    cfg = load(["compute=smoke", "reward=clf", "dr=paper", "compute.num_envs=8"])
-    env = make_env(cfg, "teacher")
-    per_step: list[list[tuple[str, str, str | None]]] = []
-    real_step = env.step
-
-    def step(action):  # each step's syncs apart
-        n = len(counter.every)
-        out = real_step(action)
-        per_step.append(counter.every[n:])
-        return out
-
-    counter = SyncCounter()
-    gen = torch.Generator().manual_seed(0)
-    shape = (env.num_envs, env.action_manager.total_action_dim)
-    try:
-        env.reset()
-        env.step(torch.zeros(shape))
-        resets = 0
-        with torch.no_grad(), counter:
-            for i in range(STEPS):
-                a = (
-                    2 * torch.rand(shape, generator=gen) - 1
-                    if i < STEPS // 2
-                    else torch.zeros(shape)
-                )
-                _, _, term, trunc, _ = step(a)
-                resets += int((term | trunc).sum())
-    finally:
-        env.close()
-    assert resets > 0 and len(per_step) == STEPS
+    per_step = clf_syncs["per_step"]
+    assert clf_syncs["resets"] > 0 and len(per_step) == STEPS
     waits = [[h for h in hits if not h[0].startswith("h2d")] for hits in per_step]
     worst = max(len(w) for w in waits)
     lines = sorted({(k, w) for hits in waits for k, w, _ in hits})
