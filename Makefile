@@ -45,7 +45,7 @@ TRAIN_RANKS ?= 1
 else ifneq ($(findstring compute,$(ARGS)),)
 TRAIN_RANKS ?= 1
 else
-TRAIN_RANKS ?= $(shell n=$$(nproc 2>/dev/null || echo 1); [ $$n -ge 2 ] && echo 2 || echo 1)
+TRAIN_RANKS ?= $(shell n=$$(env -u OMP_NUM_THREADS -u OMP_THREAD_LIMIT nproc 2>/dev/null || echo 1); [ $$n -ge 2 ] && echo 2 || echo 1)
 endif
 ifeq ($(TRAIN_RANKS),2)
 TRAIN_CMD := $(VENV)/bin/torchrun --standalone --nproc_per_node=2 -m march.train compute.num_envs=16 compute.eval_num_envs=8
