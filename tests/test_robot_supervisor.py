@@ -67,21 +67,28 @@ def test_the_supervisor_imports_no_torch_nor_onnxruntime_nor_mujoco(bundle):
     assert res.stdout.strip() == "[]", res.stdout + res.stderr
 
 
+def _start_three(bundle, domain: int, log, procs: list) -> tuple:
+    """Start sim (logging to ``log``), supervisor and policy on ``domain``, each appended to
+    ``procs`` as it starts (the caller stops them); returns (sim, supervisor, policy, the
+    policy's output up to its policy state)."""
+    common = [f"bundle={bundle.parent}", f"domain={domain}", "interface=lo"]
+    sim = _start("sim", *common, "band=100", f"log={log}")
+    procs.append(sim)
+    assert "[sim] publishing" in sim.stdout.readline()
+    sup = _start("supervisor", *common)
+    procs.append(sup)
+    assert "[supervisor]" in sup.stdout.readline()
+    fast = [f"{k}={v}" for k, v in FAST.items()]
+    loop = _start("policy", *common, "start=auto", "guard=report", "deadlines=report", *fast)
+    procs.append(loop)
+    return sim, sup, loop, until(loop, "hold -> policy")
+
+
 def test_a_killed_policy_is_replaced_by_damping(bundle, tmp_path):
-    common = [f"bundle={bundle.parent}", f"domain={DOMAIN}", "interface=lo"]
     log = tmp_path / "sim.npz"
     procs = []
     try:
-        sim = _start("sim", *common, "band=100", f"log={log}")
-        procs.append(sim)
-        assert "[sim] publishing" in sim.stdout.readline()
-        sup = _start("supervisor", *common)
-        procs.append(sup)
-        assert "[supervisor]" in sup.stdout.readline()
-        fast = [f"{k}={v}" for k, v in FAST.items()]
-        loop = _start("policy", *common, "start=auto", "guard=report", "deadlines=report", *fast)
-        procs.append(loop)
-        head = until(loop, "hold -> policy")
+        sim, sup, loop, head = _start_three(bundle, DOMAIN, log, procs)
         time.sleep(0.5)
         loop.kill()  # SIGKILL: no damping of its own
         loop.wait()
@@ -197,20 +204,10 @@ def _three(bundle, tmp_path, domain: int, fault: str) -> dict:
     into the policy state: ``sup_kill`` (SIGKILL to the supervisor), ``sup_hup`` (SIGHUP to the
     supervisor), ``loop_hup`` (SIGHUP to the loop). Returns the outputs, exit codes and the
     robot's log of applied commands."""
-    common = [f"bundle={bundle.parent}", f"domain={domain}", "interface=lo"]
     log = tmp_path / f"sim_{fault}.npz"
     procs = []
     try:
-        sim = _start("sim", *common, "band=100", f"log={log}")
-        procs.append(sim)
-        assert "[sim] publishing" in sim.stdout.readline()
-        sup = _start("supervisor", *common)
-        procs.append(sup)
-        assert "[supervisor]" in sup.stdout.readline()
-        fast = [f"{k}={v}" for k, v in FAST.items()]
-        loop = _start("policy", *common, "start=auto", "guard=report", "deadlines=report", *fast)
-        procs.append(loop)
-        head = until(loop, "hold -> policy")
+        sim, sup, loop, head = _start_three(bundle, domain, log, procs)
         time.sleep(0.5)
         target = {"sup_kill": sup, "sup_hup": sup, "loop_hup": loop}[fault]
         target.send_signal(signal.SIGKILL if fault == "sup_kill" else signal.SIGHUP)
