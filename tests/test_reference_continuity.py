@@ -18,6 +18,7 @@ from march.reference.trajectory import (
     com_state,
     pelvis_state,
     reference_at,
+    step_height,
 )
 
 torch.set_num_threads(1)
@@ -69,10 +70,7 @@ def _step(stance, left, axis, g, zero, com_from=None, cfg=None, pelvis_from=None
         pelvis_from_vel=None if pelvis_from is None else pelvis_from[1],
     )
     if cfg is not None and cfg.com_height == "step":
-        along = ((target[:, :2] - stance[:, :2]) * axis).sum(-1)
-        st.z0 = step_com_height(
-            along, HLIP.z0, cfg.com_height_free_step, cfg.com_height_slope, cfg.com_height_min
-        )
+        st.z0 = step_height(stance, target, axis, cfg, HLIP)
     return st
 
 
