@@ -273,26 +273,56 @@ def test_wall_time_estimate_by_hand():
     from march.learn import eta
 
     cfg = load(ETA_CFG)
-    est = eta.estimate_wall_s(cfg, teacher_s_per_it=2.0)
-    step = 2.0 / 20  # s per env step of the 8 teacher envs
     k = eta.STEP_COSTS["cpu"]
+    assert k.per_rollout_step
+    # 2 s per iteration of which the rollout is 1.5 s: the other stages scale from the rollout.
+    est = eta.estimate_wall_s(cfg, teacher_s_per_it=2.0, rollout_s_per_it=1.5)
+    step = 1.5 / 20  # s per rollout step of the 8 teacher envs
     distill_it = step * 40 * (k.distill_rollout + 2 * k.distill_epoch)
     # 3 waves of 4 envs (10 rollouts) x 100 control steps, at 4 of the 8 envs.
     one_eval = 3 * 100 * step * k.eval * 4 / 8
-    # Teacher evaluations at 4, 8 and the end (10); student at 4 and the final one.
+    # Teacher evaluations at 4, 8 and the end (10); student at 4 and the final one; and the
+    # standing floor once.
     assert eta.evaluation_counts(cfg) == (3, 2)
     assert est["teacher"] == pytest.approx(20.0)
     assert est["distill"] == pytest.approx(6 * distill_it)
-    assert est["eval"] == pytest.approx(5 * one_eval)
-    assert est["total"] == pytest.approx(20.0 + 6 * distill_it + 5 * one_eval)
-    # Resumed at teacher iteration 4: 6 iterations and 2 teacher evaluations are left.
-    est = eta.estimate_wall_s(cfg, teacher_s_per_it=2.0, teacher_from=4)
-    assert est["teacher"] == pytest.approx(12.0) and est["eval"] == pytest.approx(4 * one_eval)
+    assert est["eval"] == pytest.approx(6 * one_eval)
+    assert est["total"] == pytest.approx(20.0 + 6 * distill_it + 6 * one_eval)
+    # Without the rollout's time (an older run's rows) the whole iteration is the step.
+    whole = eta.estimate_wall_s(cfg, teacher_s_per_it=2.0)
+    assert whole["eval"] == pytest.approx(6 * one_eval * 2.0 / 1.5)
+    # Resumed at teacher iteration 4: 6 iterations and 2 teacher evaluations (+ the floor) left.
+    est = eta.estimate_wall_s(cfg, teacher_s_per_it=2.0, teacher_from=4, rollout_s_per_it=1.5)
+    assert est["teacher"] == pytest.approx(12.0) and est["eval"] == pytest.approx(5 * one_eval)
     # stage=student: distillation and its evaluations only, from the distillation's speed.
     cfg = load([*ETA_CFG, "stage=student"])
     est = eta.estimate_wall_s(cfg, distill_s_per_it=distill_it)
     assert est["teacher"] == 0.0 and est["distill"] == pytest.approx(6 * distill_it)
-    assert est["eval"] == pytest.approx(2 * one_eval)
+    assert est["eval"] == pytest.approx(3 * one_eval)
+    # A GPU's factors are per whole iteration: its rollout is not timed apart.
+    gpu = load([*ETA_CFG, "compute.device=cuda"])
+    g = eta.STEP_COSTS["cuda"]
+    est = eta.estimate_wall_s(gpu, teacher_s_per_it=2.0, rollout_s_per_it=1.5)
+    assert est["eval"] == pytest.approx(6 * 3 * 100 * (2.0 / 20) * g.eval * 4 / 8)
+
+
+def test_the_smoke_runs_eta_is_within_a_factor_of_its_own_times(smoke_run):
+    """The [eta] line of the session's smoke run against what the run took: distillation and
+    the evaluations scaled from the teacher's rollout step come out within a factor of 2.5 of
+    their measured time (scaled from the whole iteration they were 5x over, issue 56)."""
+    import re
+
+    import pandas as pd
+
+    text = (smoke_run / "stdout.txt").read_text()
+    line = next(x for x in text.splitlines() if x.startswith("[eta] measured"))
+    minutes = re.search(r"distillation ~(\d+) (s|min)", line)
+    said = float(minutes.group(1)) * (60 if minutes.group(2) == "min" else 1)
+    rows = pd.read_csv(smoke_run / "metrics.csv")
+    student = rows[rows["stage"] == "student"]
+    took = float(student["wall_s"].iloc[-1])
+    assert rows.loc[rows["stage"] == "teacher", "rollout_s"].gt(0).all()
+    assert took / 2.5 <= said <= took * 2.5, (line, took)
 
 
 def test_eta_line_after_the_first_iterations():

@@ -1,9 +1,13 @@
 """Wall-time estimate of a march.train run: the ``[eta]`` line printed once the first
 iterations of a stage have been measured.
 
-The measured seconds per teacher (or distillation) iteration are scaled to the other stages per
-env step by rough :data:`STEP_COSTS` (:func:`estimate_wall_s`); :class:`EtaWatch` measures the
-rows metrics.csv receives and :class:`EtaMetricsLog` feeds it from the run's metrics log.
+The measured teacher (or distillation) speed is scaled to the other stages per env step by rough
+:data:`STEP_COSTS` (:func:`estimate_wall_s`); :class:`EtaWatch` measures the rows metrics.csv
+receives and :class:`EtaMetricsLog` feeds it from the run's metrics log. On a CPU the teacher's
+rollout is timed apart from its update (metrics.csv ``rollout_s``) and the other stages are scaled
+from a rollout step: an evaluation step costs about a rollout step, not a rollout step plus its
+share of the update, which at 8-24 steps per iteration is most of the iteration (scaled from the
+whole iteration, the smoke run's [eta] said ~7 min for a 1 min run, issue 56).
 """
 
 from __future__ import annotations
@@ -23,12 +27,16 @@ ETA_ITERATIONS = 3
 
 @dataclass(frozen=True)
 class StepCosts:
-    """Seconds of one env step of another stage per second of one teacher PPO env step (its
-    rollout step plus its share of the update), at equal env counts. Rough: the [eta] line says
-    so, and distillation is measured again once it runs."""
+    """Seconds of one env step of another stage per second of one teacher env step, at equal
+    env counts. The teacher step is its rollout step where the rollout is timed apart
+    (:attr:`per_rollout_step`), else the whole iteration's (rollout plus its share of the
+    update). Rough: the [eta] line says so, and distillation is measured again once it runs."""
 
+    per_rollout_step: bool
+    """True: the factors are per teacher rollout step (CPU, ``rollout_s``); False: per teacher
+    iteration step (a GPU, whose rollout the host's clock cannot time without a sync)."""
     eval: float
-    """An evaluation step: depth rendering and inference, no update."""
+    """An evaluation step: inference (and depth rendering for a student), no update."""
     distill_rollout: float
     """A distillation rollout step: depth rendering, student and teacher inference."""
     distill_epoch: float
@@ -36,12 +44,21 @@ class StepCosts:
 
 
 STEP_COSTS = {
-    # 2 CPU cores, compute=smoke (4 envs): teacher 0.25 s per step, a 1-epoch distillation
-    # iteration 1.37 s per step, evaluation ~0.4 s per step.
-    "cpu": StepCosts(eval=1.6, distill_rollout=1.6, distill_epoch=4.0),
+    # 2 CPU cores, per teacher rollout step (`rollout_s` / num_steps_per_env), measured in
+    # one run each, 2026-12-06 (a loaded machine; the ratios are what is used):
+    # - compute=cpu (32 envs): rollout step 0.42 s (91 % of the iteration); distillation
+    #   rollout 0.56 s (1.3x) and 0.34 s per step and epoch (0.8x);
+    # - compute=smoke (4 envs): rollout 0.11 s; distillation 1.8x and 0.37x; an evaluation
+    #   step 0.66x at the same env count.
+    # An evaluation step is taken as a rollout step (no update, no storage: an upper bound),
+    # scaled by the eval envs, and its episodes as lasting eval.episode_length_s: a wave whose
+    # episodes all end sooner (a policy that falls) ends sooner, so the evaluations' figure is
+    # "up to". Scaled from the whole iteration instead, make train's [eta] said ~17 min for a
+    # 5 min run (distillation 3.6x over) and the smoke run's ~7 min for 1 min.
+    "cpu": StepCosts(per_rollout_step=True, eval=1.0, distill_rollout=1.4, distill_epoch=0.8),
     # GPU: not measured yet; the student's batched forward/backward is cheap next to 4096 envs'
     # physics, so an epoch costs a fraction of a teacher step.
-    "cuda": StepCosts(eval=1.5, distill_rollout=1.5, distill_epoch=0.25),
+    "cuda": StepCosts(per_rollout_step=False, eval=1.5, distill_rollout=1.5, distill_epoch=0.25),
 }
 
 
@@ -84,21 +101,26 @@ def estimate_wall_s(
     distill_s_per_it: float | None = None,
     teacher_from: int = 0,
     distill_from: int = 0,
+    rollout_s_per_it: float | None = None,
 ) -> dict[str, float]:
     """Expected seconds of the teacher, distillation and evaluations of ``cfg.stage`` from here.
 
     One measured speed is needed: the teacher's seconds per PPO iteration, or (stage=student, or
     once distillation runs) the distillation's. The other stages are scaled from it per env step
-    with :data:`STEP_COSTS` of the device; ``*_from`` are the
-    iterations already done (a resumed run). Evaluation: ceil(num_rollouts / eval_num_envs)
-    waves of eval.episode_length_s each, at eval_num_envs envs (step cost taken as linear in the
-    env count, an overestimate on a GPU).
+    with :data:`STEP_COSTS` of the device: from the teacher's rollout step where the factors are
+    per rollout step and ``rollout_s_per_it`` (seconds of an iteration's rollout) was measured,
+    else from its whole iteration (an older run's rows: an overestimate on a CPU). ``*_from``
+    are the iterations already done (a resumed run). Evaluation: ceil(num_rollouts /
+    eval_num_envs) waves of eval.episode_length_s each, at eval_num_envs envs (step cost taken as
+    linear in the env count, an overestimate on a GPU), plus one evaluation's worth for the
+    standing floor (the zero action on the same rollouts, once per process's eval env).
     """
     c, t, d, e = cfg.compute, cfg.teacher, cfg.distill, cfg.eval
     k = step_costs(c.device)
     distill_step_cost = k.distill_rollout + k.distill_epoch * d.num_learning_epochs
     if teacher_s_per_it is not None:
-        step_s = teacher_s_per_it / t.num_steps_per_env  # one env step of all num_envs envs
+        per_step = rollout_s_per_it if k.per_rollout_step and rollout_s_per_it else None
+        step_s = (per_step or teacher_s_per_it) / t.num_steps_per_env  # all num_envs envs
     elif distill_s_per_it is not None:
         step_s = distill_s_per_it / (d.num_steps_per_env * distill_step_cost)
     else:
@@ -124,7 +146,8 @@ def estimate_wall_s(
         n_teacher -= teacher_from // t.eval_interval
     if d.eval_interval:
         n_student -= min(n_student - 1, distill_from // d.eval_interval)
-    evals = (n_teacher + n_student) * one_eval
+    evals = n_teacher + n_student
+    evals = (evals + 1 if evals else 0) * one_eval  # + the standing floor
     return {
         "teacher": teacher,
         "distill": distill,
@@ -149,6 +172,8 @@ class EtaWatch:
         self.mark: dict[str, tuple[int, float]] = {}  # where the measurement begins
         self.done: set[str] = set()
         self.teacher_s_per_it: float | None = None
+        self.rollout_s_per_it: float | None = None  # the teacher's rollout alone (CPU)
+        self.rollout_s: dict[str, list[float]] = {}  # the measured rows' ``rollout_s``
         self.lines: list[str] = []
 
     def start(self, stage: str, iteration: int, wall_s: float) -> None:
@@ -168,6 +193,9 @@ class EtaWatch:
             self.mark[stage] = (it, wall)
             return None
         mark_it, mark_wall = self.mark.setdefault(stage, (it0, 0.0))
+        rollout = row.get("rollout_s")
+        if isinstance(rollout, (int, float)) and math.isfinite(rollout):
+            self.rollout_s.setdefault(stage, []).append(float(rollout))
         done = it - mark_it
         if done < min(self.n, left):
             return None
@@ -181,7 +209,15 @@ class EtaWatch:
             over = f"{kind}iterations {mark_it + 1}-{it}"
         if stage == "teacher":
             self.teacher_s_per_it = s_per_it
-            est = estimate_wall_s(self.cfg, teacher_s_per_it=s_per_it, teacher_from=it0)
+            timed = self.rollout_s.get(stage, [])
+            if len(timed) == done:  # every measured iteration's rollout was timed
+                self.rollout_s_per_it = sum(timed) / done
+            est = estimate_wall_s(
+                self.cfg,
+                teacher_s_per_it=s_per_it,
+                teacher_from=it0,
+                rollout_s_per_it=self.rollout_s_per_it,
+            )
             line = (
                 f"[eta] measured {s_per_it:.3g} s/it over {over}: "
                 f"teacher ~{format_duration(est['teacher'])}, whole run "
@@ -189,7 +225,7 @@ class EtaWatch:
             )
             if self.cfg.stage == "all":
                 line += (
-                    f" (distillation ~{format_duration(est['distill'])} and evaluations "
+                    f" (distillation ~{format_duration(est['distill'])} and evaluations up to "
                     f"~{format_duration(est['eval'])}: rough, from the teacher's speed)"
                 )
             if row.get("env_steps") and it > 0:
@@ -209,6 +245,7 @@ class EtaWatch:
                 distill_s_per_it=s_per_it,
                 teacher_from=self.cfg.teacher.iterations,
                 distill_from=it0,
+                rollout_s_per_it=self.rollout_s_per_it,
             )
             line = (
                 f"[eta] measured {s_per_it:.3g} s/it over {over}: distillation "

@@ -22,6 +22,9 @@ METRIC_COLUMNS = (
     "iteration",
     "env_steps",
     "wall_s",
+    # seconds this iteration spent in its rollout (env steps and inference; the rest of wall_s's
+    # increment is the update); CPU runs only, empty on a GPU (march.learn.stage_runner)
+    "rollout_s",
     "mean_reward",
     "mean_episode_length",
     "mean_distance_m",

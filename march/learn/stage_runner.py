@@ -275,6 +275,11 @@ class StageRunner:
         for it in range(self.iteration, total_iterations):
             t0 = time.time()
             batch = self.collect(stats)
+            # The rollout's share of the iteration, for the [eta] line's evaluation estimate
+            # (an evaluation step costs about a rollout step, not a rollout step plus its share
+            # of the update). On a GPU the host's clock would time kernel launches, not their
+            # work, and a sync per iteration is not worth the split: CPU only.
+            rollout_s = time.time() - t0 if self.device == "cpu" else None
             self.guard.before()
             losses = self.update(batch)
             # A non-finite update is undone; too many in a row stop before this checkpoint.
@@ -287,6 +292,7 @@ class StageRunner:
                 "iteration": self.iteration,
                 "env_steps": self.env_steps,
                 "wall_s": self.wall_s,
+                **({"rollout_s": rollout_s} if rollout_s is not None else {}),
                 **distributed.pop_episode_stats(stats),
                 **distributed.mean_over_ranks(
                     {"mean_terrain_level": mean_terrain_level(self.unwrapped)}
