@@ -26,6 +26,12 @@ the other side (the change goes the wrong way), otherwise "no signal at this sca
   and training distance (``mean_episode_length``, ``mean_distance_m``), and the evaluation
   distance at the last evaluation minus the first. Signal: lower > 0.
 
+* **C6 (declared for the 300-iteration study, issue 56, before its runs were read): the paper's
+  sample-efficiency claim at this scale.** clf / modelfree ratio of the mean env steps to first
+  reach 90 % of the better arm's final evaluation distance (:func:`sample_efficiency`, the claims
+  table's statistic with its censoring): "reproduced (CPU scale)" when the interval is wholly at
+  or below 0.5 (the paper: half the env steps), "not reproduced" when wholly above.
+
 Added after the runs were read (reported beside the criteria above, which stay as declared):
 the same changes with the first window after the start-up transient (:data:`TRANSIENT`), and
 C1e, the median V/Vmax of the deterministic policy's evaluation rollouts, last evaluation minus
@@ -53,6 +59,7 @@ import pandas as pd
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from analysis.claims import ClaimsInput, steps_to_target  # noqa: E402
 from analysis.rundirs import discover  # noqa: E402
 from march.stats import mean_summary as t_interval  # noqa: E402
 from march.stats import welch_summary as welch_interval  # noqa: E402
@@ -162,6 +169,45 @@ def verdict(ci: dict, direction: str, threshold: float = 0.0) -> str:
     return "adverse" if bad else "no signal at this scale"
 
 
+PAPER_STEP_RATIO = 0.5
+"""The paper's sample-efficiency claim: the clf teacher reaches the model-free teacher's distance
+with half its env steps (C6)."""
+
+
+def sample_efficiency(clf: list, modelfree: list) -> dict:
+    """C6, the paper's sample-efficiency claim read at this scale: the ratio of the arms' mean
+    env steps to first reach :attr:`ClaimsInput.threshold_fraction` of the better arm's final
+    evaluation distance (clf / modelfree; analysis.claims.steps_to_target, the claims table's
+    statistic: crossings known to the evaluation grid, censored seeds bounded, Fieller's
+    interval over every corner). "reproduced" when the whole interval is at or below
+    :data:`PAPER_STEP_RATIO`, "not reproduced" when it is wholly above, else inconclusive."""
+    est, target, note = steps_to_target(clf, modelfree, ClaimsInput.threshold_fraction)
+
+    def num(x: float) -> float | None:  # the JSON's None: undefined, or unbounded (inf)
+        return float(x) if math.isfinite(x) else None
+
+    lo, hi = num(est.low), num(est.high)
+    if math.isnan(est.low) or math.isnan(est.high):
+        word = f"inconclusive ({est.why or 'no interval'})"
+    elif est.high <= PAPER_STEP_RATIO:
+        word = "reproduced (CPU scale)"
+    elif est.low > PAPER_STEP_RATIO:
+        word = "not reproduced (CPU scale)"
+    else:
+        word = "inconclusive at this scale"
+    if math.isinf(est.high):
+        word += "; the interval is unbounded above (a seed never reached the target)"
+    return {
+        "mean": num(est.point),
+        "low": lo,
+        "high": hi,
+        "n": f"{est.n_a} vs {est.n_b}",
+        "verdict": word,
+        "target_m": num(target),
+        "note": note,
+    }
+
+
 def study(runs: list, standing: float | None) -> dict:
     by_arm: dict[str, list] = {}
     for run in runs:
@@ -249,6 +295,20 @@ def study(runs: list, standing: float | None) -> dict:
             arm,
             t_interval([eval_change(r) for r, _ in items]),
             "up",
+        )
+
+    if clf and by_arm.get("modelfree"):
+        c6 = sample_efficiency([r for r, _ in clf], [r for r, _ in by_arm["modelfree"]])
+        rows.append(
+            {
+                "criterion": (
+                    f"C6 env steps to {ClaimsInput.threshold_fraction:.0%} of the better final "
+                    f"eval distance ({_fmt(c6.pop('target_m'))} m), clf / modelfree "
+                    f"(paper: <= {PAPER_STEP_RATIO}); {c6.pop('note')}"
+                ),
+                "arm": "clf vs modelfree",
+                **c6,
+            }
         )
 
     def lasts(items: list, col: str) -> dict:

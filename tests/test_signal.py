@@ -118,3 +118,59 @@ def test_the_table_puts_the_standing_floor_and_the_update_beside_the_distance(tm
     assert cells[" std legs / waist / arms "].strip() == "0.9 / 1 / 1.1"
     png = signal.figure(runs, tmp_path / "signal.png", "test")
     assert png.is_file() and png.stat().st_size > 10_000
+
+
+def _crossing_run(reward: str, seed: int, first: int | None):
+    """A run evaluated at every iteration (768 env steps each) whose distance is 0.1 m until
+    iteration ``first`` and 1.0 m from it on (never: 0.1 m throughout, ending at 0.5 m)."""
+    run = _run(reward, seed, False, 1.0, 1.0, 0.02)
+    it = np.arange(1, ITERS + 1)
+    dist = np.where(it >= (first or ITERS + 1), 1.0, 0.1)
+    if first is None:
+        dist[-1] = 0.5
+    run.evals = pd.DataFrame(
+        {"stage": "teacher", "iteration": it, "env_steps": it * 768, "mean_distance_m": dist}
+    )
+    return run
+
+
+@pytest.mark.parametrize(
+    ("clf_first", "mf_first", "word"),
+    [
+        ((2, 2, 2), (9, 10, 11), "reproduced (CPU scale)"),
+        ((8, 9, 10), (8, 9, 10), "not reproduced (CPU scale)"),
+        ((4, 5, 6), (8, 9, 10), "inconclusive at this scale"),
+        ((1, 2, 2), (8, 9, 10), "inconclusive at this scale"),  # high 0.56: just above 0.5
+        ((2, 2, None), (9, 10, 11), "unbounded above"),
+    ],
+)
+def test_c6_reads_the_papers_half_the_env_steps_claim(clf_first, mf_first, word):
+    """C6: the ratio of the arms' mean env steps to 90 % of the better final distance, read off
+    the evaluation grid. Here every seed of both arms ends at 1.0 m (target 0.9 m) and crosses
+    at iteration ``first`` (at the evaluation of that iteration; below at the one before), so the
+    point is mean(first_clf) / mean(first_mf) (a never-reaching seed counts at its last
+    evaluation, 12), and the verdict compares the interval with the paper's 0.5."""
+    clf = [_crossing_run("clf", s, k) for s, k in enumerate(clf_first)]
+    mf = [_crossing_run("modelfree", s, k) for s, k in enumerate(mf_first)]
+    row = signal.sample_efficiency(clf, mf)
+    seen = [ITERS if k is None else k for k in clf_first]
+    assert row["mean"] == pytest.approx(np.mean(seen) / np.mean(mf_first))
+    assert row["target_m"] == pytest.approx(0.9)
+    assert row["n"] == "3 vs 3"
+    assert word in row["verdict"], row
+    if word.startswith("reproduced"):
+        assert row["high"] <= 0.5
+    if word.startswith("not"):
+        assert row["low"] > 0.5
+    if "unbounded" in word:
+        assert row["high"] is None and "never reach" in row["note"]
+
+
+def test_c6_is_in_the_study_table_when_both_arms_ran():
+    runs = [_crossing_run("clf", s, k) for s, k in enumerate((2, 2, 2))]
+    runs += [_crossing_run("modelfree", s, k) for s, k in enumerate((9, 10, 11))]
+    result = signal.study(runs, None)
+    (c6,) = [r for r in result["criteria"] if r["criterion"].startswith("C6")]
+    assert c6["arm"] == "clf vs modelfree" and c6["verdict"] == "reproduced (CPU scale)"
+    assert "0.9 m" in c6["criterion"] and "paper: <= 0.5" in c6["criterion"]
+    assert "| C6 env steps" in signal.markdown(result)
