@@ -288,6 +288,9 @@ def test_wall_time_estimate_by_hand():
     assert est["distill"] == pytest.approx(6 * distill_it)
     assert est["eval"] == pytest.approx(6 * one_eval)
     assert est["total"] == pytest.approx(20.0 + 6 * distill_it + 6 * one_eval)
+    # Over 2 processes the 10 rollouts are dealt between 2 x 4 eval envs: 2 waves, not 3.
+    two = eta.estimate_wall_s(cfg, teacher_s_per_it=2.0, rollout_s_per_it=1.5, world=2)
+    assert two["eval"] == pytest.approx(6 * one_eval * 2 / 3)
     # Without the rollout's time (an older run's rows) the whole iteration is the step.
     whole = eta.estimate_wall_s(cfg, teacher_s_per_it=2.0)
     assert whole["eval"] == pytest.approx(6 * one_eval * 2.0 / 1.5)

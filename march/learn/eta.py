@@ -102,6 +102,7 @@ def estimate_wall_s(
     teacher_from: int = 0,
     distill_from: int = 0,
     rollout_s_per_it: float | None = None,
+    world: int = 1,
 ) -> dict[str, float]:
     """Expected seconds of the teacher, distillation and evaluations of ``cfg.stage`` from here.
 
@@ -111,7 +112,7 @@ def estimate_wall_s(
     per rollout step and ``rollout_s_per_it`` (seconds of an iteration's rollout) was measured,
     else from its whole iteration (an older run's rows: an overestimate on a CPU). ``*_from``
     are the iterations already done (a resumed run). Evaluation: ceil(num_rollouts /
-    eval_num_envs) waves of eval.episode_length_s each, at eval_num_envs envs (step cost taken as
+    (eval_num_envs x world)) waves (``world`` processes deal the rollouts between them) of eval.episode_length_s each, at eval_num_envs envs (step cost taken as
     linear in the env count, an overestimate on a GPU), plus one evaluation's worth for the
     standing floor (the zero action on the same rollouts, once per process's eval env).
     """
@@ -130,7 +131,7 @@ def estimate_wall_s(
     if teacher_s_per_it is None:
         teacher_s_per_it = step_s * t.num_steps_per_env
     dt = cfg.env.sim_dt * cfg.env.decimation
-    waves = math.ceil(e.num_rollouts / c.eval_num_envs)
+    waves = math.ceil(e.num_rollouts / (c.eval_num_envs * max(1, world)))
     one_eval = waves * (e.episode_length_s / dt) * step_s * k.eval
     one_eval *= c.eval_num_envs / c.num_envs
     n_teacher, n_student = evaluation_counts(cfg)
@@ -217,6 +218,7 @@ class EtaWatch:
                 teacher_s_per_it=s_per_it,
                 teacher_from=it0,
                 rollout_s_per_it=self.rollout_s_per_it,
+                world=current().world,
             )
             line = (
                 f"[eta] measured {s_per_it:.3g} s/it over {over}: "
@@ -246,6 +248,7 @@ class EtaWatch:
                 teacher_from=self.cfg.teacher.iterations,
                 distill_from=it0,
                 rollout_s_per_it=self.rollout_s_per_it,
+                world=current().world,
             )
             line = (
                 f"[eta] measured {s_per_it:.3g} s/it over {over}: distillation "
