@@ -119,6 +119,8 @@ BAD: dict[str, list[Any]] = {
     "reference.com_height_slope": [-1.0],
     "reference.com_height_min": [0.2, 0.8],
     "reference.swing_toe_down": [-1.5, 1.01],
+    "reference.swing_height": [0.01, 0.31],
+    "reference.swing_xy_shape": [-0.01, 0.51],
     "teacher.learning_rate": [0.0, -1e-4],
     "teacher.schedule": ["cosine"],
     "teacher.num_learning_epochs": [0],
@@ -225,6 +227,8 @@ GOOD: dict[str, list[Any]] = {
     "teacher.eval_interval": [0],
     "teacher.max_nonfinite_updates": [1],
     "reference.swing_toe_down": [-1.0, 0.0, 1.0],
+    "reference.swing_height": [0.02, 0.3],
+    "reference.swing_xy_shape": [0.0, 0.5],
     "distill.max_nonfinite_updates": [1],
     "depth.width": [1],  # a 1x1-pixel camera still gives the CNN a 1x1 map
     "depth.height": [1],

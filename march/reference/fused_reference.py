@@ -24,7 +24,8 @@ from march.reference.trajectory import (
 
 BASIS_COLUMNS = 16
 """Polynomials of the phase s that :func:`reference_outputs` evaluates in one product: the swing
-foot's xy Bezier weights of p0 and p1, its z Bezier weights of z0, c and z1, the three d/ds
+foot's xy Bezier weights of p0 and p1 (with ``ReferenceCfg.swing_xy_shape``'s inner control
+points), its z Bezier weights of z0, c and z1, the three d/ds
 weights (of p1 - p0, c - z0 and z1 - c), the ramp's smoothstep and its d/ds, the CoM
 carry's Hermite polynomials (1 - s)^2 (1 + 2 s), s (1 - s)^2 and their d/ds
 (march.reference.com_carry), and the swing foot's toe-down 64 s^3 (1 - s)^3 and its d/ds
@@ -39,6 +40,7 @@ def reference_tables(
     key = (
         "reference_tables",
         cfg.swing_height,
+        cfg.swing_xy_shape,
         cfg.foot_height_offset,
         cfg.roll_amplitude,
         cfg.pitch_amplitude,
@@ -61,12 +63,22 @@ def _make_reference_tables(
         for k in ks:
             bern[k, n - k, col] += scale * math.comb(n, k)
 
-    add(0, 5, range(0, 3))  # xy: weight of p0 (ctrl p0, p0, p0, p1, p1, p1)
-    add(1, 5, range(3, 6))  # xy: weight of p1
+    # xy: ctrl p0, p0, p0 + a D, p1 - a D, p1, p1 (a = swing_xy_shape, D = p1 - p0; a = 0:
+    # p0, p0, p0, p1, p1, p1): the weights of p0 and p1, and 5 (a b^4_1 + (1 - 2 a) b^4_2 +
+    # a b^4_3) of D for d/ds.
+    a = cfg.swing_xy_shape
+    add(0, 5, range(0, 2))  # xy: weight of p0
+    add(0, 5, range(2, 3), 1.0 - a)
+    add(0, 5, range(3, 4), a)
+    add(1, 5, range(2, 3), a)  # xy: weight of p1
+    add(1, 5, range(3, 4), 1.0 - a)
+    add(1, 5, range(4, 6))
     add(2, 6, range(0, 2))  # z: weight of z0 (ctrl z0, z0, c, c, c, z1, z1)
     add(3, 6, range(2, 5))  # z: weight of c
     add(4, 6, range(5, 7))  # z: weight of z1
-    add(5, 4, range(2, 3), 5.0)  # d/ds xy: 5 b^4_2 (p1 - p0)
+    add(5, 4, range(2, 3), 5.0 * (1.0 - 2.0 * a))  # d/ds xy, of p1 - p0
+    add(5, 4, range(1, 2), 5.0 * a)
+    add(5, 4, range(3, 4), 5.0 * a)
     add(6, 5, range(1, 2), 6.0)  # d/ds z: 6 b^5_1 (c - z0)
     add(7, 5, range(4, 5), 6.0)  #        + 6 b^5_4 (z1 - c)
     add(8, 3, range(2, 4))  # smoothstep 3 s^2 - 2 s^3

@@ -113,6 +113,15 @@ class ReferenceCfg:
     touchdown). 0 (default): the foot flat all swing. Issue 55: at the apex of short steps the
     G1's swing ankle is at its dorsiflexion limit (-0.873 rad) and cannot hold the foot flat;
     ``0.35`` asks for what the ankle can do."""
+    swing_xy_shape: float = 0.0
+    """a in [0, 0.5]: the swing foot's horizontal 5th-degree Bezier has control points (p0,
+    p0, p0 + a D, p1 - a D, p1, p1), D = p1 - p0 [-]. 0 (default): (p0, p0, p0, p1, p1, p1),
+    minimum jerk, zero velocity and acceleration at lift-off and touchdown, peak speed
+    1.875 |D| / T at mid-swing. a > 0 keeps zero velocity at both ends, starts and stops with
+    an acceleration of 20 a |D| / T^2 and flattens the speed: (30 - 20 a) / 16 |D| / T at
+    mid-swing (1.5625 at a = 0.25, 1.25 at 0.5). Issue 55: the foot leaves with the hip
+    that drags a nearly straight trailing leg, and the swing leg swings slower at
+    mid-swing."""
 
     def __post_init__(self) -> None:
         if self.com_anchoring not in COM_ANCHORINGS:
@@ -123,6 +132,8 @@ class ReferenceCfg:
             raise ValueError("need com_height_slope >= 0 and com_height_min > 0")
         if not -1.0 <= self.swing_toe_down <= 1.0:
             raise ValueError("swing_toe_down must lie in [-1, 1] rad")
+        if not 0.0 <= self.swing_xy_shape <= 0.5:
+            raise ValueError("swing_xy_shape must lie in [0, 0.5]")
 
 
 def wrap_to_pi(angle: torch.Tensor) -> torch.Tensor:
@@ -185,14 +196,21 @@ def swing_trajectory(
     phase: torch.Tensor,
     duration: torch.Tensor,
     swing_height: float,
+    xy_shape: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Swing-foot position and velocity (E, 3) at ``phase`` = tau / T in [0, 1].
 
-    start/end: (E, 3) lift-off point and landing point; duration: (E,) swing time T [s].
+    start/end: (E, 3) lift-off point and landing point; duration: (E,) swing time T [s];
+    ``xy_shape`` a (:attr:`ReferenceCfg.swing_xy_shape`): the horizontal Bezier's inner control
+    points at p0 + a (p1 - p0) and p1 - a (p1 - p0) (0: p0, p0, p0, p1, p1, p1).
     """
     s = phase.clamp(0.0, 1.0)
     p0, p1 = start[:, None, :2], end[:, None, :2]
-    ctrl_xy = torch.cat([p0, p0, p0, p1, p1, p1], dim=1)
+    if xy_shape == 0.0:
+        ctrl_xy = torch.cat([p0, p0, p0, p1, p1, p1], dim=1)
+    else:
+        d = xy_shape * (p1 - p0)
+        ctrl_xy = torch.cat([p0, p0, p0 + d, p1 - d, p1, p1], dim=1)
     z0, z1 = start[:, 2], end[:, 2]
     apex = torch.maximum(z0, z1) + swing_height
     # Height at s = 1/2 is (7 z0 + 50 c + 7 z1) / 64; choose c to make it the apex.
@@ -487,7 +505,7 @@ def reference_at(
     target[:, 2] = target[:, 2] + cfg.foot_height_offset
     phase = tau / step.duration
     swing_pos, swing_vel = swing_trajectory(
-        step.swing_start, target, phase, step.duration, cfg.swing_height
+        step.swing_start, target, phase, step.duration, cfg.swing_height, cfg.swing_xy_shape
     )
     stance_xy = step.stance_pos[:, :2]
     lam = step_lambda(step, cfg, hlip)
