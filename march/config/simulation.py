@@ -267,6 +267,10 @@ class ReferenceSectionCfg:
     (march.reference.trajectory.toe_down). 0 (default): flat all swing, as the author's.
     Issue 55: at the apex of short steps the G1's swing ankle is at its dorsiflexion limit
     (-0.873 rad) and cannot hold the foot flat; 0.35 is what docs/audit.md measures."""
+    swing_toe_roll: float = 0.0
+    """Swing-foot pitch added to the toe-down [rad], positive: toe down by up to this early in
+    the swing (phase 0.311) and toe up by as much late (0.689), flat with zero rate at lift-off,
+    mid-swing and touchdown (march.reference.trajectory.toe_down). 0 (default): none."""
     swing_height: float = 0.10
     """Apex clearance of the swing foot above the higher of its lift-off and landing stones [m]
     (march.reference.trajectory.swing_trajectory; 0.10 m, the default, as before)."""
@@ -285,6 +289,7 @@ class ReferenceSectionCfg:
         check_at_least("reference", "com_height_slope", self.com_height_slope, 0)
         check_interval("reference", "com_height_min", self.com_height_min, 0.3, 0.67)
         check_interval("reference", "swing_toe_down", self.swing_toe_down, -1.0, 1.0)
+        check_interval("reference", "swing_toe_roll", self.swing_toe_roll, -1.0, 1.0)
         check_interval("reference", "swing_height", self.swing_height, 0.02, 0.3)
         check_interval("reference", "swing_xy_shape", self.swing_xy_shape, 0.0, 0.5)
 

@@ -378,6 +378,7 @@ def build_env_cfg(
                 swing_toe_down=ref.swing_toe_down,
                 swing_xy_shape=ref.swing_xy_shape,
                 swing_height=ref.swing_height,
+                swing_toe_roll=ref.swing_toe_roll,
             ),
             **({"replan_capacity_fraction": 1.0} if purpose == "eval" else {}),
         )
