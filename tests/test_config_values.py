@@ -120,6 +120,7 @@ BAD: dict[str, list[Any]] = {
     "reference.com_height_min": [0.2, 0.8],
     "reference.swing_toe_down": [-1.5, 1.01],
     "reference.swing_height": [0.01, 0.31],
+    "reference.swing_toe_roll": [-1.01, 1.5],
     "reference.swing_xy_shape": [-0.01, 0.51],
     "teacher.learning_rate": [0.0, -1e-4],
     "teacher.schedule": ["cosine"],
@@ -228,6 +229,7 @@ GOOD: dict[str, list[Any]] = {
     "teacher.max_nonfinite_updates": [1],
     "reference.swing_toe_down": [-1.0, 0.0, 1.0],
     "reference.swing_height": [0.02, 0.3],
+    "reference.swing_toe_roll": [-1.0, 0.0, 1.0],
     "reference.swing_xy_shape": [0.0, 0.5],
     "distill.max_nonfinite_updates": [1],
     "depth.width": [1],  # a 1x1-pixel camera still gives the CNN a 1x1 map
