@@ -261,3 +261,52 @@ def test_the_xy_shape_lets_the_dragged_trailing_foot_follow_on_the_kinematic_g1(
     )
     assert max(worst(t, "eta", swing_z, (1, 2)) for t in (flat, shaped)) < 1e-3
     assert worst(flat, "etadot", swing_z, (1, 2)) > tol > worst(shaped, "etadot", swing_z, (1, 2))
+
+
+OPTION_SET = [
+    "reference.com_height=step",
+    "reference.com_height_free_step=0.4",
+    "reference.com_height_slope=0.25",
+    "reference.swing_height=0.08",
+    "reference.swing_xy_shape=0.35",
+    "reference.swing_toe_down=0.4",
+    "reference.swing_toe_roll=0.15",
+]
+"""docs/audit.md's option set (issue 55 item 5)."""
+
+
+@pytest.mark.sim
+def test_the_env_tracks_the_shaped_reference():
+    """The teacher env built with the option set (compute=smoke, 4 envs, dr=none), walked 30
+    steps under 0.4 N(0, 1) actions: the reference term's y_ref (the fused reference, at the
+    term's own tau) is reference_at of the term's step state with the option set, to float32
+    rounding, and its swing pitch differs from the same step's reference without the shapings
+    wherever a swing is under way (phase 0.1-0.9: the options reach the env)."""
+    from march.config.cli import load
+    from march.env.build import make_env
+    from march.env.reference_command import reference_term
+
+    env = make_env(load(["compute=smoke", "dr=none", *OPTION_SET]), "teacher", num_envs=4)
+    try:
+        term = reference_term(env)
+        gen = torch.Generator().manual_seed(0)
+        n_act = env.action_manager.total_action_dim
+        env.reset()
+        ref = term.cfg.reference
+        assert (ref.swing_xy_shape, ref.swing_toe_roll, ref.swing_height) == (0.35, 0.15, 0.08)
+        plain = ReferenceCfg(com_height="step", com_height_free_step=0.4, com_height_slope=0.25)
+        differ = 0
+        for _ in range(30):
+            env.step(0.4 * torch.randn(env.num_envs, n_act, generator=gen))
+            want = reference_at(term.step, term.tau, ref, term.cfg.hlip, 17).flatten()
+            assert torch.allclose(term.y_ref_pos, want[0], atol=1e-4)
+            assert torch.allclose(term.y_ref_vel, want[1], atol=1e-3)
+            other = reference_at(term.step, term.tau, plain, term.cfg.hlip, 17).flatten()[0]
+            phase = term.tau / term.step.duration
+            inside = (phase > 0.1) & (phase < 0.9)  # the shapings are ~0 near the ends
+            changed = (other[:, SWING_PITCH] - want[0][:, SWING_PITCH]).abs() > 1e-3
+            assert bool((changed | ~inside).all())
+            differ += int(inside.sum())
+        assert differ >= 20, differ
+    finally:
+        env.close()
