@@ -327,6 +327,9 @@ def test_reference_outputs_equal_reference_at():
             com_anchoring=("continuous", "stance")[int(seed % 3 == 2)],
             com_height=("fixed", "step")[seed % 2],
             swing_toe_down=(0.0, 0.35, -0.2)[(seed // 2) % 3],
+            swing_xy_shape=(0.0, 0.35, 0.5, 0.12)[seed % 4],
+            swing_height=(0.1, 0.065)[(seed // 3) % 2],
+            swing_toe_roll=(0.0, 0.15, -0.3, 0.0, 0.2)[seed % 5],
         )
         st = _random_step_state(31, g, F64)
         tau = st.duration[:, None] * 1.6 * torch.rand(31, 3, generator=g, dtype=F64)

@@ -267,6 +267,19 @@ class ReferenceSectionCfg:
     (march.reference.trajectory.toe_down). 0 (default): flat all swing, as the author's.
     Issue 55: at the apex of short steps the G1's swing ankle is at its dorsiflexion limit
     (-0.873 rad) and cannot hold the foot flat; 0.35 is what docs/audit.md measures."""
+    swing_toe_roll: float = 0.0
+    """Swing-foot pitch added to the toe-down [rad], positive: toe down by up to this early in
+    the swing (phase 0.311) and toe up by as much late (0.689), flat with zero rate at lift-off,
+    mid-swing and touchdown (march.reference.trajectory.toe_down). 0 (default): none."""
+    swing_height: float = 0.10
+    """Apex clearance of the swing foot above the higher of its lift-off and landing stones [m]
+    (march.reference.trajectory.swing_trajectory; 0.10 m, the default, as before)."""
+    swing_xy_shape: float = 0.0
+    """a in [0, 0.5] [-]: the swing foot's horizontal Bezier has control points (p0, p0,
+    p0 + a D, p1 - a D, p1, p1), D the swing's travel (march.reference.trajectory.
+    swing_trajectory). 0 (default): minimum jerk, as the author's (peak speed 1.875 |D| / T);
+    a > 0 leaves and lands with an acceleration of 20 a |D| / T^2 and a flatter speed
+    ((30 - 20 a) / 16 |D| / T at mid-swing). Issue 55, docs/audit.md."""
 
     def __post_init__(self) -> None:
         check_shapes("reference", self)
@@ -276,6 +289,9 @@ class ReferenceSectionCfg:
         check_at_least("reference", "com_height_slope", self.com_height_slope, 0)
         check_interval("reference", "com_height_min", self.com_height_min, 0.3, 0.67)
         check_interval("reference", "swing_toe_down", self.swing_toe_down, -1.0, 1.0)
+        check_interval("reference", "swing_toe_roll", self.swing_toe_roll, -1.0, 1.0)
+        check_interval("reference", "swing_height", self.swing_height, 0.02, 0.3)
+        check_interval("reference", "swing_xy_shape", self.swing_xy_shape, 0.0, 0.5)
 
 
 MOVED_TO_TERMINATION = ("tilt_limit_deg", "min_base_height_m", "max_foot_drop_m")

@@ -376,6 +376,9 @@ def build_env_cfg(
                 com_height_slope=ref.com_height_slope,
                 com_height_min=ref.com_height_min,
                 swing_toe_down=ref.swing_toe_down,
+                swing_xy_shape=ref.swing_xy_shape,
+                swing_height=ref.swing_height,
+                swing_toe_roll=ref.swing_toe_roll,
             ),
             **({"replan_capacity_fraction": 1.0} if purpose == "eval" else {}),
         )

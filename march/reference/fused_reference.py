@@ -15,6 +15,7 @@ import torch
 from march.reference.hlip import HlipCfg
 from march.reference.kept import kept
 from march.reference.trajectory import (
+    TOE_ROLL_SCALE,
     ReferenceCfg,
     StepState,
     com_orbit_height,
@@ -24,10 +25,12 @@ from march.reference.trajectory import (
 
 BASIS_COLUMNS = 16
 """Polynomials of the phase s that :func:`reference_outputs` evaluates in one product: the swing
-foot's xy Bezier weights of p0 and p1, its z Bezier weights of z0, c and z1, the three d/ds
+foot's xy Bezier weights of p0 and p1 (with ``ReferenceCfg.swing_xy_shape``'s inner control
+points), its z Bezier weights of z0, c and z1, the three d/ds
 weights (of p1 - p0, c - z0 and z1 - c), the ramp's smoothstep and its d/ds, the CoM
 carry's Hermite polynomials (1 - s)^2 (1 + 2 s), s (1 - s)^2 and their d/ds
-(march.reference.com_carry), and the swing foot's toe-down 64 s^3 (1 - s)^3 and its d/ds
+(march.reference.com_carry), and the swing foot's pitch, toe-down 64 s^3 (1 - s)^3 plus toe
+roll K s^3 (1 - s)^3 (1 - 2 s) with their amplitudes, and its d/ds
 (march.reference.trajectory.toe_down)."""
 
 
@@ -39,6 +42,9 @@ def reference_tables(
     key = (
         "reference_tables",
         cfg.swing_height,
+        cfg.swing_xy_shape,
+        cfg.swing_toe_down,
+        cfg.swing_toe_roll,
         cfg.foot_height_offset,
         cfg.roll_amplitude,
         cfg.pitch_amplitude,
@@ -61,12 +67,22 @@ def _make_reference_tables(
         for k in ks:
             bern[k, n - k, col] += scale * math.comb(n, k)
 
-    add(0, 5, range(0, 3))  # xy: weight of p0 (ctrl p0, p0, p0, p1, p1, p1)
-    add(1, 5, range(3, 6))  # xy: weight of p1
+    # xy: ctrl p0, p0, p0 + a D, p1 - a D, p1, p1 (a = swing_xy_shape, D = p1 - p0; a = 0:
+    # p0, p0, p0, p1, p1, p1): the weights of p0 and p1, and 5 (a b^4_1 + (1 - 2 a) b^4_2 +
+    # a b^4_3) of D for d/ds.
+    a = cfg.swing_xy_shape
+    add(0, 5, range(0, 2))  # xy: weight of p0
+    add(0, 5, range(2, 3), 1.0 - a)
+    add(0, 5, range(3, 4), a)
+    add(1, 5, range(2, 3), a)  # xy: weight of p1
+    add(1, 5, range(3, 4), 1.0 - a)
+    add(1, 5, range(4, 6))
     add(2, 6, range(0, 2))  # z: weight of z0 (ctrl z0, z0, c, c, c, z1, z1)
     add(3, 6, range(2, 5))  # z: weight of c
     add(4, 6, range(5, 7))  # z: weight of z1
-    add(5, 4, range(2, 3), 5.0)  # d/ds xy: 5 b^4_2 (p1 - p0)
+    add(5, 4, range(2, 3), 5.0 * (1.0 - 2.0 * a))  # d/ds xy, of p1 - p0
+    add(5, 4, range(1, 2), 5.0 * a)
+    add(5, 4, range(3, 4), 5.0 * a)
     add(6, 5, range(1, 2), 6.0)  # d/ds z: 6 b^5_1 (c - z0)
     add(7, 5, range(4, 5), 6.0)  #        + 6 b^5_4 (z1 - c)
     add(8, 3, range(2, 4))  # smoothstep 3 s^2 - 2 s^3
@@ -76,9 +92,15 @@ def _make_reference_tables(
     add(12, 2, range(1, 2), -3.0)  # d h00 / ds = -6 s (1 - s)
     add(13, 2, range(0, 1))  # d h10 / ds = (1 - s)^2 - 2 s (1 - s)
     add(13, 2, range(1, 2), -1.0)
-    bern[3, 3, 14] = 64.0  # toe-down 64 s^3 (1 - s)^3
-    bern[2, 3, 15] = 192.0  # its d/ds 192 (s^2 (1 - s)^3 - s^3 (1 - s)^2)
-    bern[3, 2, 15] = -192.0
+    # The swing-foot pitch, amplitudes included: toe-down A 64 s^3 (1 - s)^3 plus the roll
+    # R K s^3 (1 - s)^3 (1 - 2 s) = R K (s^3 (1 - s)^4 - s^4 (1 - s)^3), and their d/ds
+    # 192 A (s^2 (1 - s)^3 - s^3 (1 - s)^2) + R K (3 s^2 (1 - s)^4 - 8 s^3 (1 - s)^3 +
+    # 3 s^4 (1 - s)^2) (march.reference.trajectory.toe_down).
+    toe, roll = cfg.swing_toe_down, cfg.swing_toe_roll * TOE_ROLL_SCALE
+    bern[3, 3, 14] = 64.0 * toe
+    bern[3, 4, 14], bern[4, 3, 14] = roll, -roll
+    bern[2, 3, 15], bern[3, 2, 15] = 192.0 * toe, -192.0 * toe
+    bern[2, 4, 15], bern[3, 3, 15], bern[4, 2, 15] = 3.0 * roll, -8.0 * roll, 3.0 * roll
     # Control matrix (10 basis rows x [pos xyz, d/ds xyz]) from u = [start xyz, target xyz,
     # apex], with c = (64 apex - 7 (z0 + z1)) / 50 (the z control point of swing_trajectory).
     ctrl = torch.zeros(7, BASIS_COLUMNS, 6, dtype=torch.float64)
@@ -254,10 +276,11 @@ def reference_outputs(
     swing_vel = swing[..., 3:] * ((phase < 1.0) / dur)[..., None]
     z2, zu = zeros[:2].expand(e, k, 2), zeros[:num_upper].expand(e, k, num_upper)
     foot, foot_rate = z2, z2  # swing-foot roll and pitch: flat
-    if cfg.swing_toe_down != 0.0:  # toed down at mid-swing (march.reference.trajectory.toe_down)
-        foot = torch.cat([z2[..., :1], cfg.swing_toe_down * basis[..., 14:15]], dim=-1)
-        # (phase < 1) / dur first: a bool times a Python float would be float32
-        rate = basis[..., 15:16] * (((phase < 1.0) / dur) * cfg.swing_toe_down)[..., None]
+    if cfg.swing_toe_down != 0.0 or cfg.swing_toe_roll != 0.0:
+        # toed down (and rolled) in the swing (march.reference.trajectory.toe_down): the
+        # table's columns 14 and 15 carry the amplitudes
+        foot = torch.cat([z2[..., :1], basis[..., 14:15]], dim=-1)
+        rate = basis[..., 15:16] * ((phase < 1.0) / dur)[..., None]
         foot_rate = torch.cat([z2[..., :1], rate], dim=-1)
     pos = torch.cat([com_pos, com_z, roll_pitch, yaw, swing[..., :3], foot, yaw, zu], dim=-1)
     vel = torch.cat(

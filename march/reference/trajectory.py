@@ -9,7 +9,8 @@ Outputs, in this order (``output_names``), each with a position and a velocity:
                                          yaw_rate 0); small roll/pitch oscillations per step
     swing_x, swing_y, swing_z            swing foot [m]: Bezier from lift-off to the planned foothold
     swing_roll, swing_pitch, swing_yaw   swing foot orientation [rad]: flat (or toed down at
-                                         mid-swing, ``swing_toe_down``), yaw = pelvis yaw
+                                         mid-swing, ``swing_toe_down``, and rolled toe down
+                                         then up, ``swing_toe_roll``), yaw = pelvis yaw
     upper_0 ... upper_{U-1}              upper-body joints relative to default [rad]: zero
 
 Velocities of the angle outputs are Euler-angle rates [rad/s]. Angle outputs are wrapped to
@@ -17,7 +18,8 @@ Velocities of the angle outputs are Euler-angle rates [rad/s]. Angle outputs are
 raw Euler differences.
 
 Swing foot: horizontal part is a 5th-degree Bezier with control points (p0, p0, p0, p1, p1, p1),
-i.e. zero velocity and acceleration at lift-off and touchdown; vertical part a 6th-degree Bezier
+i.e. zero velocity and acceleration at lift-off and touchdown (``swing_xy_shape`` a moves the
+inner two to p0 + a (p1 - p0) and p1 - a (p1 - p0): zero velocity, a flatter speed); vertical part a 6th-degree Bezier
 (z0, z0, c, c, c, z1, z1) with c chosen so that the height at mid-swing is the apex
 max(z0, z1) + z_sw (when z0 != z1 the maximum lies slightly past mid-swing and is slightly higher).
 
@@ -113,6 +115,20 @@ class ReferenceCfg:
     touchdown). 0 (default): the foot flat all swing. Issue 55: at the apex of short steps the
     G1's swing ankle is at its dorsiflexion limit (-0.873 rad) and cannot hold the foot flat;
     ``0.35`` asks for what the ankle can do."""
+    swing_toe_roll: float = 0.0
+    """Swing-foot pitch added to the toe-down [rad]: swing_toe_roll K s^3 (1 - s)^3 (1 - 2 s),
+    K = :data:`TOE_ROLL_SCALE`: toe down by up to swing_toe_roll at s = 0.311 (after
+    lift-off, the foot still behind the hip), toe up by as much at s = 0.689 (reaching for the
+    landing), flat with zero rate at lift-off, mid-swing and touchdown. 0 (default): none."""
+    swing_xy_shape: float = 0.0
+    """a in [0, 0.5]: the swing foot's horizontal 5th-degree Bezier has control points (p0,
+    p0, p0 + a D, p1 - a D, p1, p1), D = p1 - p0 [-]. 0 (default): (p0, p0, p0, p1, p1, p1),
+    minimum jerk, zero velocity and acceleration at lift-off and touchdown, peak speed
+    1.875 |D| / T at mid-swing. a > 0 keeps zero velocity at both ends, starts and stops with
+    an acceleration of 20 a |D| / T^2 and flattens the speed: (30 - 20 a) / 16 |D| / T at
+    mid-swing (1.5625 at a = 0.25, 1.25 at 0.5). Issue 55: the foot leaves with the hip
+    that drags a nearly straight trailing leg, and the swing leg swings slower at
+    mid-swing."""
 
     def __post_init__(self) -> None:
         if self.com_anchoring not in COM_ANCHORINGS:
@@ -123,6 +139,8 @@ class ReferenceCfg:
             raise ValueError("need com_height_slope >= 0 and com_height_min > 0")
         if not -1.0 <= self.swing_toe_down <= 1.0:
             raise ValueError("swing_toe_down must lie in [-1, 1] rad")
+        if not 0.0 <= self.swing_xy_shape <= 0.5:
+            raise ValueError("swing_xy_shape must lie in [0, 0.5]")
 
 
 def wrap_to_pi(angle: torch.Tensor) -> torch.Tensor:
@@ -185,14 +203,21 @@ def swing_trajectory(
     phase: torch.Tensor,
     duration: torch.Tensor,
     swing_height: float,
+    xy_shape: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Swing-foot position and velocity (E, 3) at ``phase`` = tau / T in [0, 1].
 
-    start/end: (E, 3) lift-off point and landing point; duration: (E,) swing time T [s].
+    start/end: (E, 3) lift-off point and landing point; duration: (E,) swing time T [s];
+    ``xy_shape`` a (:attr:`ReferenceCfg.swing_xy_shape`): the horizontal Bezier's inner control
+    points at p0 + a (p1 - p0) and p1 - a (p1 - p0) (0: p0, p0, p0, p1, p1, p1).
     """
     s = phase.clamp(0.0, 1.0)
     p0, p1 = start[:, None, :2], end[:, None, :2]
-    ctrl_xy = torch.cat([p0, p0, p0, p1, p1, p1], dim=1)
+    if xy_shape == 0.0:
+        ctrl_xy = torch.cat([p0, p0, p0, p1, p1, p1], dim=1)
+    else:
+        d = xy_shape * (p1 - p0)
+        ctrl_xy = torch.cat([p0, p0, p0 + d, p1 - d, p1, p1], dim=1)
     z0, z1 = start[:, 2], end[:, 2]
     apex = torch.maximum(z0, z1) + swing_height
     # Height at s = 1/2 is (7 z0 + 50 c + 7 z1) / 64; choose c to make it the apex.
@@ -207,18 +232,32 @@ def swing_trajectory(
     return pos, vel
 
 
+TOE_ROLL_SCALE = 19208.0 / (27.0 * math.sqrt(7.0))
+"""1 / max of s^3 (1 - s)^3 (1 - 2 s) on [0, 1] (at s = 1/2 - sqrt(7)/14 = 0.311): the toe
+roll's normalisation (:func:`toe_down`)."""
+
+
 def toe_down(
-    phase: torch.Tensor, duration: torch.Tensor, amplitude: float
+    phase: torch.Tensor, duration: torch.Tensor, amplitude: float, roll: float = 0.0
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Swing-foot pitch [rad] and its rate [rad/s] (E,) at ``phase`` = tau / T: amplitude
     64 s^3 (1 - s)^3 with s = phase clamped to [0, 1] (``amplitude`` at s = 1/2; zero pitch,
     rate and acceleration at lift-off and touchdown) and rate amplitude 192 s^2 (1 - s)^2
-    (1 - 2 s) / T inside the swing, 0 once it is over (the foot rests)."""
+    (1 - 2 s) / T inside the swing, 0 once it is over (the foot rests). ``roll`` R adds
+    R K s^3 (1 - s)^3 (1 - 2 s) (K = :data:`TOE_ROLL_SCALE`: toe down by R at s = 0.311, up
+    by R at 0.689, zero at 0, 1/2 and 1) and its rate R K s^2 (1 - s)^2 (3 (1 - 2 s)^2 -
+    2 s (1 - s)) / T."""
     s = phase.clamp(0.0, 1.0)
     r = 1.0 - s
     pitch = amplitude * 64.0 * (s * r) ** 3
     active = (phase < 1.0).to(phase.dtype)
     rate = amplitude * 192.0 * (s * r) ** 2 * (1.0 - 2.0 * s) / duration * active
+    if roll != 0.0:
+        k = roll * TOE_ROLL_SCALE
+        pitch = pitch + k * (s * r) ** 3 * (1.0 - 2.0 * s)
+        # d/ds s^3 (1 - s)^3 (1 - 2 s) = s^2 (1 - s)^2 (3 (1 - 2 s)^2 - 2 s (1 - s))
+        shape = (s * r) ** 2 * (3.0 * (1.0 - 2.0 * s) ** 2 - 2.0 * s * r)
+        rate = rate + k * shape / duration * active
     return pitch, rate
 
 
@@ -487,7 +526,7 @@ def reference_at(
     target[:, 2] = target[:, 2] + cfg.foot_height_offset
     phase = tau / step.duration
     swing_pos, swing_vel = swing_trajectory(
-        step.swing_start, target, phase, step.duration, cfg.swing_height
+        step.swing_start, target, phase, step.duration, cfg.swing_height, cfg.swing_xy_shape
     )
     stance_xy = step.stance_pos[:, :2]
     lam = step_lambda(step, cfg, hlip)
@@ -532,8 +571,10 @@ def reference_at(
     zeros = torch.zeros_like(pelvis_ori)
     swing_ori = torch.cat([zeros[:, :2], pelvis_ori[:, 2:3]], dim=-1)
     swing_rate = torch.cat([zeros[:, :2], pelvis_rate[:, 2:3]], dim=-1)
-    if cfg.swing_toe_down != 0.0:
-        swing_ori[:, 1], swing_rate[:, 1] = toe_down(phase, step.duration, cfg.swing_toe_down)
+    if cfg.swing_toe_down != 0.0 or cfg.swing_toe_roll != 0.0:
+        swing_ori[:, 1], swing_rate[:, 1] = toe_down(
+            phase, step.duration, cfg.swing_toe_down, cfg.swing_toe_roll
+        )
     upper = torch.zeros(e, num_upper, dtype=tau.dtype, device=tau.device)
     return Reference(
         com_pos=torch.cat([com_xy, com_z], dim=-1),

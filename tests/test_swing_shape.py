@@ -1,0 +1,312 @@
+"""The swing foot's shaping options of issue 55 item 5: the horizontal Bezier's inner control
+points (``reference.swing_xy_shape``) and the toe roll added to the toe-down
+(``reference.swing_toe_roll``): hand-derived values, rates that are the time derivatives of the
+positions over generated cases, the defaults unchanged, the options on the command line.
+(fused == readable for both: tests/test_reference.py.)
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from march.reference.hlip import HlipCfg
+from march.reference.trajectory import (
+    TOE_ROLL_SCALE,
+    ReferenceCfg,
+    StepState,
+    output_names,
+    reference_at,
+    swing_trajectory,
+    toe_down,
+)
+
+F64 = torch.float64
+NAMES = output_names(17)
+SWING_X, SWING_PITCH = NAMES.index("swing_x"), NAMES.index("swing_pitch")
+
+
+def _ends(n: int, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    start = torch.rand(n, 3, generator=g, dtype=F64) - 0.5
+    end = start + torch.rand(n, 3, generator=g, dtype=F64) * torch.tensor([1.2, 0.4, 0.2])
+    duration = 0.3 + 0.5 * torch.rand(n, generator=g, dtype=F64)
+    return start, end, duration
+
+
+@pytest.mark.parametrize("a", [0.0, 0.2, 0.35, 0.5])
+def test_the_xy_shape_takes_its_hand_values(a):
+    """Control points (p0, p0, p0 + a D, p1 - a D, p1, p1): by hand, the share of D covered
+    at s = 1/4 is (106 + 180 a) / 1024 (a = 0: 10 s^3 - 15 s^4 + 6 s^5, minimum jerk), at
+    s = 1/2 exactly 1/2, at 3/4 (918 - 180 a) / 1024; the speed at s = 1/2 is (30 - 20 a) / 16
+    |D| / T (1.875 |D| / T for minimum jerk); at lift-off and touchdown the foot is at p0 and
+    p1 with zero velocity; the height is the shape's own (unchanged by a)."""
+    g = torch.Generator().manual_seed(int(100 * a))
+    start, end, duration = _ends(40, g)
+    d = end[:, :2] - start[:, :2]
+    share = {0.25: (106 + 180 * a) / 1024, 0.5: 0.5, 0.75: (918 - 180 * a) / 1024}
+    for s, w in share.items():
+        pos, vel = swing_trajectory(
+            start, end, torch.full((40,), s, dtype=F64), duration, 0.1, xy_shape=a
+        )
+        assert torch.allclose(pos[:, :2], start[:, :2] + w * d, atol=1e-12), s
+        flat, _ = swing_trajectory(start, end, torch.full((40,), s, dtype=F64), duration, 0.1)
+        assert torch.equal(pos[:, 2], flat[:, 2])
+        if s == 0.5:
+            want = (30 - 20 * a) / 16 * d / duration[:, None]
+            assert torch.allclose(vel[:, :2], want, atol=1e-12)
+    for s, p in ((0.0, start), (1.0, end)):
+        pos, vel = swing_trajectory(
+            start, end, torch.full((40,), s, dtype=F64), duration, 0.1, xy_shape=a
+        )
+        assert torch.allclose(pos[:, :2], p[:, :2], atol=1e-12)
+        assert torch.allclose(vel[:, :2], torch.zeros_like(vel[:, :2]), atol=1e-12)
+
+
+def test_the_xy_shape_rates_are_derivatives_and_it_starts_with_its_acceleration():
+    """Over 1,000 generated swings at random instants and shapes: the velocity is the central
+    difference of the position in time (1e-6), and the acceleration at lift-off (the velocity's
+    difference over the first 1e-6 s) is 20 a D / T^2; the peak speed over the swing is
+    (30 - 20 a) / 16 |D| / T, reached at mid-swing, for every a in [0, 0.5]."""
+    g = torch.Generator().manual_seed(5)
+    n, h = 1000, 1e-6
+    start, end, duration = _ends(n, g)
+    for a in (0.1, 0.35, 0.5):
+        tau = duration * (0.01 + 0.98 * torch.rand(n, generator=g, dtype=F64))
+        up, _ = swing_trajectory(start, end, (tau + h) / duration, duration, 0.1, a)
+        down, _ = swing_trajectory(start, end, (tau - h) / duration, duration, 0.1, a)
+        _, vel = swing_trajectory(start, end, tau / duration, duration, 0.1, a)
+        assert torch.allclose(vel, (up - down) / (2 * h), atol=1e-6)
+        _, v_first = swing_trajectory(start, end, h / duration, duration, 0.1, a)
+        d = end[:, :2] - start[:, :2]
+        accel = v_first[:, :2] / h
+        assert torch.allclose(accel, 20 * a * d / duration[:, None] ** 2, rtol=1e-4, atol=1e-6)
+        s = torch.linspace(0, 1, 201, dtype=F64)
+        speeds = torch.stack(
+            [
+                swing_trajectory(start, end, si.expand(n), duration, 0.1, a)[1][:, :2].norm(dim=-1)
+                for si in s
+            ]
+        )
+        peak = (30 - 20 * a) / 16 * d.norm(dim=-1) / duration
+        assert torch.allclose(speeds.max(0).values, peak, rtol=1e-9)
+        assert torch.equal(speeds.argmax(0), torch.full((n,), 100))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_toe_roll_takes_its_hand_values(seed):
+    """pitch = A 64 s^3 (1 - s)^3 + R K s^3 (1 - s)^3 (1 - 2 s), K = 19208 / (27 sqrt 7):
+    by hand, the roll alone is 27 R K / 8192 at s = 1/4, 0 at 1/2, -27 R K / 8192 at 3/4, R at
+    s = 1/2 - sqrt(7) / 14 (its maximum) and -R at 1/2 + sqrt(7) / 14; its rate
+    R K s^2 (1 - s)^2 (3 (1 - 2 s)^2 - 2 s (1 - s)) / T is 27 R K / 2048 / T at 1/4 and 3/4 and
+    -R K / 32 / T at 1/2; zero pitch and rate at lift-off and touchdown and past the swing; the
+    toe-down adds its own values unchanged."""
+    g = torch.Generator().manual_seed(seed)
+    n = 30
+    amp, roll = (float(2.0 * torch.rand(1, generator=g, dtype=F64) - 1.0) for _ in range(2))
+    duration = 0.3 + 0.5 * torch.rand(n, generator=g, dtype=F64)
+    k = TOE_ROLL_SCALE
+    assert k == pytest.approx(268.886725835601, rel=1e-12)
+    peak = 0.5 - math.sqrt(7) / 14
+    want = {
+        0.0: (0.0, 0.0, 0.0, 0.0),
+        0.25: (27 / 64, 27 / 8, 27 * k / 8192, 27 * k / 2048),
+        0.5: (1.0, 0.0, 0.0, -k / 32),
+        0.75: (27 / 64, -27 / 8, -27 * k / 8192, 27 * k / 2048),
+        1.0: (0.0, 0.0, 0.0, 0.0),
+        1.3: (0.0, 0.0, 0.0, 0.0),
+    }
+    for s, (p, r, pr, rr) in want.items():
+        pitch, rate = toe_down(torch.full((n,), s, dtype=F64), duration, amp, roll)
+        assert torch.allclose(pitch, torch.full_like(pitch, p * amp + pr * roll), atol=1e-12), s
+        assert torch.allclose(rate, (r * amp + rr * roll) / duration, atol=1e-12), s
+    for s, sign in ((peak, 1.0), (1.0 - peak, -1.0)):
+        pitch, rate = toe_down(torch.full((n,), s, dtype=F64), duration, 0.0, roll)
+        assert torch.allclose(pitch, torch.full_like(pitch, sign * roll), atol=1e-12)
+        assert torch.allclose(rate, torch.zeros_like(rate), atol=1e-9)
+
+
+def test_the_toe_roll_rate_is_the_derivative_and_stays_within_its_amplitude():
+    """Over 2,000 random instants, amplitudes and rolls: the rate is the central difference of
+    the pitch in time (1e-6); the roll alone never exceeds |R|."""
+    g = torch.Generator().manual_seed(9)
+    n, h = 2000, 1e-6
+    duration = 0.3 + 0.5 * torch.rand(n, generator=g, dtype=F64)
+    tau = duration * (0.01 + 0.98 * torch.rand(n, generator=g, dtype=F64))
+    for amp, roll in ((0.5, 0.15), (-0.2, 0.4), (0.0, -0.3)):
+        up, _ = toe_down((tau + h) / duration, duration, amp, roll)
+        down, _ = toe_down((tau - h) / duration, duration, amp, roll)
+        _, rate = toe_down(tau / duration, duration, amp, roll)
+        assert torch.allclose(rate, (up - down) / (2 * h), atol=1e-6)
+        alone, _ = toe_down(tau / duration, duration, 0.0, roll)
+        assert float(alone.abs().max()) <= abs(roll) + 1e-12
+
+
+def _steps(e: int, g: torch.Generator) -> StepState:
+    def r(*shape):
+        return torch.rand(*shape, generator=g, dtype=F64)
+
+    return StepState(
+        stance_pos=r(e, 3) - 0.5,
+        stance_is_left=r(e) > 0.5,
+        swing_start=r(e, 3) - 0.5,
+        target=r(e, 3),
+        next_target=r(e, 3) + 0.5,
+        duration=0.45 + 0.25 * r(e),
+        next_duration=0.45 + 0.25 * r(e),
+        yaw0=2 * r(e) - 1,
+        yaw_rate=r(e) - 0.5,
+        axis=torch.nn.functional.normalize(r(e, 2) + 0.1, dim=-1),
+        com_from_pos=r(e, 3),
+        com_from_vel=r(e, 3) - 0.5,
+        pelvis_from_pos=0.1 * r(e, 2),
+        pelvis_from_vel=r(e, 2) - 0.5,
+        z0=0.6 + 0.07 * r(e),
+    )
+
+
+def test_only_the_shaped_outputs_change():
+    """reference_at with the shaping options against without: over 64 random steps at 5
+    instants (late touchdowns included) ``swing_xy_shape`` changes only swing_x / swing_y
+    (positions and rates), ``swing_toe_roll`` only the swing pitch; both 0 (the defaults) give
+    the reference bit for bit."""
+    g = torch.Generator().manual_seed(2)
+    st = _steps(64, g)
+    base = ReferenceCfg(com_height="step", swing_toe_down=0.35)
+    shaped = ReferenceCfg(com_height="step", swing_toe_down=0.35, swing_xy_shape=0.35)
+    rolled = ReferenceCfg(com_height="step", swing_toe_down=0.35, swing_toe_roll=0.15)
+    explicit = ReferenceCfg(swing_xy_shape=0.0, swing_toe_roll=0.0)
+    for _ in range(5):
+        tau = st.duration * 1.3 * torch.rand(64, generator=g, dtype=F64)
+        p0, v0 = reference_at(st, tau, base, HlipCfg(), 17).flatten()
+        for cfg, changed in ((shaped, [SWING_X, SWING_X + 1]), (rolled, [SWING_PITCH])):
+            p1, v1 = reference_at(st, tau, cfg, HlipCfg(), 17).flatten()
+            other = torch.ones(p0.shape[1], dtype=torch.bool)
+            other[changed] = False
+            assert torch.equal(p0[:, other], p1[:, other]) and torch.equal(
+                v0[:, other], v1[:, other]
+            )
+            inside = (tau > 0) & (tau < st.duration)
+            assert bool((p0[inside][:, changed] != p1[inside][:, changed]).any())
+        d0 = reference_at(st, tau, ReferenceCfg(), HlipCfg(), 17).flatten()
+        d1 = reference_at(st, tau, explicit, HlipCfg(), 17).flatten()
+        assert torch.equal(d0[0], d1[0]) and torch.equal(d0[1], d1[1])
+
+
+def test_the_options_reach_the_reference_term_and_bad_values_are_one_line():
+    """``reference.swing_xy_shape``, ``swing_toe_roll`` and ``swing_height`` on the command line
+    are the env's reference term's (and so the audit's); the defaults are 0, 0 and 0.10 m (the
+    reference as before); outside their intervals they are refused naming the interval."""
+    from march.audit.feasibility import reference_command_cfg
+    from march.config.cli import load
+    from march.config.schema import ConfigError
+
+    cfg = load(
+        [
+            "compute=smoke",
+            "reference.swing_xy_shape=0.35",
+            "reference.swing_toe_roll=0.15",
+            "reference.swing_height=0.08",
+        ]
+    )
+    ref = reference_command_cfg(cfg).reference
+    assert (ref.swing_xy_shape, ref.swing_toe_roll, ref.swing_height) == (0.35, 0.15, 0.08)
+    ref = reference_command_cfg(load(["compute=smoke"])).reference
+    assert (ref.swing_xy_shape, ref.swing_toe_roll, ref.swing_height) == (0.0, 0.0, 0.10)
+    for key, bad, interval in (
+        ("swing_xy_shape", 0.6, r"\[0.0, 0.5\]"),
+        ("swing_toe_roll", -1.5, r"\[-1.0, 1.0\]"),
+        ("swing_height", 0.5, r"\[0.02, 0.3\]"),
+    ):
+        with pytest.raises(ConfigError, match=interval):
+            load(["compute=smoke", f"reference.{key}={bad}"])
+
+
+def test_the_xy_shape_lets_the_dragged_trailing_foot_follow_on_the_kinematic_g1(monkeypatch):
+    """On the kinematic G1 (stance foot held, the audit's walk), hand-planned steps (0.4 s each,
+    flat ground). 0.5, 0.5, 0.3 m: after a 0.5 m step the trailing leg is nearly straight and
+    drags its foot ahead of a minimum-jerk reference that has not started; with
+    swing_xy_shape = 0.35 the swing foot's worst error over steps 1-2 falls from 12.2 to 7.6 mm
+    in x and 19.1 to 14.1 mm in z, and its worst x rate error from 0.57 to 0.43 m/s (measured).
+    0.35 m steps: with the foot on its reference to 0.4 mm, the audit's swing z rate error (the
+    end-of-tick tangent against the reference's rate, ~ v w dt / 2) falls from 0.236 to
+    0.190 m/s, under the 0.2 m/s tolerance, with the flatter speed."""
+    from march.audit.feasibility import FeasibilityCfg
+    from march.audit.kinematic_g1 import KinematicG1
+    from tests.test_feasibility import hand_planned_walk
+
+    kin = KinematicG1()
+    swing_z = NAMES.index("swing_z")
+
+    def worst(trace, key: str, col: int, steps: tuple[int, ...]) -> float:
+        values = np.abs(np.asarray(getattr(trace, key))[:, col])
+        return float(values[np.isin(np.asarray(trace.tick_step), steps)].max())
+
+    runs = {
+        a: hand_planned_walk(kin, (0.5, 0.5, 0.3), ReferenceCfg(swing_xy_shape=a), monkeypatch)
+        for a in (0.0, 0.35)
+    }
+    for col, share in ((SWING_X, 0.7), (swing_z, 0.8)):
+        assert worst(runs[0.35], "eta", col, (1, 2)) < share * worst(runs[0.0], "eta", col, (1, 2))
+    assert worst(runs[0.35], "etadot", SWING_X, (1, 2)) < 0.8 * worst(
+        runs[0.0], "etadot", SWING_X, (1, 2)
+    )
+    tol = FeasibilityCfg().rate_tolerances()[swing_z]
+    assert tol == pytest.approx(0.2)
+    flat, shaped = (
+        hand_planned_walk(kin, (0.35,) * 3, ReferenceCfg(swing_xy_shape=a), monkeypatch)
+        for a in (0.0, 0.35)
+    )
+    assert max(worst(t, "eta", swing_z, (1, 2)) for t in (flat, shaped)) < 1e-3
+    assert worst(flat, "etadot", swing_z, (1, 2)) > tol > worst(shaped, "etadot", swing_z, (1, 2))
+
+
+OPTION_SET = [
+    "reference.com_height=step",
+    "reference.com_height_free_step=0.4",
+    "reference.com_height_slope=0.25",
+    "reference.swing_height=0.08",
+    "reference.swing_xy_shape=0.35",
+    "reference.swing_toe_down=0.4",
+    "reference.swing_toe_roll=0.15",
+]
+"""docs/audit.md's option set (issue 55 item 5)."""
+
+
+@pytest.mark.sim
+def test_the_env_tracks_the_shaped_reference():
+    """The teacher env built with the option set (compute=smoke, 4 envs, dr=none), walked 30
+    steps under 0.4 N(0, 1) actions: the reference term's y_ref (the fused reference, at the
+    term's own tau) is reference_at of the term's step state with the option set, to float32
+    rounding, and its swing pitch differs from the same step's reference without the shapings
+    wherever a swing is under way (phase 0.1-0.9: the options reach the env)."""
+    from march.config.cli import load
+    from march.env.build import make_env
+    from march.env.reference_command import reference_term
+
+    env = make_env(load(["compute=smoke", "dr=none", *OPTION_SET]), "teacher", num_envs=4)
+    try:
+        term = reference_term(env)
+        gen = torch.Generator().manual_seed(0)
+        n_act = env.action_manager.total_action_dim
+        env.reset()
+        ref = term.cfg.reference
+        assert (ref.swing_xy_shape, ref.swing_toe_roll, ref.swing_height) == (0.35, 0.15, 0.08)
+        plain = ReferenceCfg(com_height="step", com_height_free_step=0.4, com_height_slope=0.25)
+        differ = 0
+        for _ in range(30):
+            env.step(0.4 * torch.randn(env.num_envs, n_act, generator=gen))
+            want = reference_at(term.step, term.tau, ref, term.cfg.hlip, 17).flatten()
+            assert torch.allclose(term.y_ref_pos, want[0], atol=1e-4)
+            assert torch.allclose(term.y_ref_vel, want[1], atol=1e-3)
+            other = reference_at(term.step, term.tau, plain, term.cfg.hlip, 17).flatten()[0]
+            phase = term.tau / term.step.duration
+            inside = (phase > 0.1) & (phase < 0.9)  # the shapings are ~0 near the ends
+            changed = (other[:, SWING_PITCH] - want[0][:, SWING_PITCH]).abs() > 1e-3
+            assert bool((changed | ~inside).all())
+            differ += int(inside.sum())
+        assert differ >= 20, differ
+    finally:
+        env.close()
