@@ -25,8 +25,12 @@ def run_tool(capfd: pytest.CaptureFixture, module: str, *args: str) -> subproces
     """``python -m <module> <args>`` from the repository root, in this process, as a
     :class:`subprocess.CompletedProcess` (returncode, stdout, stderr). What the run changed in
     the process is put back: the working directory, ``sys.argv``, the environment, the root
-    logger's handlers (Hydra adds its job log's) and Hydra's global state."""
+    logger's handlers (Hydra adds its job log's) and Hydra's global state; and what the
+    process's exit does is done: a run directory lock the run holds is released (the lock's
+    ``atexit`` handler), so that none is left behind, as none is by a process."""
     from hydra.core.global_hydra import GlobalHydra
+
+    from march.store import run_lock
 
     root = logging.getLogger()
     handlers, level = list(root.handlers), root.level
@@ -47,5 +51,6 @@ def run_tool(capfd: pytest.CaptureFixture, module: str, *args: str) -> subproces
                     h.close()
             root.setLevel(level)
             GlobalHydra.instance().clear()
+            run_lock.release_all()  # the process's atexit handler
         out = capfd.readouterr()
     return subprocess.CompletedProcess([module, *args], code, out.out, out.err)
