@@ -419,7 +419,9 @@ def test_resume_cli_refuses_an_unsafe_override_and_writes_a_safe_one(tmp_path, c
     assert saved.distill.max_iterations == 7 and saved.seed == 0
 
 
-def test_a_resume_writes_its_job_log_into_the_run_and_leaves_no_other_folder(tmp_path, ckpts):
+def test_a_resume_writes_its_job_log_into_the_run_and_leaves_no_other_folder(
+    tmp_path, ckpts, capfd
+):
     """A resumed run's Hydra job log goes into the run's own train.log; no new folder appears
     under outputs/, and the run gets no .hydra/ of the resume's (run from an empty working
     directory, so that any folder Hydra made is seen). Before, every resume left one behind."""
@@ -429,14 +431,9 @@ def test_a_resume_writes_its_job_log_into_the_run_and_leaves_no_other_folder(tmp
     cfg = replace(load(["compute=smoke"]), stage="student", teacher_ckpt=str(ckpts["truncated"]))
     OmegaConf.save(OmegaConf.structured(cfg), run / "config.yaml")
     (run / "train.log").write_text("first launch\n")
-    out = subprocess.run(
-        [sys.executable, "-m", "march.train", f"resume={run}", "distill.max_iterations=7"],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env=dict(os.environ, HYDRA_FULL_ERROR="0"),
-    )
+    # In this process (tests/tool_in_process.py), from ``cwd``: Hydra writes what it writes
+    # there and into the run as a process would; its job log handler is closed afterwards.
+    out = run_tool(capfd, "march.train", f"resume={run}", "distill.max_iterations=7", cwd=cwd)
     _one_line_before_simulation(out, "not a readable checkpoint")  # it ran inside the pipeline
     assert list(cwd.iterdir()) == []
     assert not (run / ".hydra").exists()

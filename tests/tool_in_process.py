@@ -21,8 +21,10 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def run_tool(capfd: pytest.CaptureFixture, module: str, *args: str) -> subprocess.CompletedProcess:
-    """``python -m <module> <args>`` from the repository root, in this process, as a
+def run_tool(
+    capfd: pytest.CaptureFixture, module: str, *args: str, cwd: Path = ROOT
+) -> subprocess.CompletedProcess:
+    """``python -m <module> <args>`` from ``cwd`` (the repository root), in this process, as a
     :class:`subprocess.CompletedProcess` (returncode, stdout, stderr). What the run changed in
     the process is put back: the working directory, ``sys.argv``, the environment, the root
     logger's handlers (Hydra adds its job log's) and Hydra's global state; and what the
@@ -35,7 +37,7 @@ def run_tool(capfd: pytest.CaptureFixture, module: str, *args: str) -> subproces
     root = logging.getLogger()
     handlers, level = list(root.handlers), root.level
     with pytest.MonkeyPatch.context() as mp:
-        mp.chdir(ROOT)
+        mp.chdir(cwd)
         mp.setattr(sys, "argv", [module, *args])
         mp.setenv("HYDRA_FULL_ERROR", "0")
         capfd.readouterr()  # what the test printed before is not the tool's
