@@ -10,6 +10,7 @@ entry each.
 
 from __future__ import annotations
 
+import functools
 import gzip
 import hashlib
 import json
@@ -24,6 +25,7 @@ from pathlib import Path
 import pytest
 import torch
 from omegaconf import OmegaConf
+from tool_in_process import run_tool
 
 from march.config import ConfigError
 from march.config.cli import load
@@ -48,6 +50,17 @@ def _run(*args: str) -> subprocess.CompletedProcess:
         timeout=300,
         env=ENV,
     )
+
+
+def _tool(capfd, module: str, *args: str) -> subprocess.CompletedProcess:
+    """``python -m <module> <args>`` in this process (tests/tool_in_process.py): what a tool
+    says on refusing a file, without a subprocess's ~2 s of CPU. ``this`` (the module a crafted
+    config names) is taken out of ``sys.modules`` first, so that importing it would print its
+    poem again, and the run must leave it unimported."""
+    sys.modules.pop("this", None)
+    out = run_tool(capfd, module, *args)
+    assert "this" not in sys.modules, f"{module} imported the module a file named"
+    return out
 
 
 def _crafted(smoke_run: Path, folder: Path, kind: str = "student", **entries) -> Path:
@@ -85,13 +98,15 @@ CRAFTED = {
     # (the same 6 tool launches each, ~45 s on 2 cores) run with the slow tests (make test-all).
     [f if f == "iteration" else pytest.param(f, marks=pytest.mark.slow) for f in sorted(CRAFTED)],
 )
-def test_every_tool_gets_the_same_refusal_from_the_gate(smoke_run, tmp_path, fault):
+def test_every_tool_gets_the_same_refusal_from_the_gate(smoke_run, tmp_path, fault, capfd):
     """export, play, train stage=eval, train stage=student, march.audit rewards and a resume, on ONE crafted
-    checkpoint: the same line (after the label naming the file), exit 2, nothing run."""
+    checkpoint: the same line (after the label naming the file), exit 2, nothing run. Each
+    tool's command line runs in this process (``_tool``): six subprocesses cost ~40 s."""
     entries, needle = CRAFTED[fault]
     ckpt = _crafted(smoke_run, tmp_path / "ck", **entries)
     teacher = _crafted(smoke_run, tmp_path / "tk", "teacher", **entries)
     label = f"student_ckpt={ckpt}"
+    _run = functools.partial(_tool, capfd)
     runs = {
         "export": (_run("march.export", f"student_ckpt={ckpt}", f"out={tmp_path / 'x'}"), label),
         "play": (_run("march.play", f"student_ckpt={ckpt}", f"out={tmp_path / 'v.mp4'}"), label),
@@ -178,11 +193,14 @@ def test_every_tensor_of_a_checkpoint_is_checked_against_its_config(smoke_run, k
     check_weights(payload, kind, "L", cfg)
 
 
-def test_weights_that_disagree_with_their_config_are_refused_before_any_env(smoke_run, tmp_path):
+def test_weights_that_disagree_with_their_config_are_refused_before_any_env(
+    smoke_run, tmp_path, capfd
+):
     payload = load_checkpoint(smoke_run / "student" / "latest.pt", "student")
     payload["config"]["student"]["d_model"] = 2 * payload["config"]["student"]["d_model"]
     save_atomic(payload, tmp_path / "s.pt")
-    out = _run(
+    out = _tool(
+        capfd,
         "march.train",
         "compute=smoke",
         "stage=eval",
@@ -199,7 +217,10 @@ def test_weights_that_disagree_with_their_config_are_refused_before_any_env(smok
 # --- files: links, sizes, bounded inflation, strict JSON -----------------------------------
 
 
-def test_a_linked_checkpoint_is_refused_and_export_writes_nothing_outside(smoke_run, tmp_path):
+def test_a_linked_checkpoint_is_refused_and_export_writes_nothing_outside(
+    smoke_run, tmp_path, capfd
+):
+    _run = functools.partial(_tool, capfd)
     outside = tmp_path / "outside"
     outside.mkdir()
     (outside / "latest.pt").write_bytes((smoke_run / "student" / "latest.pt").read_bytes())

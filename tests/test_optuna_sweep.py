@@ -21,8 +21,9 @@ def test_optuna_sweep_reads_three_objective_values(tmp_path):
     cmd = [
         sys.executable, "-m", "march.train", "-m", "+sweep=optuna_clf",
         "compute=smoke", "stage=teacher", "teacher.max_iterations=1",
+        "teacher.num_steps_per_env=4",  # what each trial returns is checked, not the learning
         "eval.num_rollouts=2", "compute.eval_num_envs=2", "compute.torch_threads=1",
-        "eval.episode_length_s=0.5",
+        "eval.episode_length_s=0.2",  # 10 steps
         "hydra.sweeper.n_trials=3", f"hydra.sweep.dir={sweep}",
         "+hydra.callbacks.returns._target_=tests.sweep_returns.RecordReturns",
         f"+hydra.callbacks.returns.path={returns}",

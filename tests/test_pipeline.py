@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 from omegaconf import OmegaConf
+from tool_in_process import run_tool
 
 from march.config import ConfigError
 from march.config.cli import load
@@ -88,14 +89,15 @@ def test_student_checkpoint_rejects_other_variant(smoke_run):
         check_layout(payload["layout"], other, "student", "x.pt")
 
 
-def _teacher_only(run_dir: Path, iterations: int):
-    # Short evaluation episodes: these tests read the training rows and weights only.
+def _teacher_only(run_dir: Path, iterations: int, *overrides: str):
+    # Evaluation episodes of 5 steps: these tests read the training rows and weights only.
     cfg = load(
         [
             "compute=smoke",
             "stage=teacher",
             f"teacher.max_iterations={iterations}",
-            "eval.episode_length_s=0.5",
+            "eval.episode_length_s=0.1",
+            *overrides,
         ]
     )
     run_pipeline(cfg, run_dir)
@@ -103,9 +105,10 @@ def _teacher_only(run_dir: Path, iterations: int):
 
 
 def test_resume_continues_iteration_count(tmp_path):
-    first = _teacher_only(tmp_path, 1)
+    short = "teacher.num_steps_per_env=2"  # the iteration count is checked, not the learning
+    first = _teacher_only(tmp_path, 1, short)
     assert [r["iteration"] for r in first] == ["1"]
-    rows = _teacher_only(tmp_path, 3)  # same dir: resumes from teacher/latest.pt
+    rows = _teacher_only(tmp_path, 3, short)  # same dir: resumes from teacher/latest.pt
     assert [r["iteration"] for r in rows] == ["1", "2", "3"]
     assert int(rows[-1]["env_steps"]) == 3 * int(rows[0]["env_steps"])
     assert load_checkpoint(tmp_path / "teacher" / "latest.pt", "teacher")["iteration"] == 3
@@ -174,17 +177,18 @@ def _train(*args: str) -> subprocess.CompletedProcess:
     )
 
 
-def test_eval_of_a_modelfree_teacher_runs_the_modelfree_env(modelfree_teacher, tmp_path):
+def test_eval_of_a_modelfree_teacher_runs_the_modelfree_env(modelfree_teacher, tmp_path, capfd):
     payload = load_checkpoint(modelfree_teacher, "teacher")
     common = [
         "compute=smoke",
         "stage=eval",
         "eval.policy=teacher",
         f"teacher_ckpt={modelfree_teacher}",
-        "eval.episode_length_s=0.5",  # the env and its labels are checked, not the walking
+        "eval.episode_length_s=0.1",  # the env and its labels are checked, not the walking
     ]
-    # An explicit clf is one line naming both, before anything is built.
-    out = _train(*common, "reward=clf", f"hydra.run.dir={tmp_path / 'clf'}")
+    # An explicit clf is one line naming both, before anything is built (in this process: the
+    # refusal's line, without a subprocess's start-up; the run below is a real process).
+    out = run_tool(capfd, "march.train", *common, "reward=clf", f"hydra.run.dir={tmp_path / 'clf'}")
     assert out.returncode == 2, out.stderr[-2000:]
     lines = out.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: reward=clf conflicts with teacher_ckpt=")

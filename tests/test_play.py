@@ -65,7 +65,8 @@ def test_play_writes_a_moving_video_of_a_student(tmp_path):
 
     torch.set_num_threads(1)
     ckpt, out = tmp_path / "student.pt", tmp_path / "rollout.gif"
-    cfg = load(["compute=smoke", "eval.episode_length_s=0.5", f"student_ckpt={ckpt}", f"out={out}"])
+    # 0.3 s: 15 steps, 8 frames (one every other step): a moving video, its frame count and rate
+    cfg = load(["compute=smoke", "eval.episode_length_s=0.3", f"student_ckpt={ckpt}", f"out={out}"])
     env = make_env(cfg, "eval", num_envs=1)
     try:
         # A freshly initialised student stands in for a trained one (same layout, same loader).

@@ -21,6 +21,7 @@ from omegaconf import OmegaConf
 from saved_runs import resume as _resume
 from saved_runs import saved_run as _saved_run
 from saved_runs import train_cli as _train
+from tool_in_process import run_tool
 
 from march.config import ConfigError
 from march.config.cli import load
@@ -229,6 +230,7 @@ def test_a_run_on_a_full_disk_stops_with_one_line_and_keeps_its_checkpoint(tmp_p
             "compute=smoke",
             "stage=teacher",
             "teacher.max_iterations=3",
+            "teacher.num_steps_per_env=2",  # the checkpoints' size does not depend on it
             "teacher.eval_interval=0",
             f"hydra.run.dir={mnt}",
         )
@@ -374,18 +376,29 @@ def ckpts(tmp_path_factory) -> dict[str, Path]:
         ),
     ],
 )
-def test_bad_checkpoints_get_one_line_before_simulation(ckpts, args, needles):
-    out = _train("compute=smoke", *[a.format(**ckpts) for a in args])
+def test_bad_checkpoints_get_one_line_before_simulation(ckpts, args, needles, capfd):
+    out = _train_in_process(capfd, "compute=smoke", *[a.format(**ckpts) for a in args])
     _one_line_before_simulation(out, *needles)
 
 
-def test_resume_without_a_run_gets_one_line(tmp_path):
+def _train_in_process(capfd, *args: str) -> subprocess.CompletedProcess:
+    """``python -m march.train <args>`` run in this process (tests/tool_in_process.py): these
+    tests are about the line a refusal prints and its exit status, which a subprocess paid
+    ~2 s of CPU for (python, torch); the job log test below keeps a real process."""
+    return run_tool(capfd, "march.train", *args)
+
+
+def test_resume_without_a_run_gets_one_line(tmp_path, capfd):
     (tmp_path / "empty").mkdir()
-    _one_line_before_simulation(_train(f"resume={tmp_path / 'empty'}"), "not a march run directory")
-    _one_line_before_simulation(_train(f"resume={tmp_path / 'nope'}"), "no such run directory")
+    _one_line_before_simulation(
+        _train_in_process(capfd, f"resume={tmp_path / 'empty'}"), "not a march run directory"
+    )
+    _one_line_before_simulation(
+        _train_in_process(capfd, f"resume={tmp_path / 'nope'}"), "no such run directory"
+    )
 
 
-def test_resume_cli_refuses_an_unsafe_override_and_writes_a_safe_one(tmp_path, ckpts):
+def test_resume_cli_refuses_an_unsafe_override_and_writes_a_safe_one(tmp_path, ckpts, capfd):
     """Through main: refused overrides leave config.yaml alone; safe ones are written into it
     (this run then stops on its unreadable teacher checkpoint, before any simulation)."""
     run = tmp_path / "run"
@@ -394,18 +407,21 @@ def test_resume_cli_refuses_an_unsafe_override_and_writes_a_safe_one(tmp_path, c
     OmegaConf.save(OmegaConf.structured(cfg), run / "config.yaml")
     before = (run / "config.yaml").read_text()
     _one_line_before_simulation(
-        _train(f"resume={run}", "seed=4", "distill.max_iterations=7"),
+        _train_in_process(capfd, f"resume={run}", "seed=4", "distill.max_iterations=7"),
         "seed=4 cannot change on resume",
     )
     assert (run / "config.yaml").read_text() == before
     _one_line_before_simulation(
-        _train(f"resume={run}", "distill.max_iterations=7"), "not a readable checkpoint"
+        _train_in_process(capfd, f"resume={run}", "distill.max_iterations=7"),
+        "not a readable checkpoint",
     )
     saved = OmegaConf.load(run / "config.yaml")
     assert saved.distill.max_iterations == 7 and saved.seed == 0
 
 
-def test_a_resume_writes_its_job_log_into_the_run_and_leaves_no_other_folder(tmp_path, ckpts):
+def test_a_resume_writes_its_job_log_into_the_run_and_leaves_no_other_folder(
+    tmp_path, ckpts, capfd
+):
     """A resumed run's Hydra job log goes into the run's own train.log; no new folder appears
     under outputs/, and the run gets no .hydra/ of the resume's (run from an empty working
     directory, so that any folder Hydra made is seen). Before, every resume left one behind."""
@@ -415,14 +431,9 @@ def test_a_resume_writes_its_job_log_into_the_run_and_leaves_no_other_folder(tmp
     cfg = replace(load(["compute=smoke"]), stage="student", teacher_ckpt=str(ckpts["truncated"]))
     OmegaConf.save(OmegaConf.structured(cfg), run / "config.yaml")
     (run / "train.log").write_text("first launch\n")
-    out = subprocess.run(
-        [sys.executable, "-m", "march.train", f"resume={run}", "distill.max_iterations=7"],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env=dict(os.environ, HYDRA_FULL_ERROR="0"),
-    )
+    # In this process (tests/tool_in_process.py), from ``cwd``: Hydra writes what it writes
+    # there and into the run as a process would; its job log handler is closed afterwards.
+    out = run_tool(capfd, "march.train", f"resume={run}", "distill.max_iterations=7", cwd=cwd)
     _one_line_before_simulation(out, "not a readable checkpoint")  # it ran inside the pipeline
     assert list(cwd.iterdir()) == []
     assert not (run / ".hydra").exists()

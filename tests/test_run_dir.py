@@ -19,7 +19,8 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 from saved_runs import saved_run as _saved_run
-from saved_runs import train_cli as _train
+from saved_runs import train_cli
+from tool_in_process import run_tool
 
 from march.config import ConfigError
 from march.config.cli import check_output_dir, duplicate_overrides, literal_prefix, load
@@ -33,6 +34,14 @@ from march.store.resume_rules import RESUME_SAFE, adopt_config
 from march.store.run_dir import before_hydra, check_run_checkpoints, refuse_links
 
 ROOT = Path(__file__).resolve().parent.parent
+
+
+def _train(capfd, *args: str) -> subprocess.CompletedProcess:
+    """``python -m march.train <args>`` run in this process (tests/tool_in_process.py): the CLI
+    tests here check the line a refusal prints, its exit status and what it left on disk, which
+    a subprocess paid ~2 s of CPU for; what the refusal imports is checked in a real process
+    (``_train_listing_modules``)."""
+    return run_tool(capfd, "march.train", *args)
 
 
 def _one_line(out: subprocess.CompletedProcess, *needles: str) -> str:
@@ -101,25 +110,25 @@ def test_every_difference_outside_the_safe_list_is_refused(tmp_path, case):
     assert not any(f"{s}:" in str(err.value) for s in RESUME_SAFE if "." in s)
 
 
-def test_cli_new_run_with_another_seed_leaves_the_run_untouched(tmp_path):
+def test_cli_new_run_with_another_seed_leaves_the_run_untouched(tmp_path, capfd):
     run = _saved_run(tmp_path)
     (run / ".hydra").mkdir()
     (run / ".hydra" / "overrides.yaml").write_text("- compute=smoke\n")
     (run / "train.log").write_text("first launch\n")
     before = _snapshot(run)
     line = _one_line(
-        _train("compute=smoke", "seed=5", f"hydra.run.dir={run}"),
+        _train(capfd, "compute=smoke", "seed=5", f"hydra.run.dir={run}"),
         "already holds a run with another config (seed: 0 -> 5)",
     )
     assert f"resume={run}" in line
     assert _snapshot(run) == before  # config.yaml, .hydra/ and train.log as they were
 
 
-def test_cli_new_run_in_a_folder_of_run_files_without_config_is_refused(tmp_path):
+def test_cli_new_run_in_a_folder_of_run_files_without_config_is_refused(tmp_path, capfd):
     run = tmp_path / "run"
     (run / "teacher").mkdir(parents=True)
     (run / "metrics.csv").write_text("stage,iteration\n")
-    _one_line(_train("compute=smoke", f"hydra.run.dir={run}"), "no config.yaml")
+    _one_line(_train(capfd, "compute=smoke", f"hydra.run.dir={run}"), "no config.yaml")
     assert not (run / "config.yaml").exists()
 
 
@@ -168,14 +177,14 @@ def test_a_second_writer_is_refused_naming_the_holder(tmp_path):
     assert not (run / "run.lock").exists()
 
 
-def test_cli_two_concurrent_resumes_the_second_writes_nothing(tmp_path):
+def test_cli_two_concurrent_resumes_the_second_writes_nothing(tmp_path, capfd):
     run = _saved_run(tmp_path)
     (run / "train.log").write_text("first launch\n")
     (run / "status.json").write_text('{"state": "running"}')
     proc = _holder(run)
     try:
         before = _snapshot(run)
-        line = _one_line(_train(f"resume={run}"), f"is in use by pid {proc.pid} on host")
+        line = _one_line(_train(capfd, f"resume={run}"), f"is in use by pid {proc.pid} on host")
         assert "nothing was written" in line
         assert _snapshot(run) == before
     finally:
@@ -215,7 +224,7 @@ def test_a_read_only_directory_is_refused(tmp_path):
         ro.chmod(0o755)
 
 
-def test_cli_a_read_only_file_system_gets_one_line(tmp_path):
+def test_cli_a_read_only_file_system_gets_one_line(tmp_path, capfd):
     """A real read-only mount (a tmpfs remounted ro; root only, skipped elsewhere): a new run
     under it and a resume of a run on it each end in one line (before: Hydra's tracebacks)."""
     mnt = tmp_path / "ro"
@@ -231,10 +240,10 @@ def test_cli_a_read_only_file_system_gets_one_line(tmp_path):
         run = _saved_run(mnt)
         subprocess.run(["mount", "-o", "remount,ro", str(mnt)], check=True)
         _one_line(
-            _train("compute=smoke", f"hydra.run.dir={mnt}/new"),
+            _train(capfd, "compute=smoke", f"hydra.run.dir={mnt}/new"),
             f"cannot create directories in {mnt} (Read-only file system)",
         )
-        _one_line(_train(f"resume={run}"), "cannot create run.lock (Read-only file system)")
+        _one_line(_train(capfd, f"resume={run}"), "cannot create run.lock (Read-only file system)")
         assert sorted(p.name for p in run.iterdir()) == ["config.yaml"]
     finally:
         subprocess.run(["umount", str(mnt)], check=False)
@@ -272,10 +281,12 @@ def test_memory_estimate_by_hand():
     assert "compute.num_envs=2000000000" in str(err.value) and "need at least" in str(err.value)
 
 
-def test_cli_impossible_directories_and_sizes_get_one_line(tmp_path):
-    _one_line(_train("hydra.run.dir=/etc/passwd/run"), "/etc/passwd is a file, not a directory")
+def test_cli_impossible_directories_and_sizes_get_one_line(tmp_path, capfd):
     _one_line(
-        _train("compute=smoke", "compute.num_envs=4", "compute.num_envs=8"),
+        _train(capfd, "hydra.run.dir=/etc/passwd/run"), "/etc/passwd is a file, not a directory"
+    )
+    _one_line(
+        _train(capfd, "compute=smoke", "compute.num_envs=4", "compute.num_envs=8"),
         "compute.num_envs is set twice",
     )
     big, modules = tmp_path / "big", tmp_path / "modules.txt"
@@ -415,7 +426,7 @@ def test_a_checkpoint_march_wrote_passes():
     assert check_checkpoint(old, "teacher", "x") is None
 
 
-def test_a_run_checkpoint_is_checked_before_any_env(tmp_path):
+def test_a_run_checkpoint_is_checked_before_any_env(tmp_path, capfd):
     run = _saved_run(tmp_path)
     cfg = load(["compute=smoke"])
     (run / "teacher").mkdir()
@@ -429,12 +440,12 @@ def test_a_run_checkpoint_is_checked_before_any_env(tmp_path):
     bad = _payload()
     bad["iteration"] = "../../x"
     save_atomic(bad, run / "teacher" / "latest.pt")
-    out = _train(f"resume={run}")
+    out = _train(capfd, f"resume={run}")
     _one_line(out, f"resume={run}: {run / 'teacher' / 'latest.pt'}: its iteration '../../x'")
     stage_student = _payload(**{"reward.label": "${oc.env:HOME}"})
     save_atomic(stage_student, tmp_path / "t.pt")
     _one_line(
-        _train("compute=smoke", "stage=student", f"teacher_ckpt={tmp_path / 't.pt'}"),
+        _train(capfd, "compute=smoke", "stage=student", f"teacher_ckpt={tmp_path / 't.pt'}"),
         "reward.label holds a '${...}'",
     )
 
@@ -467,10 +478,10 @@ def test_a_link_in_a_run_directory_is_refused(tmp_path, name):
         refuse_links(run, "resume")
 
 
-def test_cli_resume_of_a_run_with_a_link_is_refused(tmp_path):
+def test_cli_resume_of_a_run_with_a_link_is_refused(tmp_path, capfd):
     run = _saved_run(tmp_path)
     os.symlink(tmp_path / "x.log", run / "env.log")
-    _one_line(_train(f"resume={run}"), f"{run / 'env.log'} is a symbolic link")
+    _one_line(_train(capfd, f"resume={run}"), f"{run / 'env.log'} is a symbolic link")
     assert not (tmp_path / "x.log").exists()
 
 
@@ -542,7 +553,7 @@ def test_sigterm_leaves_status_preempted_and_a_resume_finishes(tmp_path):
     assert status["state"] == "preempted" and status["signal"] == "SIGTERM", status
     assert 2 <= status["iteration"] < 6 and "[preempted] SIGTERM" in rest
     assert (run / "teacher" / f"model_{status['iteration']:06d}.pt").is_file()
-    done = _train(f"resume={run}", timeout=600)
+    done = train_cli(f"resume={run}", timeout=600)  # a real run, to its end
     assert done.returncode == 0, done.stderr[-3000:]
     assert f"resuming from {run / 'teacher' / 'latest.pt'} at iteration" in done.stdout
     assert json.loads((run / "status.json").read_text())["state"] == "done"

@@ -13,8 +13,8 @@ ROOT = Path(__file__).resolve().parent.parent
 pytestmark = pytest.mark.sim
 
 # Episodes of 0.1 s end inside one 8-step iteration, so every curve has points; evaluation
-# episodes of 0.5 s: the sweeps' plumbing is tested here, not the walking.
-SHORT_EVAL = "eval.episode_length_s=0.5"
+# episodes of 0.2 s (10 steps): the sweeps' plumbing is tested here, not the walking.
+SHORT_EVAL = "eval.episode_length_s=0.2"
 QUICK = [
     "compute=smoke",
     "teacher.max_iterations=2",
@@ -107,35 +107,27 @@ def test_crashed_run_is_recorded_and_the_other_finishes(sweeps):
     assert "CheckpointError" in failed["error"] and "not a readable checkpoint" in failed["error"]
 
 
-def test_figures_from_all_sweeps_name_the_crash(sweeps):
+def _figures(capfd, *args: str) -> subprocess.CompletedProcess:
+    """``python analysis/figures.py <args>`` in this process (its ``main``; it reads files
+    only): what it prints and returns, without a subprocess's start-up."""
+    sys.path.insert(0, str(ROOT))
+    from analysis.figures import main
+
+    capfd.readouterr()
+    code = main(list(args))
+    out = capfd.readouterr()
+    return subprocess.CompletedProcess(["analysis/figures.py", *args], code, out.out, out.err)
+
+
+def test_figures_from_all_sweeps_name_the_crash(sweeps, capfd):
     out_dir = sweeps["root"] / "figures"
-    out = _run(
-        [
-            "analysis/figures.py",
-            str(sweeps["basic"]),
-            str(sweeps["submitit"]),
-            str(sweeps["crash"]),
-            "--out",
-            str(out_dir),
-        ],
-        timeout=300,
-    )
+    dirs = [str(sweeps["basic"]), str(sweeps["submitit"]), str(sweeps["crash"])]
+    out = _figures(capfd, *dirs, "--out", str(out_dir))
     # The submitit sweep and the crash sweep's first job evaluate the same student checkpoint
     # with the same seed: one experiment twice, refused in one line naming both ...
     assert out.returncode == 2 and "are the same experiment" in out.stderr
     assert len(out.stderr.strip().splitlines()) == 1
-    out = _run(
-        [
-            "analysis/figures.py",
-            str(sweeps["basic"]),
-            str(sweeps["submitit"]),
-            str(sweeps["crash"]),
-            "--out",
-            str(out_dir),
-            "--allow-duplicates",
-        ],
-        timeout=300,
-    )
+    out = _figures(capfd, *dirs, "--out", str(out_dir), "--allow-duplicates")
     assert out.returncode == 0, out.stderr[-3000:]
     assert "--allow-duplicates: seed 0" in out.stdout  # ... or the newest kept, said so
     for name in ("baseline", "ablation", "teacher_curves"):
