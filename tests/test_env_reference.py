@@ -28,14 +28,17 @@ def env():
     env.close()
 
 
-def _walk(env, std: float, steps: int = STEPS, seed: int = 0):
-    """Step with actions std * N(0, 1); per switch that is not an episode reset, the jump of
-    the CoM reference and pelvis roll and pitch (position, velocity norms) and whether it was a
-    touchdown."""
+def _walk(env, std: float, steps: int = STEPS, seed: int = 0, blocked: list | None = None):
+    """Step with actions std * N(0, 1) from a reset (``blocked`` given: from the env's state as
+    it is); per switch that is not an episode reset, the jump of the CoM reference and pelvis
+    roll and pitch (position, velocity norms) and whether it was a touchdown. ``blocked``: per
+    step, appended the number of envs whose landing the tilt rule kept from counting as a
+    touchdown (swing foot lifted, in contact, due, pelvis tilted)."""
     term = reference_term(env)
     gen = torch.Generator().manual_seed(seed)
     n_act = env.action_manager.total_action_dim
-    env.reset()
+    if blocked is None:
+        env.reset()
     found = []
     for _ in range(steps):
         before = term._next_ref
@@ -43,6 +46,12 @@ def _walk(env, std: float, steps: int = STEPS, seed: int = 0):
         _, _, terminated, truncated, _ = env.step(
             std * torch.randn(env.num_envs, n_act, generator=gen)
         )
+        if blocked is not None:
+            contact = term.foot_contact()
+            swing = torch.where(term.stance_is_left, contact[:, 1], contact[:, 0])
+            due = term.tau >= term.cfg.touchdown_min_fraction * term.step.duration
+            tilted = term.pelvis_tilt_cos() < math.cos(0.35)
+            blocked.append(int((term.swing_lifted & swing & due & tilted).sum()))
         if before is None:
             continue
         kept = ~(terminated | truncated)
@@ -55,38 +64,48 @@ def _walk(env, std: float, steps: int = STEPS, seed: int = 0):
     return found
 
 
+@pytest.fixture(scope="module")
+def standing():
+    """One zero-action walk of ``FALL_STEPS`` steps from a seeded reset in an env of its own,
+    read by both zero-action tests (each had walked its own: 300 and 120 steps): the touchdowns
+    counted, the switches (:func:`_walk`) and the blocked landings per step."""
+    env = make_env(load(["compute=smoke", "dr=none"]), "teacher", num_envs=4)
+    try:
+        term = reference_term(env)
+        _seeded_reset(env, term, 0)  # the same falls in any test order
+        start = term.touchdown_count.clone()
+        blocked: list[int] = []
+        switches = _walk(env, 0.0, steps=FALL_STEPS, blocked=blocked)
+        yield {
+            "touchdowns": int((term.touchdown_count - start).sum()),
+            "switches": switches,
+            "blocked": blocked,
+            "num_envs": env.num_envs,
+        }
+    finally:
+        env.close()
+
+
 @pytest.mark.sim
-def test_a_falling_robot_makes_no_touchdown(env):
+def test_a_falling_robot_makes_no_touchdown(standing):
     """Zero action until the G1 topples (mjlab's G1 falls from its default pose in ~1.5 s):
     while it falls a swing foot lifts 2 cm and lands again late in the step, which counted as a
     touchdown before the tilt condition (issue 55: 2 in 8 envs x 300 steps, at 0.75 and 0.80
     rad). Here such contacts happen (seen in the term's state: lifted, in contact, due, the
     pelvis tilted past ``touchdown_max_tilt``) and none is counted."""
-    term = reference_term(env)
-    _seeded_reset(env, term, 0)  # the same falls whatever ran before in this env
-    start = term.touchdown_count.clone()
-    n_act = env.action_manager.total_action_dim
-    blocked = 0
-    for _ in range(FALL_STEPS):
-        env.step(torch.zeros(env.num_envs, n_act))
-        contact = term.foot_contact()
-        swing = torch.where(term.stance_is_left, contact[:, 1], contact[:, 0])
-        due = term.tau >= term.cfg.touchdown_min_fraction * term.step.duration
-        tilted = term.pelvis_tilt_cos() < math.cos(0.35)
-        blocked += int((term.swing_lifted & swing & due & tilted).sum())
-    assert int((term.touchdown_count - start).sum()) == 0
-    assert blocked >= 1  # the case happened
+    assert standing["touchdowns"] == 0
+    assert sum(standing["blocked"]) >= 1  # the case happened
 
 
 @pytest.mark.sim
-def test_zero_action_makes_no_touchdown_and_no_jump(env):
-    """Standing (zero action, the feet never lift): no touchdown in 120 steps (2.4 s), the steps
-    time out and restart from the same stance instead, each without a jump."""
-    term = reference_term(env)
-    start = term.touchdown_count.clone()
-    switches = _walk(env, 0.0)
-    assert int((term.touchdown_count - start).sum()) == 0
-    assert len(switches) >= env.num_envs  # every env restarted at least once (1.5 T < 1.05 s)
+def test_zero_action_makes_no_touchdown_and_no_jump(standing):
+    """Standing (zero action, the feet never lift): no touchdown in 300 steps (6 s, the G1
+    toppling and restarting in between), the steps time out and restart from the same stance
+    instead, each without a jump."""
+    switches = standing["switches"]
+    assert standing["touchdowns"] == 0
+    # every env restarted at least once (1.5 T < 1.05 s)
+    assert len(switches) >= standing["num_envs"]
     assert all(not td for _, _, td in switches)
     assert max(p for p, _, _ in switches) < 1e-4
     assert max(v for _, v, _ in switches) < 1e-3
@@ -101,7 +120,9 @@ def test_touchdowns_carry_the_com_reference_without_a_jump(env, monkeypatch):
     switch, not its cause, is under test. (With ``reference.com_anchoring=stance`` the same
     walks jump by decimetres: scripts/reference_jumps.py.)"""
     monkeypatch.setattr(reference_term(env).cfg, "touchdown_max_tilt", math.pi)
-    switches = _walk(env, 0.4, steps=160, seed=3)
+    # 100 steps: the first fall's landings come at steps 58-62 (1-2 touchdowns at seeds 3-5;
+    # the second fall's at 120-126 added 1-3 in the 160 steps walked before)
+    switches = _walk(env, 0.4, steps=100, seed=3)
     assert sum(td for _, _, td in switches) >= 1, switches
     assert max(p for p, _, _ in switches) < 1e-4, switches
     assert max(v for _, v, _ in switches) < 1e-3, switches
@@ -171,7 +192,8 @@ def test_planning_only_when_due_changes_no_number(env, monkeypatch):
     for when_due in (False, True):
         monkeypatch.setattr(term.cfg, "replan_only_when_due", when_due)
         calls["n"] = 0
-        runs[when_due] = (_trace(env, term, seed=5, steps=100), calls["n"])
+        # 70 steps: the first step timeouts (steps 36-52) and the first fall (~65) included
+        runs[when_due] = (_trace(env, term, seed=5, steps=70), calls["n"])
     (every, n_every), (due, n_due) = runs[False], runs[True]
     assert n_due < n_every / 2, (n_due, n_every)
     assert len(every) == len(due)

@@ -1,11 +1,12 @@
 """Evaluations repeat exactly (planner included) and the teacher's episodes start staggered.
 
-The sim test trains a one-iteration clf teacher (smoke preset; the run evaluates it once, on
-an eval env built before the teacher env and stepped beside it), evaluates its checkpoint
-twice on one freshly built eval env in this process, and once more in a fresh process
-(``python -m march.train stage=eval``): the four eval rows must be identical, digit for digit.
-One of the four renders the eval env's depth camera, which the teacher does not see; the
-others pause it (``march.env.depth.camera_paused``), as the pipeline does for a teacher.
+The sim test reads the session's smoke run (``python -m march.train compute=smoke``, the clf
+teacher evaluated at its end on an eval env built before the teacher env and stepped beside it;
+tests/conftest.py), evaluates its teacher checkpoint twice on one freshly built eval env in this
+process, and once more in a fresh process (``python -m march.train stage=eval``): the four
+teacher rows must be identical, digit for digit. One of the four renders the eval env's depth
+camera, which the teacher does not see; the others pause it (``march.env.depth.camera_paused``),
+as the pipeline does for a teacher.
 """
 
 from __future__ import annotations
@@ -48,20 +49,18 @@ def _metrics(row: dict) -> tuple[str, ...]:
 
 
 @pytest.mark.sim
-def test_evaluations_of_one_clf_teacher_are_bit_identical(tmp_path):
+def test_evaluations_of_one_clf_teacher_are_bit_identical(smoke_run, tmp_path):
     from march.env.build import make_env
+    from march.env.reference_command import reference_term
     from march.evaluation.protocol import evaluate, policy_from_checkpoint
     from march.store.checkpoint import load_checkpoint
-    from march.train import run_pipeline
 
-    # 6 rollouts on 4 envs: two waves; 1 s episodes (the smoke teacher falls after ~1.2 s, so
-    # the waves run to the horizon and cross the planner's replans).
-    common = ["compute=smoke", "reward=clf", "eval.num_rollouts=6", "eval.episode_length_s=1.0"]
-    cfg = load([*common, "stage=teacher", "teacher.max_iterations=1"])
-    train_dir = tmp_path / "train"
-    run_pipeline(cfg, train_dir)
-    (trained,) = _rows(train_dir / "eval.csv")
-    ckpt = train_dir / "teacher" / "latest.pt"
+    # The smoke run's teacher (2 iterations) falls after 1.1-1.4 s of its 3 s episodes: each
+    # evaluation's wave of 4 rollouts on 4 envs crosses the planner's timeout replans.
+    cfg = load(["compute=smoke"])
+    (trained,) = [r for r in _rows(smoke_run / "eval.csv") if r["stage"] == "teacher"]
+    ckpt = smoke_run / "teacher" / "latest.pt"
+    n = cfg.eval.num_rollouts
 
     here = tmp_path / "here"
     here.mkdir()
@@ -69,12 +68,15 @@ def test_evaluations_of_one_clf_teacher_are_bit_identical(tmp_path):
     try:
         payload = load_checkpoint(str(ckpt), "teacher", "cpu")
         policy = policy_from_checkpoint(env, cfg, "teacher", payload, str(ckpt))
+        term = reference_term(env)
         torch.manual_seed(999)  # whatever the caller's random state, the rows repeat
-        first = evaluate(env, policy, 6, here, "teacher", 1, 0, sees_depth=False)
+        first = evaluate(env, policy, n, here, "teacher", 2, 0, sees_depth=False)
         torch.rand(17)
+        ended = int((term.touchdown_count + term.forced_count).sum())
         # With the depth camera rendered (the run and the fresh process pause it for a teacher):
-        # the render changes no number.
-        second = evaluate(env, policy, 6, here, "teacher", 1, 0, sees_depth=True)
+        # the render changes no number. (The standing floor is cached: the policy's rollouts.)
+        second = evaluate(env, policy, n, here, "teacher", 2, 0, sees_depth=True)
+        replans = int((term.touchdown_count + term.forced_count).sum()) - ended
     finally:
         env.close()
 
@@ -84,7 +86,7 @@ def test_evaluations_of_one_clf_teacher_are_bit_identical(tmp_path):
             sys.executable,
             "-m",
             "march.train",
-            *common,
+            "compute=smoke",
             "stage=eval",
             "eval.policy=teacher",
             f"teacher_ckpt={ckpt}",
@@ -104,6 +106,7 @@ def test_evaluations_of_one_clf_teacher_are_bit_identical(tmp_path):
     assert all(r == rows[0] for r in rows), rows
     assert first["mean_reward"] == second["mean_reward"]  # the floats themselves, not only text
     assert float(trained["mean_reward"]) != 0.0  # a real rollout was measured
+    assert replans > 0  # steps ended and were replanned inside the rollouts (planner included)
 
 
 @pytest.mark.sim

@@ -589,14 +589,25 @@ def test_teacher_rows_during_training_and_resume_without_duplicates(tmp_path):
 
 
 @pytest.mark.sim
-def test_real_env_rollouts_on_stratified_cells_leave_training_rng_alone(tmp_path):
+def test_real_env_rollouts_on_stratified_cells_leave_training_rng_alone(tmp_path, monkeypatch):
     """The smoke eval env with zero actions (the G1 holds its default pose and tips over within
     a couple of seconds): 6 rollouts on 4 envs take two waves on the next course cells, every
-    rollout ends by a fall inside the episode, and the caller's random state is untouched."""
+    rollout ends by a fall inside the episode, and the caller's random state is untouched. The
+    per-rollout metrics checked are the ones march's evaluation itself rolled (read on their way
+    to the summary): its standing floor, once per env and rollout count, and each policy row."""
+    import march.evaluation.protocol as protocol
     from march.env.build import make_env
-    from march.evaluation.protocol import evaluate, rollout_metrics
+    from march.evaluation.protocol import evaluate
     from march.evaluation.summary import eval_line, format_summary
 
+    rolled: list[dict[str, torch.Tensor]] = []
+    real_rollouts = protocol.sharded_rollouts  # all waves of one call, in rollout order
+
+    def recorded(*args, **kwargs):
+        rolled.append(real_rollouts(*args, **kwargs))
+        return rolled[-1]
+
+    monkeypatch.setattr(protocol, "sharded_rollouts", recorded)
     cfg = load(["compute=smoke"])
     env = make_env(cfg, "eval")
     try:
@@ -607,19 +618,21 @@ def test_real_env_rollouts_on_stratified_cells_leave_training_rng_alone(tmp_path
 
         torch.manual_seed(123)
         state = torch.get_rng_state()
-        per = rollout_metrics(env, still, 6)  # 4 envs: two waves, the second keeps 2
-        assert torch.equal(torch.get_rng_state(), state)
-        terrain = env.scene.terrain
-        lv, col = eval_cells(4, 4, *terrain.terrain_origins.shape[:2])
-        assert terrain.terrain_levels.tolist() == lv.tolist()
-        assert terrain.terrain_types.tolist() == col.tolist()
-        horizon = int(env.max_episode_length)
         # march's evaluation of the zero action: it scores ~0 (its feet stay put while the
         # pelvis topples forward), and the row carries the standing floor: the same numbers
         row = evaluate(env, still, 6, tmp_path, "teacher", 0, 0, sees_depth=False)
+        assert torch.equal(torch.get_rng_state(), state)
+        terrain = env.scene.terrain
+        lv, col = eval_cells(4, 4, *terrain.terrain_origins.shape[:2])  # 4 envs: the 2nd wave
+        assert terrain.terrain_levels.tolist() == lv.tolist()
+        assert terrain.terrain_types.tolist() == col.tolist()
+        horizon = int(env.max_episode_length)
         again = evaluate(env, still, 6, tmp_path, "teacher", 1, 0, sees_depth=False)
     finally:
         env.close()
+    assert len(rolled) == 3  # the floor, then the policy twice: the floor is not rolled again
+    per = rolled[1]  # the first evaluation's policy rollouts: the floor's, value for value
+    torch.testing.assert_close(per, rolled[0], rtol=0, atol=0, equal_nan=True)
     assert row["floor_distance_m"] == row["mean_distance_m"] == again["floor_distance_m"]
     assert row["floor_se_distance_m"] == row["se_distance_m"]
     assert row["floor_reward"] == row["mean_reward"]

@@ -318,7 +318,7 @@ def test_a_cuda_run_directory_resumes_on_the_cpu_with_the_override(tmp_path):
         "compute=smoke",
         "stage=teacher",
         "teacher.max_iterations=1",
-        "eval.episode_length_s=0.5",  # the resume is tested, not the walking
+        "eval.episode_length_s=0.1",  # the resume is tested, not the walking: 5-step rollouts
         f"hydra.run.dir={run}",
         timeout=900,
     )
