@@ -78,7 +78,7 @@ def check_records(f: Any, label: str) -> None:
             raise CheckpointError(
                 f"{label}: its record {record.filename!r} is compressed ({record.compress_size} "
                 f"bytes that inflate to {record.file_size}); torch.save stores every record as "
-                "it is, so march wrote no such file; not read"
+                "it is, so it is no checkpoint march wrote; not read"
             )
         inflated += record.file_size
     if inflated > size:
