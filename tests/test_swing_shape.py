@@ -12,12 +12,12 @@ import math
 import numpy as np
 import pytest
 import torch
+from generated_steps import random_steps
 
 from march.reference.hlip import HlipCfg
 from march.reference.trajectory import (
     TOE_ROLL_SCALE,
     ReferenceCfg,
-    StepState,
     output_names,
     reference_at,
     swing_trajectory,
@@ -144,36 +144,13 @@ def test_the_toe_roll_rate_is_the_derivative_and_stays_within_its_amplitude():
         assert float(alone.abs().max()) <= abs(roll) + 1e-12
 
 
-def _steps(e: int, g: torch.Generator) -> StepState:
-    def r(*shape):
-        return torch.rand(*shape, generator=g, dtype=F64)
-
-    return StepState(
-        stance_pos=r(e, 3) - 0.5,
-        stance_is_left=r(e) > 0.5,
-        swing_start=r(e, 3) - 0.5,
-        target=r(e, 3),
-        next_target=r(e, 3) + 0.5,
-        duration=0.45 + 0.25 * r(e),
-        next_duration=0.45 + 0.25 * r(e),
-        yaw0=2 * r(e) - 1,
-        yaw_rate=r(e) - 0.5,
-        axis=torch.nn.functional.normalize(r(e, 2) + 0.1, dim=-1),
-        com_from_pos=r(e, 3),
-        com_from_vel=r(e, 3) - 0.5,
-        pelvis_from_pos=0.1 * r(e, 2),
-        pelvis_from_vel=r(e, 2) - 0.5,
-        z0=0.6 + 0.07 * r(e),
-    )
-
-
 def test_only_the_shaped_outputs_change():
     """reference_at with the shaping options against without: over 64 random steps at 5
     instants (late touchdowns included) ``swing_xy_shape`` changes only swing_x / swing_y
     (positions and rates), ``swing_toe_roll`` only the swing pitch; both 0 (the defaults) give
     the reference bit for bit."""
     g = torch.Generator().manual_seed(2)
-    st = _steps(64, g)
+    st = random_steps(64, g)
     base = ReferenceCfg(com_height="step", swing_toe_down=0.35)
     shaped = ReferenceCfg(com_height="step", swing_toe_down=0.35, swing_xy_shape=0.35)
     rolled = ReferenceCfg(com_height="step", swing_toe_down=0.35, swing_toe_roll=0.15)

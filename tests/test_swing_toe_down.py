@@ -9,11 +9,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from generated_steps import random_steps
 
 from march.reference.hlip import HlipCfg
 from march.reference.trajectory import (
     ReferenceCfg,
-    StepState,
     output_names,
     reference_at,
     toe_down,
@@ -61,36 +61,13 @@ def test_the_rate_is_the_time_derivative_of_the_pitch():
     assert float(pitch.min()) >= 0.0 and float(pitch.max()) <= amp + 1e-12
 
 
-def _steps(e: int, g: torch.Generator) -> StepState:
-    def r(*shape):
-        return torch.rand(*shape, generator=g, dtype=F64)
-
-    return StepState(
-        stance_pos=r(e, 3) - 0.5,
-        stance_is_left=r(e) > 0.5,
-        swing_start=r(e, 3) - 0.5,
-        target=r(e, 3),
-        next_target=r(e, 3) + 0.5,
-        duration=0.45 + 0.25 * r(e),
-        next_duration=0.45 + 0.25 * r(e),
-        yaw0=2 * r(e) - 1,
-        yaw_rate=r(e) - 0.5,
-        axis=torch.nn.functional.normalize(r(e, 2) + 0.1, dim=-1),
-        com_from_pos=r(e, 3),
-        com_from_vel=r(e, 3) - 0.5,
-        pelvis_from_pos=0.1 * r(e, 2),
-        pelvis_from_vel=r(e, 2) - 0.5,
-        z0=0.6 + 0.07 * r(e),
-    )
-
-
 @pytest.mark.parametrize("height", ["fixed", "step"])
 def test_only_the_swing_pitch_changes_and_by_the_profile(height):
     """reference_at with ``swing_toe_down`` = 0.35 against 0: over 64 random steps at 5 random
     instants (late touchdowns included) every output but the swing pitch is identical, and the
     swing pitch and its rate are the profile of the step's phase and duration."""
     g = torch.Generator().manual_seed(11)
-    st = _steps(64, g)
+    st = random_steps(64, g)
     flat, toed = (
         ReferenceCfg(com_height=height),
         ReferenceCfg(com_height=height, swing_toe_down=0.35),
