@@ -299,12 +299,13 @@ def study(runs: list, standing: float | None) -> dict:
 
     if clf and by_arm.get("modelfree"):
         c6 = sample_efficiency([r for r, _ in clf], [r for r, _ in by_arm["modelfree"]])
+        target, note = c6.pop("target_m"), c6.pop("note")
         rows.append(
             {
                 "criterion": (
                     f"C6 env steps to {ClaimsInput.threshold_fraction:.0%} of the better final "
-                    f"eval distance ({_fmt(c6.pop('target_m'))} m), clf / modelfree "
-                    f"(paper: <= {PAPER_STEP_RATIO}); {c6.pop('note')}"
+                    f"eval distance ({_fmt(target)} m), clf / modelfree "
+                    f"(paper: <= {PAPER_STEP_RATIO}); {note}"
                 ),
                 "arm": "clf vs modelfree",
                 **c6,

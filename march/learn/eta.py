@@ -112,16 +112,17 @@ def estimate_wall_s(
     per rollout step and ``rollout_s_per_it`` (seconds of an iteration's rollout) was measured,
     else from its whole iteration (an older run's rows: an overestimate on a CPU). ``*_from``
     are the iterations already done (a resumed run). Evaluation: ceil(num_rollouts /
-    (eval_num_envs x world)) waves (``world`` processes deal the rollouts between them) of eval.episode_length_s each, at eval_num_envs envs (step cost taken as
-    linear in the env count, an overestimate on a GPU), plus one evaluation's worth for the
-    standing floor (the zero action on the same rollouts, once per process's eval env).
+    (eval_num_envs x world)) waves (``world`` processes deal the rollouts between them) of
+    eval.episode_length_s each, at eval_num_envs envs (step cost taken as linear in the env
+    count, an overestimate on a GPU), plus one evaluation's worth for the standing floor (the
+    zero action on the same rollouts, once per process's eval env).
     """
     c, t, d, e = cfg.compute, cfg.teacher, cfg.distill, cfg.eval
     k = step_costs(c.device)
     distill_step_cost = k.distill_rollout + k.distill_epoch * d.num_learning_epochs
     if teacher_s_per_it is not None:
-        per_step = rollout_s_per_it if k.per_rollout_step and rollout_s_per_it else None
-        step_s = (per_step or teacher_s_per_it) / t.num_steps_per_env  # all num_envs envs
+        timed = rollout_s_per_it if k.per_rollout_step and rollout_s_per_it else None
+        step_s = (timed or teacher_s_per_it) / t.num_steps_per_env  # all num_envs envs
     elif distill_s_per_it is not None:
         step_s = distill_s_per_it / (d.num_steps_per_env * distill_step_cost)
     else:
@@ -147,8 +148,8 @@ def estimate_wall_s(
         n_teacher -= teacher_from // t.eval_interval
     if d.eval_interval:
         n_student -= min(n_student - 1, distill_from // d.eval_interval)
-    evals = n_teacher + n_student
-    evals = (evals + 1 if evals else 0) * one_eval  # + the standing floor
+    n_evals = n_teacher + n_student
+    evals = (n_evals + 1 if n_evals else 0) * one_eval  # + the standing floor
     return {
         "teacher": teacher,
         "distill": distill,
