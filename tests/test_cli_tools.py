@@ -302,6 +302,9 @@ def test_wall_time_estimate_by_hand():
     est = eta.estimate_wall_s(cfg, distill_s_per_it=distill_it)
     assert est["teacher"] == 0.0 and est["distill"] == pytest.approx(6 * distill_it)
     assert est["eval"] == pytest.approx(3 * one_eval)
+    # Distillation after a teacher in the same process: its eval env has the floor already.
+    est = eta.estimate_wall_s(cfg, distill_s_per_it=distill_it, floor_done=True)
+    assert est["eval"] == pytest.approx(2 * one_eval)
     # A GPU's factors are per whole iteration: its rollout is not timed apart.
     gpu = load([*ETA_CFG, "compute.device=cuda"])
     g = eta.STEP_COSTS["cuda"]
@@ -330,12 +333,12 @@ def test_eta_line_after_the_first_iterations():
         watch.observe({"stage": "student", "iteration": i, "wall_s": 10.0 * i + 5})
         for i in (1, 2, 3, 4)
     ]
-    est = eta.estimate_wall_s(cfg, 2.0, 10.0, teacher_from=10)
+    est = eta.estimate_wall_s(cfg, 2.0, 10.0, teacher_from=10, floor_done=True)
     assert est["teacher"] == 0.0
     assert distill[:3] == [None, None, None]
     assert distill[3] == (
         "[eta] measured 10 s/it over distillation iterations 2-4: distillation ~1 min, with its "
-        f"evaluations ~{eta.format_duration(est['distill'] + est['eval'])}"
+        f"evaluations up to ~{eta.format_duration(est['distill'] + est['eval'])}"
     )
     # A stage of no more than 3 iterations left is measured whole: here a resumed one.
     watch = eta.EtaWatch(load([*ETA_CFG, "teacher.max_iterations=6"]), echo=False)

@@ -103,6 +103,7 @@ def estimate_wall_s(
     distill_from: int = 0,
     rollout_s_per_it: float | None = None,
     world: int = 1,
+    floor_done: bool = False,
 ) -> dict[str, float]:
     """Expected seconds of the teacher, distillation and evaluations of ``cfg.stage`` from here.
 
@@ -115,7 +116,8 @@ def estimate_wall_s(
     (eval_num_envs x world)) waves (``world`` processes deal the rollouts between them) of
     eval.episode_length_s each, at eval_num_envs envs (step cost taken as linear in the env
     count, an overestimate on a GPU), plus one evaluation's worth for the standing floor (the
-    zero action on the same rollouts, once per process's eval env).
+    zero action on the same rollouts, once per process's eval env; ``floor_done``: this
+    process's eval env has it already, from the teacher's evaluation).
     """
     c, t, d, e = cfg.compute, cfg.teacher, cfg.distill, cfg.eval
     k = step_costs(c.device)
@@ -149,7 +151,8 @@ def estimate_wall_s(
     if d.eval_interval:
         n_student -= min(n_student - 1, distill_from // d.eval_interval)
     n_evals = n_teacher + n_student
-    evals = (n_evals + 1 if n_evals else 0) * one_eval  # + the standing floor
+    floor = 1 if n_evals and not floor_done else 0  # the standing floor, once per eval env
+    evals = (n_evals + floor) * one_eval
     return {
         "teacher": teacher,
         "distill": distill,
@@ -250,10 +253,12 @@ class EtaWatch:
                 distill_from=it0,
                 rollout_s_per_it=self.rollout_s_per_it,
                 world=current().world,
+                # the teacher ran here and evaluated its last iteration: the floor is cached
+                floor_done=self.teacher_s_per_it is not None,
             )
             line = (
                 f"[eta] measured {s_per_it:.3g} s/it over {over}: distillation "
-                f"~{format_duration(est['distill'])}, with its evaluations "
+                f"~{format_duration(est['distill'])}, with its evaluations up to "
                 f"~{format_duration(est['distill'] + est['eval'])}"
             )
         self.lines.append(line)
