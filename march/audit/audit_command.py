@@ -1,8 +1,8 @@
 """``python -m march.audit <job>``: the science checks that need no GPU (issue 50).
 
     python -m march.audit rewards [reward=clf|modelfree] [teacher_ckpt=<file>] [out=<file>.json]
-    python -m march.audit reference [out=<file>.json]
-    python -m march.audit envelope [out=<file>.json]
+    python -m march.audit reference [out=<file>.json] [audit.<option>=...]
+    python -m march.audit envelope [out=<file>.json] [audit.<option>=...]
 
 Every job composes the same config as ``march.train`` and takes its ``key=value`` overrides
 (``compute.num_envs``, ``seed``, ``+experiment=...``); it prints a table and writes strict JSON
@@ -16,12 +16,20 @@ plus a PNG beside it (``out=``, default ``outputs/audit/<job>_<reward>.json``).
   kinematic tracking, and where the plan is out of the G1's reach.
 - ``envelope`` (:mod:`march.audit.reach_envelope`): the longest step whose touchdown pose the
   G1 can take, against the CoM height.
+
+``audit.<option>=value`` sets the kinematic audits' own options (``reference`` and
+``envelope``; :data:`AUDIT_OPTIONS`): ``audit.stance=flat|heel_off`` (the stance foot's
+contact model, :class:`march.audit.kinematic_g1.IkCfg`), ``audit.heel_pitch_max`` [rad],
+``audit.heel_cost`` [1/rad], and for ``reference`` ``audit.courses_per_level`` and
+``audit.film=true|false``. The reach tolerances are not options here: they are the audit's
+judgement. A bad value is one line on stderr and exit 2, before anything is built.
 """
 
 from __future__ import annotations
 
 import sys
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from march.config import MarchConfig
@@ -29,7 +37,7 @@ from march.config.cli import fail, run_tool
 
 USAGE = (
     "usage: python -m march.audit rewards|reference|envelope [out=<file>.json] "
-    "[teacher_ckpt=<file>] "
+    "[teacher_ckpt=<file>] [audit.stance=flat|heel_off] "
     "[key=value ...]"
 )
 
@@ -84,16 +92,86 @@ def rewards(cfg: MarchConfig) -> dict:
     return arm
 
 
-def reference(cfg: MarchConfig) -> dict:
-    from march.audit.feasibility import reference_report
+AUDIT_OPTIONS: dict[str, tuple[str, type, tuple[str, ...]]] = {
+    "stance": ("ik", str, ("reference", "envelope")),
+    "heel_pitch_max": ("ik", float, ("reference", "envelope")),
+    "heel_cost": ("ik", float, ("reference", "envelope")),
+    "courses_per_level": ("feasibility", int, ("reference",)),
+    "film": ("feasibility", bool, ("reference",)),
+}
+"""``audit.<key>``: which config it sets (``IkCfg`` or ``FeasibilityCfg``), its type, and the
+jobs that take it."""
 
-    return reference_report(cfg, str(_out(cfg, "reference")))
+
+@dataclass
+class AuditOptions:
+    """The ``audit.*`` overrides of one command line, by the config they set."""
+
+    ik: dict = field(default_factory=dict)
+    feasibility: dict = field(default_factory=dict)
 
 
-def envelope(cfg: MarchConfig) -> dict:
+def parse_value(key: str, kind: type, text: str) -> object:
+    if kind is bool:
+        if text.lower() not in ("true", "false"):
+            fail(f"audit.{key}={text}: give true or false")
+        return text.lower() == "true"
+    try:
+        return kind(text)
+    except ValueError:
+        fail(f"audit.{key}={text}: give a {kind.__name__}")
+    return None  # unreachable: fail exits
+
+
+def split_audit_options(args: list[str]) -> tuple[list[str], AuditOptions]:
+    """The command line without its ``audit.*`` overrides, and those parsed and checked (the
+    job first, then key=value: one line and exit 2 on an unknown key, a bad value or a key
+    the job does not take)."""
+    job = args[0] if args and "=" not in args[0] else None
+    rest, options = [], AuditOptions()
+    for arg in args:
+        key, sep, text = arg.partition("=")
+        if not (sep and key.startswith("audit.")):
+            rest.append(arg)
+            continue
+        name = key.removeprefix("audit.")
+        if name not in AUDIT_OPTIONS:
+            fail(f"{key}: unknown audit option; choose one of {', '.join(AUDIT_OPTIONS)}")
+        target, kind, jobs = AUDIT_OPTIONS[name]
+        if job not in jobs:
+            fail(f"{key} applies to {' and '.join(jobs)}, not to {job or 'no job'}")
+        getattr(options, target)[name] = parse_value(name, kind, text)
+    from march.audit.feasibility import FeasibilityCfg
+    from march.audit.kinematic_g1 import IkCfg
+    from march.errors import ConfigError
+
+    try:  # the values checked now, before the config is composed or anything is built
+        IkCfg(**options.ik)
+        FeasibilityCfg(**options.feasibility)
+    except ConfigError as err:
+        fail(str(err))
+    return rest, options
+
+
+def reference(cfg: MarchConfig, options: AuditOptions | None = None) -> dict:
+    from march.audit.feasibility import FeasibilityCfg, reference_report
+    from march.audit.kinematic_g1 import IkCfg
+
+    options = options or AuditOptions()
+    return reference_report(
+        cfg,
+        str(_out(cfg, "reference")),
+        FeasibilityCfg(**options.feasibility),
+        IkCfg(**options.ik),
+    )
+
+
+def envelope(cfg: MarchConfig, options: AuditOptions | None = None) -> dict:
+    from march.audit.kinematic_g1 import IkCfg
     from march.audit.reach_envelope import envelope_report
 
-    return envelope_report(cfg, str(_out(cfg, "envelope")))
+    options = options or AuditOptions()
+    return envelope_report(cfg, str(_out(cfg, "envelope")), ik=IkCfg(**options.ik))
 
 
 JOBS = {"rewards": rewards, "reference": reference, "envelope": envelope}
@@ -102,8 +180,14 @@ JOBS = {"rewards": rewards, "reference": reference, "envelope": envelope}
 def main(argv: Sequence[str] | None = None) -> None:
     from march.store.checkpoint_file import check_checkpoint_files
 
+    args, options = split_audit_options(list(sys.argv[1:] if argv is None else argv))
+    jobs = {
+        "rewards": rewards,
+        "reference": lambda cfg: reference(cfg, options),
+        "envelope": lambda cfg: envelope(cfg, options),
+    }
     # teacher_ckpt= judged (link, size, zip records) before the term check loads the simulator
-    run_tool(JOBS, argv, usage=USAGE, before_terms=check_checkpoint_files)
+    run_tool(jobs, args, usage=USAGE, before_terms=check_checkpoint_files)
 
 
 if __name__ == "__main__":

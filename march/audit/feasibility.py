@@ -94,7 +94,11 @@ class FeasibilityCfg:
     tolerance built up or removed within 5 control ticks (CoM 0.3 m/s, pelvis 0.5 rad/s,
     swing foot 0.2 m/s, swing-foot angles 1 rad/s, upper body 0.5 rad/s)."""
     max_slide: float = 0.01
-    """A reached step's stance foot stays within this of its held position [m]."""
+    """A reached step's stance foot stays within this of its held position [m] (its site, or
+    with ``audit.stance=heel_off`` its toe edge's corners)."""
+    max_heel_sink: float = 0.001
+    """A reached step's stance heel stays above this depth below where it was held [m]: the
+    heel never goes into the ground (the IK's linearisation residual is ~1e-6 m)."""
     lift_min: float = 0.02
     """A real touchdown's swing foot rose at least this above its lift-off height [m]."""
     land_tol: float = 0.02
@@ -266,13 +270,15 @@ def judge_steps(arrays: dict[str, np.ndarray], options: FeasibilityCfg) -> dict[
     """Per step of the concatenated ``arrays``: ``reached`` (every tick, rates, slide, real
     touchdown: module docstring), ``at_touchdown`` (positions at the touchdown tick only: the
     old criterion) and ``cause``, the index of what missed worst (0-28 an output's position,
-    29-57 its rate, 58 the slide, 59 no real touchdown)."""
+    29-57 its rate, 58 the slide, 59 no real touchdown, 60 the heel in the ground)."""
     tol, rate_tol = options.tolerances(), options.rate_tolerances()
     pos = arrays["step_max_eta"] / tol
     rate = arrays["step_max_etadot"] / rate_tol
     slide = arrays["slide"][:, None] / options.max_slide
     real = arrays["real_touchdown"].astype(bool)
-    ratios = np.concatenate([pos, rate, slide, np.where(real, 0.0, 1.5)[:, None]], axis=1)
+    low = arrays.get("heel_low", np.zeros(len(slide)))
+    sink = np.maximum(-low, 0.0)[:, None] / options.max_heel_sink
+    ratios = np.concatenate([pos, rate, slide, np.where(real, 0.0, 1.5)[:, None], sink], axis=1)
     reached = (ratios <= 1.0).all(1)
     return {
         "reached": reached,
@@ -281,7 +287,13 @@ def judge_steps(arrays: dict[str, np.ndarray], options: FeasibilityCfg) -> dict[
     }
 
 
-CAUSES = [*CLF_OUTPUT_NAMES, *(f"{n} rate" for n in CLF_OUTPUT_NAMES), "slide", "no_touchdown"]
+CAUSES = [
+    *CLF_OUTPUT_NAMES,
+    *(f"{n} rate" for n in CLF_OUTPUT_NAMES),
+    "slide",
+    "no_touchdown",
+    "heel_sink",
+]
 """What :func:`judge_steps`' cause index names."""
 
 
@@ -300,9 +312,10 @@ def level_summary(
         return np.concatenate(parts)
 
     eta, etadot, v_ratio = np.abs(cat("eta", 29)), cat("etadot", 29), cat("v_ratio")
+    per_step = ("slide", "real_touchdown", "heel_low")
     steps_arrays = {
-        k: cat(k, 29 if k != "slide" and k != "real_touchdown" else None)
-        for k in ("step_max_eta", "step_max_etadot", "touchdown_eta", "slide", "real_touchdown")
+        k: cat(k, None if k in per_step else 29)
+        for k in ("step_max_eta", "step_max_etadot", "touchdown_eta", *per_step)
     }
     lengths, rises = cat("step_length"), cat("step_rise")
     gaps, lifted = cat("landing_gap"), cat("lifted")
@@ -352,6 +365,9 @@ def level_summary(
             "saturated": float((kin_v >= 1.0).mean()) if kin_v.size else None,
         },
         "stance_slide_m": quantiles(slide, top=True),
+        "stance_heel_lift_m": quantiles(cat("heel_lift"), top=True),
+        "stance_heel_low_m": {"min": float(steps_arrays["heel_low"].min()) if steps else None},
+        "stance_pitch_rad": quantiles(cat("stance_pitch"), top=True),
         "jump_at_touchdown": jump_summary(touchdown_jumps(walks.traces)),
         "reach": {
             "whole_step": share(reached),
@@ -380,17 +396,20 @@ def output_paths(out: str | None) -> tuple[Path, Path, Path]:
 
 
 def reference_report(
-    cfg: MarchConfig, out: str | None, options: FeasibilityCfg | None = None
+    cfg: MarchConfig,
+    out: str | None,
+    options: FeasibilityCfg | None = None,
+    ik: IkCfg | None = None,
 ) -> dict[str, Any]:
     """Walk, measure, write the JSON / PNG / MP4, print the tables; returns the JSON's dict
     (module docstring). ``options`` sets the course count and tolerances (defaults:
-    :class:`FeasibilityCfg`)."""
+    :class:`FeasibilityCfg`), ``ik`` the IK and its stance-foot model (``audit.stance``)."""
     options = options or FeasibilityCfg()
     json_path, png_path, mp4_path = output_paths(out)
     started = time.perf_counter()
     torch.manual_seed(cfg.seed)
     command = reference_command_cfg(cfg)
-    kin = KinematicG1(IkCfg(), clf=command.clf, command=command)
+    kin = KinematicG1(ik or IkCfg(), clf=command.clf, command=command)
     walks = walk_levels(cfg, options, kin, command)
     p11 = kin.clf.P_blocks_np[:, 0, 0]
     levels = [level_summary(w, options, p11, kin.v_max) for w in walks]
@@ -429,6 +448,14 @@ def reference_report(
     report["seconds"] = round(time.perf_counter() - started, 1)
     report = strict(report)
     json_path.write_text(json.dumps(report, indent=1, allow_nan=False))
+    print(
+        f"stance foot: {kin.cfg.stance}"
+        + (
+            f" (toe edge held, heel up to {kin.cfg.heel_pitch_max} rad)"
+            if kin.toes
+            else " (its whole pose held)"
+        )
+    )
     print(table(levels))
     print()
     print(jump_table(levels))

@@ -30,7 +30,8 @@ def pct(x: float | None) -> str:
 def table(levels: list[dict[str, Any]]) -> str:
     """The per-level reach and floor table printed on stdout."""
     head = (
-        "level diff kind   steps reach%  td% | slide mm p50   p90   max | V/Vmax p50   p90  "
+        "level diff kind   steps reach%  td% | slide mm p50   p90   max | heel-up mm p90   max |"
+        " V/Vmax p50   p90  "
         "sat%  Vpos p90 | p90 |eta|: com mm pelvis mrad swing mm swing-ori mrad upper mrad | "
         "missed most"
     )
@@ -38,6 +39,7 @@ def table(levels: list[dict[str, Any]]) -> str:
     for s in levels:
         g = s["eta_abs"]["groups"]
         v, vp, sl = s["v_over_vmax"], s["v_position_over_vmax"], s["stance_slide_m"]
+        hl = s.get("stance_heel_lift_m", {})  # the stance heel's lift (audit.stance=heel_off)
         misses = s["reach"]["misses_by_cause"]
         miss = ", ".join(f"{k} {n}" for k, n in list(misses.items())[:3]) or "-"
         rows.append(
@@ -45,6 +47,7 @@ def table(levels: list[dict[str, Any]]) -> str:
             f"{pct(s['reach']['whole_step'])} {pct(s['reach']['touchdown_tick_positions'])} |"
             f"     {num(sl['median'], 1e3, 5, 1)} {num(sl['p90'], 1e3, 5, 1)} "
             f"{num(sl['max'], 1e3, 5, 1)} |"
+            f"           {num(hl.get('p90'), 1e3, 5, 1)} {num(hl.get('max'), 1e3, 5, 1)} |"
             f"     {num(v['median'])} {num(v['p90'])} {pct(v['saturated'])}   "
             f"{num(vp['p90'])} |"
             f"          {num(g['com']['p90'], 1e3, 5, 1)}      {num(g['pelvis']['p90'], 1e3, 5, 1)}"

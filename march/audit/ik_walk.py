@@ -73,7 +73,17 @@ class WalkTrace:
     step_max_etadot: list[np.ndarray] = field(default_factory=list)
     """Per step (29,) max |etadot| over its ticks."""
     slide: list[float] = field(default_factory=list)
-    """Per step the largest distance of the stance-foot site from its held position [m]."""
+    """Per step the largest slide of the stance foot's held contact [m] (the site, or with
+    ``IkCfg.stance=heel_off`` the toe edge's corners: :meth:`KinematicG1.contact`)."""
+    heel_lift: list[float] = field(default_factory=list)
+    """Per step the stance heel's highest lift above where it was held [m] (0: flat)."""
+    heel_low: list[float] = field(default_factory=list)
+    """Per step the stance heel's lowest height against where it was held [m] (< 0: into
+    the ground)."""
+    stance_pitch: list[float] = field(default_factory=list)
+    """Per step the stance foot's largest heel-up pitch [rad]."""
+    tick_heel_lift: list[float] = field(default_factory=list)
+    """Per tick the stance heel's lift [m]."""
     lifted: list[float] = field(default_factory=list)
     """Per step the swing-foot site's highest rise above its lift-off height [m]."""
     landing_gap: list[float] = field(default_factory=list)
@@ -230,7 +240,7 @@ def track_step(
     kin.measure(kin.qpos, None, is_left)  # kin.data may hold another walk's last tick
     lift_z = site_pose(kin, not is_left)[0][2]
     top = lift_z
-    slide = 0.0
+    slide, heel_hi, heel_lo, pitch = 0.0, -math.inf, math.inf, -math.inf
     for j in range(1, n + 1):
         tick = kin.track(ref_pos[j], ref_vel[j], is_left, *held)
         trace.eta.append(tick.eta)
@@ -241,6 +251,9 @@ def track_step(
         if keep_qpos:
             trace.qpos.append(tick.qpos)
         slide = max(slide, tick.slide)
+        heel_hi, heel_lo = max(heel_hi, tick.heel_lift), min(heel_lo, tick.heel_lift)
+        pitch = max(pitch, tick.stance_pitch)
+        trace.tick_heel_lift.append(tick.heel_lift)
         top = max(top, float(site_pose(kin, not is_left)[0][2]))
     trace.touchdown_eta.append(trace.eta[-1])
     trace.step_max_eta.append(np.abs(np.asarray(trace.eta[-n:])).max(0))
@@ -248,6 +261,9 @@ def track_step(
     trace.ref_start.append(np.concatenate([ref_pos[0], ref_vel[0]]))
     trace.ref_end.append(np.concatenate([ref_pos[n], ref_vel[n]]))
     trace.slide.append(slide)
+    trace.heel_lift.append(heel_hi)
+    trace.heel_low.append(heel_lo)
+    trace.stance_pitch.append(pitch)
     anchor, target = step.stance_pos[0], step.target[0]
     trace.step_length.append(float(torch.linalg.norm(target[:2] - anchor[:2])))
     trace.step_rise.append(float(target[2] - anchor[2]))

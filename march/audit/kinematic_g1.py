@@ -12,6 +12,18 @@ poses the robot for the reference y_ref of that instant, warm-started from the p
   tick (:attr:`Tick.slide`) and a step whose stance foot slid more than 1 cm is not reached
   (:mod:`march.audit.feasibility`). ``stance_hard=False`` restores the soft task of cost
   ``IkCfg.stance_cost``, which slid up to 16 cm at the hardest level (issue 55).
+- **the stance-foot contact model** (``IkCfg.stance``, issue 55): ``flat`` (the default) holds
+  the whole pose of the foot site as above. ``heel_off`` holds the foot's TOE EDGE instead:
+  a site on the sole's front edge (the foremost ends of the foot's collision capsules,
+  :func:`foot_sole`) held in position, roll and yaw as the same hard equality constraint
+  (:class:`ToeEdgeTask`: mink's ``FrameTask`` with the local pitch row dropped), while the
+  foot may pitch heel UP about that edge, 0 <= pitch <= ``IkCfg.heel_pitch_max``
+  (:class:`HeelPitchLimit`, an inequality of every QP step: never toe-up, never the heel into
+  the ground); a small cost (``IkCfg.heel_cost``) keeps the foot flat unless lifting the heel
+  brings the outputs nearer. A real G1, like a human, lifts its rear heel in late stance; the
+  CLF reference says nothing about the stance foot's orientation, so a policy may do it.
+  Each tick measures the toe edge's slide (its two corners against their held positions),
+  the heel's lift above its held height and the pitch (:class:`Tick`).
 - **tasks**: the whole-body
   CoM (mink's ``ComTask`` reads ``subtree_com`` of the root body, the point the env's y_sim
   reads); the pelvis orientation (a ``FrameTask`` on the pelvis body, orientation only); the
@@ -48,6 +60,7 @@ from march.clf.lyapunov import UPPER_BODY_JOINTS, ClfCfg, ClfModel
 from march.env.clf_outputs import outputs_from_state
 from march.env.g1 import g1_default_pose, g1_mjcf_spec
 from march.env.reference_command import ReferenceCommandCfg
+from march.errors import ConfigError
 
 GROUPS: dict[str, tuple[int, int]] = {
     "com": (0, 3),
@@ -62,10 +75,26 @@ ANGLES[3:6] = ANGLES[9:12] = True
 """Columns whose errors are wrapped angles (``march.reference.trajectory.ANGLE_OUTPUTS``)."""
 
 
+STANCE_MODELS = ("flat", "heel_off")
+"""``IkCfg.stance`` values (module docstring)."""
+
+
 @dataclass
 class IkCfg:
     """The whole-body IK of :class:`KinematicG1`."""
 
+    stance: str = "flat"
+    """The stance foot's contact model (module docstring): ``flat`` (default; the foot site's
+    whole pose held) or ``heel_off`` (its toe edge held, the heel free to lift)."""
+    heel_pitch_max: float = 0.5
+    """``heel_off``: the largest heel-up pitch of the stance foot about its toe edge [rad]
+    (0.5 rad lifts the heel ~9 cm; the G1's ankle pitch range is -0.87..+0.52 rad, and a
+    human's heel-off at push-off is ~0.3-0.6 rad)."""
+    heel_cost: float = 1.0
+    """``heel_off``: cost of the stance foot's heel-up pitch [1/rad], a regulariser like
+    ``leg_posture_cost``: small against the outputs' costs (2-26), so the heel lifts only where
+    the flat foot leaves an output error; the ``polish`` steps move its target to the pitch
+    just found, as they do the legs' posture."""
     dt: float = 0.02
     """Control tick [s] (the env's step: 0.005 s x decimation 4); also the finite-difference
     step of the measured output rates."""
@@ -104,6 +133,18 @@ class IkCfg:
     limit_gain: float = 0.95
     """``mink.ConfigurationLimit`` gain: the share of the distance to a joint limit a step
     may cover."""
+
+    def __post_init__(self) -> None:
+        if self.stance not in STANCE_MODELS:
+            raise ConfigError(
+                f"audit.stance={self.stance!r}: choose one of {', '.join(STANCE_MODELS)}"
+            )
+        if not (isinstance(self.heel_pitch_max, (int, float)) and 0 < self.heel_pitch_max <= 1):
+            raise ConfigError(
+                f"audit.heel_pitch_max={self.heel_pitch_max}: give a pitch in (0, 1] rad"
+            )
+        if not (isinstance(self.heel_cost, (int, float)) and self.heel_cost >= 0):
+            raise ConfigError(f"audit.heel_cost={self.heel_cost}: give a cost >= 0")
 
 
 def rotation_zyx(roll: float, pitch: float, yaw: float) -> np.ndarray:
@@ -153,8 +194,140 @@ class Tick:
     v_ratio: float
     """V / Vmax."""
     slide: float = 0.0
-    """How far the stance-foot site is from its held position [m] (0 up to the constraint's
-    linearisation residual when ``IkCfg.stance_hard``)."""
+    """How far the stance foot's held contact is from its held position [m]: ``flat`` the
+    foot site, ``heel_off`` the farther of the toe edge's two corners (0 up to the
+    constraint's linearisation residual when ``IkCfg.stance_hard``)."""
+    heel_lift: float = 0.0
+    """Height of the stance foot's heel (the sole's rear end) above where it was held [m]:
+    0 flat, > 0 lifted (``heel_off``), < 0 in the ground."""
+    stance_pitch: float = 0.0
+    """The stance foot's pitch against its held orientation about its own y axis [rad],
+    positive heel up (``heel_off``: 0..``IkCfg.heel_pitch_max``)."""
+
+
+@dataclass(frozen=True)
+class FootSole:
+    """Where a G1 foot's sole is, in its foot site's frame (x forward, z up) [m]."""
+
+    toe_x: float
+    """x of the toe edge: the foremost end of the foot's collision capsules."""
+    heel_x: float
+    """x of the heel: the rearmost end."""
+    toe_half_width: float
+    """Half the toe edge's width: |y| of the capsule ends within 1 cm of the toe edge."""
+    sole_z: float
+    """z of the sole: the capsules' lowest points."""
+
+    def toe_offset(self) -> np.ndarray:
+        """(3,) the toe edge's midpoint (the heel-off pivot)."""
+        return np.array([self.toe_x, 0.0, self.sole_z])
+
+    def toe_corners(self) -> np.ndarray:
+        """(2, 3) the toe edge's two ends (the contact points a heel-off must not slide)."""
+        w = self.toe_half_width
+        return np.array([[self.toe_x, -w, self.sole_z], [self.toe_x, w, self.sole_z]])
+
+    def heel_offset(self) -> np.ndarray:
+        """(3,) the heel's midpoint on the sole."""
+        return np.array([self.heel_x, 0.0, self.sole_z])
+
+
+def foot_sole(model: mujoco.MjModel, site: str) -> FootSole:
+    """The sole of the foot carrying ``site``, read from the capsules (MuJoCo geom type 3)
+    of the site's body: mjlab's G1 foot has seven, radius 1 cm, their ends from x = -0.094 to
+    +0.092 m in the site's frame, their lowest points 2 mm above the site."""
+    sid = model.site(site).id
+    body = model.site_bodyid[sid]
+    site_rot = np.empty(9)
+    mujoco.mju_quat2Mat(site_rot, model.site_quat[sid])
+    site_rot = site_rot.reshape(3, 3)
+    ends, radii = [], []
+    for g in np.flatnonzero(model.geom_bodyid == body):
+        if model.geom_type[g] != mujoco.mjtGeom.mjGEOM_CAPSULE:
+            continue
+        rot = np.empty(9)
+        mujoco.mju_quat2Mat(rot, model.geom_quat[g])
+        axis = rot.reshape(3, 3)[:, 2] * model.geom_size[g][1]
+        for sign in (1.0, -1.0):
+            end = model.geom_pos[g] + sign * axis
+            ends.append(site_rot.T @ (end - model.site_pos[sid]))
+            radii.append(model.geom_size[g][0])
+    if not ends:
+        raise ConfigError(f"audit.stance=heel_off: the body of site {site!r} has no capsules")
+    pts, r = np.array(ends), np.array(radii)
+    toe_x, heel_x = float(pts[:, 0].max()), float(pts[:, 0].min())
+    front = pts[:, 0] >= toe_x - 0.01
+    return FootSole(
+        toe_x=toe_x,
+        heel_x=heel_x,
+        toe_half_width=float(np.abs(pts[front, 1]).max()),
+        sole_z=float((pts[:, 2] - r).min()),
+    )
+
+
+def with_toe_sites(spec: mujoco.MjSpec, foot_sites: tuple[str, ...]) -> mujoco.MjSpec:
+    """``spec`` with a site ``<foot>_toe`` at each foot's toe-edge midpoint (the heel-off
+    pivot, :func:`foot_sole`), oriented as the foot site; adding sites moves no body."""
+    model = spec.compile()
+    for name in foot_sites:
+        sid = model.site(name).id
+        rot = np.empty(9)
+        mujoco.mju_quat2Mat(rot, model.site_quat[sid])
+        offset = rot.reshape(3, 3) @ foot_sole(model, name).toe_offset()
+        body = spec.body(model.body(model.site_bodyid[sid]).name)
+        body.add_site(
+            name=f"{name}_toe",
+            pos=(model.site_pos[sid] + offset).tolist(),
+            quat=model.site_quat[sid].tolist(),
+        )
+    return spec
+
+
+PITCH_ROW = 4
+"""The row of a mink ``FrameTask`` error (translation 0-2, rotation 3-5, in the frame's own
+axes) that is the rotation about the frame's y axis: the foot's pitch."""
+
+
+class ToeEdgeTask(mink.FrameTask):
+    """The stance foot's toe edge held (``heel_off``): a ``FrameTask`` on the toe site whose
+    error and Jacobian keep the position rows and the rotation about the foot's own x (roll)
+    and z (yaw) and drop the rotation about its y (pitch), so as an equality constraint it
+    leaves the foot free to pitch about the toe edge and nothing else (the error's rotation
+    part is log(R_foot^T R_held), which is (0, -pitch, 0) exactly when the foot is the held
+    one turned about its own y axis). As a soft task its pitch cost is 0."""
+
+    ROWS = np.array([0, 1, 2, 3, 5])
+
+    def compute_error(self, configuration: mink.Configuration) -> np.ndarray:
+        return super().compute_error(configuration)[self.ROWS]
+
+    def compute_jacobian(self, configuration: mink.Configuration) -> np.ndarray:
+        return super().compute_jacobian(configuration)[self.ROWS]
+
+    def pitch(self, configuration: mink.Configuration) -> tuple[float, np.ndarray]:
+        """The foot's pitch against its held orientation [rad] (positive heel up) and its
+        Jacobian (nv,): minus the full error's pitch row."""
+        error = mink.FrameTask.compute_error(self, configuration)
+        jac = mink.FrameTask.compute_jacobian(self, configuration)
+        return -float(error[PITCH_ROW]), -jac[PITCH_ROW]
+
+
+class HeelPitchLimit(mink.Limit):
+    """0 <= the stance foot's pitch <= ``bound`` as an inequality of the QP step (linearised:
+    pitch + J dq within the bounds), so the heel only lifts and never goes into the ground
+    and the toe never lifts; the floating base can always turn the foot back, so the QP stays
+    feasible."""
+
+    def __init__(self, task: ToeEdgeTask, bound: float) -> None:
+        self.task, self.bound = task, bound
+
+    def compute_qp_inequalities(
+        self, configuration: mink.Configuration, dt: float
+    ) -> mink.limits.limit.Constraint:
+        pitch, jac = self.task.pitch(configuration)
+        g = np.stack([-jac, jac])  # -(pitch + J dq) <= 0 and pitch + J dq <= bound
+        h = np.array([pitch, self.bound - pitch])
+        return mink.limits.limit.Constraint(G=g, h=h)
 
 
 class KinematicG1:
@@ -170,7 +343,10 @@ class KinematicG1:
     ) -> None:
         self.cfg = cfg or IkCfg()
         command = command or ReferenceCommandCfg()
-        self.model = model if model is not None else g1_mjcf_spec().compile()
+        self.foot_sites = tuple(command.foot_sites)
+        if model is None:
+            model = with_toe_sites(g1_mjcf_spec(), self.foot_sites).compile()
+        self.model = model
         m = self.model
         self.configuration = mink.Configuration(m)
         self.data = mujoco.MjData(m)
@@ -189,7 +365,6 @@ class KinematicG1:
         self.upper_qpos = np.array([m.joint(n).qposadr[0] for n in UPPER_BODY_JOINTS])
         self.upper_dof = np.array([m.joint(n).dofadr[0] for n in UPPER_BODY_JOINTS])
         self.default_upper = self.default_qpos[self.upper_qpos].copy()
-        self.foot_sites = tuple(command.foot_sites)
         self.site_ids = np.array([m.site(s).id for s in self.foot_sites])
         self.site_bodies = m.site_bodyid[self.site_ids]
         self.root_body = int(m.body("pelvis").id)
@@ -209,6 +384,25 @@ class KinematicG1:
         posture_cost[self.upper_dof] = c[12:]
         self.posture = mink.PostureTask(m, cost=posture_cost)
         self.limits = [mink.ConfigurationLimit(m, gain=self.cfg.limit_gain)]
+        self.soles = [foot_sole(m, s) for s in self.foot_sites]
+        """Each foot's sole in its site's frame (:func:`foot_sole`)."""
+        self.toes: list[ToeEdgeTask] = []
+        self.heel_limits: list[HeelPitchLimit] = []
+        self.heel_tasks: list[mink.FrameTask] = []
+        if self.cfg.stance == "heel_off":
+            toe_sites = [f"{s}_toe" for s in self.foot_sites]
+            missing = [
+                s for s in toe_sites if mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, s) < 0
+            ]
+            if missing:
+                raise ConfigError(
+                    f"audit.stance=heel_off needs the toe sites {missing} (with_toe_sites)"
+                )
+            self.toes = [ToeEdgeTask(s, "site", 1.0, [1.0, 0.0, 1.0]) for s in toe_sites]
+            self.heel_limits = [HeelPitchLimit(t, self.cfg.heel_pitch_max) for t in self.toes]
+            self.heel_tasks = [
+                mink.FrameTask(s, "site", 0.0, [0.0, self.cfg.heel_cost, 0.0]) for s in toe_sites
+            ]
         self.reset(self.default_qpos)
 
     @property
@@ -232,7 +426,16 @@ class KinematicG1:
         stance, swing = self._feet(stance_is_left)
         stance.set_position_cost(stance_cost)
         stance.set_orientation_cost(stance_cost)
-        stance.set_target(pose(np.asarray(stance_rot), np.asarray(stance_pos)))
+        held = pose(np.asarray(stance_rot), np.asarray(stance_pos))
+        stance.set_target(held)
+        if self.toes:
+            i = 0 if stance_is_left else 1
+            toe = self.soles[i].toe_offset()
+            at_toe = pose(np.asarray(stance_rot), np.asarray(stance_pos) + stance_rot @ toe)
+            self.toes[i].set_position_cost(stance_cost)
+            self.toes[i].set_orientation_cost([stance_cost, 0.0, stance_cost])
+            self.toes[i].set_target(at_toe)
+            self.heel_tasks[i].set_target(at_toe)
         swing.set_position_cost(c[6:9])
         swing.set_orientation_cost(c[9:12])
         swing.set_target(pose(rotation_zyx(*y_ref[9:12]), np.asarray(y_ref[6:9])))
@@ -257,32 +460,44 @@ class KinematicG1:
         )
         cfg = self.cfg
         stance, swing = self._feet(stance_is_left)
+        limits = self.limits
+        extra: list = []
+        if self.toes:  # heel_off: the toe edge held, the heel free to lift (module docstring)
+            i = 0 if stance_is_left else 1
+            stance, limits = self.toes[i], [*self.limits, self.heel_limits[i]]
+            extra = [self.heel_tasks[i]]
         if cfg.stance_hard:
-            tasks, constraints = [swing, self.pelvis, self.com, self.posture], [stance]
+            tasks, constraints = [swing, self.pelvis, self.com, self.posture, *extra], [stance]
         else:
-            tasks, constraints = [*self.feet, self.pelvis, self.com, self.posture], []
-        self._iterate(tasks, constraints, cfg.iterations if iterations is None else iterations)
+            tasks, constraints = [stance, swing, self.pelvis, self.com, self.posture, *extra], []
+        steps = cfg.iterations if iterations is None else iterations
+        self._iterate(tasks, constraints, steps, limits)
         if cfg.polish:
             # Bias-free finish: the legs' posture target becomes the pose just found, so the
             # regulariser only damps the step and no longer pulls the outputs off their
-            # targets (module docstring, IkCfg.polish).
+            # targets (module docstring, IkCfg.polish); the heel's likewise.
             target = self.posture.target_q.copy()
             legs = self.leg_qpos
             target[legs] = self.configuration.q[legs]
             self.posture.set_target(target)
-            self._iterate(tasks, constraints, cfg.polish)
+            for task in extra:
+                task.set_target_from_configuration(self.configuration)
+            self._iterate(tasks, constraints, cfg.polish, limits)
         if cfg.stance_hard:
-            self._restore_stance(stance)
+            self._restore_stance(stance, limits)
         return self.qpos
 
-    def _restore_stance(self, stance: mink.FrameTask) -> None:
+    def _restore_stance(self, stance: mink.FrameTask, limits: list) -> None:
         """Gauss-Newton steps on the stance-foot constraint alone (the least joint motion
         that satisfies its linearisation) until its error is below ``IkCfg.stance_tol``: the
         last QP step's linearisation leaves a residual of up to 2 cm where a leg is nearly
         stretched (measured on a 0.5 m step), which a hard constraint must not keep."""
         cfg = self.cfg
         for _ in range(cfg.stance_iterations):
-            if np.abs(stance.compute_error(self.configuration)).max() < cfg.stance_tol:
+            error = np.abs(stance.compute_error(self.configuration)).max()
+            if isinstance(stance, ToeEdgeTask):  # the heel above the ground too
+                error = max(error, -stance.pitch(self.configuration)[0])
+            if error < cfg.stance_tol:
                 return
             vel = mink.solve_ik(
                 self.configuration,
@@ -290,7 +505,7 @@ class KinematicG1:
                 cfg.dt,
                 cfg.solver,
                 damping=cfg.damping,
-                limits=self.limits,
+                limits=limits,
                 constraints=[stance],
             )
             self.configuration.integrate_inplace(vel, cfg.dt)
@@ -299,7 +514,7 @@ class KinematicG1:
         """The (stance, swing) foot tasks."""
         return (self.feet[0], self.feet[1]) if stance_is_left else (self.feet[1], self.feet[0])
 
-    def _iterate(self, tasks: list, constraints: list, iterations: int) -> None:
+    def _iterate(self, tasks: list, constraints: list, iterations: int, limits: list) -> None:
         cfg = self.cfg
         for _ in range(iterations):
             vel = mink.solve_ik(
@@ -308,7 +523,7 @@ class KinematicG1:
                 cfg.dt,
                 cfg.solver,
                 damping=cfg.damping,
-                limits=self.limits,
+                limits=limits,
                 constraints=constraints or None,
             )
             self.configuration.integrate_inplace(vel, cfg.dt)
@@ -384,14 +599,36 @@ class KinematicG1:
         eta = tracking_error(y, np.asarray(y_ref))
         etadot = ydot - np.asarray(ydot_ref)
         v = float(self.value(eta, etadot))
-        slide = self.slide(stance_is_left, stance_pos)
-        return Tick(q, y, ydot, eta, etadot, v, v / self.v_max, slide)
+        slide, heel, pitch = self.contact(stance_is_left, stance_pos, stance_rot)
+        return Tick(q, y, ydot, eta, etadot, v, v / self.v_max, slide, heel, pitch)
 
     def slide(self, stance_is_left: bool, stance_pos: np.ndarray) -> float:
         """Distance [m] of the stance-foot site in the last measured state (``self.data``)
         from its held position ``stance_pos``."""
         sid = self.site_ids[0 if stance_is_left else 1]
         return float(np.linalg.norm(self.data.site_xpos[sid] - np.asarray(stance_pos)))
+
+    def contact(
+        self, stance_is_left: bool, stance_pos: np.ndarray, stance_rot: np.ndarray
+    ) -> tuple[float, float, float]:
+        """The stance foot in the last measured state against its held pose (``stance_pos``,
+        ``stance_rot``): (slide [m], heel lift [m], pitch [rad]) as :class:`Tick` defines
+        them (``flat``: the site's slide; ``heel_off``: the toe edge's corners')."""
+        i = 0 if stance_is_left else 1
+        sid, sole = self.site_ids[i], self.soles[i]
+        pos, rot = self.data.site_xpos[sid], self.data.site_xmat[sid].reshape(3, 3)
+        held_pos, held_rot = np.asarray(stance_pos), np.asarray(stance_rot)
+        if self.toes:
+            corners = sole.toe_corners()
+            now, held = pos + corners @ rot.T, held_pos + corners @ held_rot.T
+            slide = float(np.linalg.norm(now - held, axis=1).max())
+        else:
+            slide = float(np.linalg.norm(pos - held_pos))
+        heel = sole.heel_offset()
+        lift = float((pos + rot @ heel)[2] - (held_pos + held_rot @ heel)[2])
+        turn = held_rot.T @ rot  # the held foot turned about its own y by the pitch
+        pitch = float(np.arctan2(turn[0, 2], turn[0, 0]))
+        return slide, lift, pitch
 
     def stand(
         self,

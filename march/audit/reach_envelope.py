@@ -109,12 +109,15 @@ def pose_reached(
     assert tick is not None
     ratio = np.abs(tick.eta) / judge.tolerances()
     worst = int(np.argmax(ratio))
+    held_foot = tick.slide <= judge.max_slide and tick.heel_lift >= -judge.max_heel_sink
     return {
-        "reached": bool(ratio.max() <= 1.0 and tick.slide <= judge.max_slide),
+        "reached": bool(ratio.max() <= 1.0 and held_foot),
         "worst_output": CLF_OUTPUT_NAMES[worst],
         "worst_ratio": float(ratio[worst]),
         "com_z_error_m": float(tick.eta[2]),
         "slide_m": float(tick.slide),
+        "heel_lift_m": float(tick.heel_lift),
+        "stance_pitch_rad": float(tick.stance_pitch),
     }
 
 
@@ -124,11 +127,13 @@ def longest_reached(lengths: np.ndarray, reached: list[bool]) -> float | None:
     return max(ok) if ok else None
 
 
-def reach_envelope(cfg: EnvelopeCfg | None = None, judge: FeasibilityCfg | None = None) -> dict:
+def reach_envelope(
+    cfg: EnvelopeCfg | None = None, judge: FeasibilityCfg | None = None, ik: IkCfg | None = None
+) -> dict:
     """The envelope's JSON dict: per height the verdict of every grid length and the
-    longest step reached (module docstring)."""
+    longest step reached (module docstring); ``ik``: the IK and its stance-foot model."""
     cfg, judge = cfg or EnvelopeCfg(), judge or FeasibilityCfg()
-    kin = KinematicG1(IkCfg())
+    kin = KinematicG1(ik or IkCfg())
     lengths = cfg.lengths()
     rows = []
     for height in cfg.heights:
@@ -149,6 +154,7 @@ def reach_envelope(cfg: EnvelopeCfg | None = None, judge: FeasibilityCfg | None 
         "what": "the G1's reach envelope: longest step whose touchdown pose the IK takes "
         "(march.audit envelope)",
         "options": asdict(cfg),
+        "ik": asdict(kin.cfg),
         "tolerances": dict(zip(CLF_OUTPUT_NAMES, judge.tolerances().tolist(), strict=True)),
         "max_slide_m": judge.max_slide,
         "rows": rows,
@@ -157,15 +163,26 @@ def reach_envelope(cfg: EnvelopeCfg | None = None, judge: FeasibilityCfg | None 
 
 def envelope_table(report: dict) -> str:
     """One line per CoM height: the longest step reached and what misses just beyond it."""
-    lines = ["CoM height m | longest step reached m | first miss beyond it (output, |eta|/tol)"]
+    ik = report.get("ik", {})
+    stance = ik.get("stance", "flat")
+    lines = [
+        f"stance foot: {stance}"
+        + (f" (heel up to {ik.get('heel_pitch_max')} rad)" if stance == "heel_off" else ""),
+        "CoM height m | longest step reached m | heel-up there mm (pitch rad) | "
+        "first miss beyond it (output, |eta|/tol)",
+    ]
     for row in report["rows"]:
         longest = row["longest_step_m"]
         beyond_it = [p for p in row["poses"] if longest is None or p["length_m"] > longest]
         miss = next((p for p in beyond_it if not p["reached"]), None)
         beyond = f"{miss['length_m']:.3f} m: {miss['worst_output']} {miss['worst_ratio']:.2f}"
+        at = next((p for p in row["poses"] if p["length_m"] == longest), None)
+        heel = (
+            "-" if at is None else f"{1e3 * at['heel_lift_m']:.1f} ({at['stance_pitch_rad']:.3f})"
+        )
         lines.append(
             f"{row['com_height_m']:12.3f} | {'-' if longest is None else f'{longest:.3f}':>22} | "
-            + (beyond if miss else "none in the grid")
+            f"{heel:>29} | " + (beyond if miss else "none in the grid")
         )
     return "\n".join(lines)
 
@@ -196,7 +213,8 @@ def draw_envelope(report: dict, path: Path, planner_max_step: float, default_hei
     )
     ax.set(xlabel="step length [m] (forward, step width 0.25 m)", ylabel="CoM height z0 [m]")
     ax.set_title(
-        "G1 reach envelope: touchdown pose by whole-body IK (stance foot held, joint limits)\n"
+        "G1 reach envelope: touchdown pose by whole-body IK "
+        f"(stance foot {report.get('ik', {}).get('stance', 'flat')}, held; joint limits)\n"
         "green: every output within tolerance, red: not",
         fontsize=10,
     )
@@ -209,8 +227,11 @@ def draw_envelope(report: dict, path: Path, planner_max_step: float, default_hei
     return path
 
 
-def envelope_report(cfg: Any, out: str | None, options: EnvelopeCfg | None = None) -> dict:
-    """``python -m march.audit envelope``: compute, print, write the JSON and the PNG beside it."""
+def envelope_report(
+    cfg: Any, out: str | None, options: EnvelopeCfg | None = None, ik: IkCfg | None = None
+) -> dict:
+    """``python -m march.audit envelope``: compute, print, write the JSON and the PNG beside it
+    (``ik``: the IK and its stance-foot model, ``audit.stance``)."""
     from march.audit.feasibility import reference_command_cfg
 
     path = Path(out or DEFAULT_OUT)
@@ -219,7 +240,7 @@ def envelope_report(cfg: Any, out: str | None, options: EnvelopeCfg | None = Non
     started = time.perf_counter()
     command = reference_command_cfg(cfg)
     options = options or EnvelopeCfg(step_width=command.planner.step_width)
-    report = reach_envelope(options)
+    report = reach_envelope(options, ik=ik)
     report["seconds"] = round(time.perf_counter() - started, 1)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(strict(report), indent=1, allow_nan=False))
