@@ -287,3 +287,138 @@ def test_the_env_tracks_the_shaped_reference():
         assert differ >= 20, differ
     finally:
         env.close()
+
+
+def _with_liftoff_pitch(st, g: torch.Generator):
+    """``st`` with a random measured lift-off pitch in [-0.5, 0.5] rad per env."""
+    from dataclasses import replace
+
+    return replace(
+        st, swing_from_pitch=torch.rand(st.duration.shape[0], generator=g, dtype=F64) - 0.5
+    )
+
+
+def test_the_liftoff_pitch_carry_takes_its_hand_values():
+    """``reference.swing_pitch_carry`` c (with the toe-down 0.4 and roll 0.15 of the option
+    set): the swing pitch reference is the toe-down's plus p0 h00(tau / (c T)),
+    h00(phi) = (1 - phi)^2 (1 + 2 phi): by hand p0 at lift-off with the toe-down's zero rate,
+    p0 / 2 plus the toe-down at tau = c T / 2 with the rate -1.5 p0 / (c T) added, the
+    toe-down alone from tau = c T on; the rate is the time derivative of the pitch (central
+    differences); no other output changes, and c = 0 (the default) leaves the reference bit for
+    bit whatever the measured pitch."""
+    from march.reference.trajectory import swing_pitch_carry
+
+    g = torch.Generator().manual_seed(5)
+    st = _with_liftoff_pitch(random_steps(48, g), g)
+    p0, dur = st.swing_from_pitch, st.duration
+    for c in (0.3, 0.5, 1.0):
+        base = ReferenceCfg(swing_toe_down=0.4, swing_toe_roll=0.15)
+        carried = ReferenceCfg(swing_toe_down=0.4, swing_toe_roll=0.15, swing_pitch_carry=c)
+        for tau, add_pos, add_rate in (
+            (torch.zeros_like(dur), p0, torch.zeros_like(p0)),
+            (0.5 * c * dur, 0.5 * p0, -1.5 * p0 / (c * dur)),
+            (c * dur, torch.zeros_like(p0), torch.zeros_like(p0)),
+            (c * dur + 0.3 * (1.0 - c) * dur, torch.zeros_like(p0), torch.zeros_like(p0)),
+        ):
+            b_pos, b_vel = reference_at(st, tau, base, HlipCfg(), 17).flatten()
+            c_pos, c_vel = reference_at(st, tau, carried, HlipCfg(), 17).flatten()
+            assert torch.allclose(
+                c_pos[:, SWING_PITCH], b_pos[:, SWING_PITCH] + add_pos, atol=1e-12
+            )
+            assert torch.allclose(
+                c_vel[:, SWING_PITCH], b_vel[:, SWING_PITCH] + add_rate, atol=1e-9
+            )
+            other = torch.ones(b_pos.shape[1], dtype=torch.bool)
+            other[SWING_PITCH] = False
+            assert torch.equal(b_pos[:, other], c_pos[:, other])
+            assert torch.equal(b_vel[:, other], c_vel[:, other])
+        tau = c * dur * torch.rand(48, generator=g, dtype=F64)
+        h = 1e-6
+        up, _ = swing_pitch_carry(p0, tau + h, dur, c)
+        down, _ = swing_pitch_carry(p0, tau - h, dur, c)
+        _, rate = swing_pitch_carry(p0, tau, dur, c)
+        assert torch.allclose(rate, (up - down) / (2 * h), atol=1e-5)
+    tau = dur * 1.2 * torch.rand(48, generator=g, dtype=F64)
+    off = reference_at(st, tau, ReferenceCfg(), HlipCfg(), 17).flatten()
+    plain = reference_at(
+        random_steps(48, torch.Generator().manual_seed(5)), tau, ReferenceCfg(), HlipCfg(), 17
+    ).flatten()
+    assert torch.equal(off[0], plain[0]) and torch.equal(off[1], plain[1])
+
+
+def test_the_fused_reference_carries_the_liftoff_pitch_as_reference_at_does():
+    """reference_outputs (the env's few-op reference) equals reference_at flattened with the
+    lift-off pitch carried, to 1e-9 in float64, over random steps and (E, K) instants (late
+    touchdowns included), for several carry shares and with and without the toe-down."""
+    from march.reference.fused_reference import reference_outputs
+
+    for seed in range(6):
+        g = torch.Generator().manual_seed(40 + seed)
+        st = _with_liftoff_pitch(random_steps(31, g), g)
+        cfg = ReferenceCfg(
+            com_height=("fixed", "step")[seed % 2],
+            swing_toe_down=(0.0, 0.4)[seed % 2],
+            swing_toe_roll=(0.0, 0.15, 0.0)[seed % 3],
+            swing_pitch_carry=(0.5, 0.3, 1.0)[seed % 3],
+        )
+        tau = st.duration[:, None] * 1.4 * torch.rand(31, 3, generator=g, dtype=F64)
+        pos, vel = reference_outputs(st, tau, cfg, HlipCfg(), 17)
+        for j in range(3):
+            want_pos, want_vel = reference_at(st, tau[:, j], cfg, HlipCfg(), 17).flatten()
+            assert torch.allclose(pos[:, j], want_pos, atol=1e-9, rtol=0.0), seed
+            assert torch.allclose(vel[:, j], want_vel, atol=1e-9, rtol=0.0), seed
+
+
+def test_the_pitch_carry_option_reaches_the_reference_term_and_bad_values_are_one_line():
+    from march.audit.feasibility import reference_command_cfg
+    from march.config.cli import load
+    from march.config.schema import ConfigError
+
+    ref = reference_command_cfg(load(["compute=smoke", "reference.swing_pitch_carry=0.5"]))
+    assert ref.reference.swing_pitch_carry == 0.5
+    assert reference_command_cfg(load(["compute=smoke"])).reference.swing_pitch_carry == 0.0
+    with pytest.raises(ConfigError, match=r"\[0.0, 1.0\]"):
+        load(["compute=smoke", "reference.swing_pitch_carry=1.5"])
+
+
+def test_the_env_carries_the_swing_foots_measured_pitch():
+    """The teacher env with ``reference.swing_pitch_carry=0.5`` (compute=smoke, 4 envs, dr=none,
+    30 steps under 0.4 N(0, 1) actions): after every step whose command replanned an env, its
+    step state's lift-off pitch is the ZYX pitch of its swing foot's site as MuJoCo has it
+    (asin(-R31)), the term's y_ref is reference_at of its step state with the carry, and the
+    carried pitches are not all 0 (the feet do not stay flat)."""
+    from march.config.cli import load
+    from march.env.build import make_env
+    from march.env.reference_command import reference_term
+    from march.env.step_cache import site_xmat
+
+    env = make_env(
+        load(["compute=smoke", "dr=none", *OPTION_SET, "reference.swing_pitch_carry=0.5"]),
+        "teacher",
+        num_envs=4,
+    )
+    try:
+        term = reference_term(env)
+        gen = torch.Generator().manual_seed(0)
+        n_act = env.action_manager.total_action_dim
+        env.reset()
+        ref = term.cfg.reference
+        assert ref.swing_pitch_carry == 0.5
+        replanned, pitches = 0, []
+        for _ in range(30):
+            before = term.replan_count.clone()
+            env.step(0.4 * torch.randn(env.num_envs, n_act, generator=gen))
+            want = reference_at(term.step, term.tau, ref, term.cfg.hlip, 17).flatten()
+            assert torch.allclose(term.y_ref_pos, want[0], atol=1e-4)
+            assert torch.allclose(term.y_ref_vel, want[1], atol=1e-3)
+            mats = site_xmat(env, tuple(term.cfg.foot_sites), term.cfg.entity_name)
+            for i in (term.replan_count > before).nonzero().flatten().tolist():
+                mat = mats[i, 1 if bool(term.step.stance_is_left[i]) else 0]
+                pitch = math.asin(max(-1.0, min(1.0, -float(mat[2, 0]))))
+                got = float(term.step.swing_from_pitch[i])
+                assert got == pytest.approx(pitch, abs=1e-5), (i, got, pitch)
+                pitches.append(got)
+                replanned += 1
+        assert replanned >= 4 and max(abs(p) for p in pitches) > 1e-3, pitches
+    finally:
+        env.close()

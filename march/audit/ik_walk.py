@@ -84,6 +84,10 @@ class WalkTrace:
     """Per step the stance foot's largest heel-up pitch [rad]."""
     tick_heel_lift: list[float] = field(default_factory=list)
     """Per tick the stance heel's lift [m]."""
+    liftoff_pitch: list[float] = field(default_factory=list)
+    """Per step the pitch [rad] (ZYX, positive toe down) of its stance foot at the touchdown
+    tick: the next step's swing foot leaves the ground with it (``reference.swing_pitch_carry``
+    carries it, as the env reads it from the site's rotation)."""
     lifted: list[float] = field(default_factory=list)
     """Per step the swing-foot site's highest rise above its lift-off height [m]."""
     landing_gap: list[float] = field(default_factory=list)
@@ -153,12 +157,14 @@ def next_step(
     dt: float,
     reference: ReferenceCfg,
     hlip: HlipCfg,
+    swing_pitch: torch.Tensor | None = None,
 ) -> StepState:
     """The step each env takes after replanning (``plan``'s step 0), as the env's reference
     command builds it (``march.env.reference_command``): stance at ``plan.start``, the swing
     foot lifting off at ``swing`` (E, 3), the CoM reference carrying the previous step's
     reference CoM state at its touchdown tick (``reference.com_anchoring=continuous``; ignored
-    with ``stance``) and the step's CoM height (``reference.com_height``).
+    with ``stance``) and the step's CoM height (``reference.com_height``); ``swing_pitch`` (E,)
+    the new swing foot's pitch at lift-off (``reference.swing_pitch_carry``; None: flat).
 
     ``previous`` None: the walk starts standing, as an episode does: the CoM reference ramps
     from rest at the feet's midpoint and carries, at rest, the height a G1 stands at (z0 above
@@ -187,6 +193,7 @@ def next_step(
         cfg=reference,
         hlip=hlip,
         pelvis_from=pelvis_from,
+        swing_from_pitch=torch.zeros_like(yaw0) if swing_pitch is None else swing_pitch,
     )
 
 
@@ -270,7 +277,9 @@ def track_step(
     trace.duration.append(duration)
     # Touchdown: the swing foot is the new stance foot where it landed; the old stance foot
     # lifts off from where it stood.
-    old_stance, _ = site_pose(kin, is_left)
+    old_stance, old_rot = site_pose(kin, is_left)
+    # its ZYX pitch, as the env's euler_from_matrix reads it: asin(-R31)
+    trace.liftoff_pitch.append(float(np.arcsin(np.clip(-old_rot[2, 0], -1.0, 1.0))))
     landed = site_pose(kin, not is_left)
     gap = float(landed[0][2] - (float(target[2]) + reference.foot_height_offset))
     # A foot at or below the stone top touches it (the IK ignores collisions: below the top it
@@ -313,6 +322,7 @@ def ik_walks(
     held: list[tuple[np.ndarray, np.ndarray] | None] = [None] * e
     traces = [WalkTrace() for _ in range(e)]
     step: StepState | None = None
+    liftoff_pitch = torch.zeros(e)  # the walk starts standing, both feet flat
     for k in range(max_steps):
         plan = plan_footsteps(stance, left, command[:, :2], footholds, planner, gen)
         for i in torch.nonzero(active & ~plan.feasible).flatten().tolist():
@@ -323,7 +333,9 @@ def ik_walks(
         if swing is None:
             swing = plan.start.clone()
             swing[:, :2] -= planner.step_width * lat
-        step = next_step(plan, swing, yaw0, axis, step, kin.cfg.dt, reference, hlip)
+        step = next_step(
+            plan, swing, yaw0, axis, step, kin.cfg.dt, reference, hlip, liftoff_pitch.clone()
+        )
         next_swing = swing.clone()
         for i in torch.nonzero(active).flatten().tolist():
             is_left = bool(step.stance_is_left[i])
@@ -351,6 +363,7 @@ def ik_walks(
             qpos[i] = kin.qpos
             stance[i] = torch.as_tensor(held[i][0][:2], dtype=stance.dtype)
             next_swing[i] = torch.as_tensor(old_stance, dtype=swing.dtype)
+            liftoff_pitch[i] = traces[i].liftoff_pitch[-1]
             left[i] = not is_left
         swing = next_swing
         reached = footholds.progress(stance) >= footholds.goal_distance + 0.3

@@ -175,14 +175,16 @@ def envelope_table(report: dict) -> str:
         longest = row["longest_step_m"]
         beyond_it = [p for p in row["poses"] if longest is None or p["length_m"] > longest]
         miss = next((p for p in beyond_it if not p["reached"]), None)
-        beyond = f"{miss['length_m']:.3f} m: {miss['worst_output']} {miss['worst_ratio']:.2f}"
+        beyond = "none in the grid"  # every length beyond the longest reached was reached
+        if miss is not None:
+            beyond = f"{miss['length_m']:.3f} m: {miss['worst_output']} {miss['worst_ratio']:.2f}"
         at = next((p for p in row["poses"] if p["length_m"] == longest), None)
         heel = (
             "-" if at is None else f"{1e3 * at['heel_lift_m']:.1f} ({at['stance_pitch_rad']:.3f})"
         )
         lines.append(
             f"{row['com_height_m']:12.3f} | {'-' if longest is None else f'{longest:.3f}':>22} | "
-            f"{heel:>29} | " + (beyond if miss else "none in the grid")
+            f"{heel:>29} | {beyond}"
         )
     return "\n".join(lines)
 

@@ -281,6 +281,13 @@ class ReferenceSectionCfg:
     a > 0 leaves and lands with an acceleration of 20 a |D| / T^2 and a flatter speed
     ((30 - 20 a) / 16 |D| / T at mid-swing). Issue 55, docs/audit.md."""
 
+    swing_pitch_carry: float = 0.0
+    """c in [0, 1]: the swing foot's pitch reference starts at the pitch the foot has at
+    lift-off (measured, like the lift-off position) and blends into the flat / toe-down
+    profile over c T (march.reference.trajectory.swing_pitch_carry). 0 (default): none, as
+    the author's. Issue 55: a rear foot that lifted its heel leaves the ground toe down;
+    docs/audit.md measures it with ``audit.stance=heel_off``."""
+
     def __post_init__(self) -> None:
         check_shapes("reference", self)
         check_one_of("reference", "com_anchoring", self.com_anchoring, COM_ANCHORINGS)
@@ -292,6 +299,7 @@ class ReferenceSectionCfg:
         check_interval("reference", "swing_toe_roll", self.swing_toe_roll, -1.0, 1.0)
         check_interval("reference", "swing_height", self.swing_height, 0.02, 0.3)
         check_interval("reference", "swing_xy_shape", self.swing_xy_shape, 0.0, 0.5)
+        check_interval("reference", "swing_pitch_carry", self.swing_pitch_carry, 0.0, 1.0)
 
 
 MOVED_TO_TERMINATION = ("tilt_limit_deg", "min_base_height_m", "max_foot_drop_m")

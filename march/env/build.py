@@ -379,6 +379,7 @@ def build_env_cfg(
                 swing_xy_shape=ref.swing_xy_shape,
                 swing_height=ref.swing_height,
                 swing_toe_roll=ref.swing_toe_roll,
+                swing_pitch_carry=ref.swing_pitch_carry,
             ),
             **({"replan_capacity_fraction": 1.0} if purpose == "eval" else {}),
         )

@@ -77,6 +77,7 @@ from march.env import rollout_draws
 from march.env.clf_outputs import (
     body_masses,
     body_rows,
+    euler_from_matrix,
     measured_outputs,
     reference_in_base_frame,
     stance_foot_state,
@@ -84,7 +85,7 @@ from march.env.clf_outputs import (
 from march.env.course import foothold_table
 from march.env.masked_rows import MaskedRows
 from march.env.replan_queue import ReplanQueue
-from march.env.step_cache import root_frame, site_pos
+from march.env.step_cache import root_frame, site_pos, site_xmat
 from march.keyed_random import RowStreams
 from march.reference.fused_reference import reference_outputs, reference_tables
 from march.reference.hlip import HlipCfg
@@ -287,6 +288,7 @@ class ReferenceCommand(CommandTerm):
             pelvis_from_pos=torch.zeros(e, 2, device=dev),
             pelvis_from_vel=torch.zeros(e, 2, device=dev),
             z0=torch.full((e,), cfg.hlip.z0, device=dev),
+            swing_from_pitch=torch.zeros(e, device=dev),
         )
         self.y_ref_pos = torch.zeros(e, NUM_OUTPUTS, device=dev)
         """(E, 29) reference outputs at the current tau (CLF_OUTPUT_NAMES order)."""
@@ -526,6 +528,15 @@ class ReferenceCommand(CommandTerm):
             torch.where(held, rest, com_now[0][env_ids, 3:5]),
             torch.where(held, 0.0, com_now[1][env_ids, 3:5]),
         )
+        # The new swing foot's pitch, carried into its reference (reference.swing_pitch_carry;
+        # a foot that lifted its heel leaves the ground toe down): read only when used.
+        if self.cfg.reference.swing_pitch_carry > 0.0:
+            mats = site_xmat(self._env, tuple(self.cfg.foot_sites), self.cfg.entity_name)
+            mats = mats[env_ids]
+            foot = torch.where(left[:, None, None], mats[:, 1], mats[:, 0])
+            swing_pitch = euler_from_matrix(foot)[:, 1]
+        else:
+            swing_pitch = torch.zeros_like(swing[:, 0])
         st = step_state_from_plan(
             plan,
             stance_pos=plan.start,
@@ -538,6 +549,7 @@ class ReferenceCommand(CommandTerm):
             cfg=self.cfg.reference,
             hlip=self.cfg.hlip,
             pelvis_from=pelvis_from,
+            swing_from_pitch=swing_pitch,
         )
         st.ramp = ramp
 

@@ -130,6 +130,16 @@ class ReferenceCfg:
     that drags a nearly straight trailing leg, and the swing leg swings slower at
     mid-swing."""
 
+    swing_pitch_carry: float = 0.0
+    """c in [0, 1]: the swing foot's pitch reference starts at the pitch the foot has at
+    lift-off (``StepState.swing_from_pitch``, measured like ``swing_start``) and blends into
+    the flat / toe-down profile with the Hermite carry p0 (1 - phi)^2 (1 + 2 phi),
+    phi = tau / (c T) (zero rate at lift-off, gone with its slope at tau = c T;
+    :func:`swing_pitch_carry`). 0 (default): none, the reference starts flat whatever the foot
+    does. Issue 55: a stance foot that lifts its heel in late stance (the audit's
+    ``audit.stance=heel_off``) leaves the ground pitched toe down; a flat lift-off reference
+    charges that pitch as an error and its removal in one tick as a rate."""
+
     def __post_init__(self) -> None:
         if self.com_anchoring not in COM_ANCHORINGS:
             raise ValueError(f"com_anchoring must be one of {COM_ANCHORINGS}")
@@ -141,6 +151,8 @@ class ReferenceCfg:
             raise ValueError("swing_toe_down must lie in [-1, 1] rad")
         if not 0.0 <= self.swing_xy_shape <= 0.5:
             raise ValueError("swing_xy_shape must lie in [0, 0.5]")
+        if not 0.0 <= self.swing_pitch_carry <= 1.0:
+            raise ValueError("swing_pitch_carry must lie in [0, 1]")
 
 
 def wrap_to_pi(angle: torch.Tensor) -> torch.Tensor:
@@ -261,6 +273,20 @@ def toe_down(
     return pitch, rate
 
 
+def swing_pitch_carry(
+    pitch0: torch.Tensor, tau: torch.Tensor, duration: torch.Tensor, share: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The swing foot's lift-off pitch carried into its reference (E,) [rad] and its rate
+    [rad/s] (``ReferenceCfg.swing_pitch_carry``): p0 h00(phi), phi = tau / (share T) clamped
+    to [0, 1], h00 = (1 - phi)^2 (1 + 2 phi) (p0 at lift-off with zero rate, 0 with zero rate
+    from tau = share T on); the toe-down profile is 0 with zero rate at lift-off, so the sum
+    starts at the foot's pitch."""
+    span = share * duration
+    phi = (tau / span).clamp(0.0, 1.0)
+    one = 1.0 - phi
+    return pitch0 * (one * one * (1.0 + 2.0 * phi)), pitch0 * (-6.0 * phi * one / span)
+
+
 @dataclass
 class StepState:
     """What the reference needs to know about the current step (held by the command term)."""
@@ -302,6 +328,9 @@ class StepState:
     [rad] (``com_anchoring=continuous``; None: the step's own lean from its start)."""
     pelvis_from_vel: torch.Tensor | None = None
     """(E, 2) their rates then [rad/s]."""
+    swing_from_pitch: torch.Tensor | None = None
+    """(E,) the swing foot's measured pitch at lift-off [rad] (ZYX, positive toe down), the
+    start of its pitch reference with ``ReferenceCfg.swing_pitch_carry`` > 0 (None: none)."""
 
 
 def step_state_from_plan(
@@ -316,6 +345,7 @@ def step_state_from_plan(
     cfg: ReferenceCfg | None = None,
     hlip: HlipCfg | None = None,
     pelvis_from: tuple[torch.Tensor, torch.Tensor] | None = None,
+    swing_from_pitch: torch.Tensor | None = None,
 ) -> StepState:
     """The step state right after a touchdown and replan: step 0 of ``plan`` is being taken.
 
@@ -325,7 +355,8 @@ def step_state_from_plan(
     (:func:`com_state`), carried into the step (``com_anchoring=continuous``). ``cfg`` and
     ``hlip`` give the step's CoM height (:func:`step_height`). ``pelvis_from``: (E, 2) the
     previous reference's pelvis roll and pitch and their rates (:func:`pelvis_state`), carried
-    the same way.
+    the same way. ``swing_from_pitch`` (E,): the new swing foot's measured pitch [rad]
+    (``ReferenceCfg.swing_pitch_carry``).
     """
     if axis is None:
         axis = torch.zeros_like(stance_pos[:, :2])
@@ -342,6 +373,7 @@ def step_state_from_plan(
         com_from_vel=None if com_from is None else com_from[1],
         pelvis_from_pos=None if pelvis_from is None else pelvis_from[0],
         pelvis_from_vel=None if pelvis_from is None else pelvis_from[1],
+        swing_from_pitch=swing_from_pitch,
         z0=step_height(stance_pos, target, axis, cfg or ReferenceCfg(), hlip or HlipCfg()),
         stance_pos=stance_pos,
         stance_is_left=~plan.lands_left[:, 0],
@@ -575,6 +607,9 @@ def reference_at(
         swing_ori[:, 1], swing_rate[:, 1] = toe_down(
             phase, step.duration, cfg.swing_toe_down, cfg.swing_toe_roll
         )
+    if cfg.swing_pitch_carry > 0.0 and step.swing_from_pitch is not None:
+        dp, dv = swing_pitch_carry(step.swing_from_pitch, tau, step.duration, cfg.swing_pitch_carry)
+        swing_ori[:, 1], swing_rate[:, 1] = swing_ori[:, 1] + dp, swing_rate[:, 1] + dv
     upper = torch.zeros(e, num_upper, dtype=tau.dtype, device=tau.device)
     return Reference(
         com_pos=torch.cat([com_xy, com_z], dim=-1),
