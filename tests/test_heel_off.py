@@ -23,7 +23,9 @@ HELD = (np.array([0.0, 0.125, 0.0]), np.eye(3))
 
 @pytest.fixture(scope="module")
 def heel_off() -> KinematicG1:
-    return KinematicG1(IkCfg(stance="heel_off"))
+    # pinned (not the tuned defaults): the bound 0.5 rad and a heel cost of 1, at which the
+    # hand-checked poses below were measured
+    return KinematicG1(IkCfg(stance="heel_off", heel_pitch_max=0.5, heel_cost=1.0))
 
 
 @pytest.fixture(scope="module")
@@ -119,9 +121,11 @@ def test_the_heel_lift_is_bounded_by_the_option():
     stops at 0.2 (and the step is missed); with 0.5 it goes past 0.2."""
     cfg, judge = EnvelopeCfg(), FeasibilityCfg()
     y = touchdown_reference(0.85, 0.67, cfg)
-    low = pose_reached(KinematicG1(IkCfg(stance="heel_off", heel_pitch_max=0.2)), y, cfg, judge)
+    low = KinematicG1(IkCfg(stance="heel_off", heel_pitch_max=0.2, heel_cost=1.0))
+    low = pose_reached(low, y, cfg, judge)
     assert low["stance_pitch_rad"] == pytest.approx(0.2, abs=2e-3) and not low["reached"]
-    high = pose_reached(KinematicG1(IkCfg(stance="heel_off", heel_pitch_max=0.5)), y, cfg, judge)
+    high = KinematicG1(IkCfg(stance="heel_off", heel_pitch_max=0.5, heel_cost=1.0))
+    high = pose_reached(high, y, cfg, judge)
     assert high["stance_pitch_rad"] > 0.25
 
 
@@ -170,13 +174,14 @@ def test_a_heel_in_the_ground_or_a_sliding_toe_is_not_reached_by_hand():
         ("audit.heel_pitch_max=abc", "audit.heel_pitch_max=abc: give a float"),
         ("audit.tol_com=0.1", "audit.tol_com: unknown audit option"),
         ("audit.film=maybe", "audit.film=maybe: give true or false"),
+        ("audit.stance=flat audit.stance=heel_off", "audit.stance is given twice"),
     ],
 )
 def test_a_bad_audit_option_is_one_line_and_exit_2(capsys, arg, message):
     from march.audit.audit_command import main
 
     with pytest.raises(SystemExit) as stop:
-        main(["reference", "compute=smoke", arg])
+        main(["reference", "compute=smoke", *arg.split()])
     assert stop.value.code == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and message in err

@@ -308,6 +308,7 @@ def _random_step_state(e: int, g: torch.Generator, dtype: torch.dtype) -> StepSt
         pelvis_from_pos=0.2 * r(e, 2) - 0.1,
         pelvis_from_vel=r(e, 2) - 0.5,
         z0=0.57 + 0.1 * r(e),
+        swing_from_pitch=torch.zeros(e, dtype=dtype),  # its carry: tests/test_swing_shape.py
     )
 
 

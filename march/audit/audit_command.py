@@ -140,6 +140,8 @@ def split_audit_options(args: list[str]) -> tuple[list[str], AuditOptions]:
         target, kind, jobs = AUDIT_OPTIONS[name]
         if job not in jobs:
             fail(f"{key} applies to {' and '.join(jobs)}, not to {job or 'no job'}")
+        if name in getattr(options, target):
+            fail(f"{key} is given twice; keep one")
         getattr(options, target)[name] = parse_value(name, kind, text)
     from march.audit.feasibility import FeasibilityCfg
     from march.audit.kinematic_g1 import IkCfg

@@ -86,18 +86,22 @@ class IkCfg:
     stance: str = "flat"
     """The stance foot's contact model (module docstring): ``flat`` (default; the foot site's
     whole pose held) or ``heel_off`` (its toe edge held, the heel free to lift)."""
-    heel_pitch_max: float = 0.5
+    heel_pitch_max: float = 0.7
     """``heel_off``: the largest heel-up pitch of the stance foot about its toe edge [rad]
-    (0.5 rad lifts the heel ~9 cm; the G1's ankle pitch range is -0.87..+0.52 rad, and a
-    human's heel-off at push-off is ~0.3-0.6 rad)."""
-    heel_cost: float = 3.0
+    (0.7 rad, 40 deg, lifts the heel 12 cm: a human's foot leaves the ground at push-off
+    pitched further than this; the G1's own ankle range, -0.87..+0.52 rad, bounds what the
+    IK can use of it). Measured (docs/audit.md): at 0.5 rad the heel sat at the bound on the
+    long step-downs of the hardest level (level 9 reached 52.9 % at 0.5, 70.6 % at 0.7; all
+    levels 87.6 -> 89.5 %, the same option set)."""
+    heel_cost: float = 0.3
     """``heel_off``: cost of the stance foot's heel-up pitch [1/rad], a regulariser like
-    ``leg_posture_cost``: below the outputs' costs (2-26), so the heel lifts only where the
-    flat foot leaves an output error; the ``polish`` steps move its target to the pitch just
-    found, as they do the legs' posture. Measured on the reference audit (docs/audit.md): at 1
-    the heel lifts 1.5-3 cm even on short steps and the next swing starts off its flat
-    lift-off pitch (reach 18.7 %); 3: 73.2 %; 5 and 10 keep the heel within a few mm (72.2 %,
-    the flat foot's)."""
+    ``leg_posture_cost`` (0.3): well below the outputs' costs (2-26), so the heel lifts where
+    the flat foot leaves an output error and stays down where it does not matter; the
+    ``polish`` steps move its target to the pitch just found, as they do the legs' posture.
+    Measured on the reference audit (docs/audit.md): with ``reference.swing_pitch_carry`` the
+    heel lifts 4-5 cm on most steps at 0.3 and reach is highest; without the carry a lifted
+    heel leaves the next swing off its flat lift-off pitch and a cost of 3 (heel within a
+    few mm) is best."""
     dt: float = 0.02
     """Control tick [s] (the env's step: 0.005 s x decimation 4); also the finite-difference
     step of the measured output rates."""
