@@ -122,6 +122,7 @@ BAD: dict[str, list[Any]] = {
     "reference.swing_height": [0.01, 0.31],
     "reference.swing_toe_roll": [-1.01, 1.5],
     "reference.swing_xy_shape": [-0.01, 0.51],
+    "reference.swing_pitch_carry": [-0.01, 1.01],
     "teacher.learning_rate": [0.0, -1e-4],
     "teacher.schedule": ["cosine"],
     "teacher.num_learning_epochs": [0],
@@ -231,6 +232,7 @@ GOOD: dict[str, list[Any]] = {
     "reference.swing_height": [0.02, 0.3],
     "reference.swing_toe_roll": [-1.0, 0.0, 1.0],
     "reference.swing_xy_shape": [0.0, 0.5],
+    "reference.swing_pitch_carry": [0.0, 1.0],
     "distill.max_nonfinite_updates": [1],
     "depth.width": [1],  # a 1x1-pixel camera still gives the CNN a 1x1 map
     "depth.height": [1],
