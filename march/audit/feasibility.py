@@ -3,7 +3,8 @@
 :func:`reference_report` walks planned references (the planner's receding-horizon loop, ideal
 touchdown timing) on generated courses at every curriculum level with the kinematic G1
 (:mod:`march.audit.ik_walk`, :mod:`march.audit.kinematic_g1`; the stance foot held as a hard
-constraint) and reports, per level:
+constraint: flat, or with ``audit.stance=heel_off`` its toe edge held and the heel free to lift)
+and reports, per level:
 
 - the **error floor** of each output: median and 90th percentile over the control ticks of
   |eta| = |y - y_ref| of the IK's best pose, per output and per group (CoM, pelvis, swing-foot
@@ -16,7 +17,9 @@ constraint) and reports, per level:
   rate tolerance (tolerance / ``rate_time``), the stance foot slid at most ``max_slide``, and
   the step ended in a real touchdown; beside it the old criterion (positions at the touchdown
   tick only) for comparison; for the steps that miss, what missed worst;
-- the **stance-foot slide** (p50 / p90 / max over steps);
+- the **stance-foot slide** (p50 / p90 / max over steps), the stance heel's lift and lowest
+  height and the foot's pitch (a heel more than ``max_heel_sink`` below where it was held is
+  not reached);
 - the **jump of the reference at touchdowns**: |y_ref(new step, tau = 0) - y_ref(old step,
   same instant)| per output, positions and rates, p50 / p90 / max over the touchdowns (a
   continuous reference has 0 on the CoM and pelvis; the swing-foot outputs change feet at a

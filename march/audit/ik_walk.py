@@ -13,7 +13,9 @@ landing off the stones ends the walk as an infeasible plan. Each step is built a
 command term builds it (:func:`next_step`): the CoM reference carries the previous step's
 reference CoM state at the touchdown tick (``reference.com_anchoring=continuous``, the default;
 ``stance`` anchors each step's orbit at the new stance foot, the earlier reference), at the
-step's CoM height (``reference.com_height``), so the audit measures the reference the env tracks.
+step's CoM height (``reference.com_height``), and the new swing foot's pitch at the touchdown tick
+(``reference.swing_pitch_carry``, which the env reads from the site's rotation), so the audit
+measures the reference the env tracks.
 
 Only a real touchdown ends a step and replans (issue 55): the swing foot must have left the
 ground (risen ``lift_min`` above its lift-off height) and come down onto the planned stone top

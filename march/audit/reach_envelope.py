@@ -5,8 +5,9 @@ For each CoM height z0 of :class:`EnvelopeCfg` and each step length l, the refer
 planned touchdown instant of a steady forward step (the stance foot, left, at the origin; the
 swing foot landing l ahead at the step width; the HLIP orbit with that z0; the reference's own
 pelvis, swing-foot and upper-body outputs) is posed by the whole-body IK
-(:class:`march.audit.kinematic_g1.KinematicG1`: the stance foot a hard constraint, the joint
-limits on) from the default pose, solved to convergence and held for ``settle_ticks`` ticks.
+(:class:`march.audit.kinematic_g1.KinematicG1`: the stance foot a hard constraint, flat or with
+``audit.stance=heel_off`` its heel free to lift about the held toe edge; the joint limits on)
+from the default pose, solved to convergence and held for ``settle_ticks`` ticks.
 The pose counts as reached when every output is within the feasibility audit's tolerance
 (:class:`march.audit.feasibility.FeasibilityCfg`: CoM 3 cm, pelvis 0.05 rad, swing foot 2 cm,
 ...) and the stance foot slid at most 1 cm. The envelope at z0 is the longest l of the grid that
