@@ -41,8 +41,10 @@ PPO's health is reported beside them (no criterion), means of the last window: t
 over each iteration's mini-batches (``lr_mean``, ``lr_min``, ``lr_max``; older runs: the last
 mini-batch's ``learning_rate``), the KL the update moved the policy by (``kl_update``) and its
 normaliser's part (``kl_normaliser``), the clip fraction, and the action std by joint group
-(march.learn.update_readout). Every evaluation distance is printed and drawn beside the standing
-floor (the zero action on the same rollouts, ``floor_distance_m``).
+(march.learn.update_readout). Every evaluation distance and success rate is printed and drawn
+beside the standing floor's (the zero action on the same rollouts, ``floor_distance_m``,
+``floor_success_rate``); success is a reported outcome, not a criterion (issue 56 asks for its
+curve; it was added before the study's modelfree arms were read).
 """
 
 from __future__ import annotations
@@ -82,12 +84,15 @@ CURVES = (
     ("mean_episode_length", "episode length [steps]"),
     ("mean_distance_m", "distance per episode [m] (training; feet)"),
     ("eval:mean_distance_m", "evaluation distance [m] (deterministic; feet)"),
+    ("eval:mean_success_rate", "evaluation success rate (deterministic)"),
     ("lr_mean", "learning rate: mean over mini-batches (band: min-max)"),
     ("kl_update", "KL of the update (dashed: normaliser's part)"),
     ("action_std_groups", "action std by joint group"),
 )
 """The figure's panels: a metrics.csv column, ``eval:<column>`` of eval.csv (teacher rows), or a
 composite panel drawn by :func:`figure`."""
+EVAL_FLOORS = {"mean_distance_m": "floor_distance_m", "mean_success_rate": "floor_success_rate"}
+"""The standing floor's eval.csv column drawn beside each evaluation panel's."""
 GROUP_STYLES = {"legs": "-", "waist": "--", "arms": ":"}
 ARM_COLOURS = {"clf": "tab:blue", "modelfree_ref": "tab:orange", "modelfree": "tab:red"}
 
@@ -321,6 +326,10 @@ def study(runs: list, standing: float | None) -> dict:
             "env_steps": int(pd.to_numeric(items[0][1]["env_steps"]).max()),
             "final_eval_distance_m": t_interval([last_eval(r) for r, _ in items]),
             "standing_floor_m": t_interval([last_eval(r, "floor_distance_m") for r, _ in items]),
+            "final_eval_success": t_interval([last_eval(r, "mean_success_rate") for r, _ in items]),
+            "standing_floor_success": t_interval(
+                [last_eval(r, "floor_success_rate") for r, _ in items]
+            ),
             "final_learning_rate": lasts(items, "learning_rate"),
             "lr_mean": lasts(items, "lr_mean"),
             "lr_min": lasts(items, "lr_min"),
@@ -353,11 +362,13 @@ def markdown(result: dict) -> str:
     lines.append("")
     lines.append(
         "| arm | seeds | env steps | final eval distance [m] | standing floor [m] | "
+        "final eval success (standing) | "
         "lr mean (min-max) | KL update (normaliser) | clip | std legs / waist / arms |"
     )
-    lines.append("|---|---|---|---|---|---|---|---|---|")
+    lines.append("|---|---|---|---|---|---|---|---|---|---|")
     for arm, h in result["arms"].items():
         d, f = h["final_eval_distance_m"], h["standing_floor_m"]
+        ok, ok_floor = h["final_eval_success"], h["standing_floor_success"]
         m = {k: (v["mean"] if isinstance(v, dict) else None) for k, v in h.items()}
         lr = (
             f"{_fmt(m['lr_mean'])} ({_fmt(m['lr_min'])}-{_fmt(m['lr_max'])})"
@@ -369,7 +380,9 @@ def markdown(result: dict) -> str:
             std = f"{_fmt(m['final_action_std'])} (all joints)"
         lines.append(
             f"| {arm} | {len(h['seeds'])} | {h['env_steps']} | {_fmt(d['mean'])} "
-            f"[{_fmt(d['low'])}, {_fmt(d['high'])}] | {_fmt(f['mean'])} | {lr} | "
+            f"[{_fmt(d['low'])}, {_fmt(d['high'])}] | {_fmt(f['mean'])} | "
+            f"{_fmt(ok['mean'])} [{_fmt(ok['low'])}, {_fmt(ok['high'])}] "
+            f"({_fmt(ok_floor['mean'])}) | {lr} | "
             f"{_fmt(m['kl_update'])} ({_fmt(m['kl_normaliser'])}) | {_fmt(m['clip_fraction'])} | "
             f"{std} |"
         )
@@ -415,13 +428,15 @@ def figure(runs: list, out: Path, title: str) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(3, 3, figsize=(16, 12))
+    fig, axes = plt.subplots(4, 3, figsize=(16, 16))
     by_arm: dict[str, list[tuple[Any, pd.DataFrame]]] = {}
     for run in runs:
         df = teacher_metrics(run)
         if df is not None:
             by_arm.setdefault(arm_of(run), []).append((run, df))
-    for ax, (col, label) in zip(axes.ravel(), CURVES, strict=True):
+    for ax in axes.ravel()[len(CURVES) :]:
+        ax.set_visible(False)
+    for ax, (col, label) in zip(axes.ravel(), CURVES, strict=False):
         for arm, items in sorted(by_arm.items()):
             c = ARM_COLOURS.get(arm, "tab:gray")
             frames = [d for _, d in items]
@@ -431,7 +446,7 @@ def figure(runs: list, out: Path, title: str) -> Path:
                 got = _series(evals, col[5:])
                 if got is not None:
                     _band(ax, *got, c, what)
-                floor = _series(evals, "floor_distance_m")
+                floor = _series(evals, EVAL_FLOORS.get(col[5:], ""))
                 if floor is not None and np.isfinite(floor[1]).any():
                     ax.plot(floor[0], np.nanmean(floor[1], 0), color=c, lw=1.2, ls=":",
                             label=f"{arm}: standing floor (zero action, same rollouts)")  # fmt: skip

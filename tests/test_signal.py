@@ -48,6 +48,8 @@ def _run(reward: str, seed: int, ref: bool, v_eval: float, v_floor: float | None
             "env_steps": [6 * 768, 12 * 768],
             "mean_distance_m": [0.05, 0.08 + 0.01 * seed],
             "floor_distance_m": [floor_d, floor_d],
+            "mean_success_rate": [0.0, 0.25 * seed],
+            "floor_success_rate": [0.0, 0.0],
             "clf/v_p50": [v_eval + 0.2, v_eval],
         }
     )
@@ -116,6 +118,9 @@ def test_the_table_puts_the_standing_floor_and_the_update_beside_the_distance(tm
     assert cells[" standing floor [m] "].strip() == "0.033"
     assert cells[" lr mean (min-max) "].strip() == "0.000101 (1e-05-0.0003)"
     assert cells[" std legs / waist / arms "].strip() == "0.9 / 1 / 1.1"
+    # success at the last evaluation, 0 / 0.25 / 0.5 over the seeds, with standing's beside it
+    m, lo, hi = _hand_t([0.0, 0.25, 0.5])
+    assert cells[" final eval success (standing) "].strip() == f"0.25 [{lo:.3g}, {hi:.3g}] (0)"
     png = signal.figure(runs, tmp_path / "signal.png", "test")
     assert png.is_file() and png.stat().st_size > 10_000
 
