@@ -252,6 +252,19 @@ OPTION_SET = [
 """docs/audit.md's option set (issue 55 item 5)."""
 
 
+def _option_env(*extra: str):
+    """The teacher env with the option set and ``extra`` (compute=smoke, dr=none, 4 envs), reset:
+    (env, its reference term, a generator seeded 0, the action dimension)."""
+    from march.config.cli import load
+    from march.env.build import make_env
+    from march.env.reference_command import reference_term
+
+    env = make_env(load(["compute=smoke", "dr=none", *OPTION_SET, *extra]), "teacher", num_envs=4)
+    term = reference_term(env)
+    env.reset()
+    return env, term, torch.Generator().manual_seed(0), env.action_manager.total_action_dim
+
+
 @pytest.mark.sim
 def test_the_env_tracks_the_shaped_reference():
     """The teacher env built with the option set (compute=smoke, 4 envs, dr=none), walked 30
@@ -259,16 +272,8 @@ def test_the_env_tracks_the_shaped_reference():
     term's own tau) is reference_at of the term's step state with the option set, to float32
     rounding, and its swing pitch differs from the same step's reference without the shapings
     wherever a swing is under way (phase 0.1-0.9: the options reach the env)."""
-    from march.config.cli import load
-    from march.env.build import make_env
-    from march.env.reference_command import reference_term
-
-    env = make_env(load(["compute=smoke", "dr=none", *OPTION_SET]), "teacher", num_envs=4)
+    env, term, gen, n_act = _option_env()
     try:
-        term = reference_term(env)
-        gen = torch.Generator().manual_seed(0)
-        n_act = env.action_manager.total_action_dim
-        env.reset()
         ref = term.cfg.reference
         assert (ref.swing_xy_shape, ref.swing_toe_roll, ref.swing_height) == (0.35, 0.15, 0.08)
         plain = ReferenceCfg(com_height="step", com_height_free_step=0.4, com_height_slope=0.25)
@@ -387,21 +392,10 @@ def test_the_env_carries_the_swing_foots_measured_pitch():
     the new step state's lift-off pitch is the ZYX pitch of its swing foot's site as MuJoCo
     has it (asin(-R31)), the term's y_ref is reference_at of its step state with the carry
     at every step, and the carried pitches are not all 0 (the feet do not stay flat)."""
-    from march.config.cli import load
-    from march.env.build import make_env
-    from march.env.reference_command import reference_term
     from march.env.step_cache import site_xmat
 
-    env = make_env(
-        load(["compute=smoke", "dr=none", *OPTION_SET, "reference.swing_pitch_carry=0.5"]),
-        "teacher",
-        num_envs=4,
-    )
+    env, term, gen, n_act = _option_env("reference.swing_pitch_carry=0.5")
     try:
-        term = reference_term(env)
-        gen = torch.Generator().manual_seed(0)
-        n_act = env.action_manager.total_action_dim
-        env.reset()
         ref = term.cfg.reference
         assert ref.swing_pitch_carry == 0.5
         pitches = []
