@@ -20,6 +20,7 @@ from march.reference.trajectory import (
     StepState,
     com_orbit_height,
     step_lambda,
+    swing_pitch_carry,
     wrap_to_pi,
 )
 
@@ -284,15 +285,11 @@ def reference_outputs(
         foot_rate = torch.cat([z2[..., :1], rate], dim=-1)
     if cfg.swing_pitch_carry > 0.0 and step.swing_from_pitch is not None:
         # the lift-off pitch carried (march.reference.trajectory.swing_pitch_carry)
-        span = cfg.swing_pitch_carry * dur
-        phi = (t / span).clamp(0.0, 1.0)
-        one = 1.0 - phi
-        p0 = step.swing_from_pitch[:, None]
-        carried = torch.stack(
-            [p0 * (one * one * (1.0 + 2.0 * phi)), p0 * (-6.0 * phi * one / span)], dim=-1
+        pitch, rate = swing_pitch_carry(
+            step.swing_from_pitch[:, None], t, dur, cfg.swing_pitch_carry
         )
-        foot = torch.cat([foot[..., :1], foot[..., 1:] + carried[..., :1]], dim=-1)
-        foot_rate = torch.cat([foot_rate[..., :1], foot_rate[..., 1:] + carried[..., 1:]], -1)
+        foot = torch.cat([foot[..., :1], foot[..., 1:] + pitch[..., None]], dim=-1)
+        foot_rate = torch.cat([foot_rate[..., :1], foot_rate[..., 1:] + rate[..., None]], -1)
     pos = torch.cat([com_pos, com_z, roll_pitch, yaw, swing[..., :3], foot, yaw, zu], dim=-1)
     vel = torch.cat(
         [com_vel, com_vz, roll_pitch_rate, yaw_rate, swing_vel, foot_rate, yaw_rate, zu], -1
