@@ -332,6 +332,12 @@ REFUSALS = {
         "is compressed",
         "teacher_ckpt={root}/s/student/latest.pt: ",
     ),
+    "audit-options-zip": (  # audit.* values are checked after the file gate, torch-free before
+        "-m march.audit reference audit.stance=heel_off teacher_ckpt={root}/s/student/latest.pt"
+        " out={root}/r.json",
+        "is compressed",
+        "teacher_ckpt={root}/s/student/latest.pt: ",
+    ),
     "inspect-laughs": ("-m march.inspect run {root}/laughs", "YAML anchor", "{root}/laughs"),
     "inspect-zip": ("-m march.inspect run {root}/zip-bomb", "is compressed", "{root}/zip-bomb"),
     "figures-metrics": ("analysis/figures.py {root}/metrics-row", "'abc'", "figures.py: "),
@@ -359,11 +365,14 @@ children's peak resident size (``ru_maxrss``, KB on Linux) is the tool's alone."
 
 SEEN_MODULES = (
     "import atexit, sys\n"
-    "atexit.register(lambda: sys.stdout.write('modules: ' + ','.join(m for m in"
+    "if sys.argv[0] != '-c':\n"
+    "    atexit.register(lambda: sys.stdout.write('modules: ' + ','.join(m for m in"
     " ('torch', 'mjlab', 'onnxruntime') if m in sys.modules) + '\\n'))\n"
 )
 """The hook folder's ``sitecustomize``, run by Python before the tool: at exit, the heavy
-modules the process had imported, on stdout."""
+modules the process had imported, on stdout. Not in a ``python -c`` child the tool starts:
+glfw's version probe (imported with mjlab's viewer) evals such a child's stdout, and the line
+would crash it instead of showing which module was imported."""
 
 
 @pytest.mark.parametrize("case", list(REFUSALS))

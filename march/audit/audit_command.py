@@ -124,9 +124,9 @@ def parse_value(key: str, kind: type, text: str) -> object:
 
 
 def split_audit_options(args: list[str]) -> tuple[list[str], AuditOptions]:
-    """The command line without its ``audit.*`` overrides, and those parsed and checked (the
-    job first, then key=value: one line and exit 2 on an unknown key, a bad value or a key
-    the job does not take)."""
+    """The command line without its ``audit.*`` overrides, and those parsed (the job first,
+    then key=value: one line and exit 2 on an unknown key, a value of the wrong type or a key
+    the job does not take; the values' ranges are :func:`check_audit_options`'s)."""
     job = args[0] if args and "=" not in args[0] else None
     rest, options = [], AuditOptions()
     for arg in args:
@@ -143,16 +143,20 @@ def split_audit_options(args: list[str]) -> tuple[list[str], AuditOptions]:
         if name in getattr(options, target):
             fail(f"{key} is given twice; keep one")
         getattr(options, target)[name] = parse_value(name, kind, text)
+    return rest, options
+
+
+def check_audit_options(options: AuditOptions) -> None:
+    """The ``audit.*`` values checked by their configs (raises :class:`ConfigError`). Run after
+    the file gate and before anything is built: the configs' modules import torch, so a crafted
+    checkpoint is refused before they load (issue 59), and none load when no option is given."""
+    if not (options.ik or options.feasibility):
+        return
     from march.audit.feasibility import FeasibilityCfg
     from march.audit.kinematic_g1 import IkCfg
-    from march.errors import ConfigError
 
-    try:  # the values checked now, before the config is composed or anything is built
-        IkCfg(**options.ik)
-        FeasibilityCfg(**options.feasibility)
-    except ConfigError as err:
-        fail(str(err))
-    return rest, options
+    IkCfg(**options.ik)
+    FeasibilityCfg(**options.feasibility)
 
 
 def reference(cfg: MarchConfig, options: AuditOptions | None = None) -> dict:
@@ -188,8 +192,11 @@ def main(argv: Sequence[str] | None = None) -> None:
         "reference": lambda cfg: reference(cfg, options),
         "envelope": lambda cfg: envelope(cfg, options),
     }
-    # teacher_ckpt= judged (link, size, zip records) before the term check loads the simulator
-    run_tool(jobs, args, usage=USAGE, before_terms=check_checkpoint_files)
+    def before_terms(tree: object) -> None:
+        check_checkpoint_files(tree)  # link, size, zip records: before torch is imported
+        check_audit_options(options)  # then the audit.* values, before anything is built
+
+    run_tool(jobs, args, usage=USAGE, before_terms=before_terms)
 
 
 if __name__ == "__main__":
