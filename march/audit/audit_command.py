@@ -192,6 +192,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         "reference": lambda cfg: reference(cfg, options),
         "envelope": lambda cfg: envelope(cfg, options),
     }
+
     def before_terms(tree: object) -> None:
         check_checkpoint_files(tree)  # link, size, zip records: before torch is imported
         check_audit_options(options)  # then the audit.* values, before anything is built
