@@ -139,6 +139,10 @@ def test_a_step_longer_than_the_leg_is_not_reached_and_the_report_names_the_outp
     assert np.abs(short["trace"].touchdown_eta[0]).max() < 5e-3
     # the stance foot is held as a hard constraint: it does not slide, even on the long step
     assert short["stance_slide_m"]["max"] < 1e-4 and long["stance_slide_m"]["max"] < 1e-4
+    # the rate the walk judges is its error's own finite difference over each tick
+    for walked in (short, long):
+        eta, etadot = (np.asarray(x) for x in (walked["trace"].eta, walked["trace"].etadot))
+        assert np.allclose(etadot[1:], np.diff(eta, axis=0) / kin.cfg.dt, atol=1e-9)
 
 
 def test_the_planners_longest_step_keeps_the_com_below_its_reference(kin):
@@ -183,6 +187,49 @@ def test_v_is_march_clf_v_of_the_same_eta(kin):
     assert tick.v == pytest.approx(float(env_path[0]), rel=1e-9)
     lam = float(np.linalg.eigvalsh(kin.clf.P_np)[-1])
     assert tick.v_ratio == pytest.approx(tick.v / (lam * cfg.eta_max**2), rel=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_walks_rate_is_the_errors_own_and_unbiased_where_the_pose_follows(kin, seed):
+    """A real motion: from a real one-foot pose, the 17 upper-body joints swing as
+    A sin(w t) (base and legs still, so every instant is a real pose; y_ref measured from it).
+    The IK follows it; the rate the walk judges, the error's finite difference
+    (``eta_before``), stays near 0 (< 15 % of the bias below), while the configuration's
+    backward difference against the reference's rate at the tick's end is off by the
+    hand-derived A (sin(w t) - sin(w (t - dt))) / dt - A w cos(w t), about (dt/2) A w^2
+    sin(w t): a follower the old rate called late."""
+    rng = np.random.default_rng(10 + seed)
+    left = bool(seed % 2)
+    q0, _, foot, rot = real_pose(kin, rng, left)
+    amp, w = rng.uniform(0.1, 0.25, 17), rng.uniform(6.0, 12.0, 17)
+    dt = kin.cfg.dt
+    upper = slice(*GROUPS["upper"])
+
+    def y_of(t: float) -> np.ndarray:
+        q = q0.copy()
+        q[kin.upper_qpos] = kin.default_upper + amp * np.sin(w * t)
+        return kin.measure(q, None, left)[0]
+
+    kin.stand(y_of(0.0), left, foot, rot)
+    for _ in range(5):  # settle on the motion's start
+        eta = kin.track(y_of(0.0), np.zeros(29), left, foot, rot).eta
+    old_bias, new_rate, hand = [], [], []
+    for k in range(1, 16):
+        t = k * dt
+        ydot_ref = np.zeros(29)
+        ydot_ref[upper] = amp * w * np.cos(w * t)
+        saved = kin.qpos.copy()
+        old = kin.track(y_of(t), ydot_ref, left, foot, rot)
+        kin.reset(saved)  # the same tick again, judged by the error's own rate
+        new = kin.track(y_of(t), ydot_ref, left, foot, rot, eta_before=eta)
+        eta = new.eta
+        old_bias.append(old.etadot[upper])
+        new_rate.append(new.etadot[upper])
+        hand.append(amp * (np.sin(w * t) - np.sin(w * (t - dt))) / dt - amp * w * np.cos(w * t))
+    old_bias, new_rate, hand = map(np.asarray, (old_bias, new_rate, hand))
+    scale = np.abs(hand).max()
+    assert np.abs(old_bias - hand).max() < 0.1 * scale, (np.abs(old_bias - hand).max(), scale)
+    assert np.abs(new_rate).max() < 0.15 * scale, (np.abs(new_rate).max(), scale)
 
 
 def _strict_json(path) -> dict:

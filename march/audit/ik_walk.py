@@ -36,7 +36,7 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 import torch
 
-from march.audit.kinematic_g1 import KinematicG1, rotation_zyx
+from march.audit.kinematic_g1 import KinematicG1, rotation_zyx, tracking_error
 from march.reference.hlip import HlipCfg
 from march.reference.planner import Plan, PlannerCfg, plan_footsteps
 from march.reference.trajectory import (
@@ -59,7 +59,8 @@ class WalkTrace:
     eta: list[np.ndarray] = field(default_factory=list)
     """Per tick (29,) y - y_ref (angles wrapped)."""
     etadot: list[np.ndarray] = field(default_factory=list)
-    """Per tick (29,) ydot - ydot_ref."""
+    """Per tick (29,) the error's rate over the tick, (eta - eta_before) / dt
+    (:meth:`KinematicG1.track`)."""
     v_ratio: list[float] = field(default_factory=list)
     """Per tick V / Vmax."""
     tick_step: list[int] = field(default_factory=list)
@@ -246,12 +247,15 @@ def track_step(
     ref_pos, ref_vel = (x.double().numpy() for x in ref.flatten())
     if first:
         kin.stand(ref_pos[0], is_left, *held)
-    kin.measure(kin.qpos, None, is_left)  # kin.data may hold another walk's last tick
+    # kin.data may hold another walk's last tick; the error at tau = 0 with this step's labels
+    # starts the finite difference of the error (the rate judged, KinematicG1.track)
+    eta = tracking_error(kin.measure(kin.qpos, None, is_left)[0], ref_pos[0])
     lift_z = site_pose(kin, not is_left)[0][2]
     top = lift_z
     slide, heel_hi, heel_lo, pitch = 0.0, -math.inf, math.inf, -math.inf
     for j in range(1, n + 1):
-        tick = kin.track(ref_pos[j], ref_vel[j], is_left, *held)
+        tick = kin.track(ref_pos[j], ref_vel[j], is_left, *held, eta_before=eta)
+        eta = tick.eta
         trace.eta.append(tick.eta)
         trace.etadot.append(tick.etadot)
         trace.v_ratio.append(tick.v_ratio)

@@ -195,7 +195,8 @@ class Tick:
     eta: np.ndarray
     """(29,) y - y_ref (angles wrapped)."""
     etadot: np.ndarray
-    """(29,) ydot - ydot_ref."""
+    """(29,) ydot - ydot_ref, or the error's finite difference over the tick
+    (:meth:`KinematicG1.track`'s ``eta_before``)."""
     v: float
     """V = 1/2 x^T P x of (eta, etadot)."""
     v_ratio: float
@@ -598,13 +599,25 @@ class KinematicG1:
         stance_pos: np.ndarray,
         stance_rot: np.ndarray,
         iterations: int | None = None,
+        eta_before: np.ndarray | None = None,
     ) -> Tick:
-        """One control tick: solve toward ``y_ref``, measure, and the errors and V / Vmax."""
+        """One control tick: solve toward ``y_ref``, measure, and the errors and V / Vmax.
+
+        ``eta_before``: the error at the previous tick, measured with this tick's stance
+        labels. Given, etadot is the error's own finite difference over the tick,
+        (eta - eta_before) / dt, which compares the pose's rate with the reference's over the
+        same interval (both to O(dt^2)); ``ydot_ref`` is then unused. Without it, etadot is
+        ydot - ydot_ref: the configuration's backward difference mapped at the tick's end
+        against the reference's rate at that instant, off by about dt/2 times the outputs'
+        acceleration even when the pose follows the reference exactly."""
         before = self.qpos
         q = self.solve(y_ref, stance_is_left, stance_pos, stance_rot, iterations)
         y, ydot = self.measure(q, before, stance_is_left)
         eta = tracking_error(y, np.asarray(y_ref))
-        etadot = ydot - np.asarray(ydot_ref)
+        if eta_before is None:
+            etadot = ydot - np.asarray(ydot_ref)
+        else:
+            etadot = (eta - np.asarray(eta_before)) / self.cfg.dt
         v = float(self.value(eta, etadot))
         slide, heel, pitch = self.contact(stance_is_left, stance_pos, stance_rot)
         return Tick(q, y, ydot, eta, etadot, v, v / self.v_max, slide, heel, pitch)
