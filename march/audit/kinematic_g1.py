@@ -41,7 +41,9 @@ env's own maths (:func:`march.env.clf_outputs.outputs_from_state` on MuJoCo's ``
 ``cvel``, ``xipos``, ``xmat``, the foot sites and the joints, as :func:`measured_outputs` feeds
 it), with the velocity the finite difference of the configuration over the tick,
 qvel = (q_k minus q_(k-1)) / dt (``mj_differentiatePos``), and returns eta, etadot and V / Vmax
-(:class:`march.clf.lyapunov.ClfModel`, the env's CLF config).
+(:class:`march.clf.lyapunov.ClfModel`, the env's CLF config). Given the previous tick's error
+(``eta_before``, as the reference walk gives it), etadot is the error's own finite difference
+over the tick instead: the pose's rate and the reference's over the same interval.
 
 What it ignores: dynamics (no contact forces, no zero-moment point, no torque limits), joint
 velocity limits, self-collision and collisions with the stones; see docs/audit.md.
