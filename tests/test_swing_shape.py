@@ -206,10 +206,11 @@ def test_the_xy_shape_lets_the_dragged_trailing_foot_follow_on_the_kinematic_g1(
     flat ground). 0.5, 0.5, 0.3 m: after a 0.5 m step the trailing leg is nearly straight and
     drags its foot ahead of a minimum-jerk reference that has not started; with
     swing_xy_shape = 0.35 the swing foot's worst error over steps 1-2 falls from 12.2 to 7.6 mm
-    in x and 19.1 to 14.1 mm in z, and its worst x rate error from 0.57 to 0.43 m/s (measured).
-    0.35 m steps: with the foot on its reference to 0.4 mm, the audit's swing z rate error (the
-    end-of-tick tangent against the reference's rate, ~ v w dt / 2) falls from 0.236 to
-    0.190 m/s, under the 0.2 m/s tolerance, with the flatter speed."""
+    in x and 19.1 to 14.1 mm in z, and its worst x rate error (the error's own rate over the
+    tick, as the audit judges it) from 0.46 to 0.38 m/s (measured). 0.35 m steps: with the foot
+    on its reference to 0.4 mm, its swing z rate error is 0.02 m/s with either shape, a tenth
+    of the 0.2 m/s tolerance (the end-of-tick tangent the audit judged until 2026-12-07 read
+    0.236 and 0.190 m/s there: dt/2 times the foot's acceleration, tests/test_feasibility.py)."""
     from march.audit.feasibility import FeasibilityCfg
     from march.audit.kinematic_g1 import KinematicG1
     from tests.test_feasibility import hand_planned_walk
@@ -227,7 +228,7 @@ def test_the_xy_shape_lets_the_dragged_trailing_foot_follow_on_the_kinematic_g1(
     }
     for col, share in ((SWING_X, 0.7), (swing_z, 0.8)):
         assert worst(runs[0.35], "eta", col, (1, 2)) < share * worst(runs[0.0], "eta", col, (1, 2))
-    assert worst(runs[0.35], "etadot", SWING_X, (1, 2)) < 0.8 * worst(
+    assert worst(runs[0.35], "etadot", SWING_X, (1, 2)) < 0.9 * worst(
         runs[0.0], "etadot", SWING_X, (1, 2)
     )
     tol = FeasibilityCfg().rate_tolerances()[swing_z]
@@ -237,7 +238,7 @@ def test_the_xy_shape_lets_the_dragged_trailing_foot_follow_on_the_kinematic_g1(
         for a in (0.0, 0.35)
     )
     assert max(worst(t, "eta", swing_z, (1, 2)) for t in (flat, shaped)) < 1e-3
-    assert worst(flat, "etadot", swing_z, (1, 2)) > tol > worst(shaped, "etadot", swing_z, (1, 2))
+    assert max(worst(t, "etadot", swing_z, (1, 2)) for t in (flat, shaped)) < 0.25 * tol
 
 
 OPTION_SET = [
