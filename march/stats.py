@@ -20,6 +20,8 @@ every mean, paired or Welch interval is a use of it.
   difference of two independent means with Welch's degrees of freedom (:func:`welch_ci`): each
   the one Student's t interval (:func:`t_interval`); :func:`mean_summary` and
   :func:`welch_summary` give them as dicts (None where undefined) for JSON reports.
+* A share of independent trials (:func:`proportion_ci`, Clopper-Pearson): the reference
+  audit's reach per level.
 * :func:`bootstrap` (percentile, each arm resampled independently, a fixed generator): kept for
   statistics without a closed form; no claim uses it (it under-covers at 3-5 seeds).
 
@@ -149,6 +151,23 @@ def t_interval(
 
     half = float(student_t.ppf(0.5 + level / 2.0, dof)) * se
     return point, point - half, point + half
+
+
+def proportion_ci(k: int, n: int, level: float = LEVEL) -> tuple[float, float, float]:
+    """(k / n, low, high): the Clopper-Pearson (exact binomial) interval of a share, k successes
+    of n independent trials; its coverage is at least ``level`` at every true share (used for
+    the reference audit's reach, where a level has ~20 steps and 0 misses must not read as
+    certainty). NaN everywhere when n = 0."""
+    if n <= 0:
+        return math.nan, math.nan, math.nan
+    if not 0 <= k <= n:
+        raise ValueError(f"proportion_ci: need 0 <= k <= n, got k={k}, n={n}")
+    from scipy.stats import beta
+
+    alpha = 1.0 - level
+    low = 0.0 if k == 0 else float(beta.ppf(alpha / 2.0, k, n - k + 1))
+    high = 1.0 if k == n else float(beta.ppf(1.0 - alpha / 2.0, k + 1, n - k))
+    return k / n, low, high
 
 
 def mean_ci(x, level: float = LEVEL) -> tuple[float, float, float]:

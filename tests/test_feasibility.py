@@ -261,10 +261,16 @@ def test_the_report_covers_every_curriculum_level(tmp_path, capsys, curriculum):
         assert 0.0 <= s["reach"]["whole_step"] <= s["reach"]["touchdown_tick_positions"] <= 1
         assert s["jump_at_touchdown"]["touchdowns"] == s["steps"] - 1  # one between two steps
         assert sum(b["steps"] for b in s["reach"]["by_step_length"]) == s["steps"]
+        reach = s["reach"]
+        assert reach["reached_steps"] == round(reach["whole_step"] * s["steps"])
+        lo, hi = reach["whole_step_ci95"]
+        assert lo <= reach["whole_step"] <= hi and hi - lo > 0.3  # 1-2 steps: a wide interval
     assert out.with_suffix(".png").stat().st_size > 10_000
     table = capsys.readouterr().out
     # three tables (floors and reach, jumps, step lengths), one row per level each
     assert len([r for r in table.splitlines() if r[:5].strip().isdigit()]) == 3 * len(levels)
+    total = sum(s["reach"]["reached_steps"] for s in levels)
+    assert f"all levels: {total} of {sum(s['steps'] for s in levels)} steps reached" in table
 
 
 def test_an_output_path_without_json_is_one_clear_error():

@@ -27,10 +27,19 @@ def pct(x: float | None) -> str:
     return "  -  " if x is None else f"{100 * x:5.1f}"
 
 
+def interval(bounds: list[float] | None) -> str:
+    """A share's 95 % interval as ``[ 84-100]`` (percent), dashes when there is none."""
+    if not bounds:
+        return "[  -  - ]"
+    lo, hi = (100 * b for b in bounds)
+    return f"[{lo:3.0f}-{hi:3.0f}]"
+
+
 def table(levels: list[dict[str, Any]]) -> str:
     """The per-level reach and floor table printed on stdout."""
     head = (
-        "level diff kind   steps reach%  td% | slide mm p50   p90   max | heel-up mm p90   max |"
+        "level diff kind   steps reach%  95% CI    td% | slide mm p50   p90   max |"
+        " heel-up mm p90   max |"
         " V/Vmax p50   p90  "
         "sat%  Vpos p90 | p90 |eta|: com mm pelvis mrad swing mm swing-ori mrad upper mrad | "
         "missed most"
@@ -44,7 +53,8 @@ def table(levels: list[dict[str, Any]]) -> str:
         miss = ", ".join(f"{k} {n}" for k, n in list(misses.items())[:3]) or "-"
         rows.append(
             f"{s['level']:5d} {s['difficulty']:4.2f} {s['kind']:6s} {s['steps']:5d}  "
-            f"{pct(s['reach']['whole_step'])} {pct(s['reach']['touchdown_tick_positions'])} |"
+            f"{pct(s['reach']['whole_step'])} {interval(s['reach'].get('whole_step_ci95'))} "
+            f"{pct(s['reach']['touchdown_tick_positions'])} |"
             f"     {num(sl['median'], 1e3, 5, 1)} {num(sl['p90'], 1e3, 5, 1)} "
             f"{num(sl['max'], 1e3, 5, 1)} |"
             f"           {num(hl.get('p90'), 1e3, 5, 1)} {num(hl.get('max'), 1e3, 5, 1)} |"
