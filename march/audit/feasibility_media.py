@@ -93,23 +93,28 @@ def draw_floors(
     v_ax.grid(alpha=0.3, which="both")
     whole = series(lambda s: s["reach"]["whole_step"])
     touchdown = series(lambda s: s["reach"]["touchdown_tick_positions"])
+    ci = np.array(
+        [s["reach"].get("whole_step_ci95") or [np.nan, np.nan] for s in levels], dtype=float
+    ).reshape(-1, 2)
     reach_ax.bar(
         x - 0.2,
         100 * whole,
         0.4,
-        label="reached: every output and rate in tolerance at every tick, slide <= 1 cm, "
-        "real touchdown",
+        yerr=100 * np.abs(np.stack([whole - ci[:, 0], ci[:, 1] - whole])),
+        capsize=2,
+        error_kw={"lw": 0.8},
+        label="reached: every output and rate in tolerance at every tick,\nslide <= 1 cm, "
+        "real touchdown (bar: 95 % interval over the level's steps)",
     )
     reach_ax.bar(x + 0.2, 100 * touchdown, 0.4, label="old: positions at the touchdown tick only")
-    for s, xi, t in zip(levels, x, whole, strict=True):
+    for s, xi, t, top in zip(levels, x, whole, ci[:, 1], strict=True):
         misses = s["reach"]["misses_by_cause"]
         if misses and np.isfinite(t):
             worst = next(iter(misses))
-            reach_ax.text(
-                xi - 0.2, 100 * t + 1, worst, rotation=90, ha="center", va="bottom", fontsize=7
-            )
+            above = 100 * (top if np.isfinite(top) else t) + 1
+            reach_ax.text(xi - 0.2, above, worst, rotation=90, ha="center", va="bottom", fontsize=7)
     reach_ax.set(
-        xlabel="curriculum level (difficulty 0 -> 1)", ylabel="planned steps [%]", ylim=(0, 125)
+        xlabel="curriculum level (difficulty 0 -> 1)", ylabel="planned steps [%]", ylim=(0, 150)
     )
     reach_ax.set_title("planned steps the G1 reaches (label: what missed most)")
     reach_ax.legend(fontsize=8, loc="upper right")
