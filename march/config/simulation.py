@@ -288,6 +288,13 @@ class ReferenceSectionCfg:
     the author's. Issue 55: a rear foot that lifted its heel leaves the ground toe down;
     docs/audit.md measures it with ``audit.stance=heel_off``."""
 
+    swing_roll_out: float = 0.0
+    """Swing-foot roll reference at mid-swing [rad], toward the swing foot's own side (+ left
+    foot, - right foot): swing_roll_out 64 s^3 (1 - s)^3 of the swing phase, level with zero
+    rate at lift-off and touchdown (march.reference.trajectory.swing_roll_out). 0 (default):
+    level all swing, as the author's. Issue 55: at mid-swing the knee-bent leg is abducted
+    beyond what the G1's ankle roll range can level; docs/audit.md measures it."""
+
     def __post_init__(self) -> None:
         check_shapes("reference", self)
         check_one_of("reference", "com_anchoring", self.com_anchoring, COM_ANCHORINGS)
@@ -297,6 +304,7 @@ class ReferenceSectionCfg:
         check_interval("reference", "com_height_min", self.com_height_min, 0.3, 0.67)
         check_interval("reference", "swing_toe_down", self.swing_toe_down, -1.0, 1.0)
         check_interval("reference", "swing_toe_roll", self.swing_toe_roll, -1.0, 1.0)
+        check_interval("reference", "swing_roll_out", self.swing_roll_out, -0.5, 0.5)
         check_interval("reference", "swing_height", self.swing_height, 0.02, 0.3)
         check_interval("reference", "swing_xy_shape", self.swing_xy_shape, 0.0, 0.5)
         check_interval("reference", "swing_pitch_carry", self.swing_pitch_carry, 0.0, 1.0)

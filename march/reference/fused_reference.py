@@ -21,6 +21,7 @@ from march.reference.trajectory import (
     com_orbit_height,
     step_lambda,
     swing_pitch_carry,
+    swing_roll_out,
     wrap_to_pi,
 )
 
@@ -290,6 +291,11 @@ def reference_outputs(
         )
         foot = torch.cat([foot[..., :1], foot[..., 1:] + pitch[..., None]], dim=-1)
         foot_rate = torch.cat([foot_rate[..., :1], foot_rate[..., 1:] + rate[..., None]], -1)
+    if cfg.swing_roll_out != 0.0:
+        # rolled toward the swing foot's side (march.reference.trajectory.swing_roll_out)
+        roll, rate = swing_roll_out(phase, dur, step.stance_is_left[:, None], cfg.swing_roll_out)
+        foot = torch.cat([roll[..., None], foot[..., 1:]], dim=-1)
+        foot_rate = torch.cat([rate[..., None], foot_rate[..., 1:]], dim=-1)
     pos = torch.cat([com_pos, com_z, roll_pitch, yaw, swing[..., :3], foot, yaw, zu], dim=-1)
     vel = torch.cat(
         [com_vel, com_vz, roll_pitch_rate, yaw_rate, swing_vel, foot_rate, yaw_rate, zu], -1

@@ -140,6 +140,14 @@ class ReferenceCfg:
     ``audit.stance=heel_off``) leaves the ground pitched toe down; a flat lift-off reference
     charges that pitch as an error and its removal in one tick as a rate."""
 
+    swing_roll_out: float = 0.0
+    """Swing-foot roll reference at mid-swing [rad], rolled toward the swing foot's own side
+    (+ for the left foot, - for the right: :func:`swing_roll_out`): swing_roll_out
+    64 s^3 (1 - s)^3 of the swing phase s, level with zero rate at lift-off and touchdown.
+    0 (default): level all swing, as the author's. Issue 55: at mid-swing the foot passes
+    0.13-0.23 m beside the CoM with the knee bent, the leg abducted beyond what the G1's ankle
+    roll range (0.262 rad) can level; the foot rolls with the leg and lands level."""
+
     def __post_init__(self) -> None:
         if self.com_anchoring not in COM_ANCHORINGS:
             raise ValueError(f"com_anchoring must be one of {COM_ANCHORINGS}")
@@ -153,6 +161,8 @@ class ReferenceCfg:
             raise ValueError("swing_xy_shape must lie in [0, 0.5]")
         if not 0.0 <= self.swing_pitch_carry <= 1.0:
             raise ValueError("swing_pitch_carry must lie in [0, 1]")
+        if not -0.5 <= self.swing_roll_out <= 0.5:
+            raise ValueError("swing_roll_out must lie in [-0.5, 0.5] rad")
 
 
 def wrap_to_pi(angle: torch.Tensor) -> torch.Tensor:
@@ -271,6 +281,23 @@ def toe_down(
         shape = (s * r) ** 2 * (3.0 * (1.0 - 2.0 * s) ** 2 - 2.0 * s * r)
         rate = rate + k * shape / duration * active
     return pitch, rate
+
+
+def swing_roll_out(
+    phase: torch.Tensor, duration: torch.Tensor, stance_is_left: torch.Tensor, amplitude: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Swing-foot roll [rad] and its rate [rad/s] (matching ``phase``'s shape, ``duration`` and
+    ``stance_is_left`` broadcast against it): side A 64 s^3 (1 - s)^3, s = phase clamped to
+    [0, 1], side = +1 when the left foot swings (the right one stands) and -1 when the right
+    foot swings, so that the foot rolls toward its own side; its rate side A 192 s^2 (1 - s)^2
+    (1 - 2 s) / T inside the swing, 0 once it is over (``ReferenceCfg.swing_roll_out``)."""
+    side = 1.0 - 2.0 * stance_is_left.to(phase.dtype)
+    s = phase.clamp(0.0, 1.0)
+    r = 1.0 - s
+    active = (phase < 1.0).to(phase.dtype)
+    roll = side * amplitude * 64.0 * (s * r) ** 3
+    rate = side * amplitude * 192.0 * (s * r) ** 2 * (1.0 - 2.0 * s) / duration * active
+    return roll, rate
 
 
 def swing_pitch_carry(
@@ -610,6 +637,10 @@ def reference_at(
     if cfg.swing_pitch_carry > 0.0 and step.swing_from_pitch is not None:
         dp, dv = swing_pitch_carry(step.swing_from_pitch, tau, step.duration, cfg.swing_pitch_carry)
         swing_ori[:, 1], swing_rate[:, 1] = swing_ori[:, 1] + dp, swing_rate[:, 1] + dv
+    if cfg.swing_roll_out != 0.0:
+        swing_ori[:, 0], swing_rate[:, 0] = swing_roll_out(
+            phase, step.duration, step.stance_is_left, cfg.swing_roll_out
+        )
     upper = torch.zeros(e, num_upper, dtype=tau.dtype, device=tau.device)
     return Reference(
         com_pos=torch.cat([com_xy, com_z], dim=-1),
