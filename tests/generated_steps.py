@@ -33,3 +33,20 @@ def random_steps(e: int, g: torch.Generator) -> StepState:
         pelvis_from_vel=r(e, 2) - 0.5,
         z0=0.6 + 0.07 * r(e),
     )
+
+
+def assert_fused_is_readable(st: StepState, cfg, g: torch.Generator, label: object = None) -> None:
+    """The env's fused reference (``reference_outputs``) equals ``reference_at`` flattened, to
+    1e-9 in float64, at 3 random instants per step of ``st`` up to 1.4 T (late touchdowns
+    included), under ``cfg`` (a ``ReferenceCfg``)."""
+    from march.reference.fused_reference import reference_outputs
+    from march.reference.hlip import HlipCfg
+    from march.reference.trajectory import reference_at
+
+    e = st.duration.shape[0]
+    tau = st.duration[:, None] * 1.4 * torch.rand(e, 3, generator=g, dtype=F64)
+    pos, vel = reference_outputs(st, tau, cfg, HlipCfg(), 17)
+    for j in range(3):
+        want_pos, want_vel = reference_at(st, tau[:, j], cfg, HlipCfg(), 17).flatten()
+        assert torch.allclose(pos[:, j], want_pos, atol=1e-9, rtol=0.0), label
+        assert torch.allclose(vel[:, j], want_vel, atol=1e-9, rtol=0.0), label

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from generated_steps import random_steps
+from generated_steps import assert_fused_is_readable, random_steps
 
 from march.reference.hlip import HlipCfg
 from march.reference.trajectory import ReferenceCfg, output_names, reference_at, swing_roll_out
@@ -53,8 +53,6 @@ def test_reference_at_and_the_fused_reference_carry_it_and_the_default_is_unchan
     only the swing roll and its rate change, by swing_roll_out(...) of the step; the fused
     reference (the env's) equals reference_at to 1e-9 in float64 with the option and other
     shapings on; 0 (the default) gives the reference of before bit for bit."""
-    from march.reference.fused_reference import reference_outputs
-
     g = torch.Generator().manual_seed(3)
     st = random_steps(48, g)
     for frac in (0.1, 0.4, 0.77, 1.2):
@@ -80,13 +78,7 @@ def test_reference_at_and_the_fused_reference_carry_it_and_the_default_is_unchan
             swing_roll_out=(0.2, -0.1)[seed % 2],
         )
         gs = torch.Generator().manual_seed(60 + seed)
-        st = random_steps(31, gs)
-        tau = st.duration[:, None] * 1.4 * torch.rand(31, 3, generator=gs, dtype=F64)
-        pos, vel = reference_outputs(st, tau, cfg, HlipCfg(), 17)
-        for j in range(3):
-            want_pos, want_vel = reference_at(st, tau[:, j], cfg, HlipCfg(), 17).flatten()
-            assert torch.allclose(pos[:, j], want_pos, atol=1e-9, rtol=0.0), seed
-            assert torch.allclose(vel[:, j], want_vel, atol=1e-9, rtol=0.0), seed
+        assert_fused_is_readable(random_steps(31, gs), cfg, gs, seed)
 
 
 def test_the_option_reaches_the_reference_term_and_bad_values_are_one_line():

@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from generated_steps import random_steps
+from generated_steps import assert_fused_is_readable, random_steps
 
 from march.reference.hlip import HlipCfg
 from march.reference.trajectory import (
@@ -356,8 +356,6 @@ def test_the_fused_reference_carries_the_liftoff_pitch_as_reference_at_does():
     """reference_outputs (the env's few-op reference) equals reference_at flattened with the
     lift-off pitch carried, to 1e-9 in float64, over random steps and (E, K) instants (late
     touchdowns included), for several carry shares and with and without the toe-down."""
-    from march.reference.fused_reference import reference_outputs
-
     for seed in range(6):
         g = torch.Generator().manual_seed(40 + seed)
         st = _with_liftoff_pitch(random_steps(31, g), g)
@@ -367,12 +365,7 @@ def test_the_fused_reference_carries_the_liftoff_pitch_as_reference_at_does():
             swing_toe_roll=(0.0, 0.15, 0.0)[seed % 3],
             swing_pitch_carry=(0.5, 0.3, 1.0)[seed % 3],
         )
-        tau = st.duration[:, None] * 1.4 * torch.rand(31, 3, generator=g, dtype=F64)
-        pos, vel = reference_outputs(st, tau, cfg, HlipCfg(), 17)
-        for j in range(3):
-            want_pos, want_vel = reference_at(st, tau[:, j], cfg, HlipCfg(), 17).flatten()
-            assert torch.allclose(pos[:, j], want_pos, atol=1e-9, rtol=0.0), seed
-            assert torch.allclose(vel[:, j], want_vel, atol=1e-9, rtol=0.0), seed
+        assert_fused_is_readable(st, cfg, g, seed)
 
 
 def test_the_pitch_carry_option_reaches_the_reference_term_and_bad_values_are_one_line():
