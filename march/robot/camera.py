@@ -239,10 +239,12 @@ def serve(
     seconds: float = math.inf,
     idle_s: float = 2.0,
     wait_for_reader_s: float = 5.0,
+    discovery_settle_s: float = 0.5,
 ) -> dict[str, float]:
     """Publish every frame until ``seconds`` pass, SIGINT / SIGTERM, or ``idle_s`` without one
     (a recording's end, an unplugged camera). A recording not yet started replays once a reader
-    of the topic is matched, or after ``wait_for_reader_s`` without one."""
+    of the topic is matched and ``discovery_settle_s`` more have passed, or after
+    ``wait_for_reader_s`` without one."""
     from march.robot import dds
     from march.robot.signals import stop_on_signals
     from march.robot.wire_checks import depth_invalid_flag
@@ -257,6 +259,12 @@ def serve(
         while not out.get_matched_subscriptions() and time.monotonic() < end:
             time.sleep(0.01)
         readers = len(out.get_matched_subscriptions())
+        if readers:
+            # Discovery is two-sided: this writer matched the reader, but the reader may not
+            # have matched this writer yet, and a best-effort sample reaching a reader that does
+            # not know its writer is dropped (frame 0 went missing on a loaded machine with the
+            # writer-side wait alone, 2026-12-07).
+            time.sleep(discovery_settle_s)
         print(f"[camera] replay starts with {readers} reader(s) of {dds.DEPTH_TOPIC}", flush=True)
         frames.start()
     stop, _ = stop_on_signals()
