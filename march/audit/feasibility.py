@@ -60,7 +60,7 @@ from march.clf.lyapunov import CLF_OUTPUT_NAMES  # noqa: E402
 from march.config import MarchConfig  # noqa: E402
 from march.env.reference_command import ReferenceCommandCfg  # noqa: E402
 from march.errors import ConfigError  # noqa: E402
-from march.stats import proportion_ci  # noqa: E402
+from march.stats import LEVEL, proportion_ci  # noqa: E402
 from march.strict_json import strict  # noqa: E402
 from march.world.courses import flat_course, generate_course  # noqa: E402
 from march.world.footholds import footholds_from_layouts  # noqa: E402
@@ -398,7 +398,8 @@ def overall_reach(levels: list[dict[str, Any]], target: float = 0.99) -> str:
     """One line: the steps reached over every level with the 95 % Clopper-Pearson interval
     (steps of one walk are not independent trials, so the interval is if anything too narrow),
     what a level's steps without a miss would show, and how many steps without a miss would
-    show ``target`` (the lower end of the interval of n of n: (0.025)^(1/n) >= target)."""
+    show ``target`` (the lower end of the interval of n of n: ((1 - LEVEL) / 2)^(1/n) >=
+    target, 0.025^(1/n) at 95 %)."""
     k = sum(s["reach"].get("reached_steps", 0) for s in levels)
     n = sum(s["steps"] for s in levels)
     if n == 0:
@@ -406,7 +407,7 @@ def overall_reach(levels: list[dict[str, Any]], target: float = 0.99) -> str:
     p, lo, hi = proportion_ci(k, n)
     per_level = max(1, round(n / len(levels)))
     floor = proportion_ci(per_level, per_level)[1]
-    needed = math.ceil(math.log(0.025) / math.log(target))
+    needed = math.ceil(math.log((1.0 - LEVEL) / 2.0) / math.log(target))
     return (
         f"all levels: {k} of {n} steps reached, {100 * p:.1f} % [{100 * lo:.1f}, {100 * hi:.1f}]"
         f" (95 % Clopper-Pearson); {per_level} steps without a miss show >= {100 * floor:.0f} %,"

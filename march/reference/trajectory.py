@@ -290,14 +290,11 @@ def swing_roll_out(
     ``stance_is_left`` broadcast against it): side A 64 s^3 (1 - s)^3, s = phase clamped to
     [0, 1], side = +1 when the left foot swings (the right one stands) and -1 when the right
     foot swings, so that the foot rolls toward its own side; its rate side A 192 s^2 (1 - s)^2
-    (1 - 2 s) / T inside the swing, 0 once it is over (``ReferenceCfg.swing_roll_out``)."""
+    (1 - 2 s) / T inside the swing, 0 once it is over (``ReferenceCfg.swing_roll_out``): the
+    toe-down's bump (:func:`toe_down`) signed by the swinging foot."""
     side = 1.0 - 2.0 * stance_is_left.to(phase.dtype)
-    s = phase.clamp(0.0, 1.0)
-    r = 1.0 - s
-    active = (phase < 1.0).to(phase.dtype)
-    roll = side * amplitude * 64.0 * (s * r) ** 3
-    rate = side * amplitude * 192.0 * (s * r) ** 2 * (1.0 - 2.0 * s) / duration * active
-    return roll, rate
+    bump, rate = toe_down(phase, duration, amplitude)
+    return side * bump, side * rate
 
 
 def swing_pitch_carry(
