@@ -124,6 +124,7 @@ BAD: dict[str, list[Any]] = {
     "reference.swing_xy_shape": [-0.01, 0.51],
     "reference.swing_pitch_carry": [-0.01, 1.01],
     "reference.swing_roll_out": [-0.51, 0.6],
+    "reference.swing_heel_strike": [-0.01, 0.51],
     "teacher.learning_rate": [0.0, -1e-4],
     "teacher.schedule": ["cosine"],
     "teacher.num_learning_epochs": [0],
@@ -235,6 +236,7 @@ GOOD: dict[str, list[Any]] = {
     "reference.swing_xy_shape": [0.0, 0.5],
     "reference.swing_pitch_carry": [0.0, 1.0],
     "reference.swing_roll_out": [-0.5, 0.0, 0.5],
+    "reference.swing_heel_strike": [0.0, 0.2, 0.5],
     "distill.max_nonfinite_updates": [1],
     "depth.width": [1],  # a 1x1-pixel camera still gives the CNN a 1x1 map
     "depth.height": [1],

@@ -169,7 +169,8 @@ def test_a_heel_in_the_ground_or_a_sliding_toe_is_not_reached_by_hand():
 @pytest.mark.parametrize(
     ("arg", "message"),
     [
-        ("audit.stance=tiptoe", "audit.stance='tiptoe': choose one of flat, heel_off"),
+        ("audit.stance=tiptoe", "audit.stance='tiptoe': choose one of flat, heel_off, heel_toe"),
+        ("audit.heel_flat_by=0", "audit.heel_flat_by=0.0: give a share of the step in (0, 1]"),
         ("audit.heel_pitch_max=-0.1", "audit.heel_pitch_max=-0.1: give a pitch in (0, 1] rad"),
         ("audit.heel_pitch_max=abc", "audit.heel_pitch_max=abc: give a float"),
         ("audit.tol_com=0.1", "audit.tol_com: unknown audit option"),

@@ -18,9 +18,9 @@ plus a PNG beside it (``out=``, default ``outputs/audit/<job>_<reward>.json``).
   G1 can take, against the CoM height.
 
 ``audit.<option>=value`` sets the kinematic audits' own options (``reference`` and
-``envelope``; :data:`AUDIT_OPTIONS`): ``audit.stance=flat|heel_off`` (the stance foot's
-contact model, :class:`march.audit.kinematic_g1.IkCfg`), ``audit.heel_pitch_max`` [rad],
-``audit.heel_cost`` [1/rad], and for ``reference`` ``audit.courses_per_level`` and
+``envelope``; :data:`AUDIT_OPTIONS`): ``audit.stance=flat|heel_off|heel_toe`` (the stance
+foot's contact model, :class:`march.audit.kinematic_g1.IkCfg`), ``audit.heel_pitch_max``
+[rad], ``audit.heel_cost`` [1/rad], ``audit.heel_flat_by`` [-], and for ``reference`` ``audit.courses_per_level`` and
 ``audit.film=true|false``. The reach tolerances are not options here: they are the audit's
 judgement. A bad value is one line on stderr and exit 2, before anything is built.
 """
@@ -37,7 +37,7 @@ from march.config.cli import fail, run_tool
 
 USAGE = (
     "usage: python -m march.audit rewards|reference|envelope [out=<file>.json] "
-    "[teacher_ckpt=<file>] [audit.stance=flat|heel_off] "
+    "[teacher_ckpt=<file>] [audit.stance=flat|heel_off|heel_toe] "
     "[key=value ...]"
 )
 
@@ -96,6 +96,7 @@ AUDIT_OPTIONS: dict[str, tuple[str, type, tuple[str, ...]]] = {
     "stance": ("ik", str, ("reference", "envelope")),
     "heel_pitch_max": ("ik", float, ("reference", "envelope")),
     "heel_cost": ("ik", float, ("reference", "envelope")),
+    "heel_flat_by": ("ik", float, ("reference", "envelope")),
     "courses_per_level": ("feasibility", int, ("reference",)),
     "film": ("feasibility", bool, ("reference",)),
 }

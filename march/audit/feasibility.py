@@ -3,7 +3,8 @@
 :func:`reference_report` walks planned references (the planner's receding-horizon loop, ideal
 touchdown timing) on generated courses at every curriculum level with the kinematic G1
 (:mod:`march.audit.ik_walk`, :mod:`march.audit.kinematic_g1`; the stance foot held as a hard
-constraint: flat, or with ``audit.stance=heel_off`` its toe edge held and the heel free to lift)
+constraint: flat, or with ``audit.stance=heel_off`` its toe edge held and the heel free to lift,
+or with ``heel_toe`` a foot landed toe up first held on its heel edge until flat)
 and reports, per level:
 
 - the **error floor** of each output: median and 90th percentile over the control ticks of
@@ -99,7 +100,8 @@ class FeasibilityCfg:
     swing foot 0.2 m/s, swing-foot angles 1 rad/s, upper body 0.5 rad/s)."""
     max_slide: float = 0.01
     """A reached step's stance foot stays within this of its held position [m] (its site, or
-    with ``audit.stance=heel_off`` its toe edge's corners)."""
+    with ``audit.stance=heel_off`` its toe edge's corners, with ``heel_toe``'s heel phase its
+    heel edge's)."""
     max_heel_sink: float = 0.001
     """A reached step's stance heel stays above this depth below where it was held [m]: the
     heel never goes into the ground (the IK's linearisation residual is ~1e-6 m)."""
@@ -372,6 +374,7 @@ def level_summary(
         "stance_heel_lift_m": quantiles(cat("heel_lift"), top=True),
         "stance_heel_low_m": {"min": float(steps_arrays["heel_low"].min()) if steps else None},
         "stance_pitch_rad": quantiles(cat("stance_pitch"), top=True),
+        "landed_toe_up_rad": quantiles(cat("landed_toe_up"), top=True),
         "jump_at_touchdown": jump_summary(touchdown_jumps(walks.traces)),
         "reach": {
             "whole_step": share(reached),
@@ -483,6 +486,12 @@ def reference_report(
             f" (toe edge held, heel up to {kin.cfg.heel_pitch_max} rad)"
             if kin.toes
             else " (its whole pose held)"
+        )
+        + (
+            f"; a foot landed toe up is held on its heel edge until flat at"
+            f" {kin.cfg.heel_flat_by:g} of the step"
+            if kin.heels
+            else ""
         )
     )
     print(table(levels))

@@ -17,6 +17,10 @@ step's CoM height (``reference.com_height``), and the new swing foot's pitch at 
 (``reference.swing_pitch_carry``, which the env reads from the site's rotation), so the audit
 measures the reference the env tracks.
 
+With ``IkCfg.stance=heel_toe`` a step whose stance foot landed toe up (``reference.swing_heel_strike``)
+holds it on its heel edge while its toe comes down (:func:`heel_landing`, :func:`toe_up_bound`);
+a heel strike's landing gap is the heel's, not the raised site's.
+
 Only a real touchdown ends a step and replans (issue 55): the swing foot must have left the
 ground (risen ``lift_min`` above its lift-off height) and come down onto the planned stone top
 (at most ``land_tol`` above its height at the touchdown tick; a foot below the top would have
@@ -87,6 +91,14 @@ class WalkTrace:
     """Per step the stance foot's largest heel-up pitch [rad]."""
     tick_heel_lift: list[float] = field(default_factory=list)
     """Per tick the stance heel's lift [m]."""
+    tick_stance_pitch: list[float] = field(default_factory=list)
+    """Per tick the stance foot's pitch against its held (flat) pose [rad], positive heel up,
+    negative toe up (``heel_toe``'s heel phase)."""
+    tick_slide: list[float] = field(default_factory=list)
+    """Per tick the stance foot's held contact's slide [m] (:class:`~march.audit.kinematic_g1.Tick`)."""
+    landed_toe_up: list[float] = field(default_factory=list)
+    """Per step the toe-up pitch its stance foot landed with [rad] (``heel_toe``; 0 for a flat
+    or toe-down landing and with the other models)."""
     liftoff_pitch: list[float] = field(default_factory=list)
     """Per step the pitch [rad] (ZYX, positive toe down) of its stance foot at the touchdown
     tick: the next step's swing foot leaves the ground with it (``reference.swing_pitch_carry``
@@ -218,6 +230,35 @@ class TouchdownRule:
     tolerance: higher, no contact)."""
 
 
+def heel_landing(
+    kin: KinematicG1, left: bool, held: tuple[np.ndarray, np.ndarray]
+) -> tuple[tuple[np.ndarray, np.ndarray], float]:
+    """A stance foot landed at ``held`` (site position, rotation) as the ``heel_toe`` model
+    holds it: the flat pose it comes down to about its heel edge (the landed rotation turned
+    about the foot's own y axis until its x axis is horizontal, the heel edge's midpoint where
+    it landed) and the landed toe-up pitch [rad] (> 0: toe up; <= 0: the foot landed flat or
+    toe down, held as landed and 0 returned)."""
+    pos, rot = (np.asarray(a, dtype=np.float64) for a in held)
+    # R Ry(a) has a horizontal x axis for tan a = R31 / R33 (a > 0: the foot turns toe down)
+    a = float(np.arctan2(rot[2, 0], rot[2, 2]))
+    if a <= 0.0:
+        return (pos, rot), 0.0
+    c, s = np.cos(a), np.sin(a)
+    flat = rot @ np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    heel = kin.soles[0 if left else 1].heel_offset()
+    return (pos + rot @ heel - flat @ heel, flat), a
+
+
+def toe_up_bound(toe_up: float, tick: int, n: int, flat_by: float) -> float | None:
+    """``heel_toe``: the largest toe-up pitch [rad] at ``tick`` (1..n) of a step whose foot
+    landed ``toe_up`` up: toe_up (1 - tick / m), m = ceil(flat_by n), while tick < m; None
+    from then on (the heel phase over: the flat foot's toe edge held, as ``heel_off``)."""
+    m = max(1, math.ceil(flat_by * n - 1e-9))
+    if toe_up <= 0.0 or tick >= m:
+        return None
+    return toe_up * (1.0 - tick / m)
+
+
 def track_step(
     kin: KinematicG1,
     trace: WalkTrace,
@@ -240,6 +281,9 @@ def track_step(
     rule = rule or TouchdownRule()
     dt = kin.cfg.dt
     is_left = bool(step.stance_is_left[0])
+    toe_up = 0.0
+    if kin.heels:  # heel_toe: a foot that landed toe up is held on its heel until flat
+        held, toe_up = heel_landing(kin, is_left, held)
     duration = float(step.duration[0])
     n = touchdown_tick(duration, dt)
     tau = torch.arange(0, n + 1, dtype=torch.float32) * dt
@@ -254,7 +298,8 @@ def track_step(
     top = lift_z
     slide, heel_hi, heel_lo, pitch = 0.0, -math.inf, math.inf, -math.inf
     for j in range(1, n + 1):
-        tick = kin.track(ref_pos[j], ref_vel[j], is_left, *held, eta_before=eta)
+        bound = toe_up_bound(toe_up, j, n, kin.cfg.heel_flat_by)
+        tick = kin.track(ref_pos[j], ref_vel[j], is_left, *held, eta_before=eta, toe_up=bound)
         eta = tick.eta
         trace.eta.append(tick.eta)
         trace.etadot.append(tick.etadot)
@@ -267,6 +312,8 @@ def track_step(
         heel_hi, heel_lo = max(heel_hi, tick.heel_lift), min(heel_lo, tick.heel_lift)
         pitch = max(pitch, tick.stance_pitch)
         trace.tick_heel_lift.append(tick.heel_lift)
+        trace.tick_stance_pitch.append(tick.stance_pitch)
+        trace.tick_slide.append(tick.slide)
         top = max(top, float(site_pose(kin, not is_left)[0][2]))
     trace.touchdown_eta.append(trace.eta[-1])
     trace.step_max_eta.append(np.abs(np.asarray(trace.eta[-n:])).max(0))
@@ -277,6 +324,7 @@ def track_step(
     trace.heel_lift.append(heel_hi)
     trace.heel_low.append(heel_lo)
     trace.stance_pitch.append(pitch)
+    trace.landed_toe_up.append(toe_up)
     anchor, target = step.stance_pos[0], step.target[0]
     trace.step_length.append(float(torch.linalg.norm(target[:2] - anchor[:2])))
     trace.step_rise.append(float(target[2] - anchor[2]))
@@ -288,6 +336,13 @@ def track_step(
     trace.liftoff_pitch.append(float(np.arcsin(np.clip(-old_rot[2, 0], -1.0, 1.0))))
     landed = site_pose(kin, not is_left)
     gap = float(landed[0][2] - (float(target[2]) + reference.foot_height_offset))
+    if reference.swing_heel_strike > 0.0:
+        # a heel strike lands on the heel, the site raised by the toe-up pitch: the gap is the
+        # heel's (its height above where a flat foot on the target would have it)
+        heel = kin.soles[0 if not is_left else 1].heel_offset()
+        gap = float((landed[0] + landed[1] @ heel)[2]) - (
+            float(target[2]) + reference.foot_height_offset + float(heel[2])
+        )
     # A foot at or below the stone top touches it (the IK ignores collisions: below the top it
     # would have hit the stone); only a foot left above it has no contact.
     real = top - lift_z >= rule.lift_min and gap <= rule.land_tol

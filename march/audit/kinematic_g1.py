@@ -24,6 +24,14 @@ poses the robot for the reference y_ref of that instant, warm-started from the p
   CLF reference says nothing about the stance foot's orientation, so a policy may do it.
   Each tick measures the toe edge's slide (its two corners against their held positions),
   the heel's lift above its held height and the pitch (:class:`Tick`).
+  ``heel_toe`` (issue 55, with ``reference.swing_heel_strike``) is ``heel_off`` for a foot that
+  landed toe up after a heel strike: from touchdown its HEEL EDGE (``<foot>_heel``) is held the
+  same way (position, roll and yaw; :class:`ToeEdgeTask` on the heel site) at the flat pose
+  the foot comes down to (:func:`march.audit.ik_walk.heel_landing`), and its toe-up pitch about
+  that edge is bounded tick by tick by the landed pitch shrinking to 0 at ``heel_flat_by`` of
+  the step (:class:`ToeUpLimit`: never toe into the stone), with the heel cost pulling it
+  flat; from then on the flat foot's toe edge is held as with ``heel_off``. Each heel-phase
+  tick measures the heel edge's slide.
 - **tasks**: the whole-body
   CoM (mink's ``ComTask`` reads ``subtree_com`` of the root body, the point the env's y_sim
   reads); the pelvis orientation (a ``FrameTask`` on the pelvis body, orientation only); the
@@ -77,7 +85,7 @@ ANGLES[3:6] = ANGLES[9:12] = True
 """Columns whose errors are wrapped angles (``march.reference.trajectory.ANGLE_OUTPUTS``)."""
 
 
-STANCE_MODELS = ("flat", "heel_off")
+STANCE_MODELS = ("flat", "heel_off", "heel_toe")
 """``IkCfg.stance`` values (module docstring)."""
 
 
@@ -87,7 +95,9 @@ class IkCfg:
 
     stance: str = "flat"
     """The stance foot's contact model (module docstring): ``flat`` (default; the foot site's
-    whole pose held) or ``heel_off`` (its toe edge held, the heel free to lift)."""
+    whole pose held), ``heel_off`` (its toe edge held, the heel free to lift) or ``heel_toe``
+    (a foot that landed toe up held on its heel edge while the toe comes down, flat by
+    ``heel_flat_by`` of the step, then as ``heel_off``)."""
     heel_pitch_max: float = 0.7
     """``heel_off``: the largest heel-up pitch of the stance foot about its toe edge [rad]
     (0.7 rad, 40 deg, lifts the heel 12 cm: a human's foot leaves the ground at push-off
@@ -104,6 +114,12 @@ class IkCfg:
     heel lifts 4-5 cm on most steps at 0.3 and reach is highest; without the carry a lifted
     heel leaves the next swing off its flat lift-off pitch and a cost of 3 (heel within a
     few mm) is best."""
+    heel_flat_by: float = 0.3
+    """``heel_toe``: the share of the step [-] by which a foot that landed toe up is flat: its
+    toe-up pitch about the held heel edge is bounded by the landed pitch times
+    (1 - tick / ceil(heel_flat_by n)) over the step's n ticks (:class:`ToeUpLimit`), then the
+    toe edge of the flat foot is held as with ``heel_off``. A human's forefoot is down by
+    about 15 % of the gait cycle, 25-30 % of a single-support step."""
     dt: float = 0.02
     """Control tick [s] (the env's step: 0.005 s x decimation 4); also the finite-difference
     step of the measured output rates."""
@@ -154,6 +170,10 @@ class IkCfg:
             )
         if not (isinstance(self.heel_cost, (int, float)) and self.heel_cost >= 0):
             raise ConfigError(f"audit.heel_cost={self.heel_cost}: give a cost >= 0")
+        if not (isinstance(self.heel_flat_by, (int, float)) and 0 < self.heel_flat_by <= 1):
+            raise ConfigError(
+                f"audit.heel_flat_by={self.heel_flat_by}: give a share of the step in (0, 1]"
+            )
 
 
 def rotation_zyx(roll: float, pitch: float, yaw: float) -> np.ndarray:
@@ -205,14 +225,16 @@ class Tick:
     """V / Vmax."""
     slide: float = 0.0
     """How far the stance foot's held contact is from its held position [m]: ``flat`` the
-    foot site, ``heel_off`` the farther of the toe edge's two corners (0 up to the
-    constraint's linearisation residual when ``IkCfg.stance_hard``)."""
+    foot site, ``heel_off`` the farther of the toe edge's two corners (``heel_toe``'s heel
+    phase: of the heel edge's; 0 up to the constraint's linearisation residual when
+    ``IkCfg.stance_hard``)."""
     heel_lift: float = 0.0
     """Height of the stance foot's heel (the sole's rear end) above where it was held [m]:
     0 flat, > 0 lifted (``heel_off``), < 0 in the ground."""
     stance_pitch: float = 0.0
     """The stance foot's pitch against its held orientation about its own y axis [rad],
-    positive heel up (``heel_off``: 0..``IkCfg.heel_pitch_max``)."""
+    positive heel up (``heel_off``: 0..``IkCfg.heel_pitch_max``; ``heel_toe``'s heel phase:
+    negative, toe up)."""
 
 
 @dataclass(frozen=True)
@@ -225,6 +247,8 @@ class FootSole:
     """x of the heel: the rearmost end."""
     toe_half_width: float
     """Half the toe edge's width: |y| of the capsule ends within 1 cm of the toe edge."""
+    heel_half_width: float
+    """Half the heel edge's width: |y| of the capsule ends within 1 cm of the heel."""
     sole_z: float
     """z of the sole: the capsules' lowest points."""
 
@@ -238,8 +262,13 @@ class FootSole:
         return np.array([[self.toe_x, -w, self.sole_z], [self.toe_x, w, self.sole_z]])
 
     def heel_offset(self) -> np.ndarray:
-        """(3,) the heel's midpoint on the sole."""
+        """(3,) the heel's midpoint on the sole (the heel-strike pivot)."""
         return np.array([self.heel_x, 0.0, self.sole_z])
+
+    def heel_corners(self) -> np.ndarray:
+        """(2, 3) the heel edge's two ends (the contact points a heel strike must not slide)."""
+        w = self.heel_half_width
+        return np.array([[self.heel_x, -w, self.sole_z], [self.heel_x, w, self.sole_z]])
 
 
 def foot_sole(model: mujoco.MjModel, site: str) -> FootSole:
@@ -267,29 +296,33 @@ def foot_sole(model: mujoco.MjModel, site: str) -> FootSole:
     pts, r = np.array(ends), np.array(radii)
     toe_x, heel_x = float(pts[:, 0].max()), float(pts[:, 0].min())
     front = pts[:, 0] >= toe_x - 0.01
+    back = pts[:, 0] <= heel_x + 0.01
     return FootSole(
         toe_x=toe_x,
         heel_x=heel_x,
         toe_half_width=float(np.abs(pts[front, 1]).max()),
+        heel_half_width=float(np.abs(pts[back, 1]).max()),
         sole_z=float((pts[:, 2] - r).min()),
     )
 
 
 def with_toe_sites(spec: mujoco.MjSpec, foot_sites: tuple[str, ...]) -> mujoco.MjSpec:
     """``spec`` with a site ``<foot>_toe`` at each foot's toe-edge midpoint (the heel-off
-    pivot, :func:`foot_sole`), oriented as the foot site; adding sites moves no body."""
+    pivot, :func:`foot_sole`) and ``<foot>_heel`` at its heel-edge midpoint (the heel-strike
+    pivot), oriented as the foot site; adding sites moves no body."""
     model = spec.compile()
     for name in foot_sites:
         sid = model.site(name).id
         rot = np.empty(9)
         mujoco.mju_quat2Mat(rot, model.site_quat[sid])
-        offset = rot.reshape(3, 3) @ foot_sole(model, name).toe_offset()
+        sole = foot_sole(model, name)
         body = spec.body(model.body(model.site_bodyid[sid]).name)
-        body.add_site(
-            name=f"{name}_toe",
-            pos=(model.site_pos[sid] + offset).tolist(),
-            quat=model.site_quat[sid].tolist(),
-        )
+        for suffix, at in (("toe", sole.toe_offset()), ("heel", sole.heel_offset())):
+            body.add_site(
+                name=f"{name}_{suffix}",
+                pos=(model.site_pos[sid] + rot.reshape(3, 3) @ at).tolist(),
+                quat=model.site_quat[sid].tolist(),
+            )
     return spec
 
 
@@ -337,6 +370,25 @@ class HeelPitchLimit(mink.Limit):
         pitch, jac = self.task.pitch(configuration)
         g = np.stack([-jac, jac])  # -(pitch + J dq) <= 0 and pitch + J dq <= bound
         h = np.array([pitch, self.bound - pitch])
+        return mink.limits.limit.Constraint(G=g, h=h)
+
+
+class ToeUpLimit(mink.Limit):
+    """-``bound`` <= the stance foot's pitch <= 0 about its held heel edge, as an inequality of
+    the QP step (``heel_toe``'s heel phase; linearised like :class:`HeelPitchLimit`): the toe
+    stays up no more than ``bound`` (set per tick, shrinking to 0: the foot comes down flat)
+    and never goes into the ground; the floating base can always turn the foot, so the QP
+    stays feasible."""
+
+    def __init__(self, task: ToeEdgeTask) -> None:
+        self.task, self.bound = task, 0.0
+
+    def compute_qp_inequalities(
+        self, configuration: mink.Configuration, dt: float
+    ) -> mink.limits.limit.Constraint:
+        pitch, jac = self.task.pitch(configuration)
+        g = np.stack([jac, -jac])  # pitch + J dq <= 0 and -(pitch + J dq) <= bound
+        h = np.array([-pitch, self.bound + pitch])
         return mink.limits.limit.Constraint(G=g, h=h)
 
 
@@ -399,19 +451,33 @@ class KinematicG1:
         self.toes: list[ToeEdgeTask] = []
         self.heel_limits: list[HeelPitchLimit] = []
         self.heel_tasks: list[mink.FrameTask] = []
-        if self.cfg.stance == "heel_off":
+        self.heels: list[ToeEdgeTask] = []
+        """``heel_toe``: each foot's heel edge as held on landing toe up."""
+        self.toe_up_limits: list[ToeUpLimit] = []
+        self.toe_up_tasks: list[mink.FrameTask] = []
+        if self.cfg.stance in ("heel_off", "heel_toe"):
             toe_sites = [f"{s}_toe" for s in self.foot_sites]
+            heel_sites = [f"{s}_heel" for s in self.foot_sites]
             missing = [
-                s for s in toe_sites if mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, s) < 0
+                s
+                for s in toe_sites + heel_sites
+                if mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, s) < 0
             ]
             if missing:
                 raise ConfigError(
-                    f"audit.stance=heel_off needs the toe sites {missing} (with_toe_sites)"
+                    f"audit.stance={self.cfg.stance} needs the sole sites {missing}"
+                    " (with_toe_sites)"
                 )
             self.toes = [ToeEdgeTask(s, "site", 1.0, [1.0, 0.0, 1.0]) for s in toe_sites]
             self.heel_limits = [HeelPitchLimit(t, self.cfg.heel_pitch_max) for t in self.toes]
             self.heel_tasks = [
                 mink.FrameTask(s, "site", 0.0, [0.0, self.cfg.heel_cost, 0.0]) for s in toe_sites
+            ]
+        if self.cfg.stance == "heel_toe":
+            self.heels = [ToeEdgeTask(s, "site", 1.0, [1.0, 0.0, 1.0]) for s in heel_sites]
+            self.toe_up_limits = [ToeUpLimit(h) for h in self.heels]
+            self.toe_up_tasks = [
+                mink.FrameTask(s, "site", 0.0, [0.0, self.cfg.heel_cost, 0.0]) for s in heel_sites
             ]
         self.reset(self.default_qpos)
 
@@ -429,9 +495,12 @@ class KinematicG1:
         stance_is_left: bool,
         stance_pos: np.ndarray,
         stance_rot: np.ndarray,
+        toe_up: float | None = None,
     ) -> None:
         """The tasks' targets for reference outputs ``y_ref`` (29,), with the stance-foot site
-        held at ``stance_pos`` (3,) with rotation ``stance_rot`` (3, 3)."""
+        held at ``stance_pos`` (3,) with rotation ``stance_rot`` (3, 3) (``toe_up``: the heel
+        phase of ``heel_toe``, the held pose's heel edge held and its toe up by at most this
+        [rad]; :meth:`solve`)."""
         c, stance_cost = self.output_cost, self.cfg.stance_cost
         stance, swing = self._feet(stance_is_left)
         stance.set_position_cost(stance_cost)
@@ -446,6 +515,15 @@ class KinematicG1:
             self.toes[i].set_orientation_cost([stance_cost, 0.0, stance_cost])
             self.toes[i].set_target(at_toe)
             self.heel_tasks[i].set_target(at_toe)
+        if toe_up is not None:
+            i = 0 if stance_is_left else 1
+            heel = self.soles[i].heel_offset()
+            at_heel = pose(np.asarray(stance_rot), np.asarray(stance_pos) + stance_rot @ heel)
+            self.heels[i].set_position_cost(stance_cost)
+            self.heels[i].set_orientation_cost([stance_cost, 0.0, stance_cost])
+            self.heels[i].set_target(at_heel)
+            self.toe_up_tasks[i].set_target(at_heel)
+            self.toe_up_limits[i].bound = float(toe_up)
         swing.set_position_cost(c[6:9])
         swing.set_orientation_cost(c[9:12])
         swing.set_target(pose(rotation_zyx(*y_ref[9:12]), np.asarray(y_ref[6:9])))
@@ -462,11 +540,16 @@ class KinematicG1:
         stance_pos: np.ndarray,
         stance_rot: np.ndarray,
         iterations: int | None = None,
+        toe_up: float | None = None,
     ) -> np.ndarray:
         """The configuration (nq,) whose outputs come nearest ``y_ref`` (module docstring),
-        from the current one; ``iterations`` overrides ``IkCfg.iterations``."""
+        from the current one; ``iterations`` overrides ``IkCfg.iterations``. ``toe_up``
+        (``heel_toe`` only): the heel phase, the heel edge of the held (flat) pose held and the
+        foot's toe-up pitch about it in [0, toe_up] [rad]; None: as ``heel_off``."""
+        if toe_up is not None and not self.heels:
+            raise ValueError("toe_up needs IkCfg.stance='heel_toe'")
         self.set_targets(
-            np.asarray(y_ref, dtype=np.float64), stance_is_left, stance_pos, stance_rot
+            np.asarray(y_ref, dtype=np.float64), stance_is_left, stance_pos, stance_rot, toe_up
         )
         cfg = self.cfg
         stance, swing = self._feet(stance_is_left)
@@ -476,6 +559,10 @@ class KinematicG1:
             i = 0 if stance_is_left else 1
             stance, limits = self.toes[i], [*self.limits, self.heel_limits[i]]
             extra = [self.heel_tasks[i]]
+        if toe_up is not None:  # heel_toe's heel phase: the heel edge held, the toe coming down
+            i = 0 if stance_is_left else 1
+            stance, limits = self.heels[i], [*self.limits, self.toe_up_limits[i]]
+            extra = [self.toe_up_tasks[i]]
         if cfg.stance_hard:
             tasks, constraints = [swing, self.pelvis, self.com, self.posture, *extra], [stance]
         else:
@@ -505,7 +592,9 @@ class KinematicG1:
         cfg = self.cfg
         for _ in range(cfg.stance_iterations):
             error = np.abs(stance.compute_error(self.configuration)).max()
-            if isinstance(stance, ToeEdgeTask):  # the heel above the ground too
+            if stance in self.heels:  # the toe above the ground too
+                error = max(error, stance.pitch(self.configuration)[0])
+            elif isinstance(stance, ToeEdgeTask):  # the heel above the ground too
                 error = max(error, -stance.pitch(self.configuration)[0])
             if error < cfg.stance_tol:
                 return
@@ -602,6 +691,7 @@ class KinematicG1:
         stance_rot: np.ndarray,
         iterations: int | None = None,
         eta_before: np.ndarray | None = None,
+        toe_up: float | None = None,
     ) -> Tick:
         """One control tick: solve toward ``y_ref``, measure, and the errors and V / Vmax.
 
@@ -611,9 +701,10 @@ class KinematicG1:
         same interval (both to O(dt^2)); ``ydot_ref`` is then unused. Without it, etadot is
         ydot - ydot_ref: the configuration's backward difference mapped at the tick's end
         against the reference's rate at that instant, off by about dt/2 times the outputs'
-        acceleration even when the pose follows the reference exactly."""
+        acceleration even when the pose follows the reference exactly. ``toe_up``: the heel
+        phase of ``heel_toe`` (:meth:`solve`)."""
         before = self.qpos
-        q = self.solve(y_ref, stance_is_left, stance_pos, stance_rot, iterations)
+        q = self.solve(y_ref, stance_is_left, stance_pos, stance_rot, iterations, toe_up)
         y, ydot = self.measure(q, before, stance_is_left)
         eta = tracking_error(y, np.asarray(y_ref))
         if eta_before is None:
@@ -621,7 +712,9 @@ class KinematicG1:
         else:
             etadot = (eta - np.asarray(eta_before)) / self.cfg.dt
         v = float(self.value(eta, etadot))
-        slide, heel, pitch = self.contact(stance_is_left, stance_pos, stance_rot)
+        slide, heel, pitch = self.contact(
+            stance_is_left, stance_pos, stance_rot, toe_up is not None
+        )
         return Tick(q, y, ydot, eta, etadot, v, v / self.v_max, slide, heel, pitch)
 
     def slide(self, stance_is_left: bool, stance_pos: np.ndarray) -> float:
@@ -631,17 +724,22 @@ class KinematicG1:
         return float(np.linalg.norm(self.data.site_xpos[sid] - np.asarray(stance_pos)))
 
     def contact(
-        self, stance_is_left: bool, stance_pos: np.ndarray, stance_rot: np.ndarray
+        self,
+        stance_is_left: bool,
+        stance_pos: np.ndarray,
+        stance_rot: np.ndarray,
+        on_heel: bool = False,
     ) -> tuple[float, float, float]:
         """The stance foot in the last measured state against its held pose (``stance_pos``,
         ``stance_rot``): (slide [m], heel lift [m], pitch [rad]) as :class:`Tick` defines
-        them (``flat``: the site's slide; ``heel_off``: the toe edge's corners')."""
+        them (``flat``: the site's slide; ``heel_off``: the toe edge's corners'; ``on_heel``,
+        ``heel_toe``'s heel phase: the heel edge's corners', the pitch negative toe up)."""
         i = 0 if stance_is_left else 1
         sid, sole = self.site_ids[i], self.soles[i]
         pos, rot = self.data.site_xpos[sid], self.data.site_xmat[sid].reshape(3, 3)
         held_pos, held_rot = np.asarray(stance_pos), np.asarray(stance_rot)
         if self.toes:
-            corners = sole.toe_corners()
+            corners = sole.heel_corners() if on_heel else sole.toe_corners()
             now, held = pos + corners @ rot.T, held_pos + corners @ held_rot.T
             slide = float(np.linalg.norm(now - held, axis=1).max())
         else:

@@ -295,6 +295,14 @@ class ReferenceSectionCfg:
     level all swing, as the author's. Issue 55: at mid-swing the knee-bent leg is abducted
     beyond what the G1's ankle roll range can level; docs/audit.md measures it."""
 
+    swing_heel_strike: float = 0.0
+    """Swing-foot toe-up pitch at touchdown [rad] (a heel strike): the pitch reference turns
+    toe up over the swing's second half (zero rate at mid-swing and touchdown) and the foot's
+    position is offset so that its heel lands where a flat foot's would
+    (march.reference.trajectory.heel_strike). 0 (default): the foot lands flat, as the
+    author's. Issue 55: on the longest steps a flat landing needs the front ankle at its
+    limit; docs/audit.md measures it with ``audit.stance=heel_toe``."""
+
     def __post_init__(self) -> None:
         check_shapes("reference", self)
         check_one_of("reference", "com_anchoring", self.com_anchoring, COM_ANCHORINGS)
@@ -305,6 +313,7 @@ class ReferenceSectionCfg:
         check_interval("reference", "swing_toe_down", self.swing_toe_down, -1.0, 1.0)
         check_interval("reference", "swing_toe_roll", self.swing_toe_roll, -1.0, 1.0)
         check_interval("reference", "swing_roll_out", self.swing_roll_out, -0.5, 0.5)
+        check_interval("reference", "swing_heel_strike", self.swing_heel_strike, 0.0, 0.5)
         check_interval("reference", "swing_height", self.swing_height, 0.02, 0.3)
         check_interval("reference", "swing_xy_shape", self.swing_xy_shape, 0.0, 0.5)
         check_interval("reference", "swing_pitch_carry", self.swing_pitch_carry, 0.0, 1.0)

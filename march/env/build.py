@@ -381,6 +381,7 @@ def build_env_cfg(
                 swing_toe_roll=ref.swing_toe_roll,
                 swing_pitch_carry=ref.swing_pitch_carry,
                 swing_roll_out=ref.swing_roll_out,
+                swing_heel_strike=ref.swing_heel_strike,
             ),
             **({"replan_capacity_fraction": 1.0} if purpose == "eval" else {}),
         )

@@ -19,6 +19,7 @@ from march.reference.trajectory import (
     ReferenceCfg,
     StepState,
     com_orbit_height,
+    heel_strike,
     step_lambda,
     swing_pitch_carry,
     swing_roll_out,
@@ -296,7 +297,17 @@ def reference_outputs(
         roll, rate = swing_roll_out(phase, dur, step.stance_is_left[:, None], cfg.swing_roll_out)
         foot = torch.cat([roll[..., None], foot[..., 1:]], dim=-1)
         foot_rate = torch.cat([rate[..., None], foot_rate[..., 1:]], dim=-1)
-    pos = torch.cat([com_pos, com_z, roll_pitch, yaw, swing[..., :3], foot, yaw, zu], dim=-1)
+    swing_pos = swing[..., :3]
+    if cfg.swing_heel_strike != 0.0:
+        # toe up at touchdown, the heel where a flat foot's lands
+        # (march.reference.trajectory.heel_strike)
+        pitch, rate, offset, offset_rate = heel_strike(
+            phase, dur, yaw[..., 0], yaw_rate[..., 0], cfg.swing_heel_strike, cfg.swing_heel_back
+        )
+        foot = torch.cat([foot[..., :1], foot[..., 1:] + pitch[..., None]], dim=-1)
+        foot_rate = torch.cat([foot_rate[..., :1], foot_rate[..., 1:] + rate[..., None]], -1)
+        swing_pos, swing_vel = swing_pos + offset, swing_vel + offset_rate
+    pos = torch.cat([com_pos, com_z, roll_pitch, yaw, swing_pos, foot, yaw, zu], dim=-1)
     vel = torch.cat(
         [com_vel, com_vz, roll_pitch_rate, yaw_rate, swing_vel, foot_rate, yaw_rate, zu], -1
     )

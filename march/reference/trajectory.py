@@ -148,6 +148,22 @@ class ReferenceCfg:
     0.13-0.23 m beside the CoM with the knee bent, the leg abducted beyond what the G1's ankle
     roll range (0.262 rad) can level; the foot rolls with the leg and lands level."""
 
+    swing_heel_strike: float = 0.0
+    """Swing-foot toe-up pitch at touchdown [rad] (heel strike): the pitch reference adds
+    -swing_heel_strike q(u), q(u) = u^3 (10 - 15 u + 6 u^2), u = 2 s - 1 clamped to [0, 1]
+    (none in the first half of the swing; zero rate and acceleration at mid-swing and at
+    touchdown), and the swing-foot position the offset that keeps the heel where a flat
+    landing puts it (:func:`heel_strike`: the site ``swing_heel_back`` ahead of the heel,
+    raised by swing_heel_back sin and drawn back by swing_heel_back (1 - cos) of that pitch).
+    0 (default): the foot lands flat, as the author's. Issue 55: on the longest steps a flat
+    landing needs the front ankle at its plantarflexion limit (+0.524 rad) while the rear one
+    is at its dorsiflexion limit; landing on the heel relieves the front ankle (the audit's
+    ``audit.stance=heel_toe`` holds the landed heel while the toe comes down)."""
+    swing_heel_back: float = 0.094
+    """Distance from the tracked swing-foot point back to the heel's edge [m] (mjlab's G1: the
+    foot site to the rearmost end of the sole's capsules, ``march.audit.kinematic_g1.foot_sole``,
+    0.094 m); the pivot of ``swing_heel_strike``."""
+
     def __post_init__(self) -> None:
         if self.com_anchoring not in COM_ANCHORINGS:
             raise ValueError(f"com_anchoring must be one of {COM_ANCHORINGS}")
@@ -163,6 +179,10 @@ class ReferenceCfg:
             raise ValueError("swing_pitch_carry must lie in [0, 1]")
         if not -0.5 <= self.swing_roll_out <= 0.5:
             raise ValueError("swing_roll_out must lie in [-0.5, 0.5] rad")
+        if not 0.0 <= self.swing_heel_strike <= 0.5:
+            raise ValueError("swing_heel_strike must lie in [0, 0.5] rad")
+        if not 0.0 < self.swing_heel_back <= 0.3:
+            raise ValueError("swing_heel_back must lie in (0, 0.3] m")
 
 
 def wrap_to_pi(angle: torch.Tensor) -> torch.Tensor:
@@ -309,6 +329,39 @@ def swing_pitch_carry(
     phi = (tau / span).clamp(0.0, 1.0)
     one = 1.0 - phi
     return pitch0 * (one * one * (1.0 + 2.0 * phi)), pitch0 * (-6.0 * phi * one / span)
+
+
+def heel_strike(
+    phase: torch.Tensor,
+    duration: torch.Tensor,
+    yaw: torch.Tensor,
+    yaw_rate: torch.Tensor,
+    amplitude: float,
+    heel_back: float,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The heel strike (``ReferenceCfg.swing_heel_strike``) H = ``amplitude``: the swing-foot
+    pitch p = -H q(u) [rad] and its rate [rad/s] (E,), q(u) = u^3 (10 - 15 u + 6 u^2),
+    u = 2 s - 1 clamped to [0, 1] (s = ``phase``), rate -H 30 u^2 (1 - u)^2 2 / T inside the
+    swing's second half, 0 once it is over; and the foot site's offset (E, 3) [m] and its
+    rate [m/s] that hold the heel, d = ``heel_back`` behind the site along the foot's heading
+    f = (cos yaw, sin yaw, 0), where a flat foot would have it: site = heel + d (cos p f,
+    -sin p), so the offset is d ((cos p - 1) f, -sin p), its rate d (-sin p p' f +
+    (cos p - 1) f', -cos p p') with f' = yaw_rate (-sin yaw, cos yaw, 0). Lift-off: p = 0,
+    no offset; touchdown: toe up by H with the heel on the landing stone."""
+    s = phase.clamp(0.0, 1.0)
+    u = (2.0 * s - 1.0).clamp(0.0, 1.0)
+    q = u**3 * (10.0 - 15.0 * u + 6.0 * u * u)
+    active = (phase < 1.0).to(phase.dtype)
+    pitch = -amplitude * q
+    rate = -amplitude * 30.0 * (u * (1.0 - u)) ** 2 * 2.0 / duration * active
+    cos_p, sin_p = torch.cos(pitch), torch.sin(pitch)
+    fx, fy = torch.cos(yaw), torch.sin(yaw)
+    offset = heel_back * torch.stack([(cos_p - 1.0) * fx, (cos_p - 1.0) * fy, -sin_p], dim=-1)
+    turn = (cos_p - 1.0) * yaw_rate
+    offset_rate = heel_back * torch.stack(
+        [-sin_p * rate * fx - turn * fy, -sin_p * rate * fy + turn * fx, -cos_p * rate], dim=-1
+    )
+    return pitch, rate, offset, offset_rate
 
 
 @dataclass
@@ -638,6 +691,17 @@ def reference_at(
         swing_ori[:, 0], swing_rate[:, 0] = swing_roll_out(
             phase, step.duration, step.stance_is_left, cfg.swing_roll_out
         )
+    if cfg.swing_heel_strike != 0.0:
+        dp, dv, off, off_rate = heel_strike(
+            phase,
+            step.duration,
+            pelvis_ori[:, 2],
+            pelvis_rate[:, 2],
+            cfg.swing_heel_strike,
+            cfg.swing_heel_back,
+        )
+        swing_ori[:, 1], swing_rate[:, 1] = swing_ori[:, 1] + dp, swing_rate[:, 1] + dv
+        swing_pos, swing_vel = swing_pos + off, swing_vel + off_rate
     upper = torch.zeros(e, num_upper, dtype=tau.dtype, device=tau.device)
     return Reference(
         com_pos=torch.cat([com_xy, com_z], dim=-1),
