@@ -50,3 +50,22 @@ def assert_fused_is_readable(st: StepState, cfg, g: torch.Generator, label: obje
         want_pos, want_vel = reference_at(st, tau[:, j], cfg, HlipCfg(), 17).flatten()
         assert torch.allclose(pos[:, j], want_pos, atol=1e-9, rtol=0.0), label
         assert torch.allclose(vel[:, j], want_vel, atol=1e-9, rtol=0.0), label
+
+
+def assert_reference_option_is_read(key: str, value: float, bad: float, domain: str) -> None:
+    """``reference.<key>=value`` on the command line reaches the reference command term's
+    config (the audit's and the env's), its default is 0 (the author's reference), and
+    ``bad`` is refused in one ConfigError naming the ``domain`` (e.g. ``[0.0, 0.5]``)."""
+    import re
+
+    import pytest
+
+    from march.audit.feasibility import reference_command_cfg
+    from march.config.cli import load
+    from march.config.schema import ConfigError
+
+    ref = reference_command_cfg(load(["compute=smoke", f"reference.{key}={value}"]))
+    assert getattr(ref.reference, key) == value
+    assert getattr(reference_command_cfg(load(["compute=smoke"])).reference, key) == 0.0
+    with pytest.raises(ConfigError, match=re.escape(domain)):
+        load(["compute=smoke", f"reference.{key}={bad}"])

@@ -13,7 +13,11 @@ import math
 import numpy as np
 import pytest
 import torch
-from generated_steps import assert_fused_is_readable, random_steps
+from generated_steps import (
+    assert_fused_is_readable,
+    assert_reference_option_is_read,
+    random_steps,
+)
 
 from march.audit.ik_walk import heel_landing, ik_walks, toe_up_bound
 from march.audit.kinematic_g1 import IkCfg, KinematicG1, foot_sole, rotation_zyx
@@ -138,15 +142,7 @@ def test_reference_at_and_the_fused_reference_carry_it_and_the_default_is_unchan
 
 
 def test_the_option_reaches_the_reference_term_and_bad_values_are_one_line():
-    from march.audit.feasibility import reference_command_cfg
-    from march.config.cli import load
-    from march.config.schema import ConfigError
-
-    ref = reference_command_cfg(load(["compute=smoke", "reference.swing_heel_strike=0.2"]))
-    assert ref.reference.swing_heel_strike == 0.2
-    assert reference_command_cfg(load(["compute=smoke"])).reference.swing_heel_strike == 0.0
-    with pytest.raises(ConfigError, match=r"\[0.0, 0.5\]"):
-        load(["compute=smoke", "reference.swing_heel_strike=-0.1"])
+    assert_reference_option_is_read("swing_heel_strike", 0.2, -0.1, "[0.0, 0.5]")
 
 
 def test_toe_up_bound_by_hand():

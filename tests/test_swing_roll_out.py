@@ -5,9 +5,12 @@ default unchanged bit for bit, the option on the command line."""
 
 from __future__ import annotations
 
-import pytest
 import torch
-from generated_steps import assert_fused_is_readable, random_steps
+from generated_steps import (
+    assert_fused_is_readable,
+    assert_reference_option_is_read,
+    random_steps,
+)
 
 from march.reference.hlip import HlipCfg
 from march.reference.trajectory import ReferenceCfg, output_names, reference_at, swing_roll_out
@@ -82,12 +85,4 @@ def test_reference_at_and_the_fused_reference_carry_it_and_the_default_is_unchan
 
 
 def test_the_option_reaches_the_reference_term_and_bad_values_are_one_line():
-    from march.audit.feasibility import reference_command_cfg
-    from march.config.cli import load
-    from march.config.schema import ConfigError
-
-    ref = reference_command_cfg(load(["compute=smoke", "reference.swing_roll_out=0.15"]))
-    assert ref.reference.swing_roll_out == 0.15
-    assert reference_command_cfg(load(["compute=smoke"])).reference.swing_roll_out == 0.0
-    with pytest.raises(ConfigError, match=r"\[-0.5, 0.5\]"):
-        load(["compute=smoke", "reference.swing_roll_out=0.8"])
+    assert_reference_option_is_read("swing_roll_out", 0.15, 0.8, "[-0.5, 0.5]")

@@ -12,7 +12,11 @@ import math
 import numpy as np
 import pytest
 import torch
-from generated_steps import assert_fused_is_readable, random_steps
+from generated_steps import (
+    assert_fused_is_readable,
+    assert_reference_option_is_read,
+    random_steps,
+)
 
 from march.reference.hlip import HlipCfg
 from march.reference.trajectory import (
@@ -369,15 +373,7 @@ def test_the_fused_reference_carries_the_liftoff_pitch_as_reference_at_does():
 
 
 def test_the_pitch_carry_option_reaches_the_reference_term_and_bad_values_are_one_line():
-    from march.audit.feasibility import reference_command_cfg
-    from march.config.cli import load
-    from march.config.schema import ConfigError
-
-    ref = reference_command_cfg(load(["compute=smoke", "reference.swing_pitch_carry=0.5"]))
-    assert ref.reference.swing_pitch_carry == 0.5
-    assert reference_command_cfg(load(["compute=smoke"])).reference.swing_pitch_carry == 0.0
-    with pytest.raises(ConfigError, match=r"\[0.0, 1.0\]"):
-        load(["compute=smoke", "reference.swing_pitch_carry=1.5"])
+    assert_reference_option_is_read("swing_pitch_carry", 0.5, 1.5, "[0.0, 1.0]")
 
 
 def test_the_env_carries_the_swing_foots_measured_pitch():

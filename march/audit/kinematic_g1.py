@@ -507,22 +507,20 @@ class KinematicG1:
         stance.set_orientation_cost(stance_cost)
         held = pose(np.asarray(stance_rot), np.asarray(stance_pos))
         stance.set_target(held)
+        i = 0 if stance_is_left else 1
+
+        def hold_edge(edge: ToeEdgeTask, pitch_task: mink.FrameTask, at: np.ndarray) -> None:
+            # the edge at ``at`` (the sole's point in the site frame) of the held pose
+            held_edge = pose(np.asarray(stance_rot), np.asarray(stance_pos) + stance_rot @ at)
+            edge.set_position_cost(stance_cost)
+            edge.set_orientation_cost([stance_cost, 0.0, stance_cost])
+            edge.set_target(held_edge)
+            pitch_task.set_target(held_edge)
+
         if self.toes:
-            i = 0 if stance_is_left else 1
-            toe = self.soles[i].toe_offset()
-            at_toe = pose(np.asarray(stance_rot), np.asarray(stance_pos) + stance_rot @ toe)
-            self.toes[i].set_position_cost(stance_cost)
-            self.toes[i].set_orientation_cost([stance_cost, 0.0, stance_cost])
-            self.toes[i].set_target(at_toe)
-            self.heel_tasks[i].set_target(at_toe)
+            hold_edge(self.toes[i], self.heel_tasks[i], self.soles[i].toe_offset())
         if toe_up is not None:
-            i = 0 if stance_is_left else 1
-            heel = self.soles[i].heel_offset()
-            at_heel = pose(np.asarray(stance_rot), np.asarray(stance_pos) + stance_rot @ heel)
-            self.heels[i].set_position_cost(stance_cost)
-            self.heels[i].set_orientation_cost([stance_cost, 0.0, stance_cost])
-            self.heels[i].set_target(at_heel)
-            self.toe_up_tasks[i].set_target(at_heel)
+            hold_edge(self.heels[i], self.toe_up_tasks[i], self.soles[i].heel_offset())
             self.toe_up_limits[i].bound = float(toe_up)
         swing.set_position_cost(c[6:9])
         swing.set_orientation_cost(c[9:12])
