@@ -276,40 +276,48 @@ def reference_outputs(
         roll_pitch_rate = roll_pitch_rate + e0 * (herm[..., 2:3] / d) + v0 * herm[..., 3:4]
     yaw = wrap_to_pi(step.yaw0[:, None] + step.yaw_rate[:, None] * t)[..., None]
     yaw_rate = step.yaw_rate[:, None, None].expand(e, k, 1)
-    swing_vel = swing[..., 3:] * ((phase < 1.0) / dur)[..., None]
-    z2, zu = zeros[:2].expand(e, k, 2), zeros[:num_upper].expand(e, k, num_upper)
-    foot, foot_rate = z2, z2  # swing-foot roll and pitch: flat
+    per_s = ((phase < 1.0) / dur)[..., None]  # d/dt = d/ds / T inside the swing, 0 after
+    swing_vel = swing[..., 3:] * per_s
+    z1, zu = zeros[:1].expand(e, k, 1), zeros[:num_upper].expand(e, k, num_upper)
+    # The swing foot's roll and pitch (and rates), (E, K, 1) each: flat unless shaped.
+    roll, pitch, roll_rate, pitch_rate = z1, z1, z1, z1
     if cfg.swing_toe_down != 0.0 or cfg.swing_toe_roll != 0.0:
         # toed down (and rolled) in the swing (march.reference.trajectory.toe_down): the
         # table's columns 14 and 15 carry the amplitudes
-        foot = torch.cat([z2[..., :1], basis[..., 14:15]], dim=-1)
-        rate = basis[..., 15:16] * ((phase < 1.0) / dur)[..., None]
-        foot_rate = torch.cat([z2[..., :1], rate], dim=-1)
+        pitch, pitch_rate = basis[..., 14:15], basis[..., 15:16] * per_s
     if cfg.swing_pitch_carry > 0.0 and step.swing_from_pitch is not None:
         # the lift-off pitch carried (march.reference.trajectory.swing_pitch_carry)
-        pitch, rate = swing_pitch_carry(
+        carried, rate = swing_pitch_carry(
             step.swing_from_pitch[:, None], t, dur, cfg.swing_pitch_carry
         )
-        foot = torch.cat([foot[..., :1], foot[..., 1:] + pitch[..., None]], dim=-1)
-        foot_rate = torch.cat([foot_rate[..., :1], foot_rate[..., 1:] + rate[..., None]], -1)
+        pitch, pitch_rate = pitch + carried[..., None], pitch_rate + rate[..., None]
     if cfg.swing_roll_out != 0.0:
         # rolled toward the swing foot's side (march.reference.trajectory.swing_roll_out)
-        roll, rate = swing_roll_out(phase, dur, step.stance_is_left[:, None], cfg.swing_roll_out)
-        foot = torch.cat([roll[..., None], foot[..., 1:]], dim=-1)
-        foot_rate = torch.cat([rate[..., None], foot_rate[..., 1:]], dim=-1)
+        rolled, rate = swing_roll_out(phase, dur, step.stance_is_left[:, None], cfg.swing_roll_out)
+        roll, roll_rate = rolled[..., None], rate[..., None]
     swing_pos = swing[..., :3]
     if cfg.swing_heel_strike != 0.0:
         # toe up at touchdown, the heel where a flat foot's lands
         # (march.reference.trajectory.heel_strike)
-        pitch, rate, offset, offset_rate = heel_strike(
+        toe_up, rate, offset, offset_rate = heel_strike(
             phase, dur, yaw[..., 0], yaw_rate[..., 0], cfg.swing_heel_strike, cfg.swing_heel_back
         )
-        foot = torch.cat([foot[..., :1], foot[..., 1:] + pitch[..., None]], dim=-1)
-        foot_rate = torch.cat([foot_rate[..., :1], foot_rate[..., 1:] + rate[..., None]], -1)
+        pitch, pitch_rate = pitch + toe_up[..., None], pitch_rate + rate[..., None]
         swing_pos, swing_vel = swing_pos + offset, swing_vel + offset_rate
-    pos = torch.cat([com_pos, com_z, roll_pitch, yaw, swing_pos, foot, yaw, zu], dim=-1)
+    pos = torch.cat([com_pos, com_z, roll_pitch, yaw, swing_pos, roll, pitch, yaw, zu], dim=-1)
     vel = torch.cat(
-        [com_vel, com_vz, roll_pitch_rate, yaw_rate, swing_vel, foot_rate, yaw_rate, zu], -1
+        [
+            com_vel,
+            com_vz,
+            roll_pitch_rate,
+            yaw_rate,
+            swing_vel,
+            roll_rate,
+            pitch_rate,
+            yaw_rate,
+            zu,
+        ],
+        -1,
     )
     if single:
         return pos[:, 0], vel[:, 0]
