@@ -18,7 +18,7 @@ poses the robot for the reference y_ref of that instant, warm-started from the p
   :func:`foot_sole`) held in position, roll and yaw as the same hard equality constraint
   (:class:`ToeEdgeTask`: mink's ``FrameTask`` with the local pitch row dropped), while the
   foot may pitch heel UP about that edge, 0 <= pitch <= ``IkCfg.heel_pitch_max``
-  (:class:`HeelPitchLimit`, an inequality of every QP step: never toe-up, never the heel into
+  (:class:`PitchLimit`, an inequality of every QP step: never toe-up, never the heel into
   the ground); a small cost (``IkCfg.heel_cost``) keeps the foot flat unless lifting the heel
   brings the outputs nearer. A real G1, like a human, lifts its rear heel in late stance; the
   CLF reference says nothing about the stance foot's orientation, so a policy may do it.
@@ -29,7 +29,7 @@ poses the robot for the reference y_ref of that instant, warm-started from the p
   same way (position, roll and yaw; :class:`ToeEdgeTask` on the heel site) at the flat pose
   the foot comes down to (:func:`march.audit.ik_walk.heel_landing`), and its toe-up pitch about
   that edge is bounded tick by tick by the landed pitch shrinking to 0 at ``heel_flat_by`` of
-  the step (:class:`ToeUpLimit`: never toe into the stone), with the heel cost pulling it
+  the step (:class:`PitchLimit`: never toe into the stone), with the heel cost pulling it
   flat; from then on the flat foot's toe edge is held as with ``heel_off``. Each heel-phase
   tick measures the heel edge's slide.
 - **tasks**: the whole-body
@@ -117,7 +117,7 @@ class IkCfg:
     heel_flat_by: float = 0.3
     """``heel_toe``: the share of the step [-] by which a foot that landed toe up is flat: its
     toe-up pitch about the held heel edge is bounded by the landed pitch times
-    (1 - tick / ceil(heel_flat_by n)) over the step's n ticks (:class:`ToeUpLimit`), then the
+    (1 - tick / ceil(heel_flat_by n)) over the step's n ticks (:class:`PitchLimit`), then the
     toe edge of the flat foot is held as with ``heel_off``. A human's forefoot is down by
     about 15 % of the gait cycle, 25-30 % of a single-support step."""
     dt: float = 0.02
@@ -355,40 +355,24 @@ class ToeEdgeTask(mink.FrameTask):
         return -float(error[PITCH_ROW]), -jac[PITCH_ROW]
 
 
-class HeelPitchLimit(mink.Limit):
-    """0 <= the stance foot's pitch <= ``bound`` as an inequality of the QP step (linearised:
-    pitch + J dq within the bounds), so the heel only lifts and never goes into the ground
-    and the toe never lifts; the floating base can always turn the foot back, so the QP stays
-    feasible."""
+class PitchLimit(mink.Limit):
+    """``low`` <= the stance foot's pitch about its held edge <= ``high`` [rad] as an
+    inequality of the QP step (linearised: pitch + J dq within the bounds; the pitch positive
+    heel up, :meth:`ToeEdgeTask.pitch`); the floating base can always turn the foot back, so
+    the QP stays feasible. ``heel_off`` on the toe edge: 0..``IkCfg.heel_pitch_max`` (the heel
+    only lifts, never into the ground, and the toe never lifts); ``heel_toe``'s heel phase on
+    the heel edge: -bound..0 (the toe up no more than a bound set per tick, shrinking to 0 as
+    the foot comes down flat, and never into the ground)."""
 
-    def __init__(self, task: ToeEdgeTask, bound: float) -> None:
-        self.task, self.bound = task, bound
-
-    def compute_qp_inequalities(
-        self, configuration: mink.Configuration, dt: float
-    ) -> mink.limits.limit.Constraint:
-        pitch, jac = self.task.pitch(configuration)
-        g = np.stack([-jac, jac])  # -(pitch + J dq) <= 0 and pitch + J dq <= bound
-        h = np.array([pitch, self.bound - pitch])
-        return mink.limits.limit.Constraint(G=g, h=h)
-
-
-class ToeUpLimit(mink.Limit):
-    """-``bound`` <= the stance foot's pitch <= 0 about its held heel edge, as an inequality of
-    the QP step (``heel_toe``'s heel phase; linearised like :class:`HeelPitchLimit`): the toe
-    stays up no more than ``bound`` (set per tick, shrinking to 0: the foot comes down flat)
-    and never goes into the ground; the floating base can always turn the foot, so the QP
-    stays feasible."""
-
-    def __init__(self, task: ToeEdgeTask) -> None:
-        self.task, self.bound = task, 0.0
+    def __init__(self, task: ToeEdgeTask, low: float, high: float) -> None:
+        self.task, self.low, self.high = task, low, high
 
     def compute_qp_inequalities(
         self, configuration: mink.Configuration, dt: float
     ) -> mink.limits.limit.Constraint:
         pitch, jac = self.task.pitch(configuration)
-        g = np.stack([jac, -jac])  # pitch + J dq <= 0 and -(pitch + J dq) <= bound
-        h = np.array([-pitch, self.bound + pitch])
+        g = np.stack([-jac, jac])  # low - (pitch + J dq) <= 0 and pitch + J dq - high <= 0
+        h = np.array([pitch - self.low, self.high - pitch])
         return mink.limits.limit.Constraint(G=g, h=h)
 
 
@@ -449,11 +433,11 @@ class KinematicG1:
         self.soles = [foot_sole(m, s) for s in self.foot_sites]
         """Each foot's sole in its site's frame (:func:`foot_sole`)."""
         self.toes: list[ToeEdgeTask] = []
-        self.heel_limits: list[HeelPitchLimit] = []
+        self.heel_limits: list[PitchLimit] = []
         self.heel_tasks: list[mink.FrameTask] = []
         self.heels: list[ToeEdgeTask] = []
         """``heel_toe``: each foot's heel edge as held on landing toe up."""
-        self.toe_up_limits: list[ToeUpLimit] = []
+        self.toe_up_limits: list[PitchLimit] = []
         self.toe_up_tasks: list[mink.FrameTask] = []
         if self.cfg.stance in ("heel_off", "heel_toe"):
             toe_sites = [f"{s}_toe" for s in self.foot_sites]
@@ -469,13 +453,13 @@ class KinematicG1:
                     " (with_toe_sites)"
                 )
             self.toes = [ToeEdgeTask(s, "site", 1.0, [1.0, 0.0, 1.0]) for s in toe_sites]
-            self.heel_limits = [HeelPitchLimit(t, self.cfg.heel_pitch_max) for t in self.toes]
+            self.heel_limits = [PitchLimit(t, 0.0, self.cfg.heel_pitch_max) for t in self.toes]
             self.heel_tasks = [
                 mink.FrameTask(s, "site", 0.0, [0.0, self.cfg.heel_cost, 0.0]) for s in toe_sites
             ]
         if self.cfg.stance == "heel_toe":
             self.heels = [ToeEdgeTask(s, "site", 1.0, [1.0, 0.0, 1.0]) for s in heel_sites]
-            self.toe_up_limits = [ToeUpLimit(h) for h in self.heels]
+            self.toe_up_limits = [PitchLimit(h, 0.0, 0.0) for h in self.heels]
             self.toe_up_tasks = [
                 mink.FrameTask(s, "site", 0.0, [0.0, self.cfg.heel_cost, 0.0]) for s in heel_sites
             ]
@@ -521,7 +505,7 @@ class KinematicG1:
             hold_edge(self.toes[i], self.heel_tasks[i], self.soles[i].toe_offset())
         if toe_up is not None:
             hold_edge(self.heels[i], self.toe_up_tasks[i], self.soles[i].heel_offset())
-            self.toe_up_limits[i].bound = float(toe_up)
+            self.toe_up_limits[i].low = -float(toe_up)
         swing.set_position_cost(c[6:9])
         swing.set_orientation_cost(c[9:12])
         swing.set_target(pose(rotation_zyx(*y_ref[9:12]), np.asarray(y_ref[6:9])))
