@@ -69,3 +69,25 @@ def assert_reference_option_is_read(key: str, value: float, bad: float, domain: 
     assert getattr(reference_command_cfg(load(["compute=smoke"])).reference, key) == 0.0
     with pytest.raises(ConfigError, match=re.escape(domain)):
         load(["compute=smoke", f"reference.{key}={bad}"])
+
+
+def shaped_and_plain(st: StepState, tau: torch.Tensor, key: str, value: float) -> tuple:
+    """``reference_at`` of ``st`` at ``tau`` flattened (positions, rates) with
+    ``ReferenceCfg(key=value)`` and with the default, after checking that ``key=0`` gives the
+    default bit for bit: (shaped, plain)."""
+    from march.reference.hlip import HlipCfg
+    from march.reference.trajectory import ReferenceCfg, reference_at
+
+    def flat(cfg: ReferenceCfg) -> tuple[torch.Tensor, torch.Tensor]:
+        return reference_at(st, tau, cfg, HlipCfg(), 17).flatten()
+
+    plain, off = flat(ReferenceCfg()), flat(ReferenceCfg(**{key: 0.0}))
+    assert torch.equal(off[0], plain[0]) and torch.equal(off[1], plain[1]), key
+    return flat(ReferenceCfg(**{key: value})), plain
+
+
+def assert_only_these_change(shaped: tuple, plain: tuple, columns: list[int]) -> None:
+    """Every output column but ``columns`` (positions and rates) equal bit for bit."""
+    others = [i for i in range(plain[0].shape[-1]) if i not in columns]
+    assert torch.equal(shaped[0][:, others], plain[0][:, others])
+    assert torch.equal(shaped[1][:, others], plain[1][:, others])

@@ -15,15 +15,16 @@ import pytest
 import torch
 from generated_steps import (
     assert_fused_is_readable,
+    assert_only_these_change,
     assert_reference_option_is_read,
     random_steps,
+    shaped_and_plain,
 )
 
 from march.audit.ik_walk import heel_landing, ik_walks, toe_up_bound
 from march.audit.kinematic_g1 import IkCfg, KinematicG1, foot_sole, rotation_zyx
 from march.env.g1 import g1_mjcf_spec
-from march.reference.hlip import HlipCfg
-from march.reference.trajectory import ReferenceCfg, heel_strike, output_names, reference_at
+from march.reference.trajectory import ReferenceCfg, heel_strike, output_names
 
 F64 = torch.float64
 NAMES = output_names(17)
@@ -112,10 +113,7 @@ def test_reference_at_and_the_fused_reference_carry_it_and_the_default_is_unchan
     changed = [*SWING_POS, SWING_PITCH]
     for frac in (0.3, 0.7, 0.95, 1.2):
         tau = st.duration * frac
-        plain = reference_at(st, tau, ReferenceCfg(), HlipCfg(), 17).flatten()
-        off = reference_at(st, tau, ReferenceCfg(swing_heel_strike=0.0), HlipCfg(), 17).flatten()
-        assert torch.equal(off[0], plain[0]) and torch.equal(off[1], plain[1])
-        hs = reference_at(st, tau, ReferenceCfg(swing_heel_strike=0.3), HlipCfg(), 17).flatten()
+        hs, plain = shaped_and_plain(st, tau, "swing_heel_strike", 0.3)
         yaw = plain[0][:, NAMES.index("pelvis_yaw")]
         yaw_rate = plain[1][:, NAMES.index("pelvis_yaw")]
         pitch, rate, shift, shift_rate = heel_strike(
@@ -125,9 +123,7 @@ def test_reference_at_and_the_fused_reference_carry_it_and_the_default_is_unchan
         assert torch.allclose(hs[1][:, SWING_PITCH] - plain[1][:, SWING_PITCH], rate, atol=1e-5)
         assert torch.allclose(hs[0][:, SWING_POS] - plain[0][:, SWING_POS], shift, atol=1e-6)
         assert torch.allclose(hs[1][:, SWING_POS] - plain[1][:, SWING_POS], shift_rate, atol=1e-5)
-        others = [i for i in range(len(NAMES)) if i not in changed]
-        assert torch.equal(hs[0][:, others], plain[0][:, others])
-        assert torch.equal(hs[1][:, others], plain[1][:, others])
+        assert_only_these_change(hs, plain, changed)
         if frac > 0.6:
             assert bool((pitch < -1e-3).all())
     for seed in range(4):

@@ -8,12 +8,13 @@ from __future__ import annotations
 import torch
 from generated_steps import (
     assert_fused_is_readable,
+    assert_only_these_change,
     assert_reference_option_is_read,
     random_steps,
+    shaped_and_plain,
 )
 
-from march.reference.hlip import HlipCfg
-from march.reference.trajectory import ReferenceCfg, output_names, reference_at, swing_roll_out
+from march.reference.trajectory import ReferenceCfg, output_names, swing_roll_out
 
 F64 = torch.float64
 NAMES = output_names(17)
@@ -60,18 +61,13 @@ def test_reference_at_and_the_fused_reference_carry_it_and_the_default_is_unchan
     st = random_steps(48, g)
     for frac in (0.1, 0.4, 0.77, 1.2):
         tau = st.duration * frac
-        plain = reference_at(st, tau, ReferenceCfg(), HlipCfg(), 17).flatten()
-        off = reference_at(st, tau, ReferenceCfg(swing_roll_out=0.0), HlipCfg(), 17).flatten()
-        assert torch.equal(off[0], plain[0]) and torch.equal(off[1], plain[1])
-        rolled = reference_at(st, tau, ReferenceCfg(swing_roll_out=0.25), HlipCfg(), 17).flatten()
+        rolled, plain = shaped_and_plain(st, tau, "swing_roll_out", 0.25)
         want_roll, want_rate = swing_roll_out(
             tau / st.duration, st.duration, st.stance_is_left, 0.25
         )
         assert torch.allclose(rolled[0][:, SWING_ROLL], want_roll, atol=1e-12)
         assert torch.allclose(rolled[1][:, SWING_ROLL], want_rate, atol=1e-12)
-        others = [i for i in range(len(NAMES)) if i != SWING_ROLL]
-        assert torch.equal(rolled[0][:, others], plain[0][:, others])
-        assert torch.equal(rolled[1][:, others], plain[1][:, others])
+        assert_only_these_change(rolled, plain, [SWING_ROLL])
         if frac < 1.0:
             assert bool((want_roll.abs() > 1e-3).all())
     for seed in range(4):
