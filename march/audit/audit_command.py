@@ -20,8 +20,8 @@ plus a PNG beside it (``out=``, default ``outputs/audit/<job>_<reward>.json``).
 ``audit.<option>=value`` sets the kinematic audits' own options (``reference`` and
 ``envelope``; :data:`AUDIT_OPTIONS`): ``audit.stance=flat|heel_off|heel_toe`` (the stance
 foot's contact model, :class:`march.audit.kinematic_g1.IkCfg`), ``audit.heel_pitch_max``
-[rad], ``audit.heel_cost`` [1/rad], ``audit.heel_flat_by`` [-], and for ``reference`` ``audit.courses_per_level`` and
-``audit.film=true|false``. The reach tolerances are not options here: they are the audit's
+[rad], ``audit.heel_cost`` [1/rad], ``audit.heel_flat_by`` [-], and for ``reference``
+``audit.courses_per_level`` and ``audit.film=true|false``. The reach tolerances are not options here: they are the audit's
 judgement. A bad value is one line on stderr and exit 2, before anything is built.
 """
 

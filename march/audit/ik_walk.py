@@ -17,9 +17,10 @@ step's CoM height (``reference.com_height``), and the new swing foot's pitch at 
 (``reference.swing_pitch_carry``, which the env reads from the site's rotation), so the audit
 measures the reference the env tracks.
 
-With ``IkCfg.stance=heel_toe`` a step whose stance foot landed toe up (``reference.swing_heel_strike``)
-holds it on its heel edge while its toe comes down (:func:`heel_landing`, :func:`toe_up_bound`);
-a heel strike's landing gap is the heel's, not the raised site's.
+With ``IkCfg.stance=heel_toe`` a step whose stance foot landed toe up
+(``reference.swing_heel_strike``) holds it on its heel edge while its toe comes down
+(:func:`heel_landing`, :func:`toe_up_bound`); a heel strike's landing gap is the heel's, not
+the raised site's.
 
 Only a real touchdown ends a step and replans (issue 55): the swing foot must have left the
 ground (risen ``lift_min`` above its lift-off height) and come down onto the planned stone top
@@ -95,7 +96,8 @@ class WalkTrace:
     """Per tick the stance foot's pitch against its held (flat) pose [rad], positive heel up,
     negative toe up (``heel_toe``'s heel phase)."""
     tick_slide: list[float] = field(default_factory=list)
-    """Per tick the stance foot's held contact's slide [m] (:class:`~march.audit.kinematic_g1.Tick`)."""
+    """Per tick the slide of the stance foot's held contact [m]
+    (:class:`~march.audit.kinematic_g1.Tick`)."""
     landed_toe_up: list[float] = field(default_factory=list)
     """Per step the toe-up pitch its stance foot landed with [rad] (``heel_toe``; 0 for a flat
     or toe-down landing and with the other models)."""
